@@ -1,0 +1,3 @@
+from avatarctl.cli.app import main
+
+main()

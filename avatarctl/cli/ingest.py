@@ -1,0 +1,15 @@
+"""`avatarctl ingest`: not built yet (see the issue tracker)."""
+
+from __future__ import annotations
+
+import typer
+
+
+def register(app: typer.Typer) -> None:
+    @app.command("ingest", help="Turn a raw capture (frames, cameras, masks, body fits) into a project directory.", context_settings={"allow_extra_args": True, "ignore_unknown_options": True})
+    def _cmd(ctx: typer.Context) -> None:
+        from avatarctl.cli.common import user_errors
+        from avatarctl.errors import NotBuiltError
+
+        with user_errors():
+            raise NotBuiltError("`avatarctl ingest` is not built yet", fix="see the open issues; no output was written")

@@ -1,0 +1,256 @@
+"""The project directory contract: every path a stage reads or writes, and the manifest `project.json`.
+
+Layout (see docs/project_dir.md)::
+
+    PROJECT/
+      project.json                      manifest: schema_version, body model, source capture, stage records
+      ingest/cameras.json               undistorted pinhole cameras (OpenCV, world->camera, metres)
+      ingest/frames/<cam>/<frame:06d>.jpg   undistorted RGB frames
+      ingest/masks/<cam>/<frame:06d>.png    undistorted foreground masks (0 / 255)
+      ingest/body.npz                   body-model fits, one row per frame (see avatarctl.body.motion)
+      ingest/split.json                 train/test frames and views
+      ingest/contact_sheet.png          frames with the posed body overlaid, for a person to check
+      fit/config.json                   resolved fit config
+      fit/log.jsonl                     one JSON record per logged step
+      fit/checkpoints/step_<step:08d>.pt, fit/checkpoints/latest.pt
+      render/<name>/...                 frames/*.png, video.mp4, config.json
+      eval/<name>/...                   metrics.json, per_frame.csv, sheet.png
+
+Only this module knows these names. Writes go through `avatarctl.atomic`.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import hashlib
+import json
+import os
+import re
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+from avatarctl import __version__
+from avatarctl.atomic import write_json
+from avatarctl.errors import ProjectError
+
+SCHEMA_VERSION = 1
+STAGES = ("ingest", "fit", "render", "eval")
+_NAME_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,63}$")
+
+
+def now_iso() -> str:
+    return _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
+
+
+def check_name(name: str, what: str = "name") -> str:
+    """Render/eval output names become folder names: keep them simple."""
+    if not _NAME_RE.match(name):
+        raise ProjectError(f"invalid {what} {name!r}", fix="use letters, digits, '.', '_' or '-' (max 64 chars)")
+    return name
+
+
+@dataclass(frozen=True)
+class ProjectPaths:
+    """Every path inside a project directory."""
+
+    root: Path
+
+    @property
+    def manifest(self) -> Path:
+        return self.root / "project.json"
+
+    # ---- ingest -------------------------------------------------------------------------------------------
+    @property
+    def ingest(self) -> Path:
+        return self.root / "ingest"
+
+    @property
+    def cameras(self) -> Path:
+        return self.ingest / "cameras.json"
+
+    @property
+    def body(self) -> Path:
+        return self.ingest / "body.npz"
+
+    @property
+    def split(self) -> Path:
+        return self.ingest / "split.json"
+
+    @property
+    def ingest_contact_sheet(self) -> Path:
+        return self.ingest / "contact_sheet.png"
+
+    def frame(self, cam: str, frame: int) -> Path:
+        return self.ingest / "frames" / cam / f"{frame:06d}.jpg"
+
+    def mask(self, cam: str, frame: int) -> Path:
+        return self.ingest / "masks" / cam / f"{frame:06d}.png"
+
+    # ---- fit ----------------------------------------------------------------------------------------------
+    @property
+    def fit(self) -> Path:
+        return self.root / "fit"
+
+    @property
+    def fit_config(self) -> Path:
+        return self.fit / "config.json"
+
+    @property
+    def fit_log(self) -> Path:
+        return self.fit / "log.jsonl"
+
+    @property
+    def checkpoints(self) -> Path:
+        return self.fit / "checkpoints"
+
+    def checkpoint(self, step: int) -> Path:
+        return self.checkpoints / f"step_{step:08d}.pt"
+
+    @property
+    def latest_checkpoint(self) -> Path:
+        return self.checkpoints / "latest.pt"
+
+    # ---- render / eval ------------------------------------------------------------------------------------
+    def render(self, name: str) -> Path:
+        return self.root / "render" / check_name(name, "render name")
+
+    def eval(self, name: str) -> Path:
+        return self.root / "eval" / check_name(name, "eval name")
+
+
+@dataclass
+class StageRecord:
+    """One run of one stage."""
+
+    stage: str
+    started: str
+    finished: str
+    version: str
+    config: dict[str, Any]
+    outputs: list[str]
+    summary: dict[str, Any] = field(default_factory=dict)
+
+
+@dataclass
+class Manifest:
+    """`project.json`."""
+
+    schema_version: int
+    body_model: dict[str, Any]  # {"name": "anny"|"smpl"|"smplx", "path": str|None, ...}
+    source: dict[str, Any]  # {"path": str, "format": str, "sha256": str, "files": int}
+    created: str
+    stages: list[StageRecord] = field(default_factory=list)
+
+    def to_json(self) -> dict[str, Any]:
+        return asdict(self)
+
+    @classmethod
+    def from_json(cls, d: dict[str, Any], where: Path) -> "Manifest":
+        try:
+            return cls(
+                schema_version=int(d["schema_version"]),
+                body_model=dict(d["body_model"]),
+                source=dict(d["source"]),
+                created=str(d["created"]),
+                stages=[StageRecord(**s) for s in d.get("stages", [])],
+            )
+        except (KeyError, TypeError, ValueError) as e:
+            raise ProjectError(f"malformed project manifest ({e})", where=str(where),
+                               fix="re-create the project with `avatarctl ingest`") from None
+
+
+class Project:
+    """A project directory: its paths and its manifest."""
+
+    def __init__(self, root: Path, manifest: Manifest):
+        self.root = Path(root)
+        self.paths = ProjectPaths(self.root)
+        self.manifest = manifest
+
+    # ---- create / open -------------------------------------------------------------------------------------
+    @classmethod
+    def create(cls, root: str | os.PathLike, body_model: dict[str, Any], source: dict[str, Any]) -> "Project":
+        """Write a fresh manifest into `root` (which must not already hold a project)."""
+        root = Path(root)
+        if (root / "project.json").exists():
+            raise ProjectError("a project already exists here", where=str(root),
+                               fix="choose a new PROJECT directory or delete this one")
+        proj = cls(root, Manifest(SCHEMA_VERSION, body_model, source, now_iso()))
+        proj.save()
+        return proj
+
+    @classmethod
+    def open(cls, root: str | os.PathLike) -> "Project":
+        root = Path(root)
+        mpath = root / "project.json"
+        if not mpath.is_file():
+            raise ProjectError("not an avatarctl project (no project.json)", where=str(root),
+                               fix="create one with `avatarctl ingest CAPTURE PROJECT`")
+        try:
+            data = json.loads(mpath.read_text())
+        except (OSError, json.JSONDecodeError) as e:
+            raise ProjectError(f"cannot read project manifest ({e})", where=str(mpath),
+                               fix="re-create the project with `avatarctl ingest`") from None
+        version = data.get("schema_version")
+        if version != SCHEMA_VERSION:
+            raise ProjectError(f"unknown project schema_version {version!r} (this avatarctl {__version__} reads "
+                               f"{SCHEMA_VERSION})", where=str(mpath),
+                               fix="use the avatarctl version that wrote it, or re-run `avatarctl ingest`")
+        return cls(root, Manifest.from_json(data, mpath))
+
+    def save(self) -> None:
+        write_json(self.paths.manifest, self.manifest.to_json())
+
+    # ---- stage records -------------------------------------------------------------------------------------
+    def record(self, stage: str, config: dict[str, Any], outputs: list[str | Path], started: str,
+               summary: dict[str, Any] | None = None) -> StageRecord:
+        """Append a stage record and save the manifest atomically. Output paths are stored relative to root."""
+        if stage not in STAGES:
+            raise ValueError(f"unknown stage {stage!r}; expected one of {STAGES}")
+        rel = [os.path.relpath(Path(p), self.root) if Path(p).is_absolute() else str(p) for p in outputs]
+        rec = StageRecord(stage=stage, started=started, finished=now_iso(), version=__version__,
+                          config=config, outputs=rel, summary=summary or {})
+        self.manifest.stages.append(rec)
+        self.save()
+        return rec
+
+    def last(self, stage: str) -> StageRecord | None:
+        for rec in reversed(self.manifest.stages):
+            if rec.stage == stage:
+                return rec
+        return None
+
+    def require(self, stage: str) -> StageRecord:
+        """The last record of `stage`, checking that every output it lists is still on disk."""
+        rec = self.last(stage)
+        hint = {"ingest": "run `avatarctl ingest CAPTURE PROJECT`", "fit": f"run `avatarctl fit {self.root}`",
+                "render": f"run `avatarctl render {self.root}`", "eval": f"run `avatarctl eval {self.root}`"}[stage]
+        if rec is None:
+            raise ProjectError(f"project has no {stage} output yet", where=str(self.root), fix=hint)
+        for out in rec.outputs:
+            if not (self.root / out).exists():
+                raise ProjectError(f"{stage} output is missing: {out}", where=str(self.root),
+                                   fix=f"{hint} again")
+        return rec
+
+
+def sha256_file(path: str | os.PathLike, chunk: int = 1 << 20) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        while block := f.read(chunk):
+            h.update(block)
+    return h.hexdigest()
+
+
+def hash_tree(root: str | os.PathLike) -> tuple[str, int]:
+    """Content hash of a directory tree: sha256 over sorted (relative path, file sha256). Returns (hex, files)."""
+    root = Path(root)
+    h = hashlib.sha256()
+    n = 0
+    for p in sorted(q for q in root.rglob("*") if q.is_file()):
+        h.update(p.relative_to(root).as_posix().encode())
+        h.update(b"\0")
+        h.update(sha256_file(p).encode())
+        n += 1
+    return h.hexdigest(), n

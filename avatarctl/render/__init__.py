@@ -1,0 +1,1 @@
+"""Cameras, rays, samplers, volume compositing, trajectories and video writing."""
