@@ -1,0 +1,140 @@
+"""Reading and writing the ingested capture inside a project directory (cameras, split, frames, masks, fits).
+
+Ingest writes through these functions; fit, render and eval read through them. Paths come from `ProjectPaths`.
+Frames are undistorted RGB (uint8, JPEG quality 95), masks undistorted uint8 0/255 PNG, cameras pinhole.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+
+from avatarctl.atomic import atomic_path, write_json
+from avatarctl.body.motion import BodyMotion
+from avatarctl.errors import ProjectError
+from avatarctl.project import Project
+from avatarctl.render.cameras import Camera
+
+JPEG_QUALITY = 95
+
+
+@dataclass(frozen=True)
+class Split:
+    """Which frames (capture frame numbers) and views (camera names) are for training and for testing."""
+
+    train_frames: list[int]
+    test_frames: list[int]
+    train_views: list[str]
+    test_views: list[str]
+
+    def to_json(self) -> dict:
+        return asdict(self)
+
+    @classmethod
+    def from_json(cls, d: dict) -> "Split":
+        return cls(train_frames=[int(f) for f in d["train_frames"]], test_frames=[int(f) for f in d["test_frames"]],
+                   train_views=[str(v) for v in d["train_views"]], test_views=[str(v) for v in d["test_views"]])
+
+
+@dataclass(frozen=True)
+class ProjectCapture:
+    """Everything ingest produced, loaded (images stay on disk and are read lazily)."""
+
+    project: Project
+    cameras: dict[str, Camera]  # name -> undistorted pinhole camera
+    split: Split
+    motion: BodyMotion  # one row per ingested frame
+    body_model: str
+    body_model_path: str | None
+
+    @property
+    def frames(self) -> list[int]:
+        return [int(f) for f in self.motion.frame_index]
+
+    def image(self, cam: str, frame: int) -> np.ndarray:
+        return read_frame(self.project, cam, frame)
+
+    def mask(self, cam: str, frame: int) -> np.ndarray:
+        return read_mask(self.project, cam, frame)
+
+
+def save_cameras(path: Path, cameras: list[Camera]) -> None:
+    write_json(path, {"cameras": [c.to_json() for c in cameras]})
+
+
+def load_cameras(path: Path) -> dict[str, Camera]:
+    if not Path(path).is_file():
+        raise ProjectError("cameras file missing", where=str(path), fix="re-run `avatarctl ingest`")
+    d = json.loads(Path(path).read_text())
+    return {c["name"]: Camera.from_json(c) for c in d["cameras"]}
+
+
+def save_split(path: Path, split: Split) -> None:
+    write_json(path, split.to_json())
+
+
+def load_split(path: Path) -> Split:
+    if not Path(path).is_file():
+        raise ProjectError("split file missing", where=str(path), fix="re-run `avatarctl ingest`")
+    return Split.from_json(json.loads(Path(path).read_text()))
+
+
+def write_frame(project: Project, cam: str, frame: int, rgb: np.ndarray) -> Path:
+    """Write an undistorted RGB uint8 [H, W, 3] frame atomically."""
+    import cv2
+
+    dest = project.paths.frame(cam, frame)
+    with atomic_path(dest) as tmp:
+        if not cv2.imwrite(str(tmp), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY]):
+            raise OSError(f"cv2.imwrite failed for {dest}")
+    return dest
+
+
+def write_mask(project: Project, cam: str, frame: int, mask: np.ndarray) -> Path:
+    """Write a foreground mask (bool or uint8, [H, W]) as 0/255 PNG atomically."""
+    import cv2
+
+    dest = project.paths.mask(cam, frame)
+    with atomic_path(dest) as tmp:
+        if not cv2.imwrite(str(tmp), (np.asarray(mask) > 0).astype(np.uint8) * 255):
+            raise OSError(f"cv2.imwrite failed for {dest}")
+    return dest
+
+
+def read_frame(project: Project, cam: str, frame: int) -> np.ndarray:
+    """Undistorted RGB uint8 [H, W, 3]."""
+    import cv2
+
+    p = project.paths.frame(cam, frame)
+    img = cv2.imread(str(p), cv2.IMREAD_COLOR)
+    if img is None:
+        raise ProjectError(f"frame image missing or unreadable: camera {cam}, frame {frame}", where=str(p),
+                           fix="re-run `avatarctl ingest`")
+    return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
+
+
+def read_mask(project: Project, cam: str, frame: int) -> np.ndarray:
+    """Foreground mask, bool [H, W]."""
+    import cv2
+
+    p = project.paths.mask(cam, frame)
+    m = cv2.imread(str(p), cv2.IMREAD_GRAYSCALE)
+    if m is None:
+        raise ProjectError(f"mask missing or unreadable: camera {cam}, frame {frame}", where=str(p),
+                           fix="re-run `avatarctl ingest`")
+    return m > 127
+
+
+def load_project_capture(project: Project) -> ProjectCapture:
+    """Load what ingest wrote (checks that ingest ran and its outputs exist)."""
+    project.require("ingest")
+    p = project.paths
+    if not p.body.is_file():
+        raise ProjectError("body fits missing", where=str(p.body), fix="re-run `avatarctl ingest`")
+    motion = BodyMotion.load(p.body)
+    bm = project.manifest.body_model
+    return ProjectCapture(project=project, cameras=load_cameras(p.cameras), split=load_split(p.split), motion=motion,
+                          body_model=str(bm.get("name", motion.body_model)), body_model_path=bm.get("path"))
