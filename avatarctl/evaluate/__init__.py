@@ -1,0 +1,1 @@
+"""Metrics and evaluation protocols (the only place scores are computed)."""

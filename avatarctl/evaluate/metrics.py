@@ -1,0 +1,67 @@
+"""The one metrics module: PSNR and SSIM, used by fit-time validation and by `avatarctl eval`.
+
+All scores are computed in float32 on images with values in [0, 1] (uint8 inputs are divided by 255).
+SSIM is scikit-image's `structural_similarity` with the settings in `SSIM_SETTINGS` (recorded beside every number,
+with the scikit-image version, because SSIM values differ between versions and settings).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+# Neural Body's evaluation calls skimage SSIM on the box crop with channel_axis and data_range=1 (float images);
+# we use the same defaults: 7x7 uniform window, no Gaussian weighting.
+SSIM_SETTINGS: dict[str, Any] = {"data_range": 1.0, "channel_axis": -1, "win_size": 7, "gaussian_weights": False}
+
+
+def to_float(img: np.ndarray) -> np.ndarray:
+    """uint8 or float image -> float32 in [0, 1]."""
+    a = np.asarray(img)
+    if a.dtype == np.uint8:
+        return a.astype(np.float32) / 255.0
+    return a.astype(np.float32)
+
+
+def mse(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray | None = None) -> float:
+    """Mean squared error over pixels (and channels); over `mask` pixels only when given ([H, W] bool)."""
+    p, g = to_float(pred), to_float(gt)
+    assert p.shape == g.shape, f"pred {p.shape} vs gt {g.shape}"
+    d = (p - g) ** 2
+    if mask is not None:
+        m = np.asarray(mask, dtype=bool)
+        assert m.shape == p.shape[:2], f"mask {m.shape} vs image {p.shape[:2]}"
+        if not m.any():
+            raise ValueError("empty evaluation mask")
+        d = d[m]
+    return float(d.mean(dtype=np.float64))
+
+
+def psnr_from_mse(m: float) -> float:
+    return float("inf") if m <= 0 else float(-10.0 * np.log10(m))
+
+
+def psnr(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray | None = None) -> float:
+    """PSNR in dB for images in [0, 1]: -10 log10(MSE), over `mask` pixels when given."""
+    return psnr_from_mse(mse(pred, gt, mask))
+
+
+def ssim(pred: np.ndarray, gt: np.ndarray) -> float:
+    """SSIM of two [H, W, 3] images in [0, 1] with `SSIM_SETTINGS` (crop to the box first for the bbox protocol)."""
+    from skimage.metrics import structural_similarity
+
+    p, g = to_float(pred), to_float(gt)
+    assert p.shape == g.shape, f"pred {p.shape} vs gt {g.shape}"
+    win = SSIM_SETTINGS["win_size"]
+    if min(p.shape[:2]) < win:
+        raise ValueError(f"image {p.shape[:2]} smaller than the SSIM window {win}")
+    return float(structural_similarity(p, g, **SSIM_SETTINGS))
+
+
+def metric_settings() -> dict[str, Any]:
+    """What to record beside every number."""
+    import skimage
+
+    return {"psnr": "-10*log10(MSE), images in [0,1], float32", "ssim": dict(SSIM_SETTINGS),
+            "scikit_image": skimage.__version__}

@@ -1,0 +1,56 @@
+"""Evaluation protocols: which pixels a score is computed over.
+
+- `bbox` (Neural Body / SLRF): project the 8 corners of the posed body mesh's 3D bounding box into the image; PSNR
+  over the pixels inside the projected box polygon (`mask_at_box`), SSIM on the image cropped to the polygon's 2D
+  bounding rectangle.
+- `full`: all pixels; the background colour used for rendering and ground-truth compositing is recorded.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from avatarctl.render.cameras import Camera
+
+PROTOCOLS = ("bbox", "full")
+
+
+@dataclass(frozen=True)
+class EvalRegion:
+    """Pixels a score is computed over."""
+
+    mask: np.ndarray  # [H, W] bool: pixels counted by PSNR
+    crop: tuple[int, int, int, int]  # (x0, y0, x1, y1), exclusive end: the SSIM crop
+
+    def crop_image(self, img: np.ndarray) -> np.ndarray:
+        x0, y0, x1, y1 = self.crop
+        return img[y0:y1, x0:x1]
+
+
+def box_corners(vertices: np.ndarray, pad: float = 0.05) -> np.ndarray:
+    """[V, 3] posed vertices -> [8, 3] corners of their axis-aligned box, grown by `pad` metres (Neural Body: 0.05)."""
+    lo = vertices.min(axis=0) - pad
+    hi = vertices.max(axis=0) + pad
+    return np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+
+
+def bbox_region(camera: Camera, vertices: np.ndarray, pad: float = 0.05) -> EvalRegion:
+    """The `bbox` protocol's region for one (pinhole) camera and one frame's posed body vertices [V, 3]."""
+    import cv2
+
+    uv = camera.project(box_corners(np.asarray(vertices, dtype=np.float64), pad), distort=False)
+    H, W = camera.height, camera.width
+    hull = cv2.convexHull(np.round(uv).astype(np.int32))
+    mask = np.zeros((H, W), np.uint8)
+    cv2.fillConvexPoly(mask, hull, 1)
+    x0 = int(np.clip(np.floor(uv[:, 0].min()), 0, W))
+    x1 = int(np.clip(np.ceil(uv[:, 0].max()) + 1, 0, W))
+    y0 = int(np.clip(np.floor(uv[:, 1].min()), 0, H))
+    y1 = int(np.clip(np.ceil(uv[:, 1].max()) + 1, 0, H))
+    return EvalRegion(mask=mask.astype(bool), crop=(x0, y0, x1, y1))
+
+
+def full_region(height: int, width: int) -> EvalRegion:
+    return EvalRegion(mask=np.ones((height, width), bool), crop=(0, 0, width, height))
