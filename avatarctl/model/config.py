@@ -1,0 +1,128 @@
+"""`ModelConfig`: every hyperparameter of the structured local radiance fields (SLRF) model.
+
+Defaults are the supplement's table (N=128, sigma=0.05, eps=0.001, dim e=32, dim z=8, 64 uniform samples per
+ray, lambda_rec/trans/ebd/KL = 1 / 0.02 / 0.1 / 1e-5, positional encodings m = 6 / 4 / 12). The network widths are
+our choice because the paper's architecture figure (supp. Fig. A) is not available:
+
+- local fields F_i: `node_depth` fully connected ReLU layers of `node_width` channels, then a linear layer to a
+  `feature_dim` feature (paper preset 3 x 128 -> 128);
+- heads: density H(f) = Linear(f, head_width) -> ReLU -> Linear(1) -> softplus; colour
+  G(f, v) = Linear([f, gamma(v)], head_width) -> ReLU -> Linear(head_width // 2) -> ReLU -> Linear(3) -> sigmoid;
+- per-node cVAE encoder and decoder: two ReLU layers of `cvae_width` channels each.
+
+Presets: "paper" = the defaults; "cpu" = the same model with narrower networks (node 2 x 32 -> 32, heads 64,
+cVAE 32) so a training step with a few hundred rays takes well under a second on 2 CPU cores.
+
+Choices beyond the paper text (documented, switchable):
+- `local_coords_in_sigma`: local coordinates p_i (Eq. 4) are divided by sigma before the positional encoding, so
+  the node's support (radius sigma*sqrt(-2 ln eps) = 3.7 sigma) spans ~3.7 units and the highest frequency
+  2^(m-1) = 32 resolves ~1 cm; in metres (False) the same encoding would resolve only ~20 cm inside a node.
+- `pose_attention_hops`: the SCANimate-style attention map W (Eq. 8) lets joint k attend to every joint within
+  this many hops in the kinematic tree (see `deformer.pose_attention_map`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, fields, replace
+from typing import Any
+
+SCHEMA_VERSION = 1
+LATENTS = ("cvae", "deterministic", "per_frame")
+VARIANTS = ("slrf", "lbs_baseline")
+
+
+@dataclass(frozen=True)
+class ModelConfig:
+    """Hyperparameters of `SlrfAvatar`. Immutable; validated on construction; JSON round-trips."""
+
+    # representation (Eq. 1-6)
+    num_nodes: int = 128  # N, nodes by farthest point sampling on the canonical surface
+    sigma: float = 0.05  # Eq. 6 Gaussian width, metres
+    eps: float = 0.001  # Eq. 6 truncation; support radius sigma*sqrt(-2 ln eps) = 0.186 m
+    embed_dim: int = 32  # dim e_i, dynamic detail embedding
+    latent_dim: int = 8  # dim z_i, cVAE latent
+    # positional encodings gamma(x) = (x, sin 2^k x, cos 2^k x), k < m (supplement)
+    pe_coords: int = 6
+    pe_views: int = 4
+    pe_time: int = 12
+    local_coords_in_sigma: bool = True  # p_i / sigma before gamma (our choice, see module docstring)
+    # networks (our choice: the paper's architecture figure is unavailable)
+    node_width: int = 128  # F_i hidden channels
+    node_depth: int = 3  # F_i hidden ReLU layers
+    feature_dim: int = 128  # F_i output feature f (Eq. 5)
+    head_width: int = 128  # G and H hidden channels (Eq. 7)
+    cvae_width: int = 128  # per-node encoder / decoder hidden channels
+    # rendering
+    samples_per_ray: int = 64  # uniform samples between the ray's entry/exit of the node spheres
+    # pose condition (Eq. 8)
+    pose_attention_hops: int = 2
+    # ablations
+    use_delta_n: bool = True  # False: Delta n_i = 0 ("no-delta-n")
+    use_embedding: bool = True  # False: e_i = 0 ("no-embedding")
+    latent: str = "cvae"  # "cvae" | "deterministic" | "per_frame"
+    variant: str = "slrf"  # "slrf" | "lbs_baseline"
+    sparse: bool = True  # supplement A.2 packed evaluation; False = dense reference path
+    # losses (Eq. 11)
+    lambda_rec: float = 1.0
+    lambda_trans: float = 0.02
+    lambda_ebd: float = 0.1
+    lambda_kl: float = 1e-5
+
+    def __post_init__(self) -> None:
+        def need(ok: bool, msg: str) -> None:
+            if not ok:
+                raise ValueError(f"ModelConfig: {msg}")
+
+        for name in ("num_nodes", "embed_dim", "latent_dim", "node_width", "node_depth", "feature_dim",
+                     "head_width", "cvae_width", "samples_per_ray"):
+            v = getattr(self, name)
+            need(isinstance(v, int) and not isinstance(v, bool) and v > 0, f"{name} must be a positive int, got {v!r}")
+        for name in ("pe_coords", "pe_views", "pe_time", "pose_attention_hops"):
+            v = getattr(self, name)
+            need(isinstance(v, int) and not isinstance(v, bool) and v >= 0, f"{name} must be an int >= 0, got {v!r}")
+        need(self.samples_per_ray >= 2, f"samples_per_ray must be >= 2, got {self.samples_per_ray}")
+        need(self.head_width >= 2, f"head_width must be >= 2, got {self.head_width}")
+        need(self.sigma > 0, f"sigma must be > 0 (metres), got {self.sigma}")
+        need(0 < self.eps < 1, f"eps must be in (0, 1), got {self.eps}")
+        need(self.latent in LATENTS, f"latent must be one of {LATENTS}, got {self.latent!r}")
+        need(self.variant in VARIANTS, f"variant must be one of {VARIANTS}, got {self.variant!r}")
+        for name in ("use_delta_n", "use_embedding", "sparse", "local_coords_in_sigma"):
+            need(isinstance(getattr(self, name), bool), f"{name} must be a bool, got {getattr(self, name)!r}")
+        for name in ("lambda_rec", "lambda_trans", "lambda_ebd", "lambda_kl"):
+            need(getattr(self, name) >= 0, f"{name} must be >= 0, got {getattr(self, name)}")
+
+    @property
+    def support_radius(self) -> float:
+        """Distance (metres) beyond which the Eq. 6 blending weight is exactly zero: sigma*sqrt(-2 ln eps)."""
+        import math
+
+        return self.sigma * math.sqrt(-2.0 * math.log(self.eps))
+
+    def to_json(self) -> dict[str, Any]:
+        return {"schema_version": SCHEMA_VERSION, **asdict(self)}
+
+    @classmethod
+    def from_json(cls, d: dict[str, Any]) -> "ModelConfig":
+        """Inverse of `to_json`. Unknown keys are an error (a typo never silently falls back to a default)."""
+        d = dict(d)
+        version = d.pop("schema_version", SCHEMA_VERSION)
+        if version != SCHEMA_VERSION:
+            raise ValueError(f"ModelConfig: schema_version {version} is not supported (expected {SCHEMA_VERSION})")
+        known = {f.name for f in fields(cls)}
+        unknown = sorted(set(d) - known)
+        if unknown:
+            raise ValueError(f"ModelConfig: unknown keys {unknown}; known keys are {sorted(known)}")
+        return cls(**d)
+
+    @classmethod
+    def preset(cls, name: str) -> "ModelConfig":
+        """"paper": the defaults. "cpu": narrower networks for 2-core CPUs (see module docstring)."""
+        if name == "paper":
+            return cls()
+        if name == "cpu":
+            return cls(node_width=32, node_depth=2, feature_dim=32, head_width=64, cvae_width=32)
+        raise ValueError(f"ModelConfig: unknown preset {name!r}; use 'paper' or 'cpu'")
+
+    def with_(self, **changes: Any) -> "ModelConfig":
+        """A validated copy with some fields changed (e.g. `cfg.with_(sparse=False)`)."""
+        return replace(self, **changes)

@@ -1,0 +1,46 @@
+"""CLI shell: commands listed, no heavy imports at start-up, unbuilt stages fail loudly."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+from typer.testing import CliRunner
+
+from avatarctl.cli.app import app
+
+COMMANDS = ("synth", "ingest", "fit", "render", "eval", "demo", "info")
+
+
+def test_help_lists_every_command_with_one_line_help():
+    res = CliRunner().invoke(app, ["--help"])
+    assert res.exit_code == 0, res.output
+    for cmd in COMMANDS:
+        assert f" {cmd} " in res.output, f"{cmd} missing from --help:\n{res.output}"
+
+
+def test_startup_does_not_import_torch_or_cv2():
+    code = ("import sys; import avatarctl.cli.app as a; "
+            "bad=[m for m in ('torch','cv2','anny','warp','skimage') if m in sys.modules]; print(bad); "
+            "sys.exit(1 if bad else 0)")
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert res.returncode == 0, f"heavy modules imported at start-up: {res.stdout} {res.stderr}"
+
+
+def test_each_command_has_help():
+    for cmd in COMMANDS:
+        res = CliRunner().invoke(app, [cmd, "--help"])
+        assert res.exit_code == 0, f"{cmd}: {res.output}"
+
+
+def test_info_on_missing_project_is_one_line_error(tmp_path):
+    res = CliRunner().invoke(app, ["info", str(tmp_path / "nope")])
+    assert res.exit_code == 2
+    out = res.output.strip()
+    assert "not an avatarctl project" in out and "avatarctl ingest" in out
+    assert len(out.splitlines()) == 1, out
+
+
+def test_version():
+    res = CliRunner().invoke(app, ["--version"])
+    assert res.exit_code == 0 and res.output.startswith("avatarctl ")
