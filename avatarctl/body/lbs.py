@@ -27,25 +27,28 @@ def axis_angle_to_matrix(aa: torch.Tensor) -> torch.Tensor:
 
 
 def matrix_to_axis_angle(R: torch.Tensor) -> torch.Tensor:
-    """[..., 3, 3] rotation matrices -> [..., 3] axis-angle (radians, angle in [0, pi])."""
-    cos = ((R[..., 0, 0] + R[..., 1, 1] + R[..., 2, 2] - 1) / 2).clamp(-1.0, 1.0)
-    angle = torch.acos(cos)
+    """[..., 3, 3] rotation matrices -> [..., 3] axis-angle (radians, angle in [0, pi]).
+
+    angle = atan2(|v| / 2, (tr R - 1) / 2) with v the antisymmetric part (v = 2 sin(angle) axis), which stays
+    accurate near 0 and pi (acos does not). For angles above pi/2 the axis comes from the symmetric part,
+    (R + R^T) / 2 - cos(angle) I = (1 - cos(angle)) axis axis^T, whose accuracy does not degrade near pi.
+    """
+    cos = (R[..., 0, 0] + R[..., 1, 1] + R[..., 2, 2] - 1) / 2
     v = torch.stack([R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0], R[..., 1, 0] - R[..., 0, 1]], dim=-1)
-    sin = torch.sin(angle)
-    out = v / (2 * sin.clamp_min(1e-8))[..., None] * angle[..., None]
-    near_zero = angle < 1e-6
-    out = torch.where(near_zero[..., None], v / 2, out)
-    # near pi: axis from the diagonal of (R + I) / 2
-    near_pi = angle > torch.pi - 1e-3
-    if near_pi.any():
-        B = (R + torch.eye(3, dtype=R.dtype, device=R.device)) / 2
-        diag = torch.diagonal(B, dim1=-2, dim2=-1).clamp_min(0).sqrt()
-        i = diag.argmax(dim=-1, keepdim=True)
-        col = torch.gather(B, -1, i[..., None, :].expand(*B.shape[:-1], 1)).squeeze(-1)
+    sin = v.norm(dim=-1) / 2
+    angle = torch.atan2(sin, cos)
+    small = sin < 1e-12
+    scale = torch.where(small, torch.full_like(sin, 0.5), angle / (2 * torch.where(small, torch.ones_like(sin), sin)))
+    out = v * scale[..., None]  # near zero angle / (2 sin) -> 1/2
+    obtuse = cos < 0
+    if obtuse.any():
+        S = (R + R.transpose(-1, -2)) / 2 - cos[..., None, None] * torch.eye(3, dtype=R.dtype, device=R.device)
+        i = torch.diagonal(S, dim1=-2, dim2=-1).argmax(dim=-1, keepdim=True)
+        col = torch.gather(S, -1, i[..., None, :].expand(*S.shape[:-1], 1)).squeeze(-1)
         axis = col / col.norm(dim=-1, keepdim=True).clamp_min(1e-12)
         sign = torch.sign((axis * v).sum(-1, keepdim=True))
         sign = torch.where(sign == 0, torch.ones_like(sign), sign)
-        out = torch.where(near_pi[..., None], axis * sign * angle[..., None], out)
+        out = torch.where(obtuse[..., None], axis * sign * angle[..., None], out)
     return out
 
 
