@@ -127,4 +127,6 @@ def lbs(points: torch.Tensor, weights: torch.Tensor, joint_transforms: torch.Ten
 def inverse_lbs(posed: torch.Tensor, weights: torch.Tensor, joint_transforms: torch.Tensor) -> torch.Tensor:
     """Map posed points back to canonical space with the inverse of their blended transform. -> [frames, P, 3]."""
     T = blend_transforms(weights, joint_transforms)
-    return transform_points(torch.linalg.inv(T), posed.to(T.dtype))
+    # solve A x = y - t on the 3x3 block: exact even when float32 weights do not sum to exactly 1
+    rhs = (posed.to(T.dtype) - T[..., :3, 3])[..., None]
+    return torch.linalg.solve(T[..., :3, :3], rhs).squeeze(-1)
