@@ -1,0 +1,288 @@
+"""`SlrfAvatar`: structured local radiance fields (Zheng et al., CVPR 2022) as one `nn.Module`.
+
+Data flow of one training step (paper Fig. 5):
+1. `node_state(cond, mode)`: Eq. 1 node transforms T_i from the body pose; Eq. 8 per-node pose condition; the
+   per-node cVAE (Eq. 9-10) gives Delta n_i and e_i; Eq. 3 posed nodes n_i.
+2. `render(rays, state, background)`: per ray, near/far from the union of node-influence spheres
+   (radius sigma sqrt(-2 ln eps)); 64 uniform samples; for each sample the nodes in range (Eq. 6 weights > 0),
+   local coordinates (Eq. 4), local fields F_i (packed per node, supplement A.2, or dense), fusion (Eq. 5),
+   heads (Eq. 7); compositing over the known background (`render/volume.py`).
+3. `losses(out, target, state)`: Eq. 11-15.
+
+Variant "lbs_baseline" (Animatable-NeRF-style, pose-only): the same nodes only define a skinning field
+omega(p) = sum_i w_i omega_i / sum_i w_i (Animatable NeRF learns a neural blend-weight field instead); a sample is
+mapped to canonical space by inverse LBS x_c = T(p)^-1 p with T(p) = sum_j omega_j(p) M_j = sum_i w_i T_i / sum_i w_i,
+and one canonical MLP gives the feature. No Delta n, no e, no latent.
+
+Units: metres, world frame of the capture; time stamps t/T in [0, 1]; densities 1/metre; colours in [0, 1].
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import torch
+from torch import nn
+
+from avatarctl.body.base import BodyTemplate
+from avatarctl.model.config import ModelConfig
+from avatarctl.model.cvae import MODES, NodeCVAE
+from avatarctl.model.deformer import (blending_weights, candidate_pairs, farthest_point_sampling,
+                                      local_coordinates_centered, node_pose_attention, node_pose_condition,
+                                      node_transforms, pose_attention_map, posed_node_centers, ray_sphere_bounds)
+from avatarctl.model.field import (CanonicalField, NodeFields, Packing, RadianceHeads, fuse_features,
+                                   fuse_features_dense)
+from avatarctl.model.losses import (LossTerms, embedding_loss, kl_loss, reconstruction_loss, total_loss,
+                                    translation_loss)
+from avatarctl.render.rays import RayBatch
+from avatarctl.render.volume import march
+
+
+@dataclass
+class FrameConditioning:
+    """What the model is told about each of the B frames of a batch."""
+
+    joint_transforms: torch.Tensor  # [B, J, 4, 4] M_j(theta) from BodyModel.pose(): canonical -> world
+    pose_features: torch.Tensor  # [B, J, 3] local joint rotations (axis-angle), root zeroed
+    time: torch.Tensor  # [B] t/T in [0, 1] (normalised time stamp)
+    frame_ids: torch.Tensor  # [B] long, index of the training frame (for "per_frame"); -1 for novel poses
+
+    def __post_init__(self) -> None:
+        B, J = self.joint_transforms.shape[:2]
+        assert self.joint_transforms.shape == (B, J, 4, 4), f"joint_transforms {tuple(self.joint_transforms.shape)}"
+        assert self.pose_features.shape == (B, J, 3), f"pose_features: expected [{B}, {J}, 3], got " \
+                                                      f"{tuple(self.pose_features.shape)}"
+        assert self.time.shape == (B,), f"time: expected [{B}], got {tuple(self.time.shape)}"
+        assert self.frame_ids.shape == (B,), f"frame_ids: expected [{B}], got {tuple(self.frame_ids.shape)}"
+
+    def to(self, device: torch.device | str) -> "FrameConditioning":
+        return FrameConditioning(self.joint_transforms.to(device), self.pose_features.to(device),
+                                 self.time.to(device), self.frame_ids.to(device))
+
+
+@dataclass
+class NodeState:
+    """The posed nodes of B frames: everything `render` needs besides the network weights."""
+
+    transforms: torch.Tensor  # [B, N, 4, 4] T_i (Eq. 1)
+    centers: torch.Tensor  # [B, N, 3] posed node positions n_i (Eq. 3), world, metres
+    delta_n: torch.Tensor  # [B, N, 3] canonical residual translations, metres
+    embed: torch.Tensor  # [B, N, E] dynamic detail embeddings
+    mu: torch.Tensor | None = None  # [B, N, Z] (None when the encoder did not run)
+    logvar: torch.Tensor | None = None  # [B, N, Z]
+
+    @property
+    def num_frames(self) -> int:
+        return self.centers.shape[0]
+
+
+@dataclass
+class RenderOutputs:
+    rgb: torch.Tensor  # [rays, 3] composited over the background
+    alpha: torch.Tensor  # [rays] accumulated opacity
+    depth: torch.Tensor  # [rays] expected termination distance (metres) given termination; 0 where alpha = 0
+    stats: dict[str, float] = field(default_factory=dict)  # pairs, max_node_samples, hit_rays, ...
+
+
+class SlrfAvatar(nn.Module):
+    """The SLRF avatar of one subject. See the module docstring for the data flow."""
+
+    def __init__(self, cfg: ModelConfig, template: BodyTemplate, num_frames: int, seed: int = 0):
+        super().__init__()
+        V, J = template.skin_weights.shape
+        if cfg.num_nodes > V:
+            raise ValueError(f"num_nodes={cfg.num_nodes} exceeds the template's {V} vertices")
+        if num_frames < 0 or (cfg.latent == "per_frame" and num_frames < 1):
+            raise ValueError(f"num_frames must be >= 0 (>= 1 for latent 'per_frame'), got {num_frames}")
+        self.cfg = cfg
+        self.num_frames = int(num_frames)
+        self.num_joints = J
+        idx = farthest_point_sampling(template.vertices, cfg.num_nodes, seed)
+        weights = template.skin_weights.detach().float()
+        # buffers: saved in state_dict, follow .to(device)
+        self.register_buffer("node_vertex_index", idx.clone())  # [N] long, template vertex of each node
+        self.register_buffer("node_rest", template.vertices.detach().float()[idx].clone())  # [N, 3] n_bar_i
+        self.register_buffer("node_skin_weights", weights[idx].clone())  # [N, J] omega_i
+        self.register_buffer("pose_attention", node_pose_attention(  # [N, J] (W . omega_i), Eq. 8
+            weights[idx], pose_attention_map(template.parents, cfg.pose_attention_hops)))
+        if cfg.variant == "slrf":
+            self.latent = NodeCVAE(cfg, J, num_frames)
+            self.fields = NodeFields(cfg.num_nodes, cfg.pe_coords, cfg.embed_dim, cfg.node_width, cfg.node_depth,
+                                     cfg.feature_dim)
+        else:
+            # one canonical network of comparable total capacity: twice as wide and two layers deeper than an F_i
+            self.canonical = CanonicalField(cfg.pe_coords, 2 * cfg.node_width, cfg.node_depth + 2, cfg.feature_dim)
+        self.heads = RadianceHeads(cfg.feature_dim, cfg.head_width, cfg.pe_views)
+
+    # ---- step 1: nodes ------------------------------------------------------------------------------------------
+    def node_state(self, cond: FrameConditioning, mode: str,
+                   generator: torch.Generator | None = None) -> NodeState:
+        """Posed nodes and node variables for B frames.
+
+        mode: "posterior" (training: z ~ N(mu, sigma), reparameterised), "mean" (training frames at test: z = mu),
+        "zero" (novel poses: encoder skipped, z = 0), "sample" (z ~ N(0, I) from `generator`).
+        """
+        if mode not in MODES:
+            raise ValueError(f"unknown mode {mode!r}; use one of {MODES}")
+        if cond.joint_transforms.shape[1] != self.num_joints:
+            raise ValueError(f"conditioning has {cond.joint_transforms.shape[1]} joints, the avatar's template has "
+                             f"{self.num_joints}")
+        dev, dt = self.node_rest.device, self.node_rest.dtype
+        cond = FrameConditioning(cond.joint_transforms.to(dev, dt), cond.pose_features.to(dev, dt),
+                                 cond.time.to(dev, dt), cond.frame_ids.to(dev))
+        B, N = cond.time.shape[0], self.cfg.num_nodes
+        T = node_transforms(self.node_skin_weights, cond.joint_transforms)  # [B, N, 4, 4]  Eq. 1
+        mu = logvar = None
+        if self.cfg.variant == "slrf":
+            theta_i = node_pose_condition(cond.pose_features, self.pose_attention)  # [B, N, 3J]  Eq. 8
+            nv = self.latent(theta_i, cond.time, cond.frame_ids, mode, generator)
+            delta = nv.delta_n if self.cfg.use_delta_n else torch.zeros_like(nv.delta_n)
+            embed = nv.embed if self.cfg.use_embedding else torch.zeros_like(nv.embed)
+            mu, logvar = nv.mu, nv.logvar
+        else:
+            delta = T.new_zeros(B, N, 3)
+            embed = T.new_zeros(B, N, self.cfg.embed_dim)
+        centers = posed_node_centers(T, self.node_rest, delta)  # [B, N, 3]  Eq. 3
+        return NodeState(transforms=T, centers=centers, delta_n=delta, embed=embed, mu=mu, logvar=logvar)
+
+    # ---- step 2: rendering --------------------------------------------------------------------------------------
+    def render(self, rays: RayBatch, state: NodeState, background: torch.Tensor, *, jitter: bool = False,
+               generator: torch.Generator | None = None, chunk: int | None = None) -> RenderOutputs:
+        """Volume-render `rays` (each against the nodes of its frame slot) over `background` [3].
+
+        Rays that miss every node sphere return the background with alpha 0. `chunk` bounds memory (rays per chunk).
+        """
+        dev, dt = self.node_rest.device, self.node_rest.dtype
+        rays = RayBatch(rays.origins.to(dev, dt), rays.dirs.to(dev, dt), rays.frame_slot.to(dev))
+        bg = torch.as_tensor(background, device=dev, dtype=dt).reshape(3)
+        if len(rays) and int(rays.frame_slot.max()) >= state.num_frames:
+            raise ValueError(f"frame_slot {int(rays.frame_slot.max())} out of range for {state.num_frames} frames")
+        if chunk is None or len(rays) <= chunk:
+            return self._render_rays(rays, state, bg, jitter, generator)
+        outs = [self._render_rays(rays.select(slice(s, s + chunk)), state, bg, jitter, generator)
+                for s in range(0, len(rays), chunk)]
+        stats: dict[str, float] = {}
+        for o in outs:
+            for k, v in o.stats.items():
+                stats[k] = max(stats.get(k, 0.0), v) if k.startswith("max") else stats.get(k, 0.0) + v
+        return RenderOutputs(rgb=torch.cat([o.rgb for o in outs]), alpha=torch.cat([o.alpha for o in outs]),
+                             depth=torch.cat([o.depth for o in outs]), stats=stats)
+
+    def _render_rays(self, rays: RayBatch, state: NodeState, bg: torch.Tensor, jitter: bool,
+                     generator: torch.Generator | None) -> RenderOutputs:
+        R, S = len(rays), self.cfg.samples_per_ray
+        near, far, hit = ray_sphere_bounds(rays.origins, rays.dirs, state.centers[rays.frame_slot].detach(),
+                                           self.cfg.support_radius)
+        hit_idx = hit.nonzero(as_tuple=True)[0]
+        stats = {"rays": float(R), "hit_rays": float(hit_idx.numel()), "samples": 0.0, "valid_samples": 0.0,
+                 "pairs": 0.0, "packed_slots": 0.0, "max_node_samples": 0.0}
+        rgb = bg.expand(R, 3)
+        alpha = bg.new_zeros(R)
+        depth = bg.new_zeros(R)
+        if hit_idx.numel() == 0:
+            return RenderOutputs(rgb=rgb.clone(), alpha=alpha, depth=depth, stats=stats)
+        frame_pts = rays.frame_slot[hit_idx][:, None].expand(-1, S).reshape(-1)  # [hit * S]
+
+        def field_fn(pts: torch.Tensor, dirs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+            c, s, st = self.query(pts.reshape(-1, 3), dirs.reshape(-1, 3), frame_pts, state)
+            stats.update(st)
+            return c.reshape(*pts.shape[:2], 3), s.reshape(pts.shape[:2])
+
+        comp = march(field_fn, rays.origins[hit_idx], rays.dirs[hit_idx], near[hit_idx], far[hit_idx], S, bg,
+                     jitter, generator)
+        return RenderOutputs(rgb=rgb.index_copy(0, hit_idx, comp.rgb), alpha=alpha.index_copy(0, hit_idx, comp.alpha),
+                             depth=depth.index_copy(0, hit_idx, comp.depth), stats=stats)
+
+    def query(self, points: torch.Tensor, dirs: torch.Tensor, point_frame: torch.Tensor,
+              state: NodeState) -> tuple[torch.Tensor, torch.Tensor, dict[str, float]]:
+        """Colour and density at posed points.
+
+        points [P, 3] world, dirs [P, 3] unit viewing directions, point_frame [P] long (frame slot of each point)
+        -> rgb [P, 3], sigma [P] (1/metre; exactly 0 where no node is in range), stats.
+        """
+        if self.cfg.sparse:
+            f, wsum, stats = self._features_sparse(points, point_frame, state)
+            valid = (wsum > 0).nonzero(as_tuple=True)[0]
+            fv = f[valid]
+            sigma = points.new_zeros(points.shape[0]).index_copy(0, valid, self.heads.density(fv))
+            rgb = points.new_zeros(points.shape[0], 3).index_copy(0, valid, self.heads.color(fv, dirs[valid]))
+        else:
+            f, wsum, stats = self._features_dense(points, point_frame, state)
+            valid_mask = wsum > 0
+            valid = valid_mask.nonzero(as_tuple=True)[0]
+            sigma = torch.where(valid_mask, self.heads.density(f), torch.zeros_like(wsum))
+            rgb = torch.where(valid_mask[:, None], self.heads.color(f, dirs), torch.zeros_like(f[:, :3]))
+        stats["samples"] = float(points.shape[0])
+        stats["valid_samples"] = float(valid.numel())
+        return rgb, sigma, stats
+
+    def _local_scale(self) -> float:
+        return 1.0 / self.cfg.sigma if self.cfg.local_coords_in_sigma else 1.0
+
+    def _features_sparse(self, points: torch.Tensor, point_frame: torch.Tensor,
+                         state: NodeState) -> tuple[torch.Tensor, torch.Tensor, dict[str, float]]:
+        """Supplement A.2: evaluate only pairs with w_i > 0, packed per node into [N, max_i S_i, C]."""
+        cfg, N, P = self.cfg, self.cfg.num_nodes, points.shape[0]
+        pi, ni = candidate_pairs(points, point_frame, state.centers, cfg.support_radius)
+        fi = point_frame[pi]
+        centers = state.centers[fi, ni]  # [pairs, 3]
+        w = blending_weights(((points[pi] - centers) ** 2).sum(-1), cfg.sigma, cfg.eps)  # Eq. 6
+        keep = (w > 0).nonzero(as_tuple=True)[0]
+        pi, ni, fi, w, centers = pi[keep], ni[keep], fi[keep], w[keep], centers[keep]
+        pk = Packing.build(ni, N)
+        if cfg.variant == "slrf":
+            A_inv = torch.linalg.inv(state.transforms[..., :3, :3])  # [B, N, 3, 3]
+            local = local_coordinates_centered(points[pi], A_inv[fi, ni], centers) * self._local_scale()  # Eq. 4
+            # the large per-pair tensors live only in the packed layout [N, S', C]; padding has w = 0 and point P
+            frame_p = pk.pack_index(fi, N, fill=0)  # [N, S']
+            point_p = pk.pack_index(pi, N, fill=P)  # [N, S'], P = a dummy point dropped below
+            w_p = pk.pack(w[:, None], N)[..., 0]  # [N, S']
+            ebias = self.fields.embed_bias(state.embed).transpose(0, 1)  # [N, B, width]
+            onehot = torch.nn.functional.one_hot(frame_p, ebias.shape[1]).to(ebias.dtype)  # [N, S', B]
+            bias_p = torch.bmm(onehot, ebias)  # [N, S', width] = ebias[node, frame] (a gather as a small matmul)
+            feats_p = self.fields(pk.pack(local, N), bias_p)  # [N, S', F]
+            f, wsum = fuse_features(feats_p.flatten(0, 1), w_p.flatten(), point_p.flatten(), P + 1)  # Eq. 5
+            f, wsum = f[:P], wsum[:P]
+        else:
+            wsum = w.new_zeros(P).index_add(0, pi, w)
+            Tp = w.new_zeros(P, 4, 4).index_add(0, pi, w[:, None, None] * state.transforms[fi, ni])
+            f = self._canonical_features(points, Tp, wsum)
+        stats = {"pairs": float(pi.numel()), "packed_slots": float(N * pk.width), "max_node_samples": float(pk.width)}
+        return f, wsum, stats
+
+    def _features_dense(self, points: torch.Tensor, point_frame: torch.Tensor,
+                        state: NodeState) -> tuple[torch.Tensor, torch.Tensor, dict[str, float]]:
+        """Reference path: every node for every sample ([N, P, C] tensors)."""
+        cfg, N, P = self.cfg, self.cfg.num_nodes, points.shape[0]
+        centers = state.centers[point_frame].transpose(0, 1)  # [N, P, 3]
+        w = blending_weights(((points[None] - centers) ** 2).sum(-1), cfg.sigma, cfg.eps)  # [N, P]  Eq. 6
+        if cfg.variant == "slrf":
+            A_inv = torch.linalg.inv(state.transforms[..., :3, :3])[point_frame].transpose(0, 1)  # [N, P, 3, 3]
+            local = local_coordinates_centered(points[None], A_inv, centers) * self._local_scale()  # Eq. 4
+            bias = self.fields.embed_bias(state.embed)[point_frame].transpose(0, 1)  # [N, P, width]
+            f, wsum = fuse_features_dense(self.fields(local, bias), w)  # Eq. 5
+        else:
+            wsum = w.sum(0)
+            Tp = torch.einsum("np,npab->pab", w, state.transforms[point_frame].transpose(0, 1))
+            f = self._canonical_features(points, Tp, wsum)
+        stats = {"pairs": float(N * P), "packed_slots": float(N * P), "max_node_samples": float(P)}
+        return f, wsum, stats
+
+    def _canonical_features(self, points: torch.Tensor, Tp_unnormalised: torch.Tensor,
+                            wsum: torch.Tensor) -> torch.Tensor:
+        """lbs_baseline: x_c = T(p)^-1 p with T(p) = sum_i w_i T_i / sum_i w_i; features of the valid points only."""
+        valid = (wsum > 0).nonzero(as_tuple=True)[0]
+        Tv = Tp_unnormalised[valid] / wsum[valid][:, None, None]
+        xc = torch.linalg.solve(Tv[:, :3, :3], (points[valid] - Tv[:, :3, 3])[..., None]).squeeze(-1)
+        fv = self.canonical(xc)
+        return fv.new_zeros(points.shape[0], fv.shape[-1]).index_copy(0, valid, fv)
+
+    # ---- step 3: losses -----------------------------------------------------------------------------------------
+    def losses(self, out: RenderOutputs, target_rgb: torch.Tensor, state: NodeState) -> LossTerms:
+        """Eq. 11-15 (reductions in `model/losses.py`). target_rgb [rays, 3] in [0, 1]."""
+        c = self.cfg
+        rec = reconstruction_loss(out.rgb, target_rgb.to(out.rgb.device))
+        zero = rec.new_zeros(())
+        kl = kl_loss(state.mu, state.logvar) if state.mu is not None and state.logvar is not None else zero
+        return total_loss(rec, translation_loss(state.delta_n), embedding_loss(state.embed), kl,
+                          c.lambda_rec, c.lambda_trans, c.lambda_ebd, c.lambda_kl)

@@ -1,0 +1,133 @@
+"""The local radiance fields F_i, feature fusion (Eq. 5), the colour / density heads (Eq. 7), and the packing of
+supplement A.2 that feeds only the valid node-sample pairs to the per-node MLPs.
+
+Layout of a pair set (the sparse representation of the [nodes, samples] blending-weight matrix):
+`point_idx [pairs]`, `node_idx [pairs]`, `frame_idx [pairs]`, `w [pairs]` (Eq. 6, all > 0).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import nn
+
+from avatarctl.model.batched_mlp import BatchedLinear, BatchedMLP
+from avatarctl.model.encoding import encoded_dim, positional_encoding
+
+
+# ---- Eq. 5 -------------------------------------------------------------------------------------------------------
+def fuse_features(features: torch.Tensor, w: torch.Tensor, point_idx: torch.Tensor,
+                  num_points: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Eq. 5: f = sum_i w_i F_i(p_i; e_i) / sum_i w_i, over the pairs of each point.
+
+    features [pairs, F], w [pairs], point_idx [pairs] -> f [points, F], wsum [points]. Points without any pair
+    (wsum = 0) get f = 0; callers give them zero density.
+    """
+    F = features.shape[-1]
+    num = features.new_zeros(num_points, F).index_add(0, point_idx, w[:, None] * features)
+    wsum = w.new_zeros(num_points).index_add(0, point_idx, w)
+    return num / wsum.clamp_min(1e-30)[:, None], wsum
+
+
+def fuse_features_dense(features: torch.Tensor, w: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Eq. 5 on the dense layout: features [N, points, F], w [N, points] -> f [points, F], wsum [points]."""
+    wsum = w.sum(0)
+    return (w[..., None] * features).sum(0) / wsum.clamp_min(1e-30)[:, None], wsum
+
+
+# ---- supplement A.2 packing --------------------------------------------------------------------------------------
+@dataclass
+class Packing:
+    """Where each valid pair sits in the packed [N, S', C] tensor, S' = max_i S_i."""
+
+    order: torch.Tensor  # [pairs] permutation sorting pairs by node
+    node: torch.Tensor  # [pairs] node of each sorted pair
+    slot: torch.Tensor  # [pairs] row of each sorted pair inside its node's block
+    counts: torch.Tensor  # [N] S_i, valid pairs per node
+    width: int  # S' = max_i S_i
+
+    @staticmethod
+    def build(node_idx: torch.Tensor, num_nodes: int) -> "Packing":
+        order = torch.argsort(node_idx, stable=True)
+        node = node_idx[order]
+        counts = torch.bincount(node_idx, minlength=num_nodes)
+        starts = torch.cumsum(counts, 0) - counts
+        slot = torch.arange(node.shape[0], device=node.device) - starts[node]
+        width = int(counts.max()) if node.numel() else 0
+        return Packing(order=order, node=node, slot=slot, counts=counts, width=width)
+
+    def pack(self, values: torch.Tensor, num_nodes: int) -> torch.Tensor:
+        """[pairs, C] (original pair order) -> [N, S', C], zero padded."""
+        out = values.new_zeros(num_nodes, self.width, values.shape[-1])
+        return out.index_put((self.node, self.slot), values[self.order])
+
+    def pack_index(self, index: torch.Tensor, num_nodes: int, fill: int) -> torch.Tensor:
+        """[pairs] long (original pair order) -> [N, S'] long, padding = `fill`."""
+        out = torch.full((num_nodes, self.width), fill, dtype=index.dtype, device=index.device)
+        return out.index_put((self.node, self.slot), index[self.order])
+
+    def unpack(self, packed: torch.Tensor) -> torch.Tensor:
+        """[N, S', C] -> [pairs, C] in the sorted pair order (`order`)."""
+        return packed[self.node, self.slot]
+
+
+# ---- networks ----------------------------------------------------------------------------------------------------
+class NodeFields(nn.Module):
+    """The N local radiance networks F_i(p_i; e_i) (Sec. 3), run in parallel over a `nodes` dimension.
+
+    Input: gamma(p_i) (m = pe_coords) and the detail embedding e_i. e_i enters the first layer as a per-(frame, node)
+    bias W_e e_i (identical to concatenating e_i to every sample, computed once per frame and node).
+    """
+
+    def __init__(self, num_nodes: int, pe_coords: int, embed_dim: int, width: int, depth: int, feature_dim: int):
+        super().__init__()
+        self.pe_coords = pe_coords
+        self.in_dim = encoded_dim(3, pe_coords)
+        self.mlp = BatchedMLP(num_nodes, [self.in_dim] + [width] * depth + [feature_dim])
+        self.embed = BatchedLinear(num_nodes, embed_dim, width, bias=False)
+
+    def embed_bias(self, embed: torch.Tensor) -> torch.Tensor:
+        """[frames, N, E] -> [frames, N, width], the first-layer contribution of e_i."""
+        return self.embed(embed.transpose(0, 1)).transpose(0, 1)
+
+    def forward(self, coords: torch.Tensor, bias: torch.Tensor) -> torch.Tensor:
+        """coords [N, rows, 3] local coordinates (already scaled), bias [N, rows, width] -> features [N, rows, F]."""
+        return self.mlp(positional_encoding(coords, self.pe_coords), first_bias=bias)
+
+
+class CanonicalField(nn.Module):
+    """One canonical radiance network for the "lbs_baseline" variant (Animatable-NeRF-style, pose-only):
+    gamma(x_c) of a canonical point (metres) -> feature [points, F]."""
+
+    def __init__(self, pe_coords: int, width: int, depth: int, feature_dim: int):
+        super().__init__()
+        self.pe_coords = pe_coords
+        self.mlp = BatchedMLP(1, [encoded_dim(3, pe_coords)] + [width] * depth + [feature_dim])
+
+    def forward(self, x_canonical: torch.Tensor) -> torch.Tensor:
+        return self.mlp(positional_encoding(x_canonical, self.pe_coords)[None])[0]
+
+
+class RadianceHeads(nn.Module):
+    """Eq. 7: Density(p) = H(f), Colour(p) = G(f, v).
+
+    H: Linear(F, head_width) -> ReLU -> Linear(1) -> softplus (1/metre).
+    G: Linear([f, gamma(v)], head_width) -> ReLU -> Linear(head_width // 2) -> ReLU -> Linear(3) -> sigmoid.
+    v is the unit viewing direction in world space (m = pe_views).
+    """
+
+    def __init__(self, feature_dim: int, width: int, pe_views: int):
+        super().__init__()
+        self.pe_views = pe_views
+        self.density_net = nn.Sequential(nn.Linear(feature_dim, width), nn.ReLU(), nn.Linear(width, 1))
+        self.color_net = nn.Sequential(nn.Linear(feature_dim + encoded_dim(3, pe_views), width), nn.ReLU(),
+                                       nn.Linear(width, width // 2), nn.ReLU(), nn.Linear(width // 2, 3))
+
+    def density(self, f: torch.Tensor) -> torch.Tensor:
+        """H(f): [points, F] -> [points] >= 0."""
+        return nn.functional.softplus(self.density_net(f)[..., 0])
+
+    def color(self, f: torch.Tensor, view_dirs: torch.Tensor) -> torch.Tensor:
+        """G(f, v): [points, F], [points, 3] -> [points, 3] in (0, 1)."""
+        return torch.sigmoid(self.color_net(torch.cat([f, positional_encoding(view_dirs, self.pe_views)], -1)))

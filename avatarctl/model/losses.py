@@ -1,0 +1,56 @@
+"""Training losses, Eq. 11-15.
+
+Reductions (the paper writes plain sums; ours, stated):
+- L_rec (Eq. 12): mean over rays AND colour channels of the squared error (= the MSE that PSNR is computed from);
+  the paper's sum over rays would only rescale lambda_rec by the batch size.
+- L_trans (Eq. 13), L_ebd (Eq. 14), L_KL (Eq. 15): summed over nodes (and vector components), as in the paper,
+  then averaged over the frames of the batch.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+
+@dataclass
+class LossTerms:
+    total: torch.Tensor  # [] Eq. 11 weighted sum
+    rec: torch.Tensor  # [] Eq. 12
+    trans: torch.Tensor  # [] Eq. 13
+    ebd: torch.Tensor  # [] Eq. 14
+    kl: torch.Tensor  # [] Eq. 15
+
+    def as_floats(self) -> dict[str, float]:
+        return {k: float(getattr(self, k).detach()) for k in ("total", "rec", "trans", "ebd", "kl")}
+
+
+def reconstruction_loss(rgb: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """Eq. 12: [rays, 3], [rays, 3] -> mean squared error over rays and channels."""
+    assert rgb.shape == target.shape, f"rendered {tuple(rgb.shape)} vs target {tuple(target.shape)}"
+    return ((rgb - target.to(rgb.dtype)) ** 2).mean()
+
+
+def translation_loss(delta_n: torch.Tensor) -> torch.Tensor:
+    """Eq. 13: sum_i ||Delta n_i||^2, [frames, N, 3] -> mean over frames."""
+    return (delta_n ** 2).sum(dim=(-2, -1)).mean()
+
+
+def embedding_loss(embed: torch.Tensor) -> torch.Tensor:
+    """Eq. 14: sum_i ||e_i||^2, [frames, N, E] -> mean over frames."""
+    return (embed ** 2).sum(dim=(-2, -1)).mean()
+
+
+def kl_loss(mu: torch.Tensor, logvar: torch.Tensor) -> torch.Tensor:
+    """Eq. 15: sum_i KL(N(mu_i, sigma_i^2) || N(0, I)), [frames, N, Z] -> mean over frames.
+
+    KL = 0.5 * sum_z (mu^2 + sigma^2 - log sigma^2 - 1)."""
+    return (0.5 * (mu ** 2 + torch.exp(logvar) - logvar - 1.0)).sum(dim=(-2, -1)).mean()
+
+
+def total_loss(rec: torch.Tensor, trans: torch.Tensor, ebd: torch.Tensor, kl: torch.Tensor, lambda_rec: float,
+               lambda_trans: float, lambda_ebd: float, lambda_kl: float) -> LossTerms:
+    """Eq. 11: L = lambda_rec L_rec + lambda_trans L_trans + lambda_ebd L_ebd + lambda_KL L_KL."""
+    total = lambda_rec * rec + lambda_trans * trans + lambda_ebd * ebd + lambda_kl * kl
+    return LossTerms(total=total, rec=rec, trans=trans, ebd=ebd, kl=kl)
