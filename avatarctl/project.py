@@ -208,7 +208,7 @@ class Project:
         """Append a stage record and save the manifest atomically. Output paths are stored relative to root."""
         if stage not in STAGES:
             raise ValueError(f"unknown stage {stage!r}; expected one of {STAGES}")
-        rel = [os.path.relpath(Path(p), self.root) if Path(p).is_absolute() else str(p) for p in outputs]
+        rel = [_relative_to_root(Path(p), self.root) for p in outputs]
         rec = StageRecord(stage=stage, started=started, finished=now_iso(), version=__version__,
                           config=config, outputs=rel, summary=summary or {})
         self.manifest.stages.append(rec)
@@ -233,6 +233,16 @@ class Project:
                 raise ProjectError(f"{stage} output is missing: {out}", where=str(self.root),
                                    fix=f"{hint} again")
         return rec
+
+
+def _relative_to_root(p: Path, root: Path) -> str:
+    """An output path as stored in the manifest: relative to the project root. Paths built from `ProjectPaths`
+    start with `root` even when `root` itself is relative (e.g. `avatarctl render proj`); other relative paths are
+    taken as already relative to the root."""
+    try:
+        return p.relative_to(root).as_posix()
+    except ValueError:
+        return os.path.relpath(p, root) if p.is_absolute() else str(p)
 
 
 def sha256_file(path: str | os.PathLike, chunk: int = 1 << 20) -> str:

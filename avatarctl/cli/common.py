@@ -20,7 +20,9 @@ def user_errors() -> Iterator[None]:
     try:
         yield
     except AvatarError as e:
-        err_console.print(f"[bold red]error:[/] {e.one_line()}", soft_wrap=True)
+        from rich.markup import escape
+
+        err_console.print(f"[bold red]error:[/] {escape(e.one_line())}", soft_wrap=True)
         raise typer.Exit(code=e.exit_code) from None
     except KeyboardInterrupt:
         err_console.print("[yellow]interrupted[/]")
