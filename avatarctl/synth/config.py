@@ -1,0 +1,113 @@
+"""`SynthConfig`: every knob of the synthetic capture, with named presets.
+
+Sizes: `views` cameras on a ring around the subject; `train_frames` + `test_frames` written frames; square
+images of `size` pixels. The cloth is simulated at `sim_fps` (30 Hz) and every `stride`-th simulated frame is
+written, so a short preset still covers a whole choreography (walk, turn, twirl) in real time.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import asdict, dataclass, fields, replace
+from typing import Any
+
+from avatarctl.errors import InputError
+
+SCHEMA_VERSION = 1
+GENERATOR_VERSION = "synth-1"
+
+_PRESETS: dict[str, dict[str, Any]] = {
+    # for other stages' unit tests: seconds, not minutes
+    "micro": dict(views=4, train_frames=6, test_frames=4, size=64, stride=4, supersample=1, warmup_frames=12, transition_frames=9,
+                  skirt_rings=12, skirt_segments=40, substeps=10, iterations=2),
+    "tiny": dict(views=6, train_frames=24, test_frames=12, size=96, stride=5, supersample=2, substeps=12),
+    "small": dict(views=12, train_frames=80, test_frames=40, size=256, stride=2, supersample=1, substeps=12),
+    "standard": dict(views=20, train_frames=300, test_frames=150, size=512, stride=1, supersample=1),
+}
+PRESETS = tuple(_PRESETS)
+
+
+@dataclass(frozen=True)
+class SynthConfig:
+    """Configuration of one synthetic capture (frozen; validated on construction; saved in capture.json)."""
+
+    preset: str = "tiny"
+    """Name of the preset the values came from (recorded only)."""
+    seed: int = 0
+    """Seed of every random choice: body shape, motion variation, cameras, lens distortion, textures."""
+    views: int = 6
+    """Number of cameras (cam00, cam01, ...) on a ring around the subject."""
+    train_frames: int = 24
+    """Written frames of the training segment (walk, turn, twirl)."""
+    test_frames: int = 12
+    """Written frames of the novel-pose test segment (march, arm poses, opposite twirl)."""
+    size: int = 96
+    """Image width and height in pixels."""
+    stride: int = 4
+    """Write every `stride`-th simulated frame (the simulation always runs at `sim_fps`)."""
+    supersample: int = 2
+    """Rays per pixel along each axis (anti-aliasing); masks are coverage >= 0.5."""
+    sim_fps: float = 30.0
+    """Simulation and motion rate, frames per second."""
+    warmup_frames: int = 36
+    """Unwritten frames before frame 0: the body blends from the reference pose to the first pose while the
+    skirt settles under gravity."""
+    transition_frames: int = 24
+    """Unwritten frames between the training and test segments (the body blends into the test choreography,
+    so no written test frame repeats a training pose; the cloth keeps simulating)."""
+    skirt_rings: int = 25
+    """Skirt grid rows from waist to hem."""
+    skirt_segments: int = 72
+    """Skirt grid columns around the body."""
+    substeps: int = 20
+    """XPBD substeps per simulated frame."""
+    iterations: int = 4
+    """XPBD constraint iterations per substep."""
+    jpeg_quality: int = 95
+    """JPEG quality of the saved images and background plates."""
+
+    def __post_init__(self) -> None:
+        checks = [
+            (self.views >= 2, "views must be >= 2"),
+            (self.train_frames >= 1 and self.test_frames >= 1, "train_frames and test_frames must be >= 1"),
+            (16 <= self.size <= 4096, "size must be in [16, 4096]"),
+            (self.stride >= 1, "stride must be >= 1"),
+            (1 <= self.supersample <= 4, "supersample must be in [1, 4]"),
+            (self.sim_fps > 0, "sim_fps must be > 0"),
+            (self.warmup_frames >= 2, "warmup_frames must be >= 2"),
+            (self.transition_frames >= 1, "transition_frames must be >= 1"),
+            (self.skirt_rings >= 4 and self.skirt_segments >= 12, "skirt needs >= 4 rings and >= 12 segments"),
+            (self.substeps >= 1 and self.iterations >= 1, "substeps and iterations must be >= 1"),
+            (1 <= self.jpeg_quality <= 100, "jpeg_quality must be in [1, 100]"),
+            (0 <= self.seed < 2**32, "seed must be in [0, 2^32)"),
+        ]
+        for ok, msg in checks:
+            if not ok:
+                raise InputError(f"invalid synth config: {msg}", fix="fix the option or use a --preset")
+
+    @classmethod
+    def preset(cls, name: str, seed: int = 0, **overrides: Any) -> "SynthConfig":
+        """The named preset (`micro`, `tiny`, `small`, `standard`) with optional field overrides."""
+        if name not in _PRESETS:
+            raise InputError(f"unknown synth preset {name!r}", fix=f"use one of {', '.join(PRESETS)}")
+        known = {f.name for f in fields(cls)}
+        bad = sorted(set(overrides) - known)
+        if bad:
+            raise InputError(f"unknown synth config fields {bad}", fix=f"use fields of SynthConfig: {sorted(known)}")
+        return replace(cls(preset=name, seed=seed, **_PRESETS[name]), **overrides)
+
+    @property
+    def frames(self) -> int:
+        """Written frames, train + test."""
+        return self.train_frames + self.test_frames
+
+    @property
+    def sim_frames(self) -> int:
+        """Simulated frames after the warm-up (incl. the transition; the written ones are every `stride`-th)."""
+        return self.frames * self.stride + self.transition_frames
+
+    def to_json(self) -> dict[str, Any]:
+        return {"schema_version": SCHEMA_VERSION, **asdict(self)}
+
+    def dumps(self) -> str:
+        return json.dumps(self.to_json(), indent=2)
