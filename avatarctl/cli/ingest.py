@@ -1,15 +1,70 @@
-"""`avatarctl ingest`: not built yet (see the issue tracker)."""
+"""`avatarctl ingest CAPTURE PROJECT`: a raw capture -> a project directory (see avatarctl/ingest/pipeline.py)."""
 
 from __future__ import annotations
+
+from pathlib import Path
+from typing import Optional
 
 import typer
 
 
 def register(app: typer.Typer) -> None:
-    @app.command("ingest", help="Turn a raw capture (frames, cameras, masks, body fits) into a project directory.", context_settings={"allow_extra_args": True, "ignore_unknown_options": True})
-    def _cmd(ctx: typer.Context) -> None:
-        from avatarctl.cli.common import user_errors
-        from avatarctl.errors import NotBuiltError
+    @app.command("ingest", help="Turn a raw capture (frames, cameras, masks, body fits) into a project directory.")
+    def ingest(
+        capture: Path = typer.Argument(..., help="Capture folder (EasyMocap, ZJU-MoCap, THuman4.0, PeopleSnapshot, "
+                                                 "COLMAP, or `avatarctl synth` output). Never modified."),
+        project: Path = typer.Argument(..., help="Project directory to create (must not exist or be empty)."),
+        format: str = typer.Option("auto", "--format",
+                                   help="auto | easymocap | zju | thuman4 | peoplesnapshot | colmap"),
+        body_model: Optional[str] = typer.Option(None, "--body-model",
+                                                 help="anny | smpl | smplx (default: what the capture's fits are)"),
+        body_model_path: Optional[Path] = typer.Option(None, "--body-model-path",
+                                                       help="SMPL / SMPL-X model file (.pkl or .npz)."),
+        masks: str = typer.Option("auto", "--masks", help="auto | files | background (matting against "
+                                                          "background/<cam>.jpg seeded by the body mesh)"),
+        frames: Optional[str] = typer.Option(None, "--frames",
+                                             help="Frame numbers: start:stop[:step] (stop exclusive) or a,b,c."),
+        views: Optional[str] = typer.Option(None, "--views", help="Comma-separated camera names (default: all)."),
+        resize: float = typer.Option(1.0, "--resize", help="Scale factor after undistortion, e.g. 0.5."),
+        contact_sheet: bool = typer.Option(True, "--contact-sheet/--no-contact-sheet",
+                                           help="Write ingest/contact_sheet.png (frames with the body overlaid)."),
+    ) -> None:
+        from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
+        from rich.table import Table
+
+        from avatarctl.cli.common import console, user_errors
+        from avatarctl.ingest.config import IngestConfig
+        from avatarctl.ingest.pipeline import run_ingest
 
         with user_errors():
-            raise NotBuiltError("`avatarctl ingest` is not built yet", fix="see the open issues; no output was written")
+            cfg = IngestConfig(capture=capture, project=project, format=format, body_model=body_model,
+                               body_model_path=body_model_path, masks=masks, frames=frames,
+                               views=None if views is None else tuple(views.split(",")), resize=resize,
+                               contact_sheet=contact_sheet)
+            if cfg.format == "auto":
+                from avatarctl.io.detect import detect_format
+
+                fmt, reason = detect_format(cfg.capture)
+                console.print(f"detected format [bold]{fmt}[/]: {reason}")
+            with Progress(TextColumn("ingest"), BarColumn(), MofNCompleteColumn(), TextColumn("frames"),
+                          TimeRemainingColumn(), console=console, transient=False) as bar:
+                task = bar.add_task("frames", total=None)
+                res = run_ingest(cfg, progress=lambda done, total: bar.update(task, completed=done, total=total))
+
+            t = Table(title=f"ingest -> {res.project}")
+            t.add_column("item")
+            t.add_column("value")
+            t.add_row("format", res.format)
+            shown = ", ".join(res.cameras[:8]) + (" …" if len(res.cameras) > 8 else "")
+            t.add_row("cameras", f"{len(res.cameras)} ({shown})")
+            t.add_row("frames", f"{len(res.frames)} ({res.frames[0]}..{res.frames[-1]})")
+            t.add_row("resolution", f"{res.resolution[0]}x{res.resolution[1]} (undistorted, pinhole)")
+            t.add_row("body model", res.body_model)
+            t.add_row("masks", res.masks_source)
+            t.add_row("mesh inside masks", f"{100 * res.vertices_inside_masks:.1f}% of vertices")
+            t.add_row("time", f"{res.seconds:.1f} s")
+            console.print(t)
+            for n in res.notes:
+                console.print(f"note: {n}")
+            for w in res.warnings:
+                console.print(f"[yellow]warning:[/] {w}")

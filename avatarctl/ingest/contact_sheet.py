@@ -1,0 +1,62 @@
+"""``ingest/contact_sheet.png``: undistorted frames with the posed body mesh overlaid, to check alignment by eye.
+
+Each tile: the undistorted frame, the projected body mesh silhouette tinted red (35 %), the mask outline in green,
+labelled ``<camera> f<frame>``. Rows are frames, columns cameras.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from avatarctl.atomic import atomic_path
+
+
+@dataclass(frozen=True)
+class Tile:
+    cam: str
+    frame: int
+    rgb: np.ndarray  # [H, W, 3] uint8, undistorted
+    mask: np.ndarray  # [H, W] bool
+    body: np.ndarray  # [H, W] bool, projected posed mesh
+
+
+def pick(items: list, n: int) -> list:
+    """Up to `n` items spread evenly over `items` (first and last included)."""
+    if len(items) <= n:
+        return list(items)
+    idx = np.unique(np.round(np.linspace(0, len(items) - 1, n)).astype(int))
+    return [items[i] for i in idx]
+
+
+def render_tile(t: Tile, width: int) -> np.ndarray:
+    import cv2
+
+    img = t.rgb.astype(np.float32)
+    red = np.array([255, 40, 40], np.float32)
+    img[t.body] = 0.65 * img[t.body] + 0.35 * red
+    img = img.clip(0, 255).astype(np.uint8)
+    contours, _ = cv2.findContours(t.mask.astype(np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+    cv2.drawContours(img, contours, -1, (40, 255, 40), max(1, t.rgb.shape[1] // 300))
+    h = int(round(img.shape[0] * width / img.shape[1]))
+    img = cv2.resize(img, (width, h), interpolation=cv2.INTER_AREA)
+    cv2.putText(img, f"{t.cam} f{t.frame}", (6, 18), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (255, 255, 255), 1, cv2.LINE_AA)
+    return img
+
+
+def write_contact_sheet(path, tiles: list[Tile], cams: list[str], frames: list[int], width: int = 256) -> None:
+    """Grid of tiles (rows = frames, columns = cams); missing cells stay black. Written atomically."""
+    import cv2
+
+    by = {(t.cam, t.frame): render_tile(t, width) for t in tiles}
+    h = max(im.shape[0] for im in by.values())
+    sheet = np.zeros((h * len(frames), width * len(cams), 3), np.uint8)
+    for r, f in enumerate(frames):
+        for c, cam in enumerate(cams):
+            im = by.get((cam, f))
+            if im is not None:
+                sheet[r * h:r * h + im.shape[0], c * width:(c + 1) * width] = im
+    with atomic_path(path) as tmp:
+        if not cv2.imwrite(str(tmp), cv2.cvtColor(sheet, cv2.COLOR_RGB2BGR)):
+            raise OSError(f"cv2.imwrite failed for {path}")

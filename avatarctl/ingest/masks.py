@@ -1,0 +1,141 @@
+"""Foreground masks from background plates: colour difference + morphology + body-seeded refinement.
+
+All inputs are in the same (undistorted) image geometry. Steps:
+
+1. difference: Euclidean RGB distance between frame and plate, grayscale-closed with a 3x3 disk (a textured
+   garment has isolated pixels that happen to match the plate; closing fills such pits but keeps edges);
+   ``> threshold`` is foreground;
+2. body seed: the projected posed body mesh shrunk by 2 px is foreground whatever its colour;
+3. GrabCut (``cv2.grabCut``, colour GMMs + graph cut) deciding only the uncertain boundary band: the outer
+   1-px ring of the thresholded region (probable foreground) and a 2-px ring outside it that differs by more
+   than half the threshold (probable background); everything deeper inside is definite foreground, everything
+   else definite background. (Letting GrabCut decide whole regions lost textured garment parts that happen to
+   match the plate's colours.) Parameters were chosen on `avatarctl synth` small-preset frames (docs/formats.md);
+4. clean-up: keep the connected components that touch the body silhouette (drops shadows and plate changes
+   away from the subject), fill enclosed holes smaller than 1 % of the foreground.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class MattingParams:
+    threshold: float = 20.0  # RGB distance (0..441) above which a pixel differs from the plate
+    diff_close_px: int = 1  # grayscale closing of the difference: fills 1-px texture pits, keeps edges
+    open_px: int = 0  # opening radius of the thresholded difference (speckle removal; 0: off)
+    erode_silhouette_px: int = 2  # the projected body shrunk by this much is definite foreground
+    grabcut_iters: int = 3  # GrabCut iterations on the uncertain boundary band (0: off)
+    band_px: int = 2  # width of that band outside the thresholded region
+    max_hole_fraction: float = 0.01  # enclosed holes smaller than this fraction of the foreground are filled
+    half_max_px: int = 0  # boundary band (px) where a pixel must reach half the local contrast (0: off)
+
+    def __post_init__(self) -> None:
+        if self.threshold <= 0 or self.grabcut_iters < 0 or min(self.diff_close_px, self.open_px,
+                                                                  self.erode_silhouette_px, self.band_px) < 0:
+            raise ValueError(f"bad matting parameters {self}")
+
+
+def _disk(r: int) -> np.ndarray:
+    import cv2
+
+    return cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
+
+
+def color_difference(rgb: np.ndarray, background: np.ndarray) -> np.ndarray:
+    """[H, W] float32 Euclidean RGB distance of two uint8 [H, W, 3] images (no blur: blurring widens the
+    silhouette)."""
+    return np.sqrt(((rgb.astype(np.float32) - background.astype(np.float32)) ** 2).sum(axis=-1))
+
+
+def half_max_edges(fg: np.ndarray, diff: np.ndarray, band_px: int) -> np.ndarray:
+    """Sharpen the boundary of `fg` (uint8 [H, W]): a pixel within `band_px` of the edge stays foreground only if
+    its difference reaches half the largest difference nearby (a mixed pixel is > 50 % subject). Resampling,
+    anti-aliasing and JPEG chroma subsampling spread an edge over 1-2 px; a fixed threshold keeps all of them."""
+    import cv2
+
+    k = 2 * band_px + 1
+    local_max = cv2.dilate(diff * (fg > 0), np.ones((k, k), np.uint8))
+    edge = (fg > 0) & (cv2.erode(fg, _disk(band_px)) == 0)
+    return (fg.astype(bool) & (~edge | (diff >= 0.5 * local_max))).astype(np.uint8)
+
+
+def background_mask(rgb: np.ndarray, background: np.ndarray, silhouette: np.ndarray,
+                    params: MattingParams = MattingParams()) -> np.ndarray:
+    """Foreground mask, bool [H, W], of frame `rgb` [H, W, 3] against plate `background` [H, W, 3], seeded by the
+    projected body mesh `silhouette` (bool [H, W])."""
+    import cv2
+
+    if rgb.shape != background.shape:
+        raise ValueError(f"frame {rgb.shape} and background {background.shape} differ in size")
+    diff = color_difference(rgb, background)
+    if params.diff_close_px:
+        diff = cv2.morphologyEx(diff, cv2.MORPH_CLOSE, _disk(params.diff_close_px))
+    fg = (diff > params.threshold).astype(np.uint8)
+    if params.open_px:
+        fg = cv2.morphologyEx(fg, cv2.MORPH_OPEN, _disk(params.open_px))
+    if params.half_max_px:
+        fg = half_max_edges(fg, diff, params.half_max_px)
+    sil = silhouette.astype(np.uint8)
+    if params.erode_silhouette_px:  # a body is not see-through, whatever its colour
+        fg |= cv2.erode(sil, _disk(params.erode_silhouette_px))
+    out = fg > 0
+    if params.grabcut_iters and out.any():
+        out = _grabcut_band(rgb, diff, fg, params)
+    return _clean(out, sil > 0, params)
+
+
+def _grabcut_band(rgb: np.ndarray, diff: np.ndarray, fg: np.ndarray, params: MattingParams) -> np.ndarray:
+    """GrabCut deciding only the uncertain band: the outer ring of `fg` (probable foreground) and a ring of
+    `band_px` outside it where the difference exceeds half the threshold (probable background)."""
+    import cv2
+
+    inside = fg > 0
+    gc = np.full(diff.shape, cv2.GC_BGD, dtype=np.uint8)
+    ring_out = (cv2.dilate(fg, _disk(params.band_px)) > 0) & ~inside
+    gc[ring_out & (diff > 0.5 * params.threshold)] = cv2.GC_PR_BGD
+    gc[inside] = cv2.GC_PR_FGD
+    gc[cv2.erode(fg, _disk(1)) > 0] = cv2.GC_FGD
+    if not (gc == cv2.GC_FGD).any():
+        return inside
+    ys, xs = np.nonzero(cv2.dilate(fg, _disk(params.band_px + 8)))
+    y0, y1, x0, x1 = ys.min(), ys.max() + 1, xs.min(), xs.max() + 1
+    sub = np.ascontiguousarray(gc[y0:y1, x0:x1])
+    bgd, fgd = np.zeros((1, 65), np.float64), np.zeros((1, 65), np.float64)
+    cv2.setRNGSeed(0)
+    cv2.grabCut(np.ascontiguousarray(rgb[y0:y1, x0:x1, ::-1]), sub, None, bgd, fgd, params.grabcut_iters,
+                cv2.GC_INIT_WITH_MASK)
+    out = np.zeros(diff.shape, dtype=bool)
+    out[y0:y1, x0:x1] = (sub == cv2.GC_FGD) | (sub == cv2.GC_PR_FGD)
+    return out
+
+
+def _clean(mask: np.ndarray, silhouette: np.ndarray, params: MattingParams) -> np.ndarray:
+    """Keep the components touching the silhouette (all, if none does); fill small enclosed holes."""
+    import cv2
+
+    m = mask.astype(np.uint8)
+    n, labels = cv2.connectedComponents(m, connectivity=8)
+    if n > 2 and silhouette.any():
+        keep = np.unique(labels[silhouette & mask])
+        keep = keep[keep > 0]
+        if keep.size:
+            m = np.isin(labels, keep).astype(np.uint8)
+    area = int(m.sum())
+    n, labels, stats, _ = cv2.connectedComponentsWithStats((1 - m).astype(np.uint8), connectivity=4)
+    H, W = m.shape
+    for i in range(1, n):
+        x, y, w, h, a = stats[i]
+        touches_border = x == 0 or y == 0 or x + w == W or y + h == H
+        if not touches_border and a < params.max_hole_fraction * max(area, 1):
+            m[labels == i] = 1
+    return m > 0
+
+
+def iou(a: np.ndarray, b: np.ndarray) -> float:
+    """Intersection over union of two bool masks (1.0 when both are empty)."""
+    union = np.logical_or(a, b).sum()
+    return float(np.logical_and(a, b).sum() / union) if union else 1.0

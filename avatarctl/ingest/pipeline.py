@@ -1,0 +1,276 @@
+"""`run_ingest`: a raw capture -> a project directory (ingest stage).
+
+Steps:
+1. detect / read the capture (`avatarctl.ingest.readers`), select views and frames, validate: cameras with
+   images, complete frame grids for images and masks, fits for every frame, metres not millimetres;
+2. convert the fits to the body model's `BodyMotion` (EasyMocap/ZJU Rh/Th -> SMPL global_orient/transl) and pose
+   the body mesh for every frame;
+3. per frame and camera: undistort (and resize) the frame and mask — masks from the capture's files, or from the
+   background plate matted with the projected body mesh as seed — and write them;
+4. write cameras (pinhole, dist = 0), body fits, split, contact sheet, then the manifest.
+
+The whole project is built in a temporary sibling directory and renamed into place at the end
+(`avatarctl.atomic.atomic_dir`): a failure leaves nothing behind; the capture is only ever read.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from avatarctl.errors import InputError, ProjectError
+from avatarctl.ingest.config import IngestConfig, select_frames
+from avatarctl.ingest.source import CaptureSource, check_complete, fmt_list
+
+ProgressFn = Callable[[int, int], None]  # (frames done, frames total)
+MIN_INSIDE = 0.90  # warn when fewer of the posed vertices than this project inside the masks
+POSE_CHUNK = 64  # frames posed at once
+
+
+@dataclass
+class IngestResult:
+    project: Path
+    format: str
+    format_reason: str
+    cameras: list[str]
+    frames: list[int]
+    resolution: tuple[int, int]  # (width, height) of the first camera after undistortion / resize
+    body_model: str
+    masks_source: str  # "files" | "background"
+    seconds: float
+    vertices_inside_masks: float  # mean fraction of posed mesh vertices projecting inside the masks
+    notes: list[str] = field(default_factory=list)
+    warnings: list[str] = field(default_factory=list)
+
+
+def _check_project_dest(cfg: IngestConfig) -> None:
+    dest = cfg.project
+    if dest.exists() and (not dest.is_dir() or any(dest.iterdir())):
+        raise ProjectError("PROJECT already exists and is not empty", where=str(dest),
+                           fix="choose a new PROJECT directory (ingest never overwrites one)")
+    cap, proj = cfg.capture.resolve(), dest.resolve()
+    if proj == cap or cap in proj.parents:
+        raise ProjectError("PROJECT is inside the capture folder", where=str(dest),
+                           fix="put the project outside CAPTURE: ingest never writes into the capture")
+
+
+def read_capture(cfg: IngestConfig) -> tuple[CaptureSource, str]:
+    """(source, how the format was chosen)."""
+    from avatarctl.ingest.readers import reader_for
+    from avatarctl.io.detect import detect_format
+
+    if not cfg.capture.is_dir():
+        raise InputError("capture folder not found", where=str(cfg.capture), fix="pass the folder of the capture")
+    if cfg.format == "auto":
+        fmt, reason = detect_format(cfg.capture)
+    else:
+        fmt, reason = cfg.format, "given with --format"
+    return reader_for(fmt)(cfg.capture), reason
+
+
+def select_views(src: CaptureSource, views: tuple[str, ...] | None) -> list[str]:
+    names = src.camera_names
+    if views is None:
+        if src.uncalibrated:
+            raise InputError(f"extra cameras: image folders {fmt_list(src.uncalibrated)} have no calibration",
+                             where=str(src.root),
+                             fix="calibrate them, or choose the calibrated cameras with --views")
+        return names
+    unknown = [v for v in views if v not in names]
+    if unknown:
+        raise InputError(f"--views names unknown cameras {unknown}", where=str(src.root),
+                         fix=f"calibrated cameras are: {', '.join(names)}")
+    return [n for n in names if n in set(views)]
+
+
+def resolve_masks(cfg: IngestConfig, src: CaptureSource, cams: list[str], frames: list[int]) -> str:
+    mode = cfg.masks
+    if mode == "auto":
+        mode = "files" if src.masks is not None else "background"
+    if mode == "files":
+        if src.masks is None or src.mask_frames is None:
+            raise InputError("the capture has no mask files", where=str(src.root),
+                             fix="add masks/<cam>/%06d.png, or use --masks background with background/<cam>.jpg")
+        check_complete(src.mask_frames, cams, frames, "masks", src.root)
+    else:
+        missing = [c for c in cams if c not in src.backgrounds]
+        if missing:
+            raise InputError(f"no mask files and no background plate for cameras {fmt_list(missing)}",
+                             where=str(src.root),
+                             fix="add masks/<cam>/%06d.png or background/<cam>.jpg (an empty frame of each camera)")
+    return mode
+
+
+@dataclass
+class IngestPlan:
+    """Everything decided and validated before a pixel is read (see `plan_ingest`)."""
+
+    source: CaptureSource
+    format_reason: str
+    cams: list[str]  # selected camera names, capture order
+    frames: list[int]  # selected capture frame numbers, ascending
+    masks_mode: str  # "files" | "background"
+    body_model: str  # "anny" | "smpl" | "smplx"
+    body: object  # the BodyModel (AnnyBody / SmplBody)
+    motion: object  # BodyMotion, one row per selected frame
+    faces: np.ndarray  # [F, 3] body mesh triangles
+
+
+def plan_ingest(cfg: IngestConfig) -> IngestPlan:
+    """Read the capture, select views / frames, validate everything, convert the fits. Writes nothing."""
+    from avatarctl.body.registry import load_body_model
+    from avatarctl.ingest.fits import check_cameras_metric, check_fits, to_body_motion
+
+    _check_project_dest(cfg)
+    src, reason = read_capture(cfg)
+    cams = select_views(src, cfg.views)
+    cam_by_name = {c.name: c for c in src.cameras}
+    check_cameras_metric([cam_by_name[c] for c in cams], where=str(src.root))
+    available = sorted(set().union(*[src.image_frames.get(c, set()) for c in cams]))
+    if not available:
+        raise InputError("the selected cameras have no images", where=str(src.root),
+                         fix="check the capture layout (docs/formats.md)")
+    frames = select_frames(cfg.frames, available)
+    check_complete(src.image_frames, cams, frames, "images", src.root)
+    fits_where = src.fits_where or str(src.root)
+    check_fits(src.fits, frames, fits_where)
+    masks_mode = resolve_masks(cfg, src, cams, frames)
+
+    bm_name = cfg.body_model or src.fits.body_model
+    if src.fits.body_model != bm_name:
+        to_body_motion(src.fits, bm_name, None)  # raises the one-line mismatch error
+    if bm_name != "anny" and cfg.body_model_path is None:
+        raise InputError(f"the capture's fits need the {bm_name} body model file", where=fits_where,
+                         fix=f"pass --body-model-path /path/to/{bm_name.upper()}_NEUTRAL.pkl (or .npz)")
+    body = load_body_model(bm_name, cfg.body_model_path if bm_name != "anny" else None)
+    motion_all = to_body_motion(src.fits, bm_name, body)
+    motion = motion_all.select(motion_all.rows_for(frames))
+    check_fits(motion, frames, fits_where)  # converted SMPL transl, anny root translation
+    faces = body.template(motion.select([0])).faces.cpu().numpy()
+    return IngestPlan(src, reason, cams, frames, masks_mode, bm_name, body, motion, faces)
+
+
+def run_ingest(cfg: IngestConfig, progress: ProgressFn | None = None) -> IngestResult:
+    """Build the project `cfg.project` from the capture `cfg.capture`. See the module docstring."""
+    import torch
+
+    from avatarctl.atomic import atomic_dir
+    from avatarctl.ingest.contact_sheet import Tile, pick, write_contact_sheet
+    from avatarctl.ingest.silhouette import fraction_inside
+    from avatarctl.ingest.split import default_split, restrict_split
+    from avatarctl.ingest.undistort import Undistorter
+    from avatarctl.io.project_io import save_cameras, save_split, write_frame, write_mask
+    from avatarctl.project import Project, hash_tree, now_iso
+
+    t0 = time.perf_counter()
+    started = now_iso()
+    plan = plan_ingest(cfg)
+    src, cams, frames, motion = plan.source, plan.cams, plan.frames, plan.motion
+    cam_by_name = {c.name: c for c in src.cameras}
+    source_hash, n_files = hash_tree(src.root)
+    und = {c: Undistorter.for_camera(cam_by_name[c], cfg.resize) for c in cams}
+    plates = _undistorted_plates(src, und) if plan.masks_mode == "background" else {}
+    split = restrict_split(src.split, frames, cams) if src.split is not None else default_split(frames, cams)
+    sheet_cams, sheet_frames = pick(cams, 4), pick(frames, 3)
+    tiles: list[Tile] = []
+    inside: list[float] = []
+    bm_path = None if cfg.body_model_path is None or plan.body_model == "anny" else str(cfg.body_model_path.resolve())
+
+    with atomic_dir(cfg.project) as tmp:
+        proj = Project.create(tmp.resolve(), body_model={"name": plan.body_model, "path": bm_path},
+                              source={"path": str(src.root.resolve()), "format": src.format, "sha256": source_hash,
+                                      "files": n_files})
+        for s in range(0, len(frames), POSE_CHUNK):
+            with torch.no_grad():
+                verts = plan.body.pose(motion.select(slice(s, s + POSE_CHUNK))).vertices.cpu().numpy()  # [n, V, 3]
+            for k, frame in enumerate(frames[s:s + POSE_CHUNK]):
+                for c in cams:
+                    want_tile = cfg.contact_sheet and c in sheet_cams and frame in sheet_frames
+                    rgb, mask, sil = _process_view(plan, und[c], plates.get(c), c, frame, verts[k], want_tile)
+                    inside.append(fraction_inside(und[c].target, verts[k], mask))
+                    write_frame(proj, c, frame, rgb)
+                    write_mask(proj, c, frame, mask)
+                    if want_tile:
+                        tiles.append(Tile(c, frame, rgb, mask, sil))
+                if progress is not None:
+                    progress(s + k + 1, len(frames))
+
+        cameras_out = [und[c].target for c in cams]
+        save_cameras(proj.paths.cameras, cameras_out)
+        motion.save(proj.paths.body)
+        save_split(proj.paths.split, split)
+        outputs = [proj.paths.cameras, proj.paths.body, proj.paths.split]
+        if tiles:
+            write_contact_sheet(proj.paths.ingest_contact_sheet, tiles, sheet_cams, sheet_frames)
+            outputs.append(proj.paths.ingest_contact_sheet)
+        outputs += [proj.paths.frame(c, f) for f in (frames[0], frames[-1]) for c in cams]
+        mean_inside = float(np.mean(inside)) if inside else 0.0
+        warnings = []
+        if mean_inside < MIN_INSIDE:
+            warnings.append(f"only {100 * mean_inside:.1f}% of the body mesh projects inside the masks: check the "
+                            "calibration / fits alignment on ingest/contact_sheet.png")
+        seconds = time.perf_counter() - t0
+        w, h = cameras_out[0].width, cameras_out[0].height
+        summary = {"format": src.format, "cameras": len(cams), "frames": len(frames), "resolution": f"{w}x{h}",
+                   "body_model": plan.body_model, "masks": plan.masks_mode,
+                   "vertices_inside_masks": round(mean_inside, 4), "seconds": round(seconds, 2)}
+        config = cfg.to_json() | {"resolved": {"format": src.format, "body_model": plan.body_model,
+                                               "masks": plan.masks_mode, "frames": len(frames), "views": cams}}
+        proj.record("ingest", config, outputs, started, summary)
+    return IngestResult(project=cfg.project, format=src.format, format_reason=plan.format_reason, cameras=cams,
+                        frames=frames, resolution=(w, h), body_model=plan.body_model, masks_source=plan.masks_mode,
+                        seconds=seconds, vertices_inside_masks=mean_inside, notes=list(src.notes), warnings=warnings)
+
+
+def _undistorted_plates(src: CaptureSource, und: dict) -> dict[str, np.ndarray]:
+    """camera -> undistorted (and resized) background plate, RGB uint8 [H, W, 3]."""
+    from avatarctl.ingest.source import read_image_file
+
+    plates = {}
+    for c, u in und.items():
+        plate = read_image_file(src.backgrounds[c], c, -1)
+        _check_size(plate, u.source, str(src.backgrounds[c]))
+        plates[c] = u.image(plate)
+    return plates
+
+
+def _process_view(plan: IngestPlan, u, plate: np.ndarray | None, cam: str, frame: int, verts: np.ndarray,
+                  want_silhouette: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """One camera at one frame -> (undistorted RGB [H, W, 3], mask bool [H, W], body silhouette or None).
+
+    `u` is the camera's `Undistorter`; `verts` [V, 3] the posed body (world); `plate` the undistorted background
+    plate (background masks only)."""
+    from avatarctl.ingest.masks import background_mask
+    from avatarctl.ingest.silhouette import rasterize_silhouette
+
+    src = plan.source
+    rgb = src.images.read(cam, frame)
+    _check_size(rgb, u.source, src.images.where(cam, frame))
+    rgb = u.image(rgb)
+    sil = None
+    if plan.masks_mode == "background" or want_silhouette:
+        sil = rasterize_silhouette(u.target, verts, plan.faces)
+    if plan.masks_mode == "files":
+        m = src.masks.read(cam, frame)
+        _check_size(m, u.source, src.masks.where(cam, frame))
+        mask = u.mask(m)
+        where, fix = src.masks.where(cam, frame), "fix the mask (foreground > 0), or leave the frame out with --frames"
+    else:
+        mask = background_mask(rgb, plate, sil)
+        where = f"{src.images.where(cam, frame)} vs {src.backgrounds[cam]}"
+        fix = "check the background plate, or provide mask files"
+    if not mask.any():
+        raise InputError(f"empty mask: camera {cam}, frame {frame}", where=where, fix=fix)
+    return rgb, mask, sil
+
+
+def _check_size(img: np.ndarray, cam, where: str) -> None:
+    """`img` [H, W, ...] must have the calibrated size of `cam`."""
+    if img.shape[:2] != (cam.height, cam.width):
+        raise InputError(f"image is {img.shape[1]}x{img.shape[0]} but camera {cam.name} is calibrated for "
+                         f"{cam.width}x{cam.height}", where=where,
+                         fix="use the calibration that belongs to these images")

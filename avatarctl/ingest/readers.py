@@ -1,0 +1,100 @@
+"""One reader per capture format -> `CaptureSource`, and the EasyMocap layout reader.
+
+EasyMocap layout (also what ``avatarctl synth`` writes)::
+
+    intri.yml, extri.yml            cameras (see avatarctl/io/easymocap.py)
+    images/<cam>/%06d.jpg           frames (distorted, as captured)
+    masks/<cam>/%06d.png            optional masks (> 127 foreground; 'mask/' also accepted)
+    background/<cam>.jpg|png        optional background plates (for --masks background)
+    motion.npz | smpl/%06d.json     body fits: BodyMotion npz, or EasyMocap SMPL Rh/Th json
+    split.json                      optional train/test split (avatarctl Split json)
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Callable
+
+from avatarctl.errors import InputError
+from avatarctl.ingest.source import CaptureSource, FileImages, FileMasks, scan_numbered
+from avatarctl.io.project_io import Split
+
+
+def read_capture_split(root: Path) -> Split | None:
+    """The capture's own ``split.json`` (avatarctl `Split` json), or None."""
+    p = Path(root) / "split.json"
+    if not p.is_file():
+        return None
+    try:
+        return Split.from_json(json.loads(p.read_text()))
+    except (OSError, json.JSONDecodeError, KeyError, TypeError, ValueError) as e:
+        raise InputError(f"cannot read split.json ({type(e).__name__}: {e})", where=str(p),
+                         fix="expected {train_frames, test_frames, train_views, test_views}") from None
+
+
+def read_easymocap(root: Path) -> CaptureSource:
+    import cv2
+
+    from avatarctl.io.easymocap import read_easymocap_cameras
+    from avatarctl.io.easymocap_fits import read_capture_fits
+
+    root = Path(root)
+    img_root = root / "images"
+    if not img_root.is_dir():
+        raise InputError("no images/ folder", where=str(root), fix="EasyMocap captures keep frames in images/<cam>/")
+    per_cam = {d.name: scan_numbered(d) for d in sorted(img_root.iterdir()) if d.is_dir()}
+    sizes = {}
+    for cam, found in per_cam.items():
+        if found:
+            first = found[min(found)]
+            img = cv2.imread(str(first), cv2.IMREAD_UNCHANGED)
+            if img is None:
+                raise InputError(f"image unreadable or corrupt: camera {cam}", where=str(first),
+                                 fix="re-export this image, or leave the frame out with --frames")
+            sizes[cam] = (int(img.shape[1]), int(img.shape[0]))
+    cameras = read_easymocap_cameras(root, image_size=sizes)
+    names = [c.name for c in cameras]
+    for c in cameras:
+        if c.name in sizes and sizes[c.name] != (c.width, c.height):
+            raise InputError(f"camera {c.name}: images are {sizes[c.name][0]}x{sizes[c.name][1]} but intri.yml says "
+                             f"{c.width}x{c.height}", where=str(root / "intri.yml"),
+                             fix=f"fix W_{c.name}/H_{c.name} or the images")
+    image_frames = {n: set(per_cam.get(n, {})) for n in names}
+    images = FileImages({(n, f): p for n in names for f, p in per_cam.get(n, {}).items()})
+    mask_root = next((d for d in (root / "masks", root / "mask") if d.is_dir()), None)
+    masks = mask_frames = None
+    if mask_root is not None:
+        mper = {n: scan_numbered(mask_root / n) for n in names}
+        mask_frames = {n: set(d) for n, d in mper.items()}
+        masks = FileMasks({(n, f): p for n, d in mper.items() for f, p in d.items()})
+    bgs = {n: p for n in names for p in [root / "background" / f"{n}.jpg", root / "background" / f"{n}.png"]
+           if p.is_file()}
+    fits, fits_where = read_capture_fits(root)
+    return CaptureSource(format="easymocap", root=root, cameras=cameras, image_frames=image_frames, images=images,
+                         fits=fits, fits_where=fits_where, masks=masks, mask_frames=mask_frames, backgrounds=bgs,
+                         split=read_capture_split(root), uncalibrated=sorted(set(per_cam) - set(names)))
+
+
+def reader_for(fmt: str) -> Callable[[Path], CaptureSource]:
+    """The reader function of a format name (see avatarctl.io.detect.FORMATS)."""
+    if fmt == "easymocap":
+        return read_easymocap
+    if fmt == "zju":
+        from avatarctl.io.zju import read_zju
+
+        return read_zju
+    if fmt == "thuman4":
+        from avatarctl.io.thuman4 import read_thuman4
+
+        return read_thuman4
+    if fmt == "peoplesnapshot":
+        from avatarctl.io.peoplesnapshot import read_peoplesnapshot
+
+        return read_peoplesnapshot
+    if fmt == "colmap":
+        from avatarctl.io.colmap import read_colmap
+
+        return read_colmap
+    raise InputError(f"unknown capture format {fmt!r}",
+                     fix="use --format auto, easymocap, zju, thuman4, peoplesnapshot or colmap")
