@@ -37,9 +37,10 @@ def make(cfg: ModelConfig, num_frames: int = 4) -> SlrfAvatar:
     return SlrfAvatar(cfg, sphere_template(300), num_frames=num_frames, seed=0)
 
 
-@pytest.mark.parametrize("variant", ["slrf", "lbs_baseline"])
-def test_sparse_equals_dense_outputs_and_gradients(variant):
-    sparse = make(small_cfg(variant=variant, sparse=True))
+@pytest.mark.parametrize("variant,pack_block", [("slrf", 0), ("slrf", 16), ("slrf", 128), ("lbs_baseline", 128)])
+def test_sparse_equals_dense_outputs_and_gradients(variant, pack_block):
+    """pack_block 0 = the supplement's N x max S_i packing; 16 = several blocks per node; 128 = the default."""
+    sparse = make(small_cfg(variant=variant, sparse=True, pack_block=pack_block))
     dense = make(small_cfg(variant=variant, sparse=False))
     dense.load_state_dict(sparse.state_dict())
     rb, cond, bg = rays(), conditioning(), torch.tensor([1.0, 1.0, 1.0])
@@ -51,6 +52,8 @@ def test_sparse_equals_dense_outputs_and_gradients(variant):
         m.losses(out, target, st).total.backward()
         outs[name] = out
     s, d = outs["sparse"], outs["dense"]
+    if variant == "slrf" and pack_block:
+        assert s.stats["packed_slots"] < s.stats["pairs"] + pack_block * 24  # < one padded block per node
     assert 0 < s.stats["pairs"] < d.stats["pairs"]  # the sparse path evaluates fewer node-sample pairs
     assert s.stats["hit_rays"] > 50 and float(s.alpha.detach().max()) > 0
     for k in ("rgb", "alpha", "depth"):

@@ -30,7 +30,7 @@ from avatarctl.model.cvae import MODES, NodeCVAE
 from avatarctl.model.deformer import (blending_weights, candidate_pairs, farthest_point_sampling,
                                       local_coordinates_centered, node_pose_attention, node_pose_condition,
                                       node_transforms, pose_attention_map, posed_node_centers, ray_sphere_bounds)
-from avatarctl.model.field import (CanonicalField, NodeFields, Packing, RadianceHeads, fuse_features,
+from avatarctl.model.field import (BlockPacking, CanonicalField, NodeFields, Packing, RadianceHeads, fuse_features,
                                    fuse_features_dense)
 from avatarctl.model.losses import (LossTerms, embedding_loss, kl_loss, reconstruction_loss, total_loss,
                                     translation_loss)
@@ -221,7 +221,8 @@ class SlrfAvatar(nn.Module):
 
     def _features_sparse(self, points: torch.Tensor, point_frame: torch.Tensor,
                          state: NodeState) -> tuple[torch.Tensor, torch.Tensor, dict[str, float]]:
-        """Supplement A.2: evaluate only pairs with w_i > 0, packed per node into [N, max_i S_i, C]."""
+        """Supplement A.2: evaluate only pairs with w_i > 0, packed per node ([N, max_i S_i, C], or blocks of
+        `cfg.pack_block` rows per node, see `ModelConfig.pack_block`)."""
         cfg, N, P = self.cfg, self.cfg.num_nodes, points.shape[0]
         pi, ni = candidate_pairs(points, point_frame, state.centers, cfg.support_radius)
         fi = point_frame[pi]
@@ -229,25 +230,35 @@ class SlrfAvatar(nn.Module):
         w = blending_weights(((points[pi] - centers) ** 2).sum(-1), cfg.sigma, cfg.eps)  # Eq. 6
         keep = (w > 0).nonzero(as_tuple=True)[0]
         pi, ni, fi, w, centers = pi[keep], ni[keep], fi[keep], w[keep], centers[keep]
-        pk = Packing.build(ni, N)
         if cfg.variant == "slrf":
             A_inv = torch.linalg.inv(state.transforms[..., :3, :3])  # [B, N, 3, 3]
             local = local_coordinates_centered(points[pi], A_inv[fi, ni], centers) * self._local_scale()  # Eq. 4
-            # the large per-pair tensors live only in the packed layout [N, S', C]; padding has w = 0 and point P
-            frame_p = pk.pack_index(fi, N, fill=0)  # [N, S']
-            point_p = pk.pack_index(pi, N, fill=P)  # [N, S'], P = a dummy point dropped below
-            w_p = pk.pack(w[:, None], N)[..., 0]  # [N, S']
-            ebias = self.fields.embed_bias(state.embed).transpose(0, 1)  # [N, B, width]
-            onehot = torch.nn.functional.one_hot(frame_p, ebias.shape[1]).to(ebias.dtype)  # [N, S', B]
-            bias_p = torch.bmm(onehot, ebias)  # [N, S', width] = ebias[node, frame] (a gather as a small matmul)
-            feats_p = self.fields(pk.pack(local, N), bias_p)  # [N, S', F]
-            f, wsum = fuse_features(feats_p.flatten(0, 1), w_p.flatten(), point_p.flatten(), P + 1)  # Eq. 5
-            f, wsum = f[:P], wsum[:P]
+            if cfg.pack_block > 0:
+                bp = BlockPacking.build(ni, N, cfg.pack_block)
+                o = bp.order
+                bias = self.fields.embed_bias(state.embed)[fi[o], ni[o]]  # [pairs, width] W_e e_i of each pair
+                feats = bp.unpack(self.fields(bp.pack(local[o]), bp.pack(bias), node_index=bp.block_node))
+                f, wsum = fuse_features(feats, w[o], pi[o], P)  # Eq. 5
+                width, slots = cfg.pack_block, bp.num_blocks * cfg.pack_block
+            else:
+                pk = Packing.build(ni, N)
+                # the large per-pair tensors live only in the packed layout [N, S', C]; padding has w = 0, point P
+                frame_p = pk.pack_index(fi, N, fill=0)  # [N, S']
+                point_p = pk.pack_index(pi, N, fill=P)  # [N, S'], P = a dummy point dropped below
+                w_p = pk.pack(w[:, None], N)[..., 0]  # [N, S']
+                ebias = self.fields.embed_bias(state.embed).transpose(0, 1)  # [N, B, width]
+                onehot = torch.nn.functional.one_hot(frame_p, ebias.shape[1]).to(ebias.dtype)  # [N, S', B]
+                bias_p = torch.bmm(onehot, ebias)  # [N, S', width] = ebias[node, frame] (a gather as a matmul)
+                feats_p = self.fields(pk.pack(local, N), bias_p)  # [N, S', F]
+                f, wsum = fuse_features(feats_p.flatten(0, 1), w_p.flatten(), point_p.flatten(), P + 1)  # Eq. 5
+                f, wsum = f[:P], wsum[:P]
+                width, slots = pk.width, N * pk.width
         else:
             wsum = w.new_zeros(P).index_add(0, pi, w)
             Tp = w.new_zeros(P, 4, 4).index_add(0, pi, w[:, None, None] * state.transforms[fi, ni])
             f = self._canonical_features(points, Tp, wsum)
-        stats = {"pairs": float(pi.numel()), "packed_slots": float(N * pk.width), "max_node_samples": float(pk.width)}
+            width = slots = 0
+        stats = {"pairs": float(pi.numel()), "packed_slots": float(slots), "max_node_samples": float(width)}
         return f, wsum, stats
 
     def _features_dense(self, points: torch.Tensor, point_frame: torch.Tensor,

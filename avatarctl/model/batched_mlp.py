@@ -29,13 +29,20 @@ class BatchedLinear(nn.Module):
     def nodes(self) -> int:
         return self.weight.shape[0]
 
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        """[nodes, rows, in] -> [nodes, rows, out]."""
-        assert x.ndim == 3 and x.shape[0] == self.weight.shape[0] and x.shape[2] == self.weight.shape[1], \
-            f"expected [nodes={self.weight.shape[0]}, rows, in={self.weight.shape[1]}], got {tuple(x.shape)}"
-        if self.bias is None:
-            return torch.bmm(x, self.weight)
-        return torch.baddbmm(self.bias, x, self.weight)
+    def forward(self, x: torch.Tensor, node_index: torch.Tensor | None = None) -> torch.Tensor:
+        """[nodes, rows, in] -> [nodes, rows, out].
+
+        With `node_index` [blocks] (long), x is [blocks, rows, in] and block k uses node `node_index[k]`'s weights.
+        """
+        W, b = self.weight, self.bias
+        if node_index is not None:
+            W = W[node_index]
+            b = None if b is None else b[node_index]
+        assert x.ndim == 3 and x.shape[0] == W.shape[0] and x.shape[2] == W.shape[1], \
+            f"expected [nodes={W.shape[0]}, rows, in={W.shape[1]}], got {tuple(x.shape)}"
+        if b is None:
+            return torch.bmm(x, W)
+        return torch.baddbmm(b, x, W)
 
 
 class BatchedMLP(nn.Module):
@@ -53,14 +60,15 @@ class BatchedMLP(nn.Module):
             BatchedLinear(nodes, dims[k], dims[k + 1], init_scale=last_init_scale if k == n - 1 else 1.0)
             for k in range(n))
 
-    def forward(self, x: torch.Tensor, first_bias: torch.Tensor | None = None) -> torch.Tensor:
-        """[nodes, rows, in] -> [nodes, rows, out].
+    def forward(self, x: torch.Tensor, first_bias: torch.Tensor | None = None,
+                node_index: torch.Tensor | None = None) -> torch.Tensor:
+        """[nodes, rows, in] -> [nodes, rows, out] (or [blocks, rows, ...] with `node_index`, see BatchedLinear).
 
         `first_bias` [nodes, rows, hidden] is added to the first layer's pre-activation: a per-row conditioning
         term (W_e e) computed once per (frame, node) instead of concatenating e to every sample.
         """
         for k, layer in enumerate(self.layers):
-            x = layer(x)
+            x = layer(x, node_index)
             if k == 0 and first_bias is not None:
                 x = x + first_bias
             if k < len(self.layers) - 1:

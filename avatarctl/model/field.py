@@ -72,6 +72,45 @@ class Packing:
         return packed[self.node, self.slot]
 
 
+@dataclass
+class BlockPacking:
+    """Pairs sorted by node, each node's run cut into blocks of `block` rows: [blocks, block, C], zero padded.
+
+    The per-node MLPs then run with per-block weights (`BatchedMLP(..., node_index=block_node)`); padding is below
+    `block` rows per node instead of max_i S_i - S_i (see `ModelConfig.pack_block`).
+    """
+
+    order: torch.Tensor  # [pairs] permutation sorting pairs by node
+    pos: torch.Tensor  # [pairs] row of each sorted pair in the flattened [blocks * block] layout
+    block_node: torch.Tensor  # [blocks] node of each block
+    block: int
+
+    @staticmethod
+    def build(node_idx: torch.Tensor, num_nodes: int, block: int) -> "BlockPacking":
+        order = torch.argsort(node_idx, stable=True)
+        node = node_idx[order]
+        counts = torch.bincount(node_idx, minlength=num_nodes)
+        nblk = (counts + block - 1) // block  # [N]
+        first_block = torch.cumsum(nblk, 0) - nblk
+        rank = torch.arange(node.shape[0], device=node.device) - (torch.cumsum(counts, 0) - counts)[node]
+        pos = first_block[node] * block + rank
+        block_node = torch.repeat_interleave(torch.arange(num_nodes, device=node.device), nblk)
+        return BlockPacking(order=order, pos=pos, block_node=block_node, block=block)
+
+    @property
+    def num_blocks(self) -> int:
+        return int(self.block_node.shape[0])
+
+    def pack(self, values_sorted: torch.Tensor) -> torch.Tensor:
+        """[pairs, C] in sorted order -> [blocks, block, C], zero padded."""
+        out = values_sorted.new_zeros(self.num_blocks * self.block, values_sorted.shape[-1])
+        return out.index_copy(0, self.pos, values_sorted).reshape(self.num_blocks, self.block, -1)
+
+    def unpack(self, packed: torch.Tensor) -> torch.Tensor:
+        """[blocks, block, C] -> [pairs, C] in sorted order."""
+        return packed.reshape(-1, packed.shape[-1])[self.pos]
+
+
 # ---- networks ----------------------------------------------------------------------------------------------------
 class NodeFields(nn.Module):
     """The N local radiance networks F_i(p_i; e_i) (Sec. 3), run in parallel over a `nodes` dimension.
@@ -91,9 +130,12 @@ class NodeFields(nn.Module):
         """[frames, N, E] -> [frames, N, width], the first-layer contribution of e_i."""
         return self.embed(embed.transpose(0, 1)).transpose(0, 1)
 
-    def forward(self, coords: torch.Tensor, bias: torch.Tensor) -> torch.Tensor:
-        """coords [N, rows, 3] local coordinates (already scaled), bias [N, rows, width] -> features [N, rows, F]."""
-        return self.mlp(positional_encoding(coords, self.pe_coords), first_bias=bias)
+    def forward(self, coords: torch.Tensor, bias: torch.Tensor, node_index: torch.Tensor | None = None) -> torch.Tensor:
+        """coords [N, rows, 3] local coordinates (already scaled), bias [N, rows, width] -> features [N, rows, F].
+
+        With `node_index` [blocks] the leading dimension is blocks of `BlockPacking` (block k = node node_index[k]).
+        """
+        return self.mlp(positional_encoding(coords, self.pe_coords), first_bias=bias, node_index=node_index)
 
 
 class CanonicalField(nn.Module):
