@@ -1,15 +1,64 @@
-"""`avatarctl demo`: not built yet (see the issue tracker)."""
+"""`avatarctl demo OUT`: synth -> ingest -> fit -> render -> eval on a synthetic capture, end to end."""
 
 from __future__ import annotations
+
+from pathlib import Path
+from typing import Optional
 
 import typer
 
 
 def register(app: typer.Typer) -> None:
-    @app.command("demo", help="Run synth -> ingest -> fit -> render -> eval end to end on a synthetic capture.", context_settings={"allow_extra_args": True, "ignore_unknown_options": True})
-    def _cmd(ctx: typer.Context) -> None:
-        from avatarctl.cli.common import user_errors
-        from avatarctl.errors import NotBuiltError
+    @app.command("demo", help="Run synth -> ingest -> fit -> render -> eval end to end on a synthetic capture.")
+    def demo_cmd(
+        out: Path = typer.Argument(..., help="New folder for the demo (OUT/capture, OUT/project)."),
+        preset: str = typer.Option("tiny", "--preset", help="ci (alias micro: ~1 min, plumbing only) | tiny (a "
+                                   "recognisable avatar; the fit takes most of the time) | small (an hour or more)."),
+        seed: int = typer.Option(0, "--seed", help="Seed of the synthetic capture and of the fit."),
+        iters: Optional[int] = typer.Option(None, "--iters", help="Fit steps (default: the preset's)."),
+        device: str = typer.Option("auto", "--device", help="auto | cpu | cuda."),
+    ) -> None:
+        from avatarctl.cli.common import console, user_errors
 
         with user_errors():
-            raise NotBuiltError("`avatarctl demo` is not built yet", fix="see the open issues; no output was written")
+            from avatarctl.demo import DemoConfig
+
+            _run(DemoConfig(out=out, preset=preset, seed=seed, iters=iters, device=device), console)
+
+
+def _run(cfg, console) -> None:
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+    from rich.table import Table
+
+    from avatarctl.demo import StageDone, run_demo
+
+    s = cfg.sizes
+    console.print(f"[bold]avatarctl demo[/] preset {cfg.preset}: synth {s.synth}, fit {s.fit_preset} x {s.iters} "
+                  f"steps, orbit {s.orbit_views} views at {s.orbit_resolution} px -> {cfg.out}")
+    with Progress(TextColumn("{task.description:<18}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
+                  console=console) as bar:
+        tasks: dict[str, int] = {}
+
+        def progress(stage: str, done: int, total: int) -> None:
+            if stage not in tasks:
+                tasks[stage] = bar.add_task(stage, total=total)
+            bar.update(tasks[stage], completed=done, total=total)
+
+        def on_stage(st: StageDone) -> None:
+            t = Table(title=f"{st.stage}  ({st.seconds:.1f} s)", show_header=False, title_justify="left")
+            for k, v in st.summary.items():
+                t.add_row(k, str(v))
+            bar.console.print(t)
+
+        res = run_demo(cfg, on_stage=on_stage, progress=progress)
+
+    t = Table(title=f"avatarctl demo ({cfg.preset}) done in {res.seconds / 60:.1f} min")
+    for col in ("split", "PSNR (bbox)", "SSIM", "images"):
+        t.add_column(col)
+    for split, m in res.metrics.items():
+        t.add_row(split, f"{m['psnr']:.2f} dB", f"{m['ssim']:.4f}", str(m["images"]))
+    console.print(t)
+    for name, path in res.videos.items():
+        console.print(f"video ({name}): {path}", soft_wrap=True)
+    for split, path in res.metrics_paths.items():
+        console.print(f"metrics ({split}): {path}", soft_wrap=True)

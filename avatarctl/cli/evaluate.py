@@ -1,15 +1,116 @@
-"""`avatarctl eval`: not built yet (see the issue tracker)."""
+"""`avatarctl eval PROJECT`: score renders against held-out ground truth; `--compare` tabulates several projects."""
 
 from __future__ import annotations
+
+from pathlib import Path
+from typing import Optional
 
 import typer
 
 
 def register(app: typer.Typer) -> None:
-    @app.command("eval", help="Score renders against held-out ground truth (PSNR/SSIM, bbox or full protocol).", context_settings={"allow_extra_args": True, "ignore_unknown_options": True})
-    def _cmd(ctx: typer.Context) -> None:
-        from avatarctl.cli.common import user_errors
-        from avatarctl.errors import NotBuiltError
+    @app.command("eval", help="Score renders against held-out ground truth (PSNR/SSIM, bbox or full protocol).")
+    def eval_cmd(
+        projects: list[Path] = typer.Argument(..., help="Project directory (with --compare: several)."),
+        split: Optional[str] = typer.Option(None, "--split", help="novel_view (training frames, held-out views; "
+                                            "default) | novel_pose (test frames, held-out views) | train."),
+        protocol: Optional[str] = typer.Option(None, "--protocol", help="bbox (Neural Body: PSNR inside the "
+                                               "projected 3D body box, SSIM on its rectangle; default) | full."),
+        frames: Optional[str] = typer.Option(None, "--frames", help="Frames within the split: all | a:b[:step] | "
+                                             "3,7,9."),
+        views: Optional[str] = typer.Option(None, "--views", help="Comma list of cameras (default: the split's)."),
+        every: int = typer.Option(1, "--every", help="Keep every N-th frame (Neural Body's protocol: 30)."),
+        latent: str = typer.Option("auto", "--latent", help="auto (mean for training frames, zero for novel) | "
+                                   "mean | zero | sample."),
+        seed: int = typer.Option(0, "--seed", help="Seed for --latent sample."),
+        name: Optional[str] = typer.Option(None, "--name", help="Output folder PROJECT/eval/NAME (default: "
+                                           "<split>_<protocol>)."),
+        sheet: int = typer.Option(4, "--sheet", help="Images shown in the comparison sheet (0 = none)."),
+        max_rays: int = typer.Option(8192, "--max-rays", help="Rays per model call (memory bound)."),
+        device: str = typer.Option("auto", "--device", help="auto | cpu | cuda."),
+        checkpoint: Optional[Path] = typer.Option(None, "--checkpoint", help="Checkpoint file (default: latest)."),
+        compare: bool = typer.Option(False, "--compare", help="Do not render: print a side-by-side table of the "
+                                     "projects' latest metrics.json (same split/protocol), e.g. "
+                                     "`avatarctl eval FULL --compare ABL1 ABL2`."),
+    ) -> None:
+        from avatarctl.cli.common import console, user_errors
+        from avatarctl.errors import InputError
 
         with user_errors():
-            raise NotBuiltError("`avatarctl eval` is not built yet", fix="see the open issues; no output was written")
+            if compare:
+                _compare(projects, split, protocol, console)
+                return
+            if len(projects) > 1:
+                raise InputError(f"{len(projects)} projects given", fix="pass one PROJECT, or add --compare to "
+                                 "tabulate several")
+            from avatarctl.evaluate.run import EvalConfig
+
+            view_names = tuple(v.strip() for v in views.split(",") if v.strip()) if views else ()
+            cfg = EvalConfig(split=split or "novel_view", protocol=protocol or "bbox", name=name, frames=frames,
+                             views=view_names, every=every, latent=latent, seed=seed, sheet_rows=sheet,
+                             max_rays_per_chunk=max_rays, device=device,
+                             checkpoint=str(checkpoint) if checkpoint else None)
+            _run(projects[0], cfg, console)
+
+
+def _run(project: Path, cfg, console) -> None:
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, \
+        TimeRemainingColumn
+    from rich.table import Table
+
+    from avatarctl.evaluate.run import EvalProgress, evaluate
+
+    columns = (TextColumn("[bold]eval[/]"), BarColumn(), MofNCompleteColumn(), TextColumn("{task.fields[info]}"),
+               TimeElapsedColumn(), TextColumn("ETA"), TimeRemainingColumn())
+    with Progress(*columns, console=console) as bar:
+        task = bar.add_task("eval", total=None, info="loading avatar")
+
+        def progress(p: EvalProgress) -> None:
+            info = f"{p.done / max(p.seconds, 1e-9):.2f} images/s"
+            if p.last is not None:
+                info += f" | last {p.last.psnr:.2f} dB"
+            bar.update(task, total=p.total, completed=p.done, info=info)
+
+        res = evaluate(project, cfg, progress=progress)
+
+    m = res.metrics
+    t = Table(title=f"avatarctl eval — {m['split']} / {m['protocol']}", show_header=False)
+    t.add_row("PSNR", f"{m['psnr']:.3f} dB  (std {m['psnr_std']:.2f}, min {m['psnr_min']:.2f}, "
+                      f"max {m['psnr_max']:.2f})")
+    t.add_row("SSIM", f"{m['ssim']:.4f}  (skimage {m['metric_settings']['scikit_image']}, "
+                      f"win {m['metric_settings']['ssim']['win_size']}, data_range 1)")
+    t.add_row("LPIPS", f"{m['lpips']:.4f}" if m["lpips"] is not None else f"absent: {m['lpips_reason']}")
+    frames = m["frames"]
+    t.add_row("images", f"{m['images']} = {len(frames)} frames x {len(m['views'])} views "
+                        f"({', '.join(m['views'])}); every {m['every']}")
+    t.add_row("latent / background", f"{m['latent']} / {','.join(f'{c:g}' for c in m['background'])}")
+    t.add_row("ground truth", m["ground_truth"])
+    t.add_row("checkpoint step", str(m["checkpoint_step"]))
+    t.add_row("time", f"{m['seconds']:.1f} s ({m['timing']['seconds_per_image']:.2f} s per image render)")
+    console.print(t)
+    console.print(f"metrics: {res.out_dir / 'metrics.json'}", soft_wrap=True)
+    if (res.out_dir / "sheet.png").is_file():
+        console.print(f"sheet:   {res.out_dir / 'sheet.png'}", soft_wrap=True)
+
+
+def _compare(projects: list[Path], split, protocol, console) -> None:
+    from rich.table import Table
+
+    from avatarctl.evaluate.compare import compare
+
+    rows = compare(projects, split, protocol)
+    t = Table(title=f"avatarctl eval --compare — {rows[0].split} / {rows[0].protocol}")
+    t.add_column("project")
+    t.add_column("model")
+    for col in ("PSNR dB", "SSIM", "LPIPS", "images", "step"):
+        t.add_column(col, justify="right", no_wrap=True)
+    for r in rows:
+        flag = "" if r.same_images else " [yellow]*[/]"
+        t.add_row(Path(r.project).name, r.label, f"{r.psnr:.3f}", f"{r.ssim:.4f}",
+                  "-" if r.lpips is None else f"{r.lpips:.4f}", f"{r.images}{flag}", str(r.checkpoint_step))
+    console.print(t)
+    if not all(r.same_images for r in rows):
+        console.print("[yellow]*[/] evaluated other (frame, view) images than the first project: "
+                      "not directly comparable")
+    for r in rows:
+        console.print(f"{Path(r.project).name}: {r.metrics_path}", soft_wrap=True)

@@ -1,0 +1,479 @@
+"""The render stage (`avatarctl render PROJECT`): a fitted avatar -> PNG frames, an MP4 and a config record.
+
+Steps:
+1. load the fitted avatar (`avatarctl.fit.checkpoint.load_avatar`);
+2. choose the motion: the project's own frames (training frames render with the cVAE latent z = mu, novel frames
+   with z = 0, paper Sec. 4.1) or a motion file (`--poses`, always novel: z = 0 unless `--latent sample`);
+   a motion file's body shape is replaced by the avatar's own (`adopt_subject`) and, by default, its translation
+   is moved so its first frame starts where the avatar's first training frame stands (`recenter`);
+3. choose the cameras: capture views (`views`, scaled to `resolution`) or an orbit (`orbit` views over one turn
+   around the subject's smoothed box centre, `trajectories.orbit_cameras`);
+4. render each (frame, camera) with the sparse, chunked view renderer (`render.engine.render_view`), which only
+   casts rays that can reach a node's support and bounds memory by `max_rays_per_chunk`;
+5. write `render/<name>/frames/*.png`, `video.mp4` (H.264 / yuv420p) and `config.json` into a temporary directory,
+   rename it into place (`atomic_dir`) and record the stage in the manifest.
+
+Image naming: `frames/<seq:05d>_<view>_<frame:06d>.png`, where `seq` is the video frame the image belongs to (several
+views of one frame share a `seq` and are tiled side by side in the video).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+
+from avatarctl.errors import InputError
+from avatarctl.project import Project, check_name, now_iso
+from avatarctl.render.cameras import Camera
+
+SCHEMA_VERSION = 1
+LATENT_MODES = ("auto", "mean", "zero", "sample")
+DEFAULT_MAX_RAYS = 8192
+
+
+# ---- option parsing shared by render and eval ------------------------------------------------------------------
+
+def select_frames(spec: str | None, available: list[int], train: list[int] | None = None,
+                  test: list[int] | None = None, what: str = "--frames") -> list[int]:
+    """Frame numbers chosen by `spec` among `available` (sorted, unique).
+
+    spec: None / "all" = every available frame; "train" / "test" = the project's split (project frames only);
+    "a:b" or "a:b:s" = frame numbers n with a <= n < b stepping by s from a (either bound may be empty);
+    "3,7,9" = exactly those frames (each must exist).
+    """
+    avail = sorted(set(int(f) for f in available))
+    if spec is None or spec.strip() in ("", "all"):
+        return avail
+    s = spec.strip()
+    if s in ("train", "test"):
+        chosen = train if s == "train" else test
+        if chosen is None:
+            raise InputError(f"{what} {s!r} only applies to the project's own frames", where=what,
+                             fix="use a range a:b[:step] or a list of frame numbers for a motion file")
+        out = sorted(set(int(f) for f in chosen) & set(avail))
+        if not out:
+            raise InputError(f"the project has no {s} frames", where=what, fix="pick frames with a:b or a list")
+        return out
+    try:
+        if ":" in s:
+            parts = s.split(":")
+            if len(parts) > 3:
+                raise ValueError
+            a = int(parts[0]) if parts[0] else (avail[0] if avail else 0)
+            b = int(parts[1]) if len(parts) > 1 and parts[1] else (avail[-1] + 1 if avail else 0)
+            step = int(parts[2]) if len(parts) > 2 and parts[2] else 1
+            if step <= 0:
+                raise ValueError
+            wanted = set(range(a, b, step))
+            out = [f for f in avail if f in wanted]
+        else:
+            out = sorted(set(int(x) for x in s.split(",") if x.strip()))
+            missing = [f for f in out if f not in set(avail)]
+            if missing:
+                raise InputError(f"frame(s) {missing[:5]} not available", where=what,
+                                 fix=f"choose among frames {_ranges(avail)}")
+    except ValueError:
+        raise InputError(f"cannot parse {what} {spec!r}", where=what,
+                         fix="use all | train | test | a:b[:step] | a comma list of frame numbers") from None
+    if not out:
+        raise InputError(f"{what} {spec!r} selects no frame", where=what, fix=f"available frames: {_ranges(avail)}")
+    return out
+
+
+def _ranges(frames: list[int]) -> str:
+    if not frames:
+        return "none"
+    return f"{frames[0]}..{frames[-1]} ({len(frames)} frames)"
+
+
+def select_views(names: tuple[str, ...], cameras: dict[str, Camera], what: str = "--views") -> list[str]:
+    """Check capture camera names (in the order given)."""
+    unknown = [n for n in names if n not in cameras]
+    if unknown:
+        raise InputError(f"unknown camera(s) {unknown}", where=what, fix=f"choose among: {', '.join(cameras)}")
+    return list(dict.fromkeys(names))
+
+
+def parse_background(spec: str, fit_background: tuple[float, float, float]) -> tuple[tuple[float, float, float], bool]:
+    """'fit' | 'black' | 'white' | 'transparent' | 'r,g,b' (0-1 or 0-255) -> (rgb in [0, 1], transparent?)."""
+    s = spec.strip().lower()
+    if s == "fit":
+        return tuple(float(c) for c in fit_background), False  # type: ignore[return-value]
+    if s == "black":
+        return (0.0, 0.0, 0.0), False
+    if s == "white":
+        return (1.0, 1.0, 1.0), False
+    if s == "transparent":
+        return (0.0, 0.0, 0.0), True
+    try:
+        vals = [float(v) for v in s.split(",")]
+        if len(vals) != 3:
+            raise ValueError
+    except ValueError:
+        raise InputError(f"cannot parse background {spec!r}", where="--background",
+                         fix="use fit | black | white | transparent | r,g,b") from None
+    if max(vals) > 1.0:
+        vals = [v / 255.0 for v in vals]
+    if not all(0.0 <= v <= 1.0 for v in vals):
+        raise InputError(f"background {spec!r} outside [0, 1] / [0, 255]", where="--background", fix="e.g. 1,1,1")
+    return (vals[0], vals[1], vals[2]), False
+
+
+# ---- config / result ---------------------------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class RenderConfig:
+    """What `avatarctl render` renders. Saved as `render/<name>/config.json` and in the manifest."""
+
+    name: str = "default"  # output folder render/<name>
+    poses: str | None = None  # motion file (anny npz / AMASS npz); None = the project's own frames
+    frames: str | None = None  # frame selection (see `select_frames`); None = all
+    views: tuple[str, ...] = ()  # capture cameras; () and orbit == 0 = the first held-out view
+    orbit: int = 0  # > 0: that many orbit cameras over one turn instead of capture views
+    elevation: float | None = None  # orbit elevation, degrees; None = mean elevation of the capture cameras
+    radius: float | None = None  # orbit radius, metres; None = mean distance of the capture cameras
+    latent: str = "auto"  # auto (mean for training frames, zero otherwise) | mean | zero | sample
+    seed: int = 0  # for latent "sample"
+    resolution: int | None = None  # longer image side, pixels; None = the capture's
+    background: str = "fit"  # fit | black | white | transparent | r,g,b
+    fps: float | None = None  # video frame rate; None = the motion's fps / frame step
+    recenter: bool = True  # --poses: move the motion to where the avatar's first training frame stands
+    max_rays_per_chunk: int = DEFAULT_MAX_RAYS  # rays per model call (memory bound)
+    device: str = "auto"  # auto | cpu | cuda
+    checkpoint: str | None = None  # None = fit/checkpoints/latest.pt
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "views", tuple(self.views))
+        check_name(self.name, "render name")
+        if self.latent not in LATENT_MODES:
+            raise InputError(f"unknown latent mode {self.latent!r}", where="--latent", fix=f"use one of {LATENT_MODES}")
+        if self.orbit < 0:
+            raise InputError(f"--orbit must be >= 0, got {self.orbit}", where="--orbit", fix="e.g. --orbit 36")
+        if self.orbit and self.views:
+            raise InputError("--views and --orbit are exclusive", fix="pass one of them")
+        if self.resolution is not None and not 8 <= self.resolution <= 8192:
+            raise InputError(f"--resolution {self.resolution} outside [8, 8192]", where="--resolution",
+                             fix="e.g. --resolution 512")
+        if self.radius is not None and not self.radius > 0:
+            raise InputError(f"--radius must be > 0 metres, got {self.radius}", where="--radius", fix="e.g. 3.0")
+        if self.elevation is not None and not -89 <= self.elevation <= 89:
+            raise InputError(f"--elevation {self.elevation} outside [-89, 89] degrees", where="--elevation",
+                             fix="e.g. --elevation 10")
+        if self.fps is not None and not self.fps > 0:
+            raise InputError(f"--fps must be > 0, got {self.fps}", where="--fps", fix="e.g. --fps 30")
+        if self.max_rays_per_chunk < 64:
+            raise InputError(f"max rays per chunk {self.max_rays_per_chunk} < 64", fix="e.g. 8192")
+        parse_background(self.background, (0.0, 0.0, 0.0))  # validate the syntax early
+
+    def to_json(self) -> dict[str, Any]:
+        d = asdict(self)
+        d["views"] = list(self.views)
+        return {"schema_version": SCHEMA_VERSION, **d}
+
+
+@dataclass(frozen=True)
+class RenderedImage:
+    file: str  # relative to the render folder
+    seq: int  # video frame index
+    frame: int  # frame number (project capture frame or motion-file frame)
+    view: str  # capture camera or orbit camera name
+    latent: str  # mean | zero | sample
+    seconds: float
+    rays: int  # rays actually rendered
+
+
+@dataclass
+class RenderProgress:
+    done: int  # images rendered
+    total: int  # images to render
+    seconds: float  # since the first image started
+
+    @property
+    def images_per_second(self) -> float:
+        return self.done / self.seconds if self.seconds > 0 else 0.0
+
+
+@dataclass
+class RenderResult:
+    out_dir: Path
+    video: Path
+    images: list[RenderedImage]
+    width: int  # of one image
+    height: int
+    video_size: tuple[int, int]  # (W, H)
+    fps: float
+    seconds: float  # whole stage
+    render_seconds: float  # sum over images of render_view time
+    checkpoint_step: int
+    background: tuple[float, float, float]
+    motion_source: str  # "project" or the motion file
+    latent_counts: dict[str, int] = field(default_factory=dict)
+
+    @property
+    def seconds_per_image(self) -> float:
+        return self.render_seconds / max(len(self.images), 1)
+
+
+ProgressFn = Callable[[RenderProgress], None]
+
+
+# ---- the stage -------------------------------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class _Plan:
+    """Resolved work: which motion rows, cameras and latent modes."""
+
+    motion: Any  # BodyMotion
+    frames: list[int]
+    training: list[bool]  # [frames] whether each frame is a training frame of the avatar
+    latents: list[str]  # [frames] mean | zero | sample
+    shots: list[tuple[int, int, Camera]]  # (seq, frame position, camera)
+    views_per_seq: int
+    fps: float
+    source: str
+
+
+def render(project_dir: str | Path, cfg: RenderConfig, progress: ProgressFn | None = None) -> RenderResult:
+    """Run the render stage on `project_dir` (see the module docstring). Returns what was written."""
+    import torch
+
+    from avatarctl.atomic import atomic_dir, write_json
+    from avatarctl.fit.checkpoint import load_avatar
+    from avatarctl.fit.loop import resolve_device
+    from avatarctl.render.video import tile, write_video
+
+    started = now_iso()
+    t_start = time.perf_counter()
+    project = Project.open(project_dir)
+    project.require("fit")
+    _precheck(project, cfg)
+    ckpt = Path(cfg.checkpoint) if cfg.checkpoint else None
+    avatar = load_avatar(project, device=str(resolve_device(cfg.device)), checkpoint=ckpt)
+    background, transparent = parse_background(cfg.background, avatar.background)
+    plan = _plan(avatar, cfg)
+    out_dir = project.paths.render(cfg.name)
+
+    images: list[RenderedImage] = []
+    timing = {"render": 0.0}
+    total = len(plan.shots)
+    t0 = time.perf_counter()
+    bg8 = tuple(int(round(c * 255)) for c in background)
+
+    def video_frames(tmp: Path):
+        """Render shot by shot, write each PNG, and yield one tiled video frame per `seq` (streamed, not held)."""
+        state_cache: tuple[int, Any] | None = None
+        row: list[np.ndarray] = []
+        for i, (seq, pos, cam) in enumerate(plan.shots):
+            if state_cache is None or state_cache[0] != pos:
+                state_cache = (pos, _node_state(avatar, plan, pos, cfg.seed))
+            view = _render_one(avatar, state_cache[1], cam, background, cfg.max_rays_per_chunk)
+            timing["render"] += view.seconds
+            frame = plan.frames[pos]
+            fname = f"frames/{seq:05d}_{cam.name}_{frame:06d}.png"
+            _write_png(tmp / fname, view.rgb, view.alpha if transparent else None)
+            images.append(RenderedImage(file=fname, seq=seq, frame=frame, view=cam.name, latent=plan.latents[pos],
+                                        seconds=round(view.seconds, 4), rays=int(view.rays)))
+            row.append(_to_uint8(view.rgb))
+            if progress is not None:
+                progress(RenderProgress(done=len(images), total=total, seconds=time.perf_counter() - t0))
+            if i + 1 == len(plan.shots) or plan.shots[i + 1][0] != seq:
+                yield tile(row, columns=len(row), pad_color=bg8)
+                row = []
+
+    with atomic_dir(out_dir) as tmp:
+        (tmp / "frames").mkdir()
+        vinfo = write_video(video_frames(tmp), tmp / "video.mp4", fps=plan.fps, pad_color=bg8)
+        render_seconds = timing["render"]
+        h, w = plan.shots[0][2].height, plan.shots[0][2].width
+        latent_counts: dict[str, int] = {}
+        for im in images:
+            latent_counts[im.latent] = latent_counts.get(im.latent, 0) + 1
+        record = {
+            "config": cfg.to_json(),
+            "checkpoint": str(avatar.checkpoint) if avatar.checkpoint else None,
+            "checkpoint_step": avatar.step,
+            "motion_source": plan.source,
+            "background": list(background),
+            "transparent": transparent,
+            "image_size": [w, h],
+            "video": {"file": "video.mp4", "frames": vinfo.frames, "size": [vinfo.width, vinfo.height],
+                      "fps": vinfo.fps, "codec": "h264 (libx264)", "pix_fmt": vinfo.pix_fmt},
+            "cameras": [c.to_json() for c in _unique_cameras(plan.shots)],
+            "images": [asdict(im) for im in images],
+            "model": {"sparse": bool(avatar.model_config.sparse), "variant": avatar.model_config.variant,
+                      "num_nodes": avatar.model_config.num_nodes,
+                      "samples_per_ray": avatar.model_config.samples_per_ray},
+            "timing": {"render_seconds": round(render_seconds, 3),
+                       "seconds_per_image": round(render_seconds / max(len(images), 1), 4),
+                       "device": str(avatar.device), "torch_threads": torch.get_num_threads()},
+            "created": now_iso(),
+        }
+        write_json(tmp / "config.json", record)
+    seconds = time.perf_counter() - t_start
+    result = RenderResult(out_dir=out_dir, video=out_dir / "video.mp4", images=images, width=w, height=h,
+                          video_size=(vinfo.width, vinfo.height), fps=plan.fps, seconds=seconds,
+                          render_seconds=render_seconds, checkpoint_step=avatar.step, background=background,
+                          motion_source=plan.source, latent_counts=latent_counts)
+    project.record("render", config=cfg.to_json(), outputs=[out_dir], started=started,
+                   summary={"name": cfg.name, "images": len(images), "size": f"{w}x{h}",
+                            "seconds_per_image": round(result.seconds_per_image, 3), "video": "video.mp4",
+                            "checkpoint_step": avatar.step, "motion": plan.source})
+    return result
+
+
+def _precheck(project: Project, cfg: RenderConfig) -> None:
+    """Cheap checks before the avatar is loaded (which takes seconds)."""
+    from avatarctl.io.project_io import load_cameras
+
+    if cfg.poses is not None and not Path(cfg.poses).is_file():
+        raise InputError("motion file not found", where=str(cfg.poses), fix="check the --poses path")
+    if cfg.checkpoint is not None and not Path(cfg.checkpoint).is_file():
+        raise InputError("checkpoint file not found", where=str(cfg.checkpoint), fix="check the --checkpoint path")
+    if cfg.views:
+        select_views(cfg.views, load_cameras(project.paths.cameras))
+
+
+def _plan(avatar: Any, cfg: RenderConfig) -> _Plan:
+    """Resolve motion, frames, latent modes and cameras from the config."""
+    from avatarctl.io import motion_files
+
+    cap = avatar.capture
+    train_set = set(int(f) for f in avatar.train_frames)
+    if cfg.poses is None:
+        motion = cap.motion
+        frames = select_frames(cfg.frames, cap.frames, train=cap.split.train_frames, test=cap.split.test_frames)
+        training = [f in train_set for f in frames]
+        source = "project"
+    else:
+        motion = motion_files.read_motion_file(cfg.poses, cap.body_model)
+        if motion.body_model == "anny":
+            motion_files.check_joint_labels(cfg.poses, avatar.template.joint_names)
+        motion = motion_files.adopt_subject(motion, cap.motion)
+        if cfg.recenter:
+            anchor_row = cap.motion.rows_for([min(train_set) if train_set else cap.frames[0]])
+            anchor = motion_files.root_translation(cap.motion.select(anchor_row))[0]
+            motion = motion_files.shift_motion(motion, anchor - motion_files.root_translation(motion)[0])
+        frames = select_frames(cfg.frames, [int(f) for f in motion.frame_index])
+        training = [False] * len(frames)
+        source = str(cfg.poses)
+    motion = motion.select(motion.rows_for(frames))
+    latents = []
+    for is_train in training:
+        if cfg.latent == "auto":
+            latents.append("mean" if is_train else "zero")
+        elif cfg.latent == "mean" and not is_train:
+            raise InputError("--latent mean needs training frames (z = mu comes from the cVAE encoder of a training "
+                             "frame's time stamp)", where="--latent",
+                             fix="use --latent zero or sample for novel poses, or --frames train")
+        else:
+            latents.append(cfg.latent)
+
+    cams = avatar.capture.cameras
+    step = int(np.median(np.diff(frames))) if len(frames) > 1 else 1
+    fps = cfg.fps or max(float(motion.fps) / max(step, 1), 1.0)
+    if cfg.orbit:
+        shots, views_per_seq = _orbit_shots(avatar, cfg, motion, frames, list(cams.values())), 1
+    else:
+        names = cfg.views or (cap.split.test_views[:1] or cap.split.train_views[:1] or [next(iter(cams))])
+        views = [cams[n].pinhole() for n in select_views(tuple(names), cams)]
+        if cfg.resolution is not None:
+            views = [_scaled_to(c, cfg.resolution) for c in views]
+        shots = [(i, i, c) for i in range(len(frames)) for c in views]
+        views_per_seq = len(views)
+    return _Plan(motion=motion, frames=frames, training=training, latents=latents, shots=shots,
+                 views_per_seq=views_per_seq, fps=fps, source=source)
+
+
+def _scaled_to(cam: Camera, longer_side: int) -> Camera:
+    factor = longer_side / max(cam.width, cam.height)
+    return cam if abs(factor - 1.0) < 1e-9 else cam.scaled(factor)
+
+
+def _orbit_shots(avatar: Any, cfg: RenderConfig, motion: Any, frames: list[int], capture_cams: list[Camera]
+                 ) -> list[tuple[int, int, Camera]]:
+    """`cfg.orbit` cameras over one turn; video frame k shows pose frames[floor(k * F / orbit)]."""
+    from avatarctl.render.trajectories import OrbitSpec, orbit_cameras, orbit_defaults, smooth_centers, up_from_cameras
+
+    n, F = cfg.orbit, len(frames)
+    pos = [min(k * F // n, F - 1) for k in range(n)]
+    lo, hi = _boxes(avatar, motion)  # [frames, 3] each
+    centers = smooth_centers((lo + hi) / 2.0)
+    extent = float(np.max(np.linalg.norm(hi - lo, axis=1)) / 2.0)
+    up = up_from_cameras(capture_cams)
+    dist, elev, ref = orbit_defaults(capture_cams, centers[0], up)
+    radius = cfg.radius or dist
+    if radius <= extent * 1.05:
+        raise InputError(f"orbit radius {radius:.2f} m is inside the subject (half-diagonal {extent:.2f} m)",
+                         where="--radius", fix=f"use --radius larger than {extent * 1.2:.2f}")
+    res = cfg.resolution or max(max(c.width, c.height) for c in capture_cams)
+    spec = OrbitSpec(views=n, elevation_deg=cfg.elevation if cfg.elevation is not None else elev,
+                     radius=radius, resolution=res)
+    cams = orbit_cameras(spec, centers[pos], extent, up, radius, reference_dir=ref)
+    return [(k, pos[k], cams[k]) for k in range(n)]
+
+
+def _boxes(avatar: Any, motion: Any, chunk: int = 64) -> tuple[np.ndarray, np.ndarray]:
+    """[frames, 3] min / max corners of the posed body mesh, world metres."""
+    lo, hi = [], []
+    for s in range(0, motion.num_frames, chunk):
+        v = avatar.body.pose(motion.select(slice(s, s + chunk))).vertices.detach().float().cpu().numpy()
+        lo.append(v.min(axis=1))
+        hi.append(v.max(axis=1))
+    return np.concatenate(lo).astype(np.float64), np.concatenate(hi).astype(np.float64)
+
+
+def _node_state(avatar: Any, plan: _Plan, pos: int, seed: int) -> Any:
+    """NodeState for one frame (batch of 1) with that frame's latent mode."""
+    import torch
+
+    frame = plan.frames[pos]
+    cond = avatar.conditioning(plan.motion.select([pos]), frames_are_training=plan.training[pos])
+    gen = None
+    if plan.latents[pos] == "sample":
+        gen = torch.Generator(device=avatar.device).manual_seed(int(seed) * 1_000_003 + int(frame))
+    with torch.no_grad():
+        return avatar.model.node_state(cond, mode=plan.latents[pos], generator=gen)
+
+
+def _render_one(avatar: Any, state: Any, cam: Camera, background: tuple[float, float, float], max_rays: int) -> Any:
+    from avatarctl.render.engine import render_view
+
+    return render_view(avatar.model, state, 0, cam, background, max_rays_per_chunk=max_rays)
+
+
+def _unique_cameras(shots: list[tuple[int, int, Camera]]) -> list[Camera]:
+    seen: dict[str, Camera] = {}
+    for _, _, c in shots:
+        seen.setdefault(c.name, c)
+    return list(seen.values())
+
+
+def _to_uint8(rgb: np.ndarray) -> np.ndarray:
+    return (np.clip(rgb, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
+
+
+def _write_png(dest: Path, rgb: np.ndarray, alpha: np.ndarray | None) -> None:
+    """[H, W, 3] float in [0, 1] (+ [H, W] alpha for RGBA with straight colour) -> PNG."""
+    import cv2
+
+    img = _to_uint8(rgb)
+    if alpha is None:
+        ok = cv2.imwrite(str(dest), cv2.cvtColor(img, cv2.COLOR_RGB2BGR))
+    else:
+        a = np.clip(alpha, 0.0, 1.0)[..., None]
+        straight = np.where(a > 1e-4, rgb / np.maximum(a, 1e-4), 0.0)  # rendered over black = premultiplied
+        rgba = np.concatenate([_to_uint8(straight), _to_uint8(a)], axis=-1)
+        ok = cv2.imwrite(str(dest), cv2.cvtColor(rgba, cv2.COLOR_RGBA2BGRA))
+    if not ok:
+        raise OSError(f"cv2.imwrite failed for {dest}")
+
+
+def read_render_config(out_dir: Path) -> dict[str, Any]:
+    """The `config.json` of a render folder."""
+    return json.loads((Path(out_dir) / "config.json").read_text())
