@@ -1,15 +1,107 @@
-"""`avatarctl fit`: not built yet (see the issue tracker)."""
+"""`avatarctl fit PROJECT`: parse options -> `FitConfig` -> `avatarctl.fit.loop.fit` -> rich summary."""
 
 from __future__ import annotations
 
+from pathlib import Path
+from typing import Optional
+
 import typer
+
+PRESET_HELP = ("Sizes: 'cpu' (narrow networks, 512 rays/step, 20k it; for a 2-core CPU), 'paper' (the supplement: "
+               "2048 rays over 4 images, 64 samples, 300k it; for a GPU), 'micro' (CI smoke test). Default: cpu.")
 
 
 def register(app: typer.Typer) -> None:
-    @app.command("fit", help="Train the avatar (structured local radiance fields + per-node cVAEs) on a project.", context_settings={"allow_extra_args": True, "ignore_unknown_options": True})
-    def _cmd(ctx: typer.Context) -> None:
-        from avatarctl.cli.common import user_errors
-        from avatarctl.errors import NotBuiltError
+    @app.command("fit", help="Train the avatar (structured local radiance fields + per-node cVAEs) on a project.")
+    def _cmd(
+        project: Path = typer.Argument(..., help="Project directory written by `avatarctl ingest`."),
+        iters: Optional[int] = typer.Option(None, "--iters", help="Total optimisation steps (default: the preset's)."),
+        preset: Optional[str] = typer.Option(None, "--preset", help=PRESET_HELP),
+        resume: bool = typer.Option(False, "--resume", help="Continue from fit/checkpoints/latest.pt (same config; "
+                                                            "only --iters may change)."),
+        fresh: bool = typer.Option(False, "--fresh", help="Discard an existing fit of this project and start over."),
+        seed: Optional[int] = typer.Option(None, "--seed", help="Seed of the model init, ray sampling and noise."),
+        device: str = typer.Option("auto", "--device", help="auto | cpu | cuda."),
+        overrides: Optional[list[str]] = typer.Option(None, "--set", help="Override a config value: key=value "
+                                                      "(FitConfig field or model.<field>); repeatable."),
+        ablation: Optional[str] = typer.Option(None, "--ablation", help="Comma list of: no-delta-n, no-embedding, "
+                                               "deterministic, per-frame-latent, lbs-baseline."),
+    ) -> None:
+        from avatarctl.cli.common import console, user_errors
 
         with user_errors():
-            raise NotBuiltError("`avatarctl fit` is not built yet", fix="see the open issues; no output was written")
+            _run(project, iters, preset, resume, fresh, seed, device, overrides or [], ablation, console)
+
+
+def _run(project_dir: Path, iters, preset, resume, fresh, seed, device, overrides, ablation, console) -> None:
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, \
+        TimeRemainingColumn
+    from rich.table import Table
+
+    from avatarctl.errors import InputError
+    from avatarctl.fit.config import FitConfig, resolve_fit_config
+    from avatarctl.fit.loop import StepReport, fit
+    from avatarctl.project import Project
+
+    project = Project.open(project_dir)
+    if resume and fresh:
+        raise InputError("--resume and --fresh contradict each other", fix="pass one of them")
+    cfg: FitConfig | None
+    if resume:
+        given = [n for n, v in (("--preset", preset), ("--seed", seed), ("--ablation", ablation)) if v is not None]
+        if overrides:
+            given.append("--set")
+        if given:
+            raise InputError(f"{', '.join(given)} cannot change a fit being resumed",
+                             fix="resume with only --iters (or start over with --fresh)")
+        cfg = None
+        if iters is not None:  # extend (or shorten) the resumed run; everything else comes from the checkpoint
+            from dataclasses import replace
+
+            from avatarctl.fit.checkpoint import read_checkpoint
+
+            saved = FitConfig.from_json(read_checkpoint(project.paths.latest_checkpoint)["fit_config"])
+            cfg = replace(saved, iters=iters)
+    else:
+        cfg = resolve_fit_config(preset or "cpu", ablation=ablation, iters=iters, seed=seed, overrides=overrides)
+
+    columns = (TextColumn("[bold]fit[/]"), BarColumn(bar_width=24), MofNCompleteColumn(),
+               TextColumn("{task.fields[speed]}"), TimeElapsedColumn(), TextColumn("eta"), TimeRemainingColumn(),
+               TextColumn("{task.fields[info]}"))
+    with Progress(*columns, console=console, transient=False) as bar:
+        task = bar.add_task("fit", total=None, speed="", info="setting up")
+        state = {"last_t": None, "last_step": None}
+
+        def progress(rep: StepReport) -> None:
+            import time
+
+            if bar.tasks[task].total is None:
+                bar.update(task, total=rep.iters, completed=rep.start_step)
+            now = time.perf_counter()
+            if state["last_t"] is None:
+                state["last_t"], state["last_step"] = now, rep.step - 1
+            it_s = (rep.step - state["last_step"]) / max(now - state["last_t"], 1e-9)
+            info = " ".join(f"{k} {rep.losses[k]:.4g}" for k in ("total", "rec") if k in rep.losses)
+            if rep.val_psnr is not None:
+                info += f" | val {rep.val_psnr:.2f} dB"
+            bar.update(task, completed=rep.step, speed=f"{it_s:.2f} it/s", info=info)
+
+        result = fit(project, cfg, device=device, resume=resume, fresh=fresh, progress=progress)
+
+    table = Table(title="avatarctl fit", show_header=False)
+    table.add_row("project", str(project.root))
+    note = {"interrupted": "  [yellow](interrupted)[/]", "time_budget": "  (time budget reached)"}
+    table.add_row("steps", f"{result.step} / {result.iters}" + note.get(result.stop_reason, ""))
+    table.add_row("device", result.device)
+    table.add_row("preset / ablations", f"{result.config.preset} / {', '.join(result.config.ablations) or 'none'}")
+    table.add_row("time", f"{result.seconds:.1f} s training + {result.setup_seconds:.1f} s set-up")
+    table.add_row("rays/s", f"{result.rays_per_s:.0f}")
+    table.add_row("losses", " ".join(f"{k} {v:.4g}" for k, v in result.losses.items()))
+    if result.val is not None and result.val.get("psnr") is not None:
+        pairs = ", ".join(f"{p['view']}@{p['frame']} {p['psnr']:.2f}" for p in result.val["pairs"])
+        table.add_row("held-out PSNR (bbox)", f"{result.val['psnr']:.2f} dB  ({pairs})")
+    table.add_row("checkpoint", str(result.checkpoint))
+    table.add_row("log / config", f"{project.paths.fit_log} / {project.paths.fit_config}")
+    console.print(table)
+    if result.interrupted:
+        console.print(f"[yellow]stopped early[/]: continue with `avatarctl fit {project.root} --resume`")

@@ -1,0 +1,143 @@
+"""Checkpoint files and `load_avatar`, the one way render / eval get a fitted avatar back.
+
+A checkpoint is `torch.save` of a plain dict of tensors and JSON-able values (nothing pickled but those; it loads
+with `torch.load(weights_only=True)`):
+
+    format            "avatarctl.fit.checkpoint"
+    schema_version    1
+    step              int, optimisation steps completed
+    model             SlrfAvatar.state_dict()
+    optimizer         Adam state_dict
+    scheduler         LambdaLR state_dict
+    rng               {"torch": ByteTensor, "cuda": [ByteTensor], "sampler": ByteTensor, "noise": ByteTensor}
+    model_config      ModelConfig.to_json()
+    fit_config        FitConfig.to_json()
+    train_frames      [int], capture frame numbers the model was trained on, in time-stamp order
+    avatarctl_version str
+
+Files are written atomically (temporary file + rename): `fit/checkpoints/step_<step:08d>.pt` and `latest.pt`.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import torch
+
+from avatarctl import __version__
+from avatarctl.atomic import atomic_path
+from avatarctl.body.base import BodyModel, BodyTemplate
+from avatarctl.body.motion import BodyMotion
+from avatarctl.errors import ProjectError
+from avatarctl.io.project_io import ProjectCapture
+from avatarctl.project import Project
+
+if TYPE_CHECKING:
+    from avatarctl.model.avatar import FrameConditioning, SlrfAvatar
+    from avatarctl.model.config import ModelConfig
+
+FORMAT = "avatarctl.fit.checkpoint"
+SCHEMA_VERSION = 1
+
+
+def save_checkpoint(project: Project, payload: dict[str, Any], keep: int = 3) -> Path:
+    """Write `payload` (see the module docstring) as `step_<step>.pt` and `latest.pt`, atomically; keep the
+    `keep` most recent step files. Returns the step file."""
+    paths = project.paths
+    step = int(payload["step"])
+    payload = {"format": FORMAT, "schema_version": SCHEMA_VERSION, "avatarctl_version": __version__, **payload}
+    dest = paths.checkpoint(step)
+    with atomic_path(dest) as tmp:
+        torch.save(payload, tmp)
+    # latest.pt: a hard link to the step file when the file system allows it, else a copy; renamed into place.
+    with atomic_path(paths.latest_checkpoint) as tmp:
+        tmp.unlink()
+        try:
+            os.link(dest, tmp)
+        except OSError:
+            torch.save(payload, tmp)
+    step_files = sorted(paths.checkpoints.glob("step_*.pt"))
+    for old in step_files[:-keep] if keep > 0 else []:
+        with contextlib.suppress(FileNotFoundError):
+            old.unlink()
+    return dest
+
+
+def read_checkpoint(path: Path, device: str | torch.device = "cpu") -> dict[str, Any]:
+    """Load a checkpoint dict (tensors mapped to `device`); a clear `ProjectError` when missing or foreign."""
+    path = Path(path)
+    if not path.is_file():
+        raise ProjectError("fit checkpoint not found", where=str(path),
+                           fix="run `avatarctl fit PROJECT` (or pass an existing checkpoint file)")
+    try:
+        ckpt = torch.load(path, map_location=device, weights_only=True)
+    except Exception as e:  # corrupt file, foreign pickle, truncated download
+        raise ProjectError(f"cannot read fit checkpoint ({type(e).__name__}: {str(e).splitlines()[0][:120]})",
+                           where=str(path), fix="use another checkpoint or re-run `avatarctl fit`") from None
+    if not isinstance(ckpt, dict) or ckpt.get("format") != FORMAT:
+        raise ProjectError("not an avatarctl fit checkpoint", where=str(path), fix="pass a file from fit/checkpoints/")
+    if ckpt.get("schema_version") != SCHEMA_VERSION:
+        raise ProjectError(f"unsupported checkpoint schema_version {ckpt.get('schema_version')!r}", where=str(path),
+                           fix="use the avatarctl version that wrote it, or re-run `avatarctl fit`")
+    return ckpt
+
+
+@dataclass
+class LoadedAvatar:
+    """A fitted avatar with everything needed to render it (model in eval mode on its device)."""
+
+    model: "SlrfAvatar"
+    model_config: "ModelConfig"
+    fit_config: dict  # FitConfig.to_json() as saved (background, seed, ...)
+    step: int  # optimisation steps the checkpoint holds
+    template: BodyTemplate
+    body: BodyModel
+    capture: ProjectCapture  # avatarctl.io.project_io.load_project_capture(project)
+    train_frames: list[int]  # capture frame numbers the model was trained on, in time-stamp order
+    checkpoint: Path | None = None  # the file it came from
+
+    @property
+    def background(self) -> tuple[float, float, float]:
+        """The colour the avatar was trained (and should be rendered / scored) over."""
+        return tuple(float(c) for c in self.fit_config.get("background", (0.0, 0.0, 0.0)))  # type: ignore[return-value]
+
+    @property
+    def device(self) -> torch.device:
+        return next(self.model.parameters()).device
+
+    def conditioning(self, motion: BodyMotion, frames_are_training: bool) -> "FrameConditioning":
+        """Conditioning for every row of `motion`: joint transforms and pose features from the body model; time
+        stamp t/T and frame id t for training frames (every frame must be one), 0 and -1 for novel frames."""
+        from avatarctl.fit.conditioning import conditioning_for_motion
+
+        return conditioning_for_motion(self.body, motion, self.train_frames, frames_are_training, self.device)
+
+
+def load_avatar(project: Project, device: str = "cpu", checkpoint: Path | None = None) -> LoadedAvatar:
+    """Rebuild the fitted avatar from `checkpoint` (default: the project's latest) on `device`, in eval mode."""
+    from avatarctl.body.registry import load_body_model
+    from avatarctl.io.project_io import load_project_capture
+    from avatarctl.model.avatar import SlrfAvatar
+    from avatarctl.model.config import ModelConfig
+
+    path = Path(checkpoint) if checkpoint is not None else project.paths.latest_checkpoint
+    ckpt = read_checkpoint(path, device="cpu")
+    capture = load_project_capture(project)
+    body = load_body_model(capture.body_model, capture.body_model_path)
+    template = body.template(capture.motion)
+    cfg = ModelConfig.from_json(ckpt["model_config"])
+    fit_cfg = dict(ckpt["fit_config"])
+    train_frames = [int(f) for f in ckpt["train_frames"]]
+    model = SlrfAvatar(cfg, template, num_frames=len(train_frames), seed=int(fit_cfg.get("seed", 0)))
+    try:
+        model.load_state_dict(ckpt["model"])
+    except RuntimeError as e:
+        raise ProjectError(f"checkpoint does not match this project's body/template ({str(e).splitlines()[0]})",
+                           where=str(path), fix="re-run `avatarctl fit` on this project") from None
+    model.to(device).eval()
+    return LoadedAvatar(model=model, model_config=cfg, fit_config=fit_cfg, step=int(ckpt["step"]), template=template,
+                        body=body, capture=capture, train_frames=train_frames, checkpoint=path)

@@ -1,0 +1,268 @@
+"""`FitConfig`: everything that decides how an avatar is trained, resolved once and saved as `fit/config.json`.
+
+Resolution order (`resolve_fit_config`): preset -> `--ablation` switches -> `--iters` / `--seed` -> `--set key=value`
+overrides. Keys of `--set` are `FitConfig` field names or `model.<ModelConfig field>`; an unknown key is an
+`InputError` naming the closest known keys (a typo never silently falls back to a default).
+
+Presets (see docs/fit.md):
+
+- "paper": the supplement's settings: model preset "paper" (N=128 nodes, 64 samples per ray), 2048 rays per step
+  over a batch of 4 images (512 rays each), Adam lr 5e-4 (beta 0.9 / 0.999), lr x0.5 every 20k iterations, 300k
+  iterations (the paper's ZJU-MoCap count; 100k PeopleSnapshot, 500k its own multi-view data).
+- "cpu": model preset "cpu" (narrow networks), 512 rays per step over 4 images, 20k iterations, validation on
+  half-size images every 1000 steps: sized for a 2-core CPU (512 rays gave more rays/s than 1024 there: ~530 vs
+  ~360 on a shared 2-core machine; a full-size 256x256 validation of 2 views took minutes there).
+- "micro": a smoke-test size for CI (32 nodes, 16 samples per ray, 128 rays over 2 images, 50 iterations). It
+  trains nothing useful.
+
+Training target (stated convention): real captures have real backgrounds, so the target of a ray is the masked
+image composited over a fixed `background` colour (black by default: rgb * mask + background * (1 - mask)), and
+the model renders over the same colour.
+
+Deviations from the paper (named, switchable):
+- `lr_decay_factor` = 0.5 per `lr_decay_every` = 20k iterations: the paper says the rate "decays exponentially every
+  20k iterations" without the factor. The decay is continuous (lr0 * factor ** (step / every)); set
+  `lr_decay_factor=1` to switch it off.
+- `box_fraction` = 0.9: 90% of each image's rays are drawn uniformly among the pixels inside the projection of the
+  posed body's 3D bounding box grown by `crop_pad` metres, 10% uniformly over the whole image (Neural Body's
+  protocol samples inside the box; the paper gives no split).
+"""
+
+from __future__ import annotations
+
+import difflib
+import math
+from dataclasses import asdict, dataclass, field, fields, replace
+from typing import Any
+
+from avatarctl.errors import InputError
+from avatarctl.model.config import ModelConfig
+
+SCHEMA_VERSION = 1
+PRESETS = ("cpu", "paper", "micro")
+
+# --ablation name -> ModelConfig changes (paper Sec. 5 ablations + the pose-only LBS baseline)
+ABLATIONS: dict[str, dict[str, Any]] = {
+    "no-delta-n": {"use_delta_n": False},
+    "no-embedding": {"use_embedding": False},
+    "deterministic": {"latent": "deterministic"},
+    "per-frame-latent": {"latent": "per_frame"},
+    "lbs-baseline": {"variant": "lbs_baseline"},
+}
+
+
+@dataclass(frozen=True)
+class FitConfig:
+    """How to train one avatar. Immutable; validated on construction; JSON round-trips (`to_json` / `from_json`)."""
+
+    preset: str = "cpu"  # the preset this config started from (informational)
+    iters: int = 20_000  # total optimisation steps
+    seed: int = 0  # seeds the model initialisation, the ray sampler and the latent / jitter noise
+    # batch (paper: 2048 rays per batch, batch size 4)
+    rays_per_batch: int = 512  # rays per step, over all images of the batch
+    images_per_batch: int = 4  # (training frame, training view) images per step; each gets its own frame slot
+    box_fraction: float = 0.9  # share of rays drawn inside the projected body box (the rest: whole image)
+    crop_pad: float = 0.25  # metres the posed body's 3D box is grown by, for the crop and the "inside" region
+    jitter: bool = True  # stratified jitter of the ray samples during training
+    background: tuple[float, float, float] = (0.0, 0.0, 0.0)  # target = rgb * mask + background * (1 - mask)
+    # optimiser (paper: Adam lr 5e-4, betas 0.9 / 0.999, exponential decay every 20k iterations)
+    lr: float = 5e-4
+    adam_beta1: float = 0.9
+    adam_beta2: float = 0.999
+    lr_decay_every: int = 20_000  # iterations per decay period
+    lr_decay_factor: float = 0.5  # deviation: the factor is not given in the paper (1.0 switches decay off)
+    grad_clip: float = 0.0  # max gradient norm, 0 = off (paper: none)
+    amp: bool = False  # bfloat16 autocast on CUDA (ignored on CPU)
+    time_budget_s: float = 0.0  # stop (checkpoint, validate, record) after this many seconds of training; 0 = none
+    # data loading
+    cache_mb: int = 2048  # RAM budget of the LRU cache of cropped frames
+    # bookkeeping
+    log_every: int = 25  # steps between fit/log.jsonl records
+    checkpoint_every: int = 1000  # steps between checkpoints (and always at the end / on Ctrl-C)
+    keep_checkpoints: int = 3  # step_*.pt files kept (latest.pt always)
+    val_every: int = 1000  # steps between held-out-view validations, 0 = only at the end
+    val_pairs: int = 2  # fixed (held-out view, training frame) pairs rendered per validation, 0 = none
+    val_scale: float = 0.5  # image scale for validation renders (bbox-protocol PSNR on the scaled images)
+    ablations: tuple[str, ...] = ()  # informational: which --ablation switches made `model`
+    model: ModelConfig = field(default_factory=lambda: ModelConfig.preset("cpu"))
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "background", tuple(float(c) for c in self.background))
+        object.__setattr__(self, "ablations", tuple(str(a) for a in self.ablations))
+
+        def need(ok: bool, msg: str) -> None:
+            if not ok:
+                raise InputError(f"invalid fit config: {msg}", fix="check --set / --preset values (see docs/fit.md)")
+
+        for name in ("iters", "rays_per_batch", "images_per_batch", "lr_decay_every", "cache_mb", "log_every",
+                     "checkpoint_every", "keep_checkpoints"):
+            v = getattr(self, name)
+            need(isinstance(v, int) and not isinstance(v, bool) and v > 0, f"{name} must be a positive int, got {v!r}")
+        for name in ("val_every", "val_pairs", "seed"):
+            v = getattr(self, name)
+            need(isinstance(v, int) and not isinstance(v, bool) and v >= 0, f"{name} must be an int >= 0, got {v!r}")
+        need(self.preset in PRESETS, f"preset must be one of {PRESETS}, got {self.preset!r}")
+        need(self.rays_per_batch >= self.images_per_batch,
+             f"rays_per_batch ({self.rays_per_batch}) must be >= images_per_batch ({self.images_per_batch})")
+        need(0.0 <= self.box_fraction <= 1.0, f"box_fraction must be in [0, 1], got {self.box_fraction}")
+        need(self.crop_pad >= 0.0, f"crop_pad must be >= 0 metres, got {self.crop_pad}")
+        need(len(self.background) == 3 and all(0.0 <= c <= 1.0 for c in self.background),
+             f"background must be 3 values in [0, 1], got {self.background}")
+        need(self.lr > 0 and math.isfinite(self.lr), f"lr must be > 0, got {self.lr}")
+        need(0.0 <= self.adam_beta1 < 1.0 and 0.0 <= self.adam_beta2 < 1.0, "adam betas must be in [0, 1)")
+        need(0.0 < self.lr_decay_factor <= 1.0, f"lr_decay_factor must be in (0, 1], got {self.lr_decay_factor}")
+        need(self.grad_clip >= 0.0, f"grad_clip must be >= 0, got {self.grad_clip}")
+        need(self.time_budget_s >= 0.0, f"time_budget_s must be >= 0 seconds, got {self.time_budget_s}")
+        need(0.0 < self.val_scale <= 1.0, f"val_scale must be in (0, 1], got {self.val_scale}")
+        for a in self.ablations:
+            need(a in ABLATIONS, f"unknown ablation {a!r}; expected some of {sorted(ABLATIONS)}")
+        need(isinstance(self.model, ModelConfig), "model must be a ModelConfig")
+
+    # ---- JSON ---------------------------------------------------------------------------------------------------
+    def to_json(self) -> dict[str, Any]:
+        d = {f.name: getattr(self, f.name) for f in fields(self) if f.name != "model"}
+        d["background"] = list(self.background)
+        d["ablations"] = list(self.ablations)
+        return {"schema_version": SCHEMA_VERSION, **d, "model": self.model.to_json()}
+
+    @classmethod
+    def from_json(cls, d: dict[str, Any]) -> "FitConfig":
+        """Inverse of `to_json`; unknown keys are an error."""
+        d = dict(d)
+        version = d.pop("schema_version", SCHEMA_VERSION)
+        if version != SCHEMA_VERSION:
+            raise InputError(f"fit config schema_version {version} is not supported (expected {SCHEMA_VERSION})",
+                             fix="re-run `avatarctl fit` with this avatarctl version")
+        known = {f.name for f in fields(cls)}
+        unknown = sorted(set(d) - known)
+        if unknown:
+            raise InputError(f"unknown fit config keys {unknown}", fix=f"known keys: {sorted(known)}")
+        try:
+            model = ModelConfig.from_json(d.pop("model")) if "model" in d else ModelConfig.preset("cpu")
+        except ValueError as e:
+            raise InputError(str(e), fix="check the model section of the fit config") from None
+        d["background"] = tuple(d.get("background", (0.0, 0.0, 0.0)))
+        d["ablations"] = tuple(d.get("ablations", ()))
+        return cls(**d, model=model)
+
+
+def preset(name: str) -> FitConfig:
+    """The named preset (see the module docstring)."""
+    if name == "paper":
+        return FitConfig(preset="paper", iters=300_000, rays_per_batch=2048, images_per_batch=4, log_every=100,
+                         checkpoint_every=5000, val_every=5000, val_scale=1.0, model=ModelConfig.preset("paper"))
+    if name == "cpu":
+        return FitConfig(preset="cpu", model=ModelConfig.preset("cpu"))  # the field defaults are the cpu preset
+    if name == "micro":
+        return FitConfig(preset="micro", iters=50, rays_per_batch=128, images_per_batch=2, log_every=10,
+                         checkpoint_every=50, val_every=0, val_pairs=1, val_scale=0.5,
+                         model=ModelConfig.preset("cpu").with_(num_nodes=32, samples_per_ray=16))
+    raise InputError(f"unknown preset {name!r}", fix=f"use one of: {', '.join(PRESETS)}")
+
+
+def parse_ablations(spec: str | None) -> tuple[str, ...]:
+    """'no-delta-n,no-embedding' -> ('no-delta-n', 'no-embedding'); unknown names are an `InputError`."""
+    if not spec:
+        return ()
+    names = tuple(s.strip() for s in spec.split(",") if s.strip())
+    for n in names:
+        if n not in ABLATIONS:
+            close = difflib.get_close_matches(n, list(ABLATIONS), n=1)
+            hint = f"did you mean {close[0]!r}? " if close else ""
+            raise InputError(f"unknown ablation {n!r}", where="--ablation",
+                             fix=f"{hint}choose from: {', '.join(ABLATIONS)}")
+    latents = [n for n in names if "latent" in ABLATIONS[n]]
+    if len(latents) > 1:
+        raise InputError(f"ablations {latents} both replace the latent", where="--ablation", fix="pick one of them")
+    return tuple(dict.fromkeys(names))
+
+
+def apply_ablations(cfg: FitConfig, names: tuple[str, ...]) -> FitConfig:
+    changes: dict[str, Any] = {}
+    for n in names:
+        changes.update(ABLATIONS[n])
+    return replace(cfg, ablations=tuple(dict.fromkeys(cfg.ablations + names)), model=_model_with(cfg.model, changes))
+
+
+def _model_with(model: ModelConfig, changes: dict[str, Any]) -> ModelConfig:
+    try:
+        return model.with_(**changes)
+    except ValueError as e:
+        raise InputError(str(e), where="--set / --ablation", fix="see docs/fit.md for valid model values") from None
+
+
+_NOT_SETTABLE = {"ablations": "use --ablation", "model": "use model.<field>=value", "preset": "use --preset"}
+
+
+def _parse_value(key: str, text: str, current: Any) -> Any:
+    """Parse `text` to the type of the current value of `key` (bool, int, float, str or tuple of floats)."""
+    t = text.strip()
+    try:
+        if isinstance(current, bool):
+            low = t.lower()
+            if low in ("1", "true", "yes", "on"):
+                return True
+            if low in ("0", "false", "no", "off"):
+                return False
+            raise ValueError(t)
+        if isinstance(current, int):
+            f = float(t)
+            if not f.is_integer():
+                raise ValueError(t)
+            return int(f)
+        if isinstance(current, float):
+            return float(t)
+        if isinstance(current, tuple):
+            return tuple(float(x) for x in t.split(","))
+        return t
+    except ValueError:
+        kind = type(current).__name__
+        example = {"bool": "true|false", "int": "1000", "float": "0.0005", "tuple": "0,0,0"}.get(kind, "text")
+        raise InputError(f"cannot read {key}={text!r} as {kind}", where="--set", fix=f"write e.g. {key}={example}") \
+            from None
+
+
+def apply_overrides(cfg: FitConfig, overrides: list[str]) -> FitConfig:
+    """Apply `key=value` overrides. Keys: `FitConfig` fields or `model.<ModelConfig field>`."""
+    fit_keys = [f.name for f in fields(FitConfig) if f.name not in _NOT_SETTABLE]
+    model_keys = [f"model.{f.name}" for f in fields(ModelConfig)]
+    fit_changes: dict[str, Any] = {}
+    model_changes: dict[str, Any] = {}
+    for item in overrides:
+        if "=" not in item:
+            raise InputError(f"override {item!r} is not key=value", where="--set", fix="write e.g. --set lr=1e-4")
+        key, text = (s.strip() for s in item.split("=", 1))
+        if key in _NOT_SETTABLE:
+            raise InputError(f"{key!r} cannot be set with --set", where="--set", fix=_NOT_SETTABLE[key])
+        if key in fit_keys:
+            fit_changes[key] = _parse_value(key, text, getattr(cfg, key))
+        elif key in model_keys:
+            name = key.split(".", 1)[1]
+            model_changes[name] = _parse_value(key, text, getattr(cfg.model, name))
+        else:
+            close = difflib.get_close_matches(key, fit_keys + model_keys, n=3)
+            hint = f"did you mean {' or '.join(repr(c) for c in close)}? " if close else ""
+            raise InputError(f"unknown config key {key!r}", where="--set",
+                             fix=f"{hint}keys are FitConfig fields or model.<field> (see docs/fit.md)")
+    model = _model_with(cfg.model, model_changes) if model_changes else cfg.model
+    return replace(cfg, **fit_changes, model=model)
+
+
+def resolve_fit_config(preset_name: str = "cpu", ablation: str | None = None, iters: int | None = None,
+                       seed: int | None = None, overrides: list[str] | None = None) -> FitConfig:
+    """preset -> ablations -> iters / seed -> `--set` overrides (see the module docstring)."""
+    cfg = preset(preset_name)
+    cfg = apply_ablations(cfg, parse_ablations(ablation))
+    if iters is not None:
+        cfg = replace(cfg, iters=int(iters))
+    if seed is not None:
+        cfg = replace(cfg, seed=int(seed))
+    return apply_overrides(cfg, list(overrides or []))
+
+
+def config_summary(cfg: FitConfig) -> dict[str, Any]:
+    """A short dict for summaries: the knobs people compare runs by."""
+    m = asdict(cfg.model)
+    return {"preset": cfg.preset, "iters": cfg.iters, "rays_per_batch": cfg.rays_per_batch,
+            "images_per_batch": cfg.images_per_batch, "samples_per_ray": m["samples_per_ray"],
+            "num_nodes": m["num_nodes"], "ablations": list(cfg.ablations), "seed": cfg.seed}

@@ -1,0 +1,336 @@
+"""The fit stage: `fit(project, cfg)` trains an `SlrfAvatar` on the project's training views and frames.
+
+One step (paper Sec. 4, supplement): draw a `TrainBatch` (data.py), compute the node state with the posterior
+latent (z ~ N(mu, sigma), reparameterised), render the rays (uniform samples, jittered), the loss of Eq. 11
+(`model.losses`), Adam step, lr schedule step. Every `log_every` steps a record goes to `fit/log.jsonl`, every
+`val_every` steps a held-out-view validation (validate.py), every `checkpoint_every` steps and at the end a
+checkpoint (checkpoint.py). The stage is recorded in the project manifest at the end (also when interrupted).
+
+Reproducibility: the model is initialised from `cfg.seed`; the ray sampler and the model noise (latent samples,
+sample jitter) use their own `torch.Generator`s whose states are checkpointed with the global torch RNG, the
+optimiser and the scheduler, so N steps straight and N/2 + `resume` N/2 give the same parameters (bitwise on CPU
+in our test).
+
+Interruption: Ctrl-C (SIGINT, first press) or `StopFlag.set()` ends the run after the current step with a
+checkpoint; a second Ctrl-C aborts immediately. `FitConfig.time_budget_s` ends a run the same way after that many
+seconds of training, but still validates (stop_reason "time_budget").
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import math
+import os
+import signal
+import threading
+import time
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Any, Callable, Iterator
+
+import torch
+
+from avatarctl.atomic import write_json, write_text
+from avatarctl.errors import AvatarError, InputError, ProjectError
+from avatarctl.fit.config import FitConfig, config_summary
+from avatarctl.project import Project, now_iso
+
+
+class StopFlag:
+    """Ask a running `fit` to stop after the current step (what Ctrl-C does)."""
+
+    def __init__(self) -> None:
+        self._event = threading.Event()
+
+    def set(self) -> None:
+        self._event.set()
+
+    def is_set(self) -> bool:
+        return self._event.is_set()
+
+
+@dataclass(frozen=True)
+class StepReport:
+    """Sent to the progress callback after every step."""
+
+    step: int  # steps completed
+    iters: int  # target step count
+    start_step: int  # step this run started from (resume)
+    losses: dict[str, float]  # latest logged loss terms (updated every `log_every` steps)
+    lr: float
+    rays_per_s: float  # over the latest log window
+    val_psnr: float | None  # latest validation PSNR (bbox, dB)
+
+
+@dataclass(frozen=True)
+class FitResult:
+    step: int
+    iters: int
+    interrupted: bool  # stopped by Ctrl-C / StopFlag before `iters`
+    stop_reason: str  # "done" | "interrupted" | "time_budget"
+    checkpoint: Path
+    seconds: float  # wall time of this run (excluding set-up)
+    setup_seconds: float
+    losses: dict[str, float]
+    val: dict[str, Any] | None  # latest validation (see validate.Validator.run)
+    rays_per_s: float
+    device: str
+    config: FitConfig
+
+
+def resolve_device(device: str) -> torch.device:
+    """'auto' -> cuda when available, else cpu; 'cuda' without a GPU is an `InputError`."""
+    if device == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    if device.startswith("cuda") and not torch.cuda.is_available():
+        raise InputError("--device cuda requested but torch sees no CUDA device", fix="use --device cpu or auto")
+    try:
+        return torch.device(device)
+    except RuntimeError:
+        raise InputError(f"unknown device {device!r}", fix="use auto, cpu or cuda") from None
+
+
+@contextlib.contextmanager
+def _sigint_sets(flag: StopFlag) -> Iterator[None]:
+    """While inside: the first SIGINT sets `flag`, a second raises KeyboardInterrupt. Main thread only."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def handler(signum, frame):  # noqa: ARG001
+        if flag.is_set():
+            raise KeyboardInterrupt
+        flag.set()
+
+    previous = signal.signal(signal.SIGINT, handler)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+
+
+def _read_log(path: Path, upto_step: int) -> list[str]:
+    """Log lines with step <= upto_step (a torn last line is dropped)."""
+    if not path.is_file():
+        return []
+    keep = []
+    for line in path.read_text().splitlines():
+        try:
+            if json.loads(line)["step"] <= upto_step:
+                keep.append(line)
+        except (json.JSONDecodeError, KeyError, TypeError):
+            continue
+    return keep
+
+
+class _Log:
+    """fit/log.jsonl: one JSON object per line, each appended with a single write + fsync."""
+
+    def __init__(self, path: Path, keep_lines: list[str]):
+        self.path = path
+        write_text(path, "".join(line + "\n" for line in keep_lines))  # atomic rewrite (drops records past resume)
+
+    def append(self, record: dict[str, Any]) -> None:
+        data = (json.dumps(record) + "\n").encode()
+        fd = os.open(self.path, os.O_WRONLY | os.O_APPEND)
+        try:
+            os.write(fd, data)
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+
+
+def _val_record(val: dict[str, Any]) -> dict[str, Any]:
+    """The log's view of a validation result."""
+    return {"psnr": val["psnr"], "pairs": val["pairs"], "protocol": val["protocol"], "scale": val["scale"],
+            "seconds": round(val["seconds"], 2)}
+
+
+def _rng_state(sampler_gen: torch.Generator, noise_gen: torch.Generator) -> dict[str, Any]:
+    return {"torch": torch.get_rng_state(), "cuda": torch.cuda.get_rng_state_all() if torch.cuda.is_available() else [],
+            "sampler": sampler_gen.get_state(), "noise": noise_gen.get_state()}
+
+
+def _set_rng_state(rng: dict[str, Any], sampler_gen: torch.Generator, noise_gen: torch.Generator) -> None:
+    torch.set_rng_state(rng["torch"].cpu())
+    if rng.get("cuda") and torch.cuda.is_available():
+        torch.cuda.set_rng_state_all([s.cpu() for s in rng["cuda"]])
+    sampler_gen.set_state(rng["sampler"].cpu())
+    noise_gen.set_state(rng["noise"].cpu())
+
+
+def _resume_config(cfg: FitConfig | None, saved: FitConfig) -> FitConfig:
+    """On resume the saved config holds; only `iters` may change."""
+    if cfg is None:
+        return saved
+    if replace(cfg, iters=saved.iters) != saved:
+        a, b = cfg.to_json(), saved.to_json()
+        diff = sorted(k for k in a if a[k] != b.get(k) and k != "iters")
+        if "model" in diff:
+            diff.remove("model")
+            diff += sorted(f"model.{k}" for k in a["model"] if a["model"][k] != b["model"].get(k))
+        raise InputError(f"--resume with a config that differs from the checkpoint's ({', '.join(diff)})",
+                         fix="resume without --preset/--set/--ablation/--seed (only --iters may change), "
+                             "or start over with --fresh")
+    return cfg
+
+
+def fit(project: Project, cfg: FitConfig | None = None, *, device: str = "auto", resume: bool = False,
+        fresh: bool = False, progress: Callable[[StepReport], None] | None = None, stop: StopFlag | None = None,
+        handle_sigint: bool = True) -> FitResult:
+    """Train (or resume training) the project's avatar; see the module docstring. `cfg` may be None on resume."""
+    from avatarctl.body.registry import load_body_model
+    from avatarctl.fit.checkpoint import read_checkpoint, save_checkpoint
+    from avatarctl.fit.conditioning import build_pose_table
+    from avatarctl.fit.data import FrameStore, RaySampler
+    from avatarctl.fit.schedule import make_optimizer, make_scheduler
+    from avatarctl.fit.validate import Validator, choose_val_pairs
+    from avatarctl.io.project_io import load_project_capture
+    from avatarctl.model.avatar import SlrfAvatar
+
+    t_setup = time.perf_counter()
+    started = now_iso()
+    paths = project.paths
+    dev = resolve_device(device)
+    capture = load_project_capture(project)
+    split = capture.split
+    if not split.train_frames or not split.train_views:
+        raise ProjectError("the project's split has no training frames or views", where=str(paths.split),
+                           fix="re-run `avatarctl ingest` with training frames/views")
+    for v in list(split.train_views) + list(split.test_views):
+        if v not in capture.cameras:
+            raise ProjectError(f"split names camera {v!r} that is not in cameras.json", where=str(paths.split),
+                               fix="re-run `avatarctl ingest`")
+    train_frames = sorted(int(f) for f in split.train_frames)
+
+    ckpt = None
+    if resume:
+        ckpt = read_checkpoint(paths.latest_checkpoint)
+        cfg = _resume_config(cfg, FitConfig.from_json(ckpt["fit_config"]))
+        if [int(f) for f in ckpt["train_frames"]] != train_frames:
+            raise ProjectError("the checkpoint was trained on other frames than the project's split",
+                               where=str(paths.latest_checkpoint), fix="start over with --fresh")
+    else:
+        if cfg is None:
+            raise ValueError("fit() needs a FitConfig unless resume=True")
+        if paths.latest_checkpoint.exists() and not fresh:
+            raise ProjectError("this project already has a fit", where=str(paths.fit),
+                               fix="pass --resume to continue it, or --fresh to discard it and start over")
+        if fresh:
+            for p in list(paths.checkpoints.glob("*.pt")) + [paths.fit_log]:
+                p.unlink(missing_ok=True)
+    assert cfg is not None
+    start_step = int(ckpt["step"]) if ckpt is not None else 0
+    write_json(paths.fit_config, cfg.to_json())
+
+    body = load_body_model(capture.body_model, capture.body_model_path)
+    template = body.template(capture.motion)
+    poses = build_pose_table(body, capture.motion, train_frames)
+    store = FrameStore(capture, poses, cfg.crop_pad, cfg.cache_mb * 2**20)
+    sampler = RaySampler(store, train_frames, split.train_views, cfg.rays_per_batch, cfg.images_per_batch,
+                         cfg.box_fraction, cfg.background)
+    pairs = choose_val_pairs(split.test_views, train_frames, cfg.val_pairs)
+    validator = Validator(capture, body, pairs, train_frames, cfg.background, cfg.val_scale) if pairs else None
+
+    with torch.random.fork_rng(devices=[]):  # weights initialised from cfg.seed, global RNG left as it was
+        torch.manual_seed(cfg.seed)
+        model = SlrfAvatar(cfg.model, template, num_frames=len(train_frames), seed=cfg.seed).to(dev)
+    model.train()
+    optimizer = make_optimizer(cfg, model.parameters())
+    scheduler = make_scheduler(cfg, optimizer)
+    sampler_gen = torch.Generator().manual_seed(cfg.seed)
+    noise_gen = torch.Generator(device=dev).manual_seed(cfg.seed + 1)
+    if ckpt is not None:
+        model.load_state_dict(ckpt["model"])
+        optimizer.load_state_dict(ckpt["optimizer"])
+        scheduler.load_state_dict(ckpt["scheduler"])
+        _set_rng_state(ckpt["rng"], sampler_gen, noise_gen)
+    log = _Log(paths.fit_log, _read_log(paths.fit_log, start_step) if resume else [])
+    background = torch.tensor(cfg.background, dtype=torch.float32, device=dev)
+    use_amp = cfg.amp and dev.type == "cuda"
+    stop = stop or StopFlag()
+
+    def checkpoint(step: int) -> Path:
+        payload = {"step": step, "model": model.state_dict(), "optimizer": optimizer.state_dict(),
+                   "scheduler": scheduler.state_dict(), "rng": _rng_state(sampler_gen, noise_gen),
+                   "model_config": cfg.model.to_json(), "fit_config": cfg.to_json(), "train_frames": train_frames}
+        return save_checkpoint(project, payload, keep=cfg.keep_checkpoints)
+
+    setup_seconds = time.perf_counter() - t_setup
+    step = start_step
+    losses: dict[str, float] = {}
+    val: dict[str, Any] | None = None
+    last_ckpt: Path | None = paths.latest_checkpoint if ckpt is not None else None
+    saved_step = start_step if ckpt is not None else -1
+    window_t, window_rays, rays_per_s = time.perf_counter(), 0, 0.0
+    t_run = time.perf_counter()
+    sig = _sigint_sets(stop) if handle_sigint else contextlib.nullcontext()
+    with sig:
+        budget_hit = False
+        while step < cfg.iters and not stop.is_set():
+            if cfg.time_budget_s and time.perf_counter() - t_run >= cfg.time_budget_s:
+                budget_hit = True
+                break
+            batch = sampler.sample(sampler_gen, dev)
+            with torch.autocast(device_type="cuda", dtype=torch.bfloat16) if use_amp else contextlib.nullcontext():
+                state = model.node_state(batch.cond, mode="posterior", generator=noise_gen)
+                out = model.render(batch.rays, state, background, jitter=cfg.jitter, generator=noise_gen)
+                terms = model.losses(out, batch.target, state)
+            optimizer.zero_grad(set_to_none=True)
+            terms.total.backward()
+            if cfg.grad_clip > 0:
+                torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.grad_clip)
+            optimizer.step()
+            scheduler.step()
+            step += 1
+            window_rays += batch.target.shape[0]
+
+            record: dict[str, Any] = {}
+            if step % cfg.log_every == 0 or step == cfg.iters:
+                losses = terms.as_floats()
+                if not all(math.isfinite(v) for v in losses.values()):
+                    raise AvatarError(f"training diverged: non-finite loss at step {step} ({losses})",
+                                      where=str(paths.fit),
+                                      fix="resume from the last checkpoint with a lower lr (--fresh --set lr=...)")
+                now = time.perf_counter()
+                rays_per_s = window_rays / max(now - window_t, 1e-9)
+                window_t, window_rays = now, 0
+                record = {"lr": optimizer.param_groups[0]["lr"], "loss": losses, "rays_per_s": round(rays_per_s, 1),
+                          "cache": {"images": len(store), "mb": round(store.cached_bytes / 2**20, 1),
+                                    "hits": store.hits, "misses": store.misses},
+                          "stats": {k: float(v) for k, v in out.stats.items()}}
+            if validator is not None and cfg.val_every and step % cfg.val_every == 0:
+                val = validator.run(model)
+                record["val"] = _val_record(val)
+            if record:
+                log.append({"step": step, "time": round(time.perf_counter() - t_run, 3), **record})
+            if step % cfg.checkpoint_every == 0:
+                last_ckpt, saved_step = checkpoint(step), step
+            if progress is not None:
+                progress(StepReport(step=step, iters=cfg.iters, start_step=start_step, losses=losses,
+                                    lr=optimizer.param_groups[0]["lr"], rays_per_s=rays_per_s,
+                                    val_psnr=None if val is None else val["psnr"]))
+    seconds = time.perf_counter() - t_run
+    if step > start_step and step % cfg.log_every:  # stopped between log steps: report the last step's losses
+        losses = terms.as_floats()
+    interrupted = step < cfg.iters and not budget_hit
+    stop_reason = "interrupted" if interrupted else ("time_budget" if budget_hit else "done")
+    if saved_step != step:
+        last_ckpt = checkpoint(step)
+    if validator is not None and not interrupted and (val is None or not cfg.val_every or step % cfg.val_every):
+        val = validator.run(model)
+        log.append({"step": step, "time": round(time.perf_counter() - t_run, 3), "val": _val_record(val)})
+    assert last_ckpt is not None
+    summary = {"step": step, "iters": cfg.iters, "start_step": start_step, "interrupted": interrupted,
+               "stop_reason": stop_reason,
+               "seconds": round(seconds, 2), "setup_seconds": round(setup_seconds, 2), "losses": losses,
+               "rays_per_s": round(rays_per_s, 1), "device": str(dev),
+               "val_psnr_bbox": None if val is None else val["psnr"],
+               "val_pairs": None if val is None else val["pairs"], **config_summary(cfg)}
+    project.record("fit", {"fit": cfg.to_json(), "device": str(dev), "resume": resume},
+                   [paths.fit_config, paths.fit_log, paths.latest_checkpoint], started, summary)
+    return FitResult(step=step, iters=cfg.iters, interrupted=interrupted, stop_reason=stop_reason,
+                     checkpoint=last_ckpt, seconds=seconds,
+                     setup_seconds=setup_seconds, losses=losses, val=val, rays_per_s=rays_per_s, device=str(dev),
+                     config=cfg)

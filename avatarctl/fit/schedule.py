@@ -1,0 +1,28 @@
+"""Optimiser and learning-rate schedule (paper supplement: Adam, lr 5e-4, betas 0.9 / 0.999, exponential decay
+every 20k iterations).
+
+The decay factor is not in the paper: `FitConfig.lr_decay_factor` (default 0.5 per `lr_decay_every` = 20k
+iterations) is our named deviation. The decay is continuous, lr(step) = lr0 * factor ** (step / every), so the
+rate halves over each 20k-iteration period; factor 1 switches it off.
+"""
+
+from __future__ import annotations
+
+import torch
+
+from avatarctl.fit.config import FitConfig
+
+
+def lr_at(cfg: FitConfig, step: int) -> float:
+    """The learning rate used for optimisation step `step` (0-based)."""
+    return cfg.lr * cfg.lr_decay_factor ** (step / cfg.lr_decay_every)
+
+
+def make_optimizer(cfg: FitConfig, params) -> torch.optim.Adam:
+    return torch.optim.Adam(params, lr=cfg.lr, betas=(cfg.adam_beta1, cfg.adam_beta2))
+
+
+def make_scheduler(cfg: FitConfig, optimizer: torch.optim.Optimizer) -> torch.optim.lr_scheduler.LambdaLR:
+    """Multiplies the base lr by factor ** (step / every); call `.step()` once per optimisation step."""
+    factor, every = cfg.lr_decay_factor, cfg.lr_decay_every
+    return torch.optim.lr_scheduler.LambdaLR(optimizer, lambda step: factor ** (step / every))

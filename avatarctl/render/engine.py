@@ -1,0 +1,114 @@
+"""Render one whole view of a fitted avatar: `render_view`.
+
+Steps:
+1. candidate pixels: every pixel (or those of `pixel_mask`) whose camera ray passes within the node-support radius
+   sigma * sqrt(-2 ln eps) of at least one posed node of the frame (Eq. 6: the blending weight is exactly zero
+   farther away, so no other ray can see the avatar). The test is exact for the spheres (ray-to-centre distance),
+   not a screen-space approximation, and runs in chunks;
+2. those rays are rendered by `model.render` in chunks of at most `max_rays_per_chunk` rays under `torch.no_grad()`
+   (the chunk bounds peak memory: roughly chunk x samples_per_ray x touched nodes);
+3. every other pixel is `background` with alpha 0.
+
+Conventions: pinhole camera (OpenCV, world->camera, metres; undistorted images); pixel centres at integer
+coordinates; output row-major [H, W].
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Callable
+
+import numpy as np
+import torch
+
+from avatarctl.render.cameras import Camera
+
+if TYPE_CHECKING:
+    from avatarctl.model.avatar import NodeState, SlrfAvatar
+
+ProgressFn = Callable[[int, int], None]  # (rays rendered so far, rays to render)
+
+
+@dataclass
+class ViewRender:
+    """One rendered view."""
+
+    rgb: np.ndarray  # [H, W, 3] float32 in [0, 1], composited over `background`
+    alpha: np.ndarray  # [H, W] float32 accumulated opacity
+    seconds: float  # wall time of the call
+    rays: int = 0  # rays actually rendered (pixels that can hit the node-influence region)
+
+
+def support_radius(model: "SlrfAvatar") -> float:
+    """Eq. 6 support radius of a node, metres."""
+    return float(model.cfg.support_radius)
+
+
+def rays_hitting_spheres(origin: torch.Tensor, dirs: torch.Tensor, centers: torch.Tensor, radius: float,
+                         chunk: int = 65536) -> torch.Tensor:
+    """[rays] bool: does the ray `origin + t * dirs` (t > 0) pass within `radius` of any of `centers`?
+
+    origin [3] (one camera centre), dirs [rays, 3] unit, centers [nodes, 3]; world metres.
+    """
+    v = centers - origin  # [nodes, 3]
+    vv = (v * v).sum(-1)  # [nodes]
+    r2 = radius * radius
+    inside = vv <= r2  # camera inside a sphere: every ray hits it
+    out = torch.empty(dirs.shape[0], dtype=torch.bool, device=dirs.device)
+    for s in range(0, dirs.shape[0], chunk):
+        t = dirs[s:s + chunk] @ v.T  # [rays, nodes] distance along the ray to the closest point
+        d2 = vv[None] - t * t  # squared ray-to-centre distance
+        hit = ((d2 <= r2) & (t > 0)) | inside[None]
+        out[s:s + chunk] = hit.any(dim=1)
+    return out
+
+
+def render_view(model: "SlrfAvatar", state: "NodeState", slot: int, camera: Camera,
+                background: tuple[float, float, float], max_rays_per_chunk: int = 8192,
+                pixel_mask: np.ndarray | None = None, progress: ProgressFn | None = None) -> ViewRender:
+    """Render frame `slot` of `state` (a `NodeState` batched over frames) seen by `camera`.
+
+    `pixel_mask` [H, W] bool restricts rendering to those pixels (e.g. the eval box); pixels outside it are
+    `background` with alpha 0. `progress(done, total)` is called after each chunk with ray counts.
+    """
+    from avatarctl.render.rays import RayBatch, camera_rays, image_pixels
+
+    t0 = time.perf_counter()
+    if not camera.is_pinhole:
+        raise ValueError(f"render_view needs a pinhole camera (camera {camera.name} has distortion); "
+                         "use camera.pinhole() for undistorted images")
+    if not 0 <= slot < state.centers.shape[0]:
+        raise IndexError(f"slot {slot} outside the NodeState batch of {state.centers.shape[0]} frames")
+    H, W = int(camera.height), int(camera.width)
+    device = state.centers.device
+    bg = torch.tensor(background, dtype=torch.float32, device=device)
+    rgb = np.empty((H * W, 3), dtype=np.float32)
+    rgb[:] = np.asarray(background, dtype=np.float32)
+    alpha = np.zeros(H * W, dtype=np.float32)
+
+    pixels = image_pixels(W, H).to(device)  # [H*W, 2] (x, y)
+    candidates = torch.arange(H * W, device=device)
+    if pixel_mask is not None:
+        m = np.asarray(pixel_mask, dtype=bool)
+        if m.shape != (H, W):
+            raise ValueError(f"pixel_mask {m.shape} does not match the camera's image ({H}, {W})")
+        candidates = torch.from_numpy(np.flatnonzero(m)).to(device)
+    with torch.no_grad():
+        if candidates.numel():
+            origins, dirs = camera_rays(camera, pixels[candidates])
+            hit = rays_hitting_spheres(origins[0], dirs, state.centers[slot].float(), support_radius(model))
+            candidates, origins, dirs = candidates[hit], origins[hit], dirs[hit]
+        total = int(candidates.numel())
+        for s in range(0, total, max_rays_per_chunk):
+            e = min(s + max_rays_per_chunk, total)
+            rays = RayBatch(origins=origins[s:e], dirs=dirs[s:e],
+                            frame_slot=torch.full((e - s,), slot, dtype=torch.long, device=device))
+            out = model.render(rays, state, bg, jitter=False)
+            idx = candidates[s:e].cpu().numpy()
+            rgb[idx] = out.rgb.float().cpu().numpy()
+            alpha[idx] = out.alpha.float().cpu().numpy()
+            if progress is not None:
+                progress(e, total)
+    return ViewRender(rgb=np.clip(rgb, 0.0, 1.0).reshape(H, W, 3), alpha=alpha.reshape(H, W),
+                      seconds=time.perf_counter() - t0, rays=total)

@@ -1,0 +1,289 @@
+"""The fit stage: config resolution, schedule, data sampling, the loop (files, resume, stop), checkpoints, CLI."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import signal
+from dataclasses import replace
+
+import numpy as np
+import pytest
+import torch
+from typer.testing import CliRunner
+
+from avatarctl.errors import InputError
+from avatarctl.fit.config import FitConfig, parse_ablations, preset, resolve_fit_config
+from avatarctl.fit.schedule import lr_at, make_optimizer, make_scheduler
+from avatarctl.project import Project
+
+
+# ---- config (no body model needed) ---------------------------------------------------------------------------------
+@pytest.mark.parametrize("name", ["cpu", "paper", "micro"])
+def test_config_json_round_trip(name):
+    cfg = resolve_fit_config(name, ablation="no-delta-n,no-embedding", overrides=["lr=1e-4", "background=1,1,1",
+                                                                                  "model.num_nodes=64"])
+    back = FitConfig.from_json(json.loads(json.dumps(cfg.to_json())))
+    assert back == cfg
+    assert back.model.use_delta_n is False and back.model.use_embedding is False and back.model.num_nodes == 64
+    assert back.background == (1.0, 1.0, 1.0) and back.lr == 1e-4 and back.ablations == ("no-delta-n", "no-embedding")
+
+
+def test_paper_preset_matches_the_supplement():
+    cfg = preset("paper")
+    assert (cfg.rays_per_batch, cfg.images_per_batch, cfg.model.samples_per_ray, cfg.model.num_nodes) == (2048, 4, 64,
+                                                                                                           128)
+    assert (cfg.lr, cfg.adam_beta1, cfg.adam_beta2, cfg.lr_decay_every) == (5e-4, 0.9, 0.999, 20_000)
+
+
+@pytest.mark.parametrize("overrides, needle", [
+    (["lrr=1e-4"], "did you mean 'lr'"),
+    (["model.num_node=3"], "model.num_nodes"),
+    (["iters=ten"], "as int"),
+    (["lr"], "not key=value"),
+    (["ablations=no-delta-n"], "--ablation"),
+    (["model.latent=banana"], "latent must be one of"),
+    (["box_fraction=1.5"], "box_fraction"),
+])
+def test_bad_overrides_are_actionable_input_errors(overrides, needle):
+    with pytest.raises(InputError) as e:
+        resolve_fit_config("cpu", overrides=overrides)
+    assert needle in e.value.one_line() and "\n" not in e.value.one_line()
+
+
+def test_ablation_names_are_checked():
+    assert parse_ablations("no-delta-n, lbs-baseline") == ("no-delta-n", "lbs-baseline")
+    with pytest.raises(InputError, match="did you mean 'no-embedding'"):
+        parse_ablations("no-embeding")
+    with pytest.raises(InputError, match="both replace the latent"):
+        parse_ablations("deterministic,per-frame-latent")
+    cfg = resolve_fit_config("cpu", ablation="deterministic,lbs-baseline")
+    assert cfg.model.latent == "deterministic" and cfg.model.variant == "lbs_baseline"
+
+
+def test_unknown_keys_in_saved_config_are_errors():
+    d = preset("micro").to_json()
+    d["lerning_rate"] = 1.0
+    with pytest.raises(InputError, match="lerning_rate"):
+        FitConfig.from_json(d)
+
+
+def test_lr_schedule_halves_every_decay_period():
+    cfg = replace(preset("micro"), lr=1e-3, lr_decay_every=10, lr_decay_factor=0.5)
+    p = torch.nn.Parameter(torch.zeros(1))
+    opt = make_optimizer(cfg, [p])
+    sched = make_scheduler(cfg, opt)
+    seen = []
+    for _ in range(21):
+        seen.append(opt.param_groups[0]["lr"])
+        opt.step()
+        sched.step()
+    assert seen[0] == pytest.approx(1e-3) and seen[10] == pytest.approx(5e-4) and seen[20] == pytest.approx(2.5e-4)
+    assert seen[5] == pytest.approx(lr_at(cfg, 5)) and lr_at(replace(cfg, lr_decay_factor=1.0), 20) == 1e-3
+
+
+def test_cli_set_typo_is_one_line_error_and_writes_nothing(tmp_path):
+    from avatarctl.cli.app import app
+
+    Project.create(tmp_path / "p", body_model={"name": "anny"}, source={})
+    res = CliRunner().invoke(app, ["fit", str(tmp_path / "p"), "--set", "itres=5"])
+    assert res.exit_code == 2, res.output
+    assert "unknown config key 'itres'" in res.output and "did you mean 'iters'" in res.output
+    assert len(res.output.strip().splitlines()) == 1
+    assert not (tmp_path / "p" / "fit").exists()
+
+
+def test_sigint_sets_the_stop_flag_instead_of_raising():
+    from avatarctl.fit.loop import StopFlag, _sigint_sets
+
+    flag = StopFlag()
+    with _sigint_sets(flag):
+        os.kill(os.getpid(), signal.SIGINT)
+        assert flag.is_set()
+        with pytest.raises(KeyboardInterrupt):  # a second Ctrl-C aborts
+            os.kill(os.getpid(), signal.SIGINT)
+
+
+# ---- the loop on a tiny anny project -----------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def tiny_project_dir(tmp_path_factory):
+    from test_fit_fixture import make_tiny_project
+
+    root = tmp_path_factory.mktemp("fit") / "tiny"
+    make_tiny_project(root, size=32, frames=3, cams=4)
+    return root
+
+
+@pytest.fixture
+def project(tiny_project_dir, tmp_path):
+    dest = tmp_path / "proj"
+    shutil.copytree(tiny_project_dir, dest)
+    return Project.open(dest)
+
+
+def _cfg(**kw) -> FitConfig:
+    base = dict(iters=6, log_every=2, checkpoint_every=3, val_every=3, val_pairs=2, rays_per_batch=64,
+                images_per_batch=2, seed=3)
+    base.update(kw)
+    return replace(preset("micro"), **base)
+
+
+@pytest.mark.anny
+def test_fit_writes_checkpoints_log_config_and_stage_record(project):
+    from avatarctl.fit.checkpoint import read_checkpoint
+    from avatarctl.fit.loop import fit
+
+    cfg = _cfg()
+    res = fit(project, cfg, device="cpu")
+    p = project.paths
+    assert res.step == 6 and not res.interrupted and res.checkpoint == p.checkpoint(6)
+    assert p.checkpoint(3).is_file() and p.checkpoint(6).is_file() and p.latest_checkpoint.is_file()
+    ckpt = torch.load(p.latest_checkpoint, weights_only=True)  # plain tensors / JSON values only
+    assert ckpt["step"] == 6 and ckpt["train_frames"] == [0, 1, 2]
+    assert FitConfig.from_json(ckpt["fit_config"]) == cfg
+    assert read_checkpoint(p.latest_checkpoint)["model_config"] == cfg.model.to_json()
+    assert FitConfig.from_json(json.loads(p.fit_config.read_text())) == cfg
+    records = [json.loads(line) for line in p.fit_log.read_text().splitlines()]
+    assert [r["step"] for r in records if "loss" in r] == [2, 4, 6]
+    assert all(np.isfinite(r["loss"]["total"]) for r in records if "loss" in r)
+    vals = [r["val"]["psnr"] for r in records if "val" in r]
+    assert len(vals) == 2 and all(np.isfinite(v) and v > 0 for v in vals)
+    rec = Project.open(project.root).require("fit")
+    assert rec.summary["step"] == 6 and rec.summary["interrupted"] is False
+    assert rec.summary["val_psnr_bbox"] == pytest.approx(vals[-1])
+    assert not list(p.checkpoints.glob(".*tmp*"))  # nothing half-written left behind
+
+
+@pytest.mark.anny
+def test_resume_equals_straight_run_bitwise(project, tmp_path):
+    from avatarctl.fit.loop import fit
+
+    other = Project.open(shutil.copytree(project.root, tmp_path / "other"))
+    cfg = _cfg(checkpoint_every=100)
+    straight = fit(project, cfg, device="cpu")
+    half = fit(other, replace(cfg, iters=3), device="cpu")
+    assert half.step == 3
+    with pytest.raises(InputError, match="differs from the checkpoint"):
+        fit(other, replace(cfg, lr=1e-3), device="cpu", resume=True)
+    resumed = fit(other, cfg, device="cpu", resume=True)
+    assert straight.step == resumed.step == 6
+    a = torch.load(straight.checkpoint, weights_only=True)
+    b = torch.load(resumed.checkpoint, weights_only=True)
+    for k in a["model"]:
+        assert torch.equal(a["model"][k], b["model"][k]), k
+    for k, st in a["optimizer"]["state"].items():
+        for name, v in st.items():
+            assert torch.equal(torch.as_tensor(v), torch.as_tensor(b["optimizer"]["state"][k][name])), (k, name)
+    assert a["scheduler"]["last_epoch"] == b["scheduler"]["last_epoch"] == 6
+    assert straight.losses == resumed.losses
+
+
+@pytest.mark.anny
+def test_stop_saves_a_checkpoint_and_resume_finishes(project):
+    from avatarctl.fit.loop import StopFlag, fit
+
+    stop = StopFlag()
+
+    def progress(rep):
+        if rep.step == 1:
+            stop.set()  # what the first Ctrl-C does
+
+    res = fit(project, _cfg(), device="cpu", progress=progress, stop=stop)
+    assert res.interrupted and res.step == 1 and res.checkpoint == project.paths.checkpoint(1)
+    assert np.isfinite(res.losses["total"])  # the last step's losses, though step 1 is not a log step
+    assert torch.load(project.paths.latest_checkpoint, weights_only=True)["step"] == 1
+    assert Project.open(project.root).last("fit").summary["stop_reason"] == "interrupted"
+    with pytest.raises(Exception, match="already has a fit"):
+        fit(project, _cfg(), device="cpu")
+    done = fit(project, None, device="cpu", resume=True)
+    assert done.step == 6 and not done.interrupted
+
+
+@pytest.mark.anny
+def test_load_avatar_round_trip_and_conditioning(project):
+    from avatarctl.fit.checkpoint import load_avatar
+    from avatarctl.fit.loop import fit
+    from avatarctl.render.engine import render_view
+
+    cfg = _cfg(iters=2, val_pairs=0)
+    fit(project, cfg, device="cpu")
+    av = load_avatar(project)
+    ckpt = torch.load(project.paths.latest_checkpoint, weights_only=True)
+    assert av.step == 2 and av.train_frames == [0, 1, 2] and av.model_config == cfg.model
+    assert av.background == (0.0, 0.0, 0.0) and not av.model.training
+    for k, v in ckpt["model"].items():
+        assert torch.equal(av.model.state_dict()[k], v), k
+    motion = av.capture.motion
+    cond = av.conditioning(motion.select([1, 2]), frames_are_training=True)
+    assert torch.allclose(cond.time, torch.tensor([1 / 3, 2 / 3])) and cond.frame_ids.tolist() == [1, 2]
+    novel = av.conditioning(motion.select([1]), frames_are_training=False)
+    assert novel.frame_ids.tolist() == [-1] and novel.time.tolist() == [0.0]
+    state = av.model.node_state(cond, mode="mean")
+    cam = av.capture.cameras["cam01"]
+    view = render_view(av.model, state, 0, cam, av.background)
+    assert view.rgb.shape == (32, 32, 3) and np.isfinite(view.rgb).all() and view.rays > 0
+    with pytest.raises(Exception, match="checkpoint not found"):
+        load_avatar(project, checkpoint=project.paths.checkpoint(999))
+
+
+@pytest.mark.anny
+def test_ray_sampler_targets_and_box_fraction(project):
+    from avatarctl.body.registry import load_body_model
+    from avatarctl.fit.conditioning import build_pose_table
+    from avatarctl.fit.data import FrameStore, RaySampler
+    from avatarctl.io.project_io import load_project_capture
+
+    cap = load_project_capture(project)
+    body = load_body_model("anny")
+    poses = build_pose_table(body, cap.motion, [0, 1, 2])
+    store = FrameStore(cap, poses, crop_pad=0.1, budget_bytes=1)  # budget below one crop: keeps only the newest
+    sampler = RaySampler(store, [0, 1, 2], ["cam00", "cam02"], rays_per_batch=400, images_per_batch=1,
+                         box_fraction=0.9, background=(0.2, 0.4, 0.6))
+    batch = sampler.sample(torch.Generator().manual_seed(0))
+    assert batch.rays.origins.shape == (400, 3) and batch.target.shape == (400, 3) and len(store) == 1
+    cam = cap.cameras[batch.views[0]]
+    crop = store.get(batch.views[0], batch.frames[0])
+    # recover the pixels from the rays and check the targets against the image composited over the background
+    pts = batch.rays.origins + batch.rays.dirs
+    uv = np.round(cam.project(pts.double().numpy(), distort=False)).astype(int)
+    img = cap.image(cam.name, batch.frames[0]).astype(np.float32) / 255
+    m = cap.mask(cam.name, batch.frames[0]).astype(np.float32)[..., None]
+    gt = (img * m + np.array([0.2, 0.4, 0.6], np.float32) * (1 - m))[uv[:, 1], uv[:, 0]]
+    h, w = crop.mask.shape
+    in_crop = (uv[:, 0] >= crop.x0) & (uv[:, 0] < crop.x0 + w) & (uv[:, 1] >= crop.y0) & (uv[:, 1] < crop.y0 + h)
+    np.testing.assert_allclose(batch.target.numpy()[in_crop], gt[in_crop], atol=1e-6)
+    box = np.zeros((cam.height, cam.width), bool)
+    box[crop.y0 + crop.inside // w, crop.x0 + crop.inside % w] = True
+    assert box[uv[:360, 1], uv[:360, 0]].all()  # the first 90% are inside the projected box
+    assert batch.cond.time.tolist() == pytest.approx([batch.frames[0] / 3])
+    again = sampler.sample(torch.Generator().manual_seed(0))
+    assert torch.equal(again.target, batch.target) and torch.equal(again.rays.dirs, batch.rays.dirs)
+
+
+@pytest.mark.anny
+def test_cli_fit_runs_and_resumes(project):
+    from avatarctl.cli.app import app
+
+    runner = CliRunner()
+    res = runner.invoke(app, ["fit", str(project.root), "--preset", "micro", "--iters", "2", "--device", "cpu",
+                              "--set", "rays_per_batch=32", "--set", "val_pairs=1", "--ablation", "no-delta-n"])
+    assert res.exit_code == 0, res.output
+    assert "held-out PSNR (bbox)" in res.output and "2 / 2" in res.output
+    cfg = FitConfig.from_json(json.loads(project.paths.fit_config.read_text()))
+    assert cfg.rays_per_batch == 32 and cfg.model.use_delta_n is False and cfg.ablations == ("no-delta-n",)
+    res = runner.invoke(app, ["fit", str(project.root), "--resume", "--seed", "4"])
+    assert res.exit_code == 2 and "--seed cannot change a fit being resumed" in res.output
+    res = runner.invoke(app, ["fit", str(project.root), "--resume", "--iters", "3", "--device", "cpu"])
+    assert res.exit_code == 0, res.output
+    assert torch.load(project.paths.latest_checkpoint, weights_only=True)["step"] == 3
+
+
+@pytest.mark.anny
+def test_time_budget_stops_with_checkpoint_and_validation(project):
+    from avatarctl.fit.loop import fit
+
+    res = fit(project, _cfg(iters=1000, time_budget_s=1e-9), device="cpu")
+    assert res.stop_reason == "time_budget" and not res.interrupted and res.step == 0
+    assert res.val is not None and np.isfinite(res.val["psnr"])  # still validated
+    assert torch.load(project.paths.latest_checkpoint, weights_only=True)["step"] == 0
