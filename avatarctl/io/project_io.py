@@ -104,15 +104,22 @@ def write_mask(project: Project, cam: str, frame: int, mask: np.ndarray) -> Path
     return dest
 
 
+def _read_image(path: Path, flag: int, message: str) -> np.ndarray:
+    """cv2.imread that raises an actionable ProjectError for a missing or unreadable project image."""
+    import cv2
+
+    img = cv2.imread(str(path), flag)
+    if img is None:
+        raise ProjectError(message, where=str(path), fix="re-run `avatarctl ingest`")
+    return img
+
+
 def read_frame(project: Project, cam: str, frame: int) -> np.ndarray:
     """Undistorted RGB uint8 [H, W, 3]."""
     import cv2
 
-    p = project.paths.frame(cam, frame)
-    img = cv2.imread(str(p), cv2.IMREAD_COLOR)
-    if img is None:
-        raise ProjectError(f"frame image missing or unreadable: camera {cam}, frame {frame}", where=str(p),
-                           fix="re-run `avatarctl ingest`")
+    img = _read_image(project.paths.frame(cam, frame), cv2.IMREAD_COLOR,
+                      f"frame image missing or unreadable: camera {cam}, frame {frame}")
     return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
 
 
@@ -120,11 +127,8 @@ def read_mask(project: Project, cam: str, frame: int) -> np.ndarray:
     """Foreground mask, bool [H, W]."""
     import cv2
 
-    p = project.paths.mask(cam, frame)
-    m = cv2.imread(str(p), cv2.IMREAD_GRAYSCALE)
-    if m is None:
-        raise ProjectError(f"mask missing or unreadable: camera {cam}, frame {frame}", where=str(p),
-                           fix="re-run `avatarctl ingest`")
+    m = _read_image(project.paths.mask(cam, frame), cv2.IMREAD_GRAYSCALE,
+                    f"mask missing or unreadable: camera {cam}, frame {frame}")
     return m > 127
 
 
