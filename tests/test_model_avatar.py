@@ -125,8 +125,10 @@ def test_posterior_is_differentiable_and_losses_have_all_terms():
     out = m.render(rays(48), st, torch.ones(3), jitter=True, generator=torch.Generator().manual_seed(0))
     L = m.losses(out, torch.zeros(48, 3), st)
     f = L.as_floats()
-    assert set(f) == {"total", "rec", "trans", "ebd", "kl"} and all(v > 0 for v in f.values())
+    assert set(f) == {"total", "rec", "trans", "ebd", "kl", "mse"} and all(v > 0 for v in f.values())
     c = m.cfg
+    # Eq. 12 as written: sum over rays and channels, at the reference batch of 2048 rays (here 48 rays)
+    assert f["rec"] == pytest.approx(f["mse"] * 3 * 48 * (c.rec_reference_rays / 48), rel=1e-5)
     assert f["total"] == pytest.approx(c.lambda_rec * f["rec"] + c.lambda_trans * f["trans"] +
                                        c.lambda_ebd * f["ebd"] + c.lambda_kl * f["kl"], rel=1e-5)
     L.total.backward()

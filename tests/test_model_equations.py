@@ -232,3 +232,25 @@ def test_config_defaults_presets_json_and_validation():
         ModelConfig(eps=1.5)
     with pytest.raises(ValueError, match="preset"):
         ModelConfig.preset("gpu")
+
+
+def test_reconstruction_loss_is_eq12_sum_at_the_reference_batch():
+    from avatarctl.model.losses import reconstruction_loss
+
+    g = torch.Generator().manual_seed(0)
+    rgb, tgt = torch.rand(2048, 3, generator=g), torch.rand(2048, 3, generator=g)
+    se = ((rgb - tgt) ** 2).sum()
+    # Eq. 12 exactly at R = 2048; scaled by 2048 / R for other batch sizes (same per-ray weight)
+    assert torch.allclose(reconstruction_loss(rgb, tgt, "sum", 2048), se)
+    se512 = ((rgb[:512] - tgt[:512]) ** 2).sum()
+    assert torch.allclose(reconstruction_loss(rgb[:512], tgt[:512], "sum", 2048), se512 * 4)
+    assert torch.allclose(reconstruction_loss(rgb, tgt, "mean"), se / (2048 * 3))
+    with pytest.raises(ValueError, match="reduction"):
+        reconstruction_loss(rgb, tgt, "median")
+    assert ModelConfig().rec_reduction == "sum"
+    # a config saved before `rec_reduction` existed was trained with the mean, and reads back as such
+    old = ModelConfig().to_json()
+    del old["rec_reduction"]
+    assert ModelConfig.from_json(old).rec_reduction == "mean"
+    with pytest.raises(ValueError, match="rec_reduction"):
+        ModelConfig(rec_reduction="max")

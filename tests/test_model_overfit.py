@@ -1,7 +1,9 @@
 """Overfitting test: the full model (cVAE posterior, sparse fields, jittered sampling, Eq. 11 loss) learns a fixed
 target image of 256 rays of an analytic normal-coloured sphere (r = 0.25 m) inside the node shell of a toy
-2-joint sphere body, over a white background. Measured on 2 CPU cores: ~11 dB at start, ~25 dB after 50 steps,
-~32 dB after 100, ~38 dB after 150 (about 15 s). We assert > 30 dB after 150 steps."""
+2-joint sphere body, over a white background, with Adam at lr 1e-3 and the paper's loss balance (L_rec summed,
+Eq. 12). Measured (1 thread, loaded machine): 11.2 dB at start, 19.4 dB after 50 steps, 27.0 after 100, 31.3 after
+150 (about 19 s). We assert > 30 dB after 150 steps. (At lr 5e-3 the node translations run away, trans ~16 m^2,
+and it stalls near 26 dB.)"""
 
 from __future__ import annotations
 
@@ -34,7 +36,7 @@ def test_overfit_fixed_image_reaches_30db():
                        num_frames=1)
     M, feats = toy_joint_transforms(torch.zeros(1))
     cond = FrameConditioning(M, feats, torch.zeros(1), torch.zeros(1, dtype=torch.long))
-    opt = torch.optim.Adam(model.parameters(), lr=5e-3)
+    opt = torch.optim.Adam(model.parameters(), lr=1e-3)
     bg = torch.ones(3)
 
     def psnr() -> float:

@@ -81,7 +81,7 @@ def _run(project_dir: Path, iters, preset, resume, fresh, seed, device, override
             if state["last_t"] is None:
                 state["last_t"], state["last_step"] = now, rep.step - 1
             it_s = (rep.step - state["last_step"]) / max(now - state["last_t"], 1e-9)
-            info = " ".join(f"{k} {rep.losses[k]:.4g}" for k in ("total", "rec") if k in rep.losses)
+            info = " ".join(f"{k} {rep.losses[k]:.4g}" for k in ("mse", "kl") if k in rep.losses)
             if rep.val_psnr is not None:
                 info += f" | val {rep.val_psnr:.2f} dB"
             bar.update(task, completed=rep.step, speed=f"{it_s:.2f} it/s", info=info)

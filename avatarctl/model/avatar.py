@@ -292,8 +292,10 @@ class SlrfAvatar(nn.Module):
     def losses(self, out: RenderOutputs, target_rgb: torch.Tensor, state: NodeState) -> LossTerms:
         """Eq. 11-15 (reductions in `model/losses.py`). target_rgb [rays, 3] in [0, 1]."""
         c = self.cfg
-        rec = reconstruction_loss(out.rgb, target_rgb.to(out.rgb.device))
+        target = target_rgb.to(out.rgb.device)
+        rec = reconstruction_loss(out.rgb, target, c.rec_reduction, c.rec_reference_rays)
+        mse = rec if c.rec_reduction == "mean" else reconstruction_loss(out.rgb.detach(), target, "mean")
         zero = rec.new_zeros(())
         kl = kl_loss(state.mu, state.logvar) if state.mu is not None and state.logvar is not None else zero
         return total_loss(rec, translation_loss(state.delta_n), embedding_loss(state.embed), kl,
-                          c.lambda_rec, c.lambda_trans, c.lambda_ebd, c.lambda_kl)
+                          c.lambda_rec, c.lambda_trans, c.lambda_ebd, c.lambda_kl, mse=mse)

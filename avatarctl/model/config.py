@@ -72,6 +72,8 @@ class ModelConfig:
     lambda_trans: float = 0.02
     lambda_ebd: float = 0.1
     lambda_kl: float = 1e-5
+    rec_reduction: str = "sum"  # Eq. 12 as written (sum over rays), see model/losses.py; "mean" = plain MSE
+    rec_reference_rays: int = 2048  # L_rec is scaled by this / rays-in-batch (= Eq. 12 at the paper's 2048)
 
     def __post_init__(self) -> None:
         def need(ok: bool, msg: str) -> None:
@@ -97,6 +99,10 @@ class ModelConfig:
             need(isinstance(getattr(self, name), bool), f"{name} must be a bool, got {getattr(self, name)!r}")
         for name in ("lambda_rec", "lambda_trans", "lambda_ebd", "lambda_kl"):
             need(getattr(self, name) >= 0, f"{name} must be >= 0, got {getattr(self, name)}")
+        need(self.rec_reduction in ("sum", "mean"),
+             f"rec_reduction must be 'sum' or 'mean', got {self.rec_reduction!r}")
+        need(isinstance(self.rec_reference_rays, int) and self.rec_reference_rays > 0,
+             f"rec_reference_rays must be a positive int, got {self.rec_reference_rays!r}")
 
     @property
     def support_radius(self) -> float:
@@ -119,6 +125,8 @@ class ModelConfig:
         unknown = sorted(set(d) - known)
         if unknown:
             raise ValueError(f"ModelConfig: unknown keys {unknown}; known keys are {sorted(known)}")
+        if "rec_reduction" not in d:  # configs written before the key existed were trained with the mean
+            d["rec_reduction"] = "mean"
         return cls(**d)
 
     @classmethod
