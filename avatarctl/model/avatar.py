@@ -131,7 +131,8 @@ class SlrfAvatar(nn.Module):
         cond = FrameConditioning(cond.joint_transforms.to(dev, dt), cond.pose_features.to(dev, dt),
                                  cond.time.to(dev, dt), cond.frame_ids.to(dev))
         B, N = cond.time.shape[0], self.cfg.num_nodes
-        T = node_transforms(self.node_skin_weights, cond.joint_transforms)  # [B, N, 4, 4]  Eq. 1
+        with _float32_geometry(dev):
+            T = node_transforms(self.node_skin_weights, cond.joint_transforms)  # [B, N, 4, 4]  Eq. 1
         mu = logvar = None
         if self.cfg.variant == "slrf":
             theta_i = node_pose_condition(cond.pose_features, self.pose_attention)  # [B, N, 3J]  Eq. 8
@@ -142,7 +143,8 @@ class SlrfAvatar(nn.Module):
         else:
             delta = T.new_zeros(B, N, 3)
             embed = T.new_zeros(B, N, self.cfg.embed_dim)
-        centers = posed_node_centers(T, self.node_rest, delta)  # [B, N, 3]  Eq. 3
+        with _float32_geometry(dev):
+            centers = posed_node_centers(T, self.node_rest, delta.to(T.dtype))  # [B, N, 3]  Eq. 3
         return NodeState(transforms=T, centers=centers, delta_n=delta, embed=embed, mu=mu, logvar=logvar)
 
     # ---- step 2: rendering --------------------------------------------------------------------------------------
@@ -204,8 +206,10 @@ class SlrfAvatar(nn.Module):
             f, wsum, stats = self._features_sparse(points, point_frame, state)
             valid = (wsum > 0).nonzero(as_tuple=True)[0]
             fv = f[valid]
-            sigma = points.new_zeros(points.shape[0]).index_copy(0, valid, self.heads.density(fv))
-            rgb = points.new_zeros(points.shape[0], 3).index_copy(0, valid, self.heads.color(fv, dirs[valid]))
+            # heads may run in bf16 under autocast; compositing stays in the points' float32
+            sigma = points.new_zeros(points.shape[0]).index_copy(0, valid, self.heads.density(fv).to(points.dtype))
+            rgb = points.new_zeros(points.shape[0], 3).index_copy(0, valid,
+                                                                  self.heads.color(fv, dirs[valid]).to(points.dtype))
         else:
             f, wsum, stats = self._features_dense(points, point_frame, state)
             valid_mask = wsum > 0
@@ -231,8 +235,9 @@ class SlrfAvatar(nn.Module):
         keep = (w > 0).nonzero(as_tuple=True)[0]
         pi, ni, fi, w, centers = pi[keep], ni[keep], fi[keep], w[keep], centers[keep]
         if cfg.variant == "slrf":
-            A_inv = torch.linalg.inv(state.transforms[..., :3, :3])  # [B, N, 3, 3]
-            local = local_coordinates_centered(points[pi], A_inv[fi, ni], centers) * self._local_scale()  # Eq. 4
+            with _float32_geometry(points.device):
+                A_inv = torch.linalg.inv(state.transforms[..., :3, :3])  # [B, N, 3, 3]
+                local = local_coordinates_centered(points[pi], A_inv[fi, ni], centers) * self._local_scale()  # Eq. 4
             if cfg.pack_block > 0:
                 bp = BlockPacking.build(ni, N, cfg.pack_block)
                 o = bp.order
@@ -268,8 +273,9 @@ class SlrfAvatar(nn.Module):
         centers = state.centers[point_frame].transpose(0, 1)  # [N, P, 3]
         w = blending_weights(((points[None] - centers) ** 2).sum(-1), cfg.sigma, cfg.eps)  # [N, P]  Eq. 6
         if cfg.variant == "slrf":
-            A_inv = torch.linalg.inv(state.transforms[..., :3, :3])[point_frame].transpose(0, 1)  # [N, P, 3, 3]
-            local = local_coordinates_centered(points[None], A_inv, centers) * self._local_scale()  # Eq. 4
+            with _float32_geometry(points.device):
+                A_inv = torch.linalg.inv(state.transforms[..., :3, :3])[point_frame].transpose(0, 1)  # [N, P, 3, 3]
+                local = local_coordinates_centered(points[None], A_inv, centers) * self._local_scale()  # Eq. 4
             bias = self.fields.embed_bias(state.embed)[point_frame].transpose(0, 1)  # [N, P, width]
             f, wsum = fuse_features_dense(self.fields(local, bias), w)  # Eq. 5
         else:
@@ -299,3 +305,10 @@ class SlrfAvatar(nn.Module):
         kl = kl_loss(state.mu, state.logvar) if state.mu is not None and state.logvar is not None else zero
         return total_loss(rec, translation_loss(state.delta_n), embedding_loss(state.embed), kl,
                           c.lambda_rec, c.lambda_trans, c.lambda_ebd, c.lambda_kl, mse=mse)
+
+
+def _float32_geometry(device: torch.device):
+    """Autocast off: node transforms, their inverses and local coordinates stay float32 under bf16 mixed precision
+    (`linalg.inv` has no bf16 kernel, and bf16 coordinates would put ~0.5 rad of phase error on the highest
+    positional-encoding frequency). Only the MLPs run in bf16."""
+    return torch.autocast(device_type=device.type, enabled=False)

@@ -25,7 +25,8 @@ def fuse_features(features: torch.Tensor, w: torch.Tensor, point_idx: torch.Tens
     (wsum = 0) get f = 0; callers give them zero density.
     """
     F = features.shape[-1]
-    num = features.new_zeros(num_points, F).index_add(0, point_idx, w[:, None] * features)
+    src = w[:, None] * features  # float32 under bf16 autocast (w is float32): the sum accumulates in float32
+    num = src.new_zeros(num_points, F).index_add(0, point_idx, src)
     wsum = w.new_zeros(num_points).index_add(0, point_idx, w)
     return num / wsum.clamp_min(1e-30)[:, None], wsum
 
