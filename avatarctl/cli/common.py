@@ -1,14 +1,18 @@
-"""Shared CLI helpers: the rich console and the mapping of `AvatarError` to exit codes."""
+"""Shared CLI helpers: the rich console, the progress bar every long stage shows, and the mapping of `AvatarError`
+to exit codes."""
 
 from __future__ import annotations
 
 import contextlib
-from typing import Iterator
+from typing import TYPE_CHECKING, Iterator
 
 import typer
 from rich.console import Console
 
 from avatarctl.errors import AvatarError
+
+if TYPE_CHECKING:
+    from rich.progress import Progress
 
 console = Console(stderr=False, highlight=False)
 err_console = Console(stderr=True, highlight=False)
@@ -27,3 +31,18 @@ def user_errors() -> Iterator[None]:
     except KeyboardInterrupt:
         err_console.print("[yellow]interrupted[/]")
         raise typer.Exit(code=130) from None
+
+
+def progress_bar(label: str, fields: tuple[str, ...] = (), *, out: Console | None = None, eta: bool = True,
+                 bar_width: int | None = None) -> "Progress":
+    """The one progress bar of the CLI: `label`, bar, done/total, the task's `fields` (text set with
+    `bar.update(task, <field>=...)`), elapsed time and ETA."""
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, \
+        TimeRemainingColumn
+
+    columns = [TextColumn(f"[bold]{label}[/]"), BarColumn(bar_width=bar_width), MofNCompleteColumn()]
+    columns += [TextColumn(f"{{task.fields[{f}]}}") for f in fields]
+    columns.append(TimeElapsedColumn())
+    if eta:
+        columns += [TextColumn("ETA"), TimeRemainingColumn()]
+    return Progress(*columns, console=out or console, transient=False)

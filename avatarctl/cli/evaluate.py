@@ -54,15 +54,12 @@ def register(app: typer.Typer) -> None:
 
 
 def _run(project: Path, cfg, console) -> None:
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, \
-        TimeRemainingColumn
     from rich.table import Table
 
+    from avatarctl.cli.common import progress_bar
     from avatarctl.evaluate.run import EvalProgress, evaluate
 
-    columns = (TextColumn("[bold]eval[/]"), BarColumn(), MofNCompleteColumn(), TextColumn("{task.fields[info]}"),
-               TimeElapsedColumn(), TextColumn("ETA"), TimeRemainingColumn())
-    with Progress(*columns, console=console) as bar:
+    with progress_bar("eval", ("info",), out=console) as bar:
         task = bar.add_task("eval", total=None, info="loading avatar")
 
         def progress(p: EvalProgress) -> None:

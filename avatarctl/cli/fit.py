@@ -34,10 +34,9 @@ def register(app: typer.Typer) -> None:
 
 
 def _run(project_dir: Path, iters, preset, resume, fresh, seed, device, overrides, ablation, console) -> None:
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, \
-        TimeRemainingColumn
     from rich.table import Table
 
+    from avatarctl.cli.common import progress_bar
     from avatarctl.errors import InputError
     from avatarctl.fit.config import FitConfig, resolve_fit_config
     from avatarctl.fit.loop import StepReport, fit
@@ -65,10 +64,7 @@ def _run(project_dir: Path, iters, preset, resume, fresh, seed, device, override
     else:
         cfg = resolve_fit_config(preset or "cpu", ablation=ablation, iters=iters, seed=seed, overrides=overrides)
 
-    columns = (TextColumn("[bold]fit[/]"), BarColumn(bar_width=24), MofNCompleteColumn(),
-               TextColumn("{task.fields[speed]}"), TimeElapsedColumn(), TextColumn("eta"), TimeRemainingColumn(),
-               TextColumn("{task.fields[info]}"))
-    with Progress(*columns, console=console, transient=False) as bar:
+    with progress_bar("fit", ("speed", "info"), out=console, bar_width=24) as bar:
         task = bar.add_task("fit", total=None, speed="", info="setting up")
         state = {"last_t": None, "last_step": None}
 

@@ -29,10 +29,9 @@ def register(app: typer.Typer) -> None:
         contact_sheet: bool = typer.Option(True, "--contact-sheet/--no-contact-sheet",
                                            help="Write ingest/contact_sheet.png (frames with the body overlaid)."),
     ) -> None:
-        from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
         from rich.table import Table
 
-        from avatarctl.cli.common import console, user_errors
+        from avatarctl.cli.common import console, progress_bar, user_errors
         from avatarctl.ingest.config import IngestConfig
         from avatarctl.ingest.pipeline import run_ingest
 
@@ -46,8 +45,7 @@ def register(app: typer.Typer) -> None:
 
                 fmt, reason = detect_format(cfg.capture)
                 console.print(f"detected format [bold]{fmt}[/]: {reason}")
-            with Progress(TextColumn("ingest"), BarColumn(), MofNCompleteColumn(), TextColumn("frames"),
-                          TimeRemainingColumn(), console=console, transient=False) as bar:
+            with progress_bar("ingest frames", out=console) as bar:
                 task = bar.add_task("frames", total=None)
                 res = run_ingest(cfg, progress=lambda done, total: bar.update(task, completed=done, total=total))
 

@@ -61,15 +61,12 @@ def register(app: typer.Typer) -> None:
 
 
 def _run(project: Path, cfg, console) -> None:
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, \
-        TimeRemainingColumn
     from rich.table import Table
 
+    from avatarctl.cli.common import progress_bar
     from avatarctl.render.run import RenderProgress, render
 
-    columns = (TextColumn("[bold]render[/]"), BarColumn(), MofNCompleteColumn(), TextColumn("{task.fields[speed]}"),
-               TimeElapsedColumn(), TextColumn("ETA"), TimeRemainingColumn())
-    with Progress(*columns, console=console) as bar:
+    with progress_bar("render", ("speed",), out=console) as bar:
         task = bar.add_task("render", total=None, speed="loading avatar")
 
         def progress(p: RenderProgress) -> None:
