@@ -44,3 +44,15 @@ def test_info_on_missing_project_is_one_line_error(tmp_path):
 def test_version():
     res = CliRunner().invoke(app, ["--version"])
     assert res.exit_code == 0 and res.output.startswith("avatarctl ")
+
+
+def test_allocator_tuning_applies_on_glibc_and_can_be_switched_off(monkeypatch):
+    import platform
+
+    from avatarctl import allocator
+
+    monkeypatch.setenv("AVATARCTL_MALLOC_TUNING", "0")
+    assert allocator.tune() is False  # switched off: nothing applied
+    monkeypatch.setenv("AVATARCTL_MALLOC_TUNING", "1")
+    if platform.system() == "Linux" and platform.libc_ver()[0] == "glibc":
+        assert allocator.tune() is True  # glibc accepted every mallopt setting

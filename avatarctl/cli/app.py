@@ -39,6 +39,9 @@ _register()
 
 
 def main() -> None:
+    from avatarctl.allocator import tune
+
+    tune()  # glibc: keep large tensors' pages in the heap (see avatarctl/allocator.py)
     app()
 
 
