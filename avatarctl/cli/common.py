@@ -33,7 +33,7 @@ def user_errors() -> Iterator[None]:
         raise typer.Exit(code=130) from None
 
 
-def progress_bar(label: str, fields: tuple[str, ...] = (), *, out: Console | None = None, eta: bool = True,
+def progress_bar(label: str, fields: tuple[str, ...] = (), *, out: Console | None = None,
                  bar_width: int | None = None) -> "Progress":
     """The one progress bar of the CLI: `label`, bar, done/total, the task's `fields` (text set with
     `bar.update(task, <field>=...)`), elapsed time and ETA."""
@@ -42,7 +42,5 @@ def progress_bar(label: str, fields: tuple[str, ...] = (), *, out: Console | Non
 
     columns = [TextColumn(f"[bold]{label}[/]"), BarColumn(bar_width=bar_width), MofNCompleteColumn()]
     columns += [TextColumn(f"{{task.fields[{f}]}}") for f in fields]
-    columns.append(TimeElapsedColumn())
-    if eta:
-        columns += [TextColumn("ETA"), TimeRemainingColumn()]
+    columns += [TimeElapsedColumn(), TextColumn("ETA"), TimeRemainingColumn()]
     return Progress(*columns, console=out or console, transient=False)

@@ -33,6 +33,7 @@ from typing import Any
 SCHEMA_VERSION = 1
 LATENTS = ("cvae", "deterministic", "per_frame")
 VARIANTS = ("slrf", "lbs_baseline")
+REC_REDUCTIONS = ("sum", "mean")  # Eq. 12 as written (sum over rays) | plain MSE, see model/losses.py
 
 
 @dataclass(frozen=True)
@@ -99,8 +100,8 @@ class ModelConfig:
             need(isinstance(getattr(self, name), bool), f"{name} must be a bool, got {getattr(self, name)!r}")
         for name in ("lambda_rec", "lambda_trans", "lambda_ebd", "lambda_kl"):
             need(getattr(self, name) >= 0, f"{name} must be >= 0, got {getattr(self, name)}")
-        need(self.rec_reduction in ("sum", "mean"),
-             f"rec_reduction must be 'sum' or 'mean', got {self.rec_reduction!r}")
+        need(self.rec_reduction in REC_REDUCTIONS,
+             f"rec_reduction must be one of {REC_REDUCTIONS}, got {self.rec_reduction!r}")
         need(isinstance(self.rec_reference_rays, int) and self.rec_reference_rays > 0,
              f"rec_reference_rays must be a positive int, got {self.rec_reference_rays!r}")
 

@@ -18,6 +18,8 @@ from dataclasses import dataclass
 
 import torch
 
+from avatarctl.model.config import REC_REDUCTIONS
+
 
 @dataclass
 class LossTerms:
@@ -30,9 +32,6 @@ class LossTerms:
 
     def as_floats(self) -> dict[str, float]:
         return {k: float(getattr(self, k).detach()) for k in ("total", "rec", "trans", "ebd", "kl", "mse")}
-
-
-REC_REDUCTIONS = ("sum", "mean")
 
 
 def reconstruction_loss(rgb: torch.Tensor, target: torch.Tensor, reduction: str = "sum",
@@ -66,7 +65,8 @@ def kl_loss(mu: torch.Tensor, logvar: torch.Tensor) -> torch.Tensor:
 
 
 def total_loss(rec: torch.Tensor, trans: torch.Tensor, ebd: torch.Tensor, kl: torch.Tensor, lambda_rec: float,
-               lambda_trans: float, lambda_ebd: float, lambda_kl: float, mse: torch.Tensor | None = None) -> LossTerms:
-    """Eq. 11: L = lambda_rec L_rec + lambda_trans L_trans + lambda_ebd L_ebd + lambda_KL L_KL."""
+               lambda_trans: float, lambda_ebd: float, lambda_kl: float, mse: torch.Tensor) -> LossTerms:
+    """Eq. 11: L = lambda_rec L_rec + lambda_trans L_trans + lambda_ebd L_ebd + lambda_KL L_KL. `mse` (the mean
+    squared colour error) is carried along for the logs only."""
     total = lambda_rec * rec + lambda_trans * trans + lambda_ebd * ebd + lambda_kl * kl
-    return LossTerms(total=total, rec=rec, trans=trans, ebd=ebd, kl=kl, mse=rec if mse is None else mse)
+    return LossTerms(total=total, rec=rec, trans=trans, ebd=ebd, kl=kl, mse=mse)
