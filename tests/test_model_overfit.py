@@ -3,8 +3,8 @@ target image of 256 rays of an analytic normal-coloured sphere (r = 0.25 m) insi
 2-joint sphere body, over a white background, with Adam at lr 1e-3 and the paper's loss balance (L_rec summed,
 Eq. 12). It runs on one thread: with 2 threads the reductions' order varies run to run and the end PSNR varied
 between 29.0 and 30.0 dB (seen in the suite); on one thread it is 31.31 dB every run. Measured (1 thread): 11.2 dB
-at start, 19.4 dB after 50 steps, 27.0 after 100, 31.3 after 150 (about 19 s). We assert > 30 dB after 150 steps. (At lr 5e-3 the node translations run away, trans ~16 m^2,
-and it stalls near 26 dB.)"""
+at start, 19.4 dB after 50 steps, 27.0 after 100, 31.3 after 150 (about 19 s). We assert > 30 dB after 150 steps.
+(At lr 5e-3 the node translations run away, trans ~16 m^2, and it stalls near 26 dB.)"""
 
 from __future__ import annotations
 
