@@ -199,11 +199,22 @@ def test_eval_scores_against_masked_ground_truth(fitted, monkeypatch):
 def test_eval_full_protocol_and_every(fitted):
     from avatarctl.evaluate.run import EvalConfig, evaluate
 
+    from avatarctl.evaluate import metrics
+    from avatarctl.io.project_io import load_project_capture
+
     res = evaluate(fitted, EvalConfig(split="train", protocol="full", every=2, views=("cam00",), sheet_rows=0,
-                                      device="cpu"))
+                                      device="cpu", save_images=True))
     assert res.metrics["frames"] == [0] and res.metrics["views"] == ["cam00"] and res.metrics["every"] == 2
     assert res.scores[0].pixels == SIZE * SIZE
     assert not (res.out_dir / "sheet.png").exists()
+    # --save-images: the image that was scored, as an 8-bit PNG
+    assert [p.name for p in (res.out_dir / "renders").iterdir()] == ["000000_cam00.png"]
+    saved = cv2.imread(str(res.out_dir / "renders" / "000000_cam00.png"))[..., ::-1].astype(np.float32) / 255
+    cap = load_project_capture(Project.open(fitted))
+    m = cap.mask("cam00", 0)[..., None]
+    bg = np.asarray(res.metrics["background"], np.float32)
+    gt = cap.image("cam00", 0).astype(np.float32) / 255 * m + bg * (1 - m)
+    assert metrics.psnr(saved, gt) == pytest.approx(res.scores[0].psnr, abs=0.05)
 
 
 def test_eval_errors(fitted):

@@ -29,6 +29,9 @@ def register(app: typer.Typer) -> None:
         max_rays: int = typer.Option(8192, "--max-rays", help="Rays per model call (memory bound)."),
         device: str = typer.Option("auto", "--device", help="auto | cpu | cuda."),
         checkpoint: Optional[Path] = typer.Option(None, "--checkpoint", help="Checkpoint file (default: latest)."),
+        save_images: bool = typer.Option(False, "--save-images", help="Also write each render to "
+                                         "eval/NAME/renders/<frame>_<view>.png (bbox protocol: only the box is "
+                                         "rendered, the rest is background)."),
         compare: bool = typer.Option(False, "--compare", help="Do not render: print a side-by-side table of the "
                                      "projects' latest metrics.json (same split/protocol), e.g. "
                                      "`avatarctl eval FULL --compare ABL1 ABL2`."),
@@ -49,7 +52,7 @@ def register(app: typer.Typer) -> None:
             cfg = EvalConfig(split=split or "novel_view", protocol=protocol or "bbox", name=name, frames=frames,
                              views=view_names, every=every, latent=latent, seed=seed, sheet_rows=sheet,
                              max_rays_per_chunk=max_rays, device=device,
-                             checkpoint=str(checkpoint) if checkpoint else None)
+                             checkpoint=str(checkpoint) if checkpoint else None, save_images=save_images)
             _run(projects[0], cfg, console)
 
 

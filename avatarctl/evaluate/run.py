@@ -17,7 +17,8 @@ over (frame, view) images of the per-image PSNR / SSIM (Neural Body's averaging)
 LPIPS is reported only when the `lpips` package and its AlexNet weights are already on this machine (nothing is
 downloaded); otherwise `"lpips": null` with the reason.
 
-Writes `eval/<name>/metrics.json`, `per_frame.csv` and `sheet.png` atomically, and records the stage.
+Writes `eval/<name>/metrics.json`, `per_frame.csv`, `sheet.png` and, with `--save-images`,
+`renders/<frame:06d>_<view>.png` atomically (all or nothing), and records the stage.
 """
 
 from __future__ import annotations
@@ -58,6 +59,7 @@ class EvalConfig:
     max_rays_per_chunk: int = 8192
     device: str = "auto"  # auto | cpu | cuda
     checkpoint: str | None = None  # None = fit/checkpoints/latest.pt
+    save_images: bool = False  # also write every render to eval/<name>/renders/<frame:06d>_<view>.png
 
     def __post_init__(self) -> None:
         from avatarctl.evaluate.protocols import PROTOCOLS
@@ -193,6 +195,7 @@ def evaluate(project_dir: str | Path, cfg: EvalConfig, progress: ProgressFn | No
     from avatarctl.fit.checkpoint import load_avatar
     from avatarctl.fit.loop import resolve_device
     from avatarctl.render.engine import render_view
+    from avatarctl.render.run import write_png
 
     started = now_iso()
     t_start = time.perf_counter()
@@ -219,95 +222,99 @@ def evaluate(project_dir: str | Path, cfg: EvalConfig, progress: ProgressFn | No
     total = len(frames) * len(views)
     sheet_at = set(np.linspace(0, total - 1, min(cfg.sheet_rows, total)).round().astype(int).tolist()) \
         if cfg.sheet_rows else set()
-    scores: list[ImageScore] = []
-    lpips_values: list[float] = []
-    sheet_rows: list[SheetRow] = []
-    t0 = time.perf_counter()
-    motion = cap.motion.select(cap.motion.rows_for(frames))
-    for fi, frame in enumerate(frames):
-        one = motion.select([fi])
-        verts = avatar.body.pose(one).vertices[0].detach().float().cpu().numpy()  # [V, 3]
-        cond = avatar.conditioning(one, frames_are_training=is_train)
-        gen = torch.Generator(device=avatar.device).manual_seed(cfg.seed * 1_000_003 + frame) \
-            if latent == "sample" else None
-        with torch.no_grad():
-            state = avatar.model.node_state(cond, mode=latent, generator=gen)
-        for view in views:
-            cam = cams[view]
-            region = bbox_region(cam, verts, pad=cfg.bbox_pad) if cfg.protocol == "bbox" \
-                else full_region(cam.height, cam.width)
-            if not region.mask.any():
-                raise InputError(f"the body box of frame {frame} is outside camera {view}", where=str(project.root),
-                                 fix="check the body fits / cameras (`avatarctl info`), or use --protocol full")
-            x0, y0, x1, y1 = region.crop
-            render_mask = None
-            if cfg.protocol == "bbox":
-                render_mask = np.zeros((cam.height, cam.width), bool)
-                render_mask[y0:y1, x0:x1] = True
-            view_out = render_view(avatar.model, state, 0, cam, background, max_rays_per_chunk=cfg.max_rays_per_chunk,
-                                   pixel_mask=render_mask)
-            img = to_float(cap.image(view, frame))
-            m = cap.mask(view, frame)[..., None].astype(np.float32)
-            gt = img * m + bg * (1.0 - m)  # [H, W, 3]
-            e = mse(view_out.rgb, gt, region.mask)
-            pred_crop, gt_crop = region.crop_image(view_out.rgb), region.crop_image(gt)
-            try:
-                s = ssim(pred_crop, gt_crop)
-            except ValueError as err:
-                raise InputError(f"cannot score frame {frame} view {view}: {err}", where=str(project.root),
-                                 fix="use --protocol full or a higher-resolution capture") from None
-            score = ImageScore(frame=frame, view=view, psnr=psnr_from_mse(e), ssim=s, mse=e,
-                               pixels=int(region.mask.sum()), latent=latent, seconds=round(view_out.seconds, 4))
-            scores.append(score)
-            if lpips_fn is not None:
-                lpips_values.append(lpips_fn(pred_crop, gt_crop))
-            if len(scores) - 1 in sheet_at:
-                sheet_rows.append(SheetRow(gt=gt_crop, render=pred_crop, region=region.crop_image(region.mask),
-                                           label=f"frame {frame}  view {view}  latent {latent}  "
-                                                 f"PSNR {score.psnr:.2f} dB  SSIM {score.ssim:.4f}"))
-            if progress is not None:
-                progress(EvalProgress(done=len(scores), total=total, seconds=time.perf_counter() - t0, last=score))
-
-    psnrs = np.minimum(np.array([s.psnr for s in scores], np.float64), PSNR_CAP)  # exact match: inf -> cap
-    ssims = np.array([s.ssim for s in scores], np.float64)
-    render_seconds = float(sum(s.seconds for s in scores))
-    fit_ablations = list(avatar.fit_config.get("ablations", []))
-    metrics: dict[str, Any] = {
-        "schema_version": SCHEMA_VERSION,
-        "split": cfg.split,
-        "protocol": cfg.protocol,
-        "psnr": _finite_mean(psnrs),
-        "ssim": _finite_mean(ssims),
-        "lpips": float(np.mean(lpips_values)) if lpips_values else None,
-        "lpips_reason": lpips_reason,
-        "psnr_std": float(psnrs.std()) if len(psnrs) else None,
-        "psnr_min": float(psnrs.min()) if len(psnrs) else None,
-        "psnr_max": float(psnrs.max()) if len(psnrs) else None,
-        "ssim_std": float(ssims.std()) if len(ssims) else None,
-        "images": len(scores),
-        "frames": frames,
-        "views": views,
-        "every": cfg.every,
-        "averaging": "mean over (frame, view) images of per-image PSNR / SSIM",
-        "checkpoint_step": avatar.step,
-        "checkpoint": str(avatar.checkpoint) if avatar.checkpoint else None,
-        "background": list(background),
-        "ground_truth": GROUND_TRUTH,
-        "latent": latent,
-        "protocol_details": _protocol_details(cfg),
-        "metric_settings": metric_settings(),
-        "model": {"variant": avatar.model_config.variant, "latent": avatar.model_config.latent,
-                  "use_delta_n": avatar.model_config.use_delta_n,
-                  "use_embedding": avatar.model_config.use_embedding, "ablations": fit_ablations},
-        "image_size": [int(cams[views[0]].width), int(cams[views[0]].height)],
-        "timing": {"render_seconds": round(render_seconds, 3),
-                   "seconds_per_image": round(render_seconds / max(len(scores), 1), 4),
-                   "device": str(avatar.device), "torch_threads": torch.get_num_threads()},
-        "config": cfg.to_json(),
-        "created": now_iso(),
-    }
     out_dir = project.paths.eval(cfg.out_name)
-    with atomic_dir(out_dir) as tmp:
+    with atomic_dir(out_dir) as tmp:  # renders (--save-images) are written as they come; all or nothing
+        if cfg.save_images:
+            (tmp / "renders").mkdir()
+        scores: list[ImageScore] = []
+        lpips_values: list[float] = []
+        sheet_rows: list[SheetRow] = []
+        t0 = time.perf_counter()
+        motion = cap.motion.select(cap.motion.rows_for(frames))
+        for fi, frame in enumerate(frames):
+            one = motion.select([fi])
+            verts = avatar.body.pose(one).vertices[0].detach().float().cpu().numpy()  # [V, 3]
+            cond = avatar.conditioning(one, frames_are_training=is_train)
+            gen = torch.Generator(device=avatar.device).manual_seed(cfg.seed * 1_000_003 + frame) \
+                if latent == "sample" else None
+            with torch.no_grad():
+                state = avatar.model.node_state(cond, mode=latent, generator=gen)
+            for view in views:
+                cam = cams[view]
+                region = bbox_region(cam, verts, pad=cfg.bbox_pad) if cfg.protocol == "bbox" \
+                    else full_region(cam.height, cam.width)
+                if not region.mask.any():
+                    raise InputError(f"the body box of frame {frame} is outside camera {view}", where=str(project.root),
+                                     fix="check the body fits / cameras (`avatarctl info`), or use --protocol full")
+                x0, y0, x1, y1 = region.crop
+                render_mask = None
+                if cfg.protocol == "bbox":
+                    render_mask = np.zeros((cam.height, cam.width), bool)
+                    render_mask[y0:y1, x0:x1] = True
+                view_out = render_view(avatar.model, state, 0, cam, background,
+                                       max_rays_per_chunk=cfg.max_rays_per_chunk, pixel_mask=render_mask)
+                img = to_float(cap.image(view, frame))
+                m = cap.mask(view, frame)[..., None].astype(np.float32)
+                gt = img * m + bg * (1.0 - m)  # [H, W, 3]
+                e = mse(view_out.rgb, gt, region.mask)
+                pred_crop, gt_crop = region.crop_image(view_out.rgb), region.crop_image(gt)
+                try:
+                    s = ssim(pred_crop, gt_crop)
+                except ValueError as err:
+                    raise InputError(f"cannot score frame {frame} view {view}: {err}", where=str(project.root),
+                                     fix="use --protocol full or a higher-resolution capture") from None
+                score = ImageScore(frame=frame, view=view, psnr=psnr_from_mse(e), ssim=s, mse=e,
+                                   pixels=int(region.mask.sum()), latent=latent, seconds=round(view_out.seconds, 4))
+                scores.append(score)
+                if cfg.save_images:  # the full image; outside the bbox crop it is the background (not rendered)
+                    write_png(tmp / "renders" / f"{frame:06d}_{view}.png", view_out.rgb, None)
+                if lpips_fn is not None:
+                    lpips_values.append(lpips_fn(pred_crop, gt_crop))
+                if len(scores) - 1 in sheet_at:
+                    sheet_rows.append(SheetRow(gt=gt_crop, render=pred_crop, region=region.crop_image(region.mask),
+                                               label=f"frame {frame}  view {view}  latent {latent}  "
+                                                     f"PSNR {score.psnr:.2f} dB  SSIM {score.ssim:.4f}"))
+                if progress is not None:
+                    progress(EvalProgress(done=len(scores), total=total, seconds=time.perf_counter() - t0, last=score))
+
+        psnrs = np.minimum(np.array([s.psnr for s in scores], np.float64), PSNR_CAP)  # exact match: inf -> cap
+        ssims = np.array([s.ssim for s in scores], np.float64)
+        render_seconds = float(sum(s.seconds for s in scores))
+        fit_ablations = list(avatar.fit_config.get("ablations", []))
+        metrics: dict[str, Any] = {
+            "schema_version": SCHEMA_VERSION,
+            "split": cfg.split,
+            "protocol": cfg.protocol,
+            "psnr": _finite_mean(psnrs),
+            "ssim": _finite_mean(ssims),
+            "lpips": float(np.mean(lpips_values)) if lpips_values else None,
+            "lpips_reason": lpips_reason,
+            "psnr_std": float(psnrs.std()) if len(psnrs) else None,
+            "psnr_min": float(psnrs.min()) if len(psnrs) else None,
+            "psnr_max": float(psnrs.max()) if len(psnrs) else None,
+            "ssim_std": float(ssims.std()) if len(ssims) else None,
+            "images": len(scores),
+            "frames": frames,
+            "views": views,
+            "every": cfg.every,
+            "averaging": "mean over (frame, view) images of per-image PSNR / SSIM",
+            "checkpoint_step": avatar.step,
+            "checkpoint": str(avatar.checkpoint) if avatar.checkpoint else None,
+            "background": list(background),
+            "ground_truth": GROUND_TRUTH,
+            "latent": latent,
+            "protocol_details": _protocol_details(cfg),
+            "metric_settings": metric_settings(),
+            "model": {"variant": avatar.model_config.variant, "latent": avatar.model_config.latent,
+                      "use_delta_n": avatar.model_config.use_delta_n,
+                      "use_embedding": avatar.model_config.use_embedding, "ablations": fit_ablations},
+            "image_size": [int(cams[views[0]].width), int(cams[views[0]].height)],
+            "timing": {"render_seconds": round(render_seconds, 3),
+                       "seconds_per_image": round(render_seconds / max(len(scores), 1), 4),
+                       "device": str(avatar.device), "torch_threads": torch.get_num_threads()},
+            "config": cfg.to_json(),
+            "created": now_iso(),
+        }
         write_json(tmp / "metrics.json", metrics)
         write_text(tmp / "per_frame.csv", _csv(scores))
         if sheet_rows:

@@ -276,7 +276,7 @@ def render(project_dir: str | Path, cfg: RenderConfig, progress: ProgressFn | No
             timing["render"] += view.seconds
             frame = plan.frames[pos]
             fname = f"frames/{seq:05d}_{cam.name}_{frame:06d}.png"
-            _write_png(tmp / fname, view.rgb, view.alpha if transparent else None)
+            write_png(tmp / fname, view.rgb, view.alpha if transparent else None)
             images.append(RenderedImage(file=fname, seq=seq, frame=frame, view=cam.name, latent=plan.latents[pos],
                                         seconds=round(view.seconds, 4), rays=int(view.rays)))
             row.append(_to_uint8(view.rgb))
@@ -458,7 +458,7 @@ def _to_uint8(rgb: np.ndarray) -> np.ndarray:
     return (np.clip(rgb, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
 
 
-def _write_png(dest: Path, rgb: np.ndarray, alpha: np.ndarray | None) -> None:
+def write_png(dest: Path, rgb: np.ndarray, alpha: np.ndarray | None) -> None:
     """[H, W, 3] float in [0, 1] (+ [H, W] alpha for RGBA with straight colour) -> PNG."""
     import cv2
 
