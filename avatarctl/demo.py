@@ -11,7 +11,8 @@ Each stage is the same Python function its command calls (`avatarctl.synth.synth
 - `tiny`: synth "tiny" (6 views, 24 + 12 frames, 96 px), fit "cpu" preset for 400 steps (novel-view bbox PSNR
   21.3 dB measured); the fit dominates the time (see docs/render_eval.md for measured timings).
 - `small`: synth "small" (12 views, 80 + 40 frames, 256 px), fit "cpu" preset for 3000 steps; 71.5 min measured
-  on one thread of a busy 2-core machine, two thirds of it rendering and eval (docs/render_eval.md).
+  on one thread of a busy 2-core machine (synth then at 1x1 rays per pixel, ~1.5 min less), two thirds of it
+  rendering and eval (docs/render_eval.md).
 
 OUT must not exist or be empty. Stage outputs are written atomically by each stage.
 """

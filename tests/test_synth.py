@@ -202,3 +202,23 @@ def test_refuses_non_empty_out_and_bad_config(tmp_path):
         SynthConfig.preset("tiny", vews=3)
     with pytest.raises(InputError, match="size"):
         SynthConfig.preset("tiny", size=4)
+
+
+def test_cli_supersample_option(tmp_path):
+    """`--supersample N` reaches the config (recorded in capture.json); out of range -> exit 2, nothing written."""
+    from typer.testing import CliRunner
+
+    from avatarctl.cli.app import app
+
+    out = tmp_path / "ss3"
+    res = CliRunner().invoke(app, ["synth", str(out), "--preset", "micro", "--supersample", "3"])
+    assert res.exit_code == 0, res.output
+    info = json.loads((out / "capture.json").read_text())
+    assert info["config"]["supersample"] == 3 and "3x3 rays per pixel" in info["mask_rule"]
+    assert "3x3 rays per pixel" in res.output
+
+    bad = tmp_path / "bad"
+    res = CliRunner().invoke(app, ["synth", str(bad), "--preset", "micro", "--supersample", "7"])
+    assert res.exit_code == 2
+    assert "supersample must be in [1, 4]" in res.output and len(res.output.strip().splitlines()) <= 2
+    assert not bad.exists() and not [p for p in tmp_path.iterdir() if p.name.startswith(".bad")]

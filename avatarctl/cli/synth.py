@@ -22,6 +22,9 @@ def register(app: typer.Typer) -> None:
                                                    hidden=True),
         test_frames: Optional[int] = typer.Option(None, "--test-frames", help="Override test frames.", hidden=True),
         size: Optional[int] = typer.Option(None, "--size", help="Override the image size (pixels).", hidden=True),
+        supersample: Optional[int] = typer.Option(None, "--supersample", help="Rays per pixel along each axis, "
+                                                  "1-4 (box-filtered: the pixel integrates its area, as a camera "
+                                                  "sensor does); default: the preset's."),
     ) -> None:
         from avatarctl.cli.common import console, user_errors
 
@@ -31,10 +34,11 @@ def register(app: typer.Typer) -> None:
             from avatarctl.synth import SynthConfig, synthesize
 
             overrides = {k: v for k, v in dict(views=views, train_frames=train_frames, test_frames=test_frames,
-                                                size=size).items() if v is not None}
+                                                size=size, supersample=supersample).items() if v is not None}
             config = SynthConfig.preset(preset, seed, **overrides)
             console.print(f"synth [bold]{preset}[/] seed {seed}: {config.views} views, {config.train_frames}+"
-                          f"{config.test_frames} frames, {config.size}px -> {out}")
+                          f"{config.test_frames} frames, {config.size}px, {config.supersample}x"
+                          f"{config.supersample} rays per pixel -> {out}")
             with Progress(TextColumn("{task.description:<9}"), BarColumn(), MofNCompleteColumn(),
                           TimeElapsedColumn(), console=console, transient=False) as bar:
                 tasks: dict[str, int] = {}
