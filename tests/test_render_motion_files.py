@@ -128,7 +128,8 @@ def test_bad_files_are_input_errors(tmp_path):
 
 def test_adopt_subject_and_shift(tmp_path):
     m = read_motion_file(_anny_npz(tmp_path / "a.npz"), "anny")
-    subject = BodyMotion(body_model="anny", frame_index=np.arange(1), pose_parameters=np.eye(4)[None, None].repeat(104, 1),
+    subject = BodyMotion(body_model="anny", frame_index=np.arange(1),
+                         pose_parameters=np.eye(4)[None, None].repeat(104, 1),
                          phenotype=np.array([0.9], np.float32), phenotype_labels=("muscle",))
     a = adopt_subject(m, subject)
     assert a.phenotype_labels == ("muscle",) and np.allclose(a.phenotype, [0.9])

@@ -119,7 +119,9 @@ def blend_transforms(weights: torch.Tensor, joint_transforms: torch.Tensor) -> t
 
 
 def lbs(points: torch.Tensor, weights: torch.Tensor, joint_transforms: torch.Tensor) -> torch.Tensor:
-    """Eq. 2: posed point = T_i @ canonical point. [P, 3] (or [frames, P, 3]), [P, J], [frames, J, 4, 4] -> [frames, P, 3]."""
+    """Eq. 2: posed point = T_i @ canonical point.
+
+    [P, 3] (or [frames, P, 3]), [P, J], [frames, J, 4, 4] -> [frames, P, 3]."""
     T = blend_transforms(weights, joint_transforms)
     return transform_points(T, points.to(T.dtype))
 

@@ -35,7 +35,8 @@ def _mat(fs, key: str, path: Path, required: bool = True) -> np.ndarray | None:
         return np.array([[node.real()]])
     m = node.mat()
     if m is None:
-        raise InputError(f"calibration entry {key} is not a matrix", where=str(path), fix="write it as an opencv-matrix")
+        raise InputError(f"calibration entry {key} is not a matrix", where=str(path),
+                         fix="write it as an opencv-matrix")
     return np.asarray(m, dtype=np.float64)
 
 

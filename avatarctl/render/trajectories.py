@@ -85,7 +85,8 @@ def orbit_cameras(spec: OrbitSpec, centers: np.ndarray, extent: float, up: np.nd
     e1 /= np.linalg.norm(e1)
     e2 = np.cross(up, e1)
     if radius <= extent:
-        raise ValueError(f"orbit radius {radius:.2f} m is inside the subject (extent {extent:.2f} m): use a larger radius")
+        raise ValueError(f"orbit radius {radius:.2f} m is inside the subject (extent {extent:.2f} m): "
+                         "use a larger radius")
     res = spec.resolution
     half_angle = math.asin(min(extent / radius, 0.999))
     focal = (res / 2.0) * spec.fill / math.tan(half_angle)
