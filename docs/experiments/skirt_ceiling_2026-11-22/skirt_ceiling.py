@@ -24,8 +24,11 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from avatarctl.evaluate.metrics import to_float
 from avatarctl.evaluate.protocols import bbox_region
-from avatarctl.io.project_io import load_cameras
+from avatarctl.ingest.silhouette import rasterize_silhouette
+from avatarctl.io.project_io import load_project_capture
+from avatarctl.project import Project
 
 SIGMAS = (1.0, 1.5, 2.0)
 
@@ -36,27 +39,21 @@ def _db(mse: float) -> float:
 
 class Frames:
     def __init__(self, project: Path, capture: Path):
-        self.project = project
-        self.cams = load_cameras(project / "ingest" / "cameras.json")
+        self.cap = load_project_capture(Project.open(project))
         self.geo = dict(np.load(capture / "gt" / "geometry.npz"))
 
     def gt(self, cam: str, frame: int) -> tuple[np.ndarray, np.ndarray]:
         """(ground truth [H, W, 3] in [0, 1] over black, mask [H, W] bool) as avatarctl eval composes them."""
-        img = cv2.imread(str(self.project / f"ingest/frames/{cam}/{frame:06d}.jpg"))[..., ::-1] / 255.0
-        mask = cv2.imread(str(self.project / f"ingest/masks/{cam}/{frame:06d}.png"), 0) > 127
-        return img * mask[..., None], mask
+        mask = self.cap.mask(cam, frame)
+        return to_float(self.cap.image(cam, frame)) * mask[..., None], mask
 
     def box(self, cam: str, frame: int) -> np.ndarray:
-        return bbox_region(self.cams[cam], self.geo["body_vertices"][frame]).mask
+        return bbox_region(self.cap.cameras[cam], self.geo["body_vertices"][frame]).mask
 
     def skirt(self, cam: str, frame: int) -> np.ndarray:
-        """[H, W] uint8: the skirt mesh rasterised (1/4-pixel vertex precision)."""
-        c = self.cams[cam]
-        uv = c.project(self.geo["garment_vertices"][frame].astype(np.float64), distort=False)
-        out = np.zeros((c.height, c.width), np.uint8)
-        for f in self.geo["garment_faces"]:
-            cv2.fillConvexPoly(out, np.round(uv[f] * 4).astype(np.int32), 1, shift=2)
-        return out
+        """[H, W] uint8 0/1: the skirt mesh's silhouette (pixels at least half covered, as ingest rasterises)."""
+        return rasterize_silhouette(self.cap.cameras[cam], self.geo["garment_vertices"][frame].astype(np.float64),
+                                    self.geo["garment_faces"]).astype(np.uint8)
 
 
 def decompose(project: Path, render_dir: Path, capture: Path) -> None:
@@ -66,7 +63,7 @@ def decompose(project: Path, render_dir: Path, capture: Path) -> None:
     for png in pngs:
         parts = png.stem.split("_")  # eval/NAME/renders: <frame>_<view>; render/NAME/frames: <seq>_<view>_<frame>
         frame, cam = (int(parts[0]), parts[1]) if len(parts) == 2 else (int(parts[2]), parts[1])
-        img = cv2.imread(str(png))[..., ::-1] / 255.0
+        img = to_float(cv2.imread(str(png))[..., ::-1])
         gt, _ = fr.gt(cam, frame)
         box = fr.box(cam, frame)
         sk = cv2.dilate(fr.skirt(cam, frame), np.ones((3, 3), np.uint8)).astype(bool) & box
