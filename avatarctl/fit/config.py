@@ -67,6 +67,7 @@ class FitConfig:
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)  # target = rgb * mask + background * (1 - mask)
     # optimiser (paper: Adam lr 5e-4, betas 0.9 / 0.999, exponential decay every 20k iterations)
     lr: float = 5e-4
+    lr_grid: float = 1e-2  # learning rate of the feature grids of `model.field = "grid"` (unused by the MLP field)
     adam_beta1: float = 0.9
     adam_beta2: float = 0.999
     lr_decay_every: int = 20_000  # iterations per decay period
@@ -109,6 +110,7 @@ class FitConfig:
         need(len(self.background) == 3 and all(0.0 <= c <= 1.0 for c in self.background),
              f"background must be 3 values in [0, 1], got {self.background}")
         need(self.lr > 0 and math.isfinite(self.lr), f"lr must be > 0, got {self.lr}")
+        need(self.lr_grid > 0 and math.isfinite(self.lr_grid), f"lr_grid must be > 0, got {self.lr_grid}")
         need(0.0 <= self.adam_beta1 < 1.0 and 0.0 <= self.adam_beta2 < 1.0, "adam betas must be in [0, 1)")
         need(0.0 < self.lr_decay_factor <= 1.0, f"lr_decay_factor must be in (0, 1], got {self.lr_decay_factor}")
         need(self.grad_clip >= 0.0, f"grad_clip must be >= 0, got {self.grad_clip}")
@@ -212,8 +214,9 @@ def _parse_value(key: str, text: str, current: Any) -> Any:
             return int(f)
         if isinstance(current, float):
             return float(t)
-        if isinstance(current, tuple):
-            return tuple(float(x) for x in t.split(","))
+        if isinstance(current, tuple):  # tuple of ints (e.g. model.grid_levels=8,16,32) or of floats
+            conv = int if current and all(isinstance(x, int) for x in current) else float
+            return tuple(conv(x) for x in t.split(","))
         return t
     except ValueError:
         kind = type(current).__name__

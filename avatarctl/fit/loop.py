@@ -184,7 +184,7 @@ def fit(project: Project, cfg: FitConfig | None = None, *, device: str = "auto",
     from avatarctl.fit.checkpoint import read_checkpoint, save_checkpoint
     from avatarctl.fit.conditioning import build_pose_table
     from avatarctl.fit.data import FrameStore, RaySampler
-    from avatarctl.fit.schedule import make_optimizer, make_scheduler
+    from avatarctl.fit.schedule import make_optimizer, make_scheduler, param_groups
     from avatarctl.fit.validate import Validator, choose_val_pairs
     from avatarctl.io.project_io import load_project_capture
     from avatarctl.model.avatar import SlrfAvatar
@@ -237,7 +237,7 @@ def fit(project: Project, cfg: FitConfig | None = None, *, device: str = "auto",
         torch.manual_seed(cfg.seed)
         model = SlrfAvatar(cfg.model, template, num_frames=len(train_frames), seed=cfg.seed).to(dev)
     model.train()
-    optimizer = make_optimizer(cfg, model.parameters())
+    optimizer = make_optimizer(cfg, param_groups(cfg, model))
     scheduler = make_scheduler(cfg, optimizer)
     sampler_gen = torch.Generator().manual_seed(cfg.seed)
     noise_gen = torch.Generator(device=dev).manual_seed(cfg.seed + 1)

@@ -19,7 +19,18 @@ def lr_at(cfg: FitConfig, step: int) -> float:
 
 
 def make_optimizer(cfg: FitConfig, params) -> torch.optim.Adam:
-    return torch.optim.Adam(params, lr=cfg.lr, betas=(cfg.adam_beta1, cfg.adam_beta2))
+    """Adam over `params` (tensors, or param groups such as `param_groups` returns)."""
+    return torch.optim.Adam(params, lr=cfg.lr, betas=(cfg.adam_beta1, cfg.adam_beta2), fused=True)
+
+
+def param_groups(cfg: FitConfig, model: torch.nn.Module) -> list[dict]:
+    """Adam param groups: the grid tables of the `grid` field backend at `cfg.lr_grid` (feature grids want a rate
+    ~20-100x an MLP's: DVGO, Instant-NGP), everything else at `cfg.lr`. Both follow the same decay."""
+    fields = getattr(model, "fields", None)
+    grid = fields.grid_parameters() if hasattr(fields, "grid_parameters") else []
+    grid_ids = {id(p) for p in grid}
+    rest = [p for p in model.parameters() if id(p) not in grid_ids]
+    return [{"params": rest}] + ([{"params": grid, "lr": cfg.lr_grid}] if grid else [])
 
 
 def make_scheduler(cfg: FitConfig, optimizer: torch.optim.Optimizer) -> torch.optim.lr_scheduler.LambdaLR:

@@ -32,6 +32,8 @@ from avatarctl.model.deformer import (blending_weights, candidate_pairs, farthes
                                       node_transforms, pose_attention_map, posed_node_centers, ray_sphere_bounds)
 from avatarctl.model.field import (BlockPacking, CanonicalField, NodeFields, Packing, RadianceHeads, fuse_features,
                                    fuse_features_dense)
+from avatarctl.model.grid_field import NodeGridFields
+from avatarctl.model.occupancy import UNSEEN, cell_index, live_points, update_occupancy
 from avatarctl.model.losses import (LossTerms, embedding_loss, kl_loss, reconstruction_loss, total_loss,
                                     translation_loss)
 from avatarctl.render.rays import RayBatch
@@ -107,12 +109,18 @@ class SlrfAvatar(nn.Module):
             weights[idx], pose_attention_map(template.parents, cfg.pose_attention_hops)))
         if cfg.variant == "slrf":
             self.latent = NodeCVAE(cfg, J, num_frames)
-            self.fields = NodeFields(cfg.num_nodes, cfg.pe_coords, cfg.embed_dim, cfg.node_width, cfg.node_depth,
-                                     cfg.feature_dim)
+            if cfg.field == "grid":
+                self.fields = NodeGridFields(cfg.num_nodes, cfg.grid_levels, cfg.grid_channels, cfg.embed_dim,
+                                             cfg.feature_dim, extent=cfg.support_radius * self._local_scale())
+            else:
+                self.fields = NodeFields(cfg.num_nodes, cfg.pe_coords, cfg.embed_dim, cfg.node_width,
+                                         cfg.node_depth, cfg.feature_dim)
         else:
             # one canonical network of comparable total capacity: twice as wide and two layers deeper than an F_i
             self.canonical = CanonicalField(cfg.pe_coords, 2 * cfg.node_width, cfg.node_depth + 2, cfg.feature_dim)
         self.heads = RadianceHeads(cfg.feature_dim, cfg.head_width, cfg.pe_views)
+        if cfg.occupancy:  # [N * occ_res^3] per-node occupancy grids (model/occupancy.py), saved with the weights
+            self.register_buffer("occupancy", torch.full((cfg.num_nodes * cfg.occ_res ** 3,), UNSEEN))
 
     # ---- step 1: nodes ------------------------------------------------------------------------------------------
     def node_state(self, cond: FrameConditioning, mode: str,
@@ -186,7 +194,7 @@ class SlrfAvatar(nn.Module):
         frame_pts = rays.frame_slot[hit_idx][:, None].expand(-1, S).reshape(-1)  # [hit * S]
 
         def field_fn(pts: torch.Tensor, dirs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-            c, s, st = self.query(pts.reshape(-1, 3), dirs.reshape(-1, 3), frame_pts, state)
+            c, s, st = self.query(pts.reshape(-1, 3), dirs.reshape(-1, 3), frame_pts, state, generator)
             stats.update(st)
             return c.reshape(*pts.shape[:2], 3), s.reshape(pts.shape[:2])
 
@@ -195,21 +203,24 @@ class SlrfAvatar(nn.Module):
         return RenderOutputs(rgb=rgb.index_copy(0, hit_idx, comp.rgb), alpha=alpha.index_copy(0, hit_idx, comp.alpha),
                              depth=depth.index_copy(0, hit_idx, comp.depth), stats=stats)
 
-    def query(self, points: torch.Tensor, dirs: torch.Tensor, point_frame: torch.Tensor,
-              state: NodeState) -> tuple[torch.Tensor, torch.Tensor, dict[str, float]]:
+    def query(self, points: torch.Tensor, dirs: torch.Tensor, point_frame: torch.Tensor, state: NodeState,
+              generator: torch.Generator | None = None) -> tuple[torch.Tensor, torch.Tensor, dict[str, float]]:
         """Colour and density at posed points.
 
         points [P, 3] world, dirs [P, 3] unit viewing directions, point_frame [P] long (frame slot of each point)
-        -> rgb [P, 3], sigma [P] (1/metre; exactly 0 where no node is in range), stats.
+        -> rgb [P, 3], sigma [P] (1/metre; exactly 0 where no node is in range, and at samples skipped by the
+        occupancy grids), stats. `generator` draws the occupancy exploration samples (training only).
         """
         if self.cfg.sparse:
-            f, wsum, stats = self._features_sparse(points, point_frame, state)
+            f, wsum, stats, occ_pairs = self._features_sparse(points, point_frame, state, generator)
             valid = (wsum > 0).nonzero(as_tuple=True)[0]
             fv = f[valid]
             # heads may run in bf16 under autocast; compositing stays in the points' float32
             sigma = points.new_zeros(points.shape[0]).index_copy(0, valid, self.heads.density(fv).to(points.dtype))
             rgb = points.new_zeros(points.shape[0], 3).index_copy(0, valid,
                                                                   self.heads.color(fv, dirs[valid]).to(points.dtype))
+            if occ_pairs is not None and self.training and torch.is_grad_enabled():
+                update_occupancy(self.occupancy, occ_pairs[1], sigma.detach()[occ_pairs[0]], self.cfg.occ_decay)
         else:
             f, wsum, stats = self._features_dense(points, point_frame, state)
             valid_mask = wsum > 0
@@ -223,10 +234,11 @@ class SlrfAvatar(nn.Module):
     def _local_scale(self) -> float:
         return 1.0 / self.cfg.sigma if self.cfg.local_coords_in_sigma else 1.0
 
-    def _features_sparse(self, points: torch.Tensor, point_frame: torch.Tensor,
-                         state: NodeState) -> tuple[torch.Tensor, torch.Tensor, dict[str, float]]:
+    def _features_sparse(self, points: torch.Tensor, point_frame: torch.Tensor, state: NodeState,
+                         generator: torch.Generator | None = None):
         """Supplement A.2: evaluate only pairs with w_i > 0, packed per node ([N, max_i S_i, C], or blocks of
-        `cfg.pack_block` rows per node, see `ModelConfig.pack_block`)."""
+        `cfg.pack_block` rows per node, see `ModelConfig.pack_block`); with `cfg.occupancy`, only the pairs of live
+        samples (model/occupancy.py). -> f [P, F], wsum [P], stats, occupancy pairs (point_idx, cells) or None."""
         cfg, N, P = self.cfg, self.cfg.num_nodes, points.shape[0]
         pi, ni = candidate_pairs(points, point_frame, state.centers, cfg.support_radius)
         fi = point_frame[pi]
@@ -234,11 +246,28 @@ class SlrfAvatar(nn.Module):
         w = blending_weights(((points[pi] - centers) ** 2).sum(-1), cfg.sigma, cfg.eps)  # Eq. 6
         keep = (w > 0).nonzero(as_tuple=True)[0]
         pi, ni, fi, w, centers = pi[keep], ni[keep], fi[keep], w[keep], centers[keep]
-        if cfg.variant == "slrf":
+        local = None
+        if cfg.variant == "slrf" or cfg.occupancy:
             with _float32_geometry(points.device):
                 A_inv = torch.linalg.inv(state.transforms[..., :3, :3])  # [B, N, 3, 3]
                 local = local_coordinates_centered(points[pi], A_inv[fi, ni], centers) * self._local_scale()  # Eq. 4
-            if cfg.pack_block > 0:
+        occ_pairs, live_count = None, P
+        if cfg.occupancy:
+            cells = cell_index(local, ni, cfg.support_radius * self._local_scale(), cfg.occ_res)
+            live = live_points(self.occupancy, cells, pi, P, cfg.occ_threshold)
+            if self.training and cfg.occ_explore > 0:
+                dev = generator.device if generator is not None else points.device
+                live |= (torch.rand(P, generator=generator, device=dev) < cfg.occ_explore).to(points.device)
+            k = live[pi].nonzero(as_tuple=True)[0]
+            pi, ni, fi, w, centers, local, cells = pi[k], ni[k], fi[k], w[k], centers[k], local[k], cells[k]
+            occ_pairs, live_count = (pi, cells), int(live.sum())
+        if cfg.variant == "slrf":
+            if cfg.field == "grid":  # affine F_i: fuse grid features and B_i e_i, decode once per point (Eq. 5)
+                g, wsum = fuse_features(self.fields.grid_features(local, ni), w, pi, P)
+                eb, _ = fuse_features(self.fields.embed_bias(state.embed)[fi, ni], w, pi, P)
+                f = self.fields.decode(g, eb)
+                width = slots = 0
+            elif cfg.pack_block > 0:
                 bp = BlockPacking.build(ni, N, cfg.pack_block)
                 o = bp.order
                 bias = self.fields.embed_bias(state.embed)[fi[o], ni[o]]  # [pairs, width] W_e e_i of each pair
@@ -263,8 +292,9 @@ class SlrfAvatar(nn.Module):
             Tp = w.new_zeros(P, 4, 4).index_add(0, pi, w[:, None, None] * state.transforms[fi, ni])
             f = self._canonical_features(points, Tp, wsum)
             width = slots = 0
-        stats = {"pairs": float(pi.numel()), "packed_slots": float(slots), "max_node_samples": float(width)}
-        return f, wsum, stats
+        stats = {"pairs": float(pi.numel()), "packed_slots": float(slots), "max_node_samples": float(width),
+                 "live_samples": float(live_count)}
+        return f, wsum, stats, occ_pairs
 
     def _features_dense(self, points: torch.Tensor, point_frame: torch.Tensor,
                         state: NodeState) -> tuple[torch.Tensor, torch.Tensor, dict[str, float]]:
@@ -277,7 +307,13 @@ class SlrfAvatar(nn.Module):
                 A_inv = torch.linalg.inv(state.transforms[..., :3, :3])[point_frame].transpose(0, 1)  # [N, P, 3, 3]
                 local = local_coordinates_centered(points[None], A_inv, centers) * self._local_scale()  # Eq. 4
             bias = self.fields.embed_bias(state.embed)[point_frame].transpose(0, 1)  # [N, P, width]
-            f, wsum = fuse_features_dense(self.fields(local, bias), w)  # Eq. 5
+            if cfg.field == "grid":
+                node = torch.arange(N, device=points.device)[:, None].expand(N, P)
+                g = self.fields.grid_features(local.reshape(-1, 3), node.reshape(-1)).reshape(N, P, -1)
+                gf, wsum = fuse_features_dense(g, w)  # Eq. 5 on the affine F_i
+                f = self.fields.decode(gf, fuse_features_dense(bias, w)[0])
+            else:
+                f, wsum = fuse_features_dense(self.fields(local, bias), w)  # Eq. 5
         else:
             wsum = w.sum(0)
             Tp = torch.einsum("np,npab->pab", w, state.transforms[point_frame].transpose(0, 1))

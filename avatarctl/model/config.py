@@ -33,6 +33,7 @@ from typing import Any
 SCHEMA_VERSION = 1
 LATENTS = ("cvae", "deterministic", "per_frame")
 VARIANTS = ("slrf", "lbs_baseline")
+FIELDS = ("mlp", "grid")  # local fields F_i: the paper's per-node MLPs | per-node feature grids (model/grid_field.py)
 REC_REDUCTIONS = ("sum", "mean")  # Eq. 12 as written (sum over rays) | plain MSE, see model/losses.py
 
 
@@ -57,8 +58,19 @@ class ModelConfig:
     feature_dim: int = 128  # F_i output feature f (Eq. 5)
     head_width: int = 128  # G and H hidden channels (Eq. 7)
     cvae_width: int = 128  # per-node encoder / decoder hidden channels
+    # local-field backend (deviation when "grid", see model/grid_field.py and docs/fit.md)
+    field: str = "mlp"  # "mlp": the paper's F_i MLPs | "grid": per-node multi-resolution feature grids + decoder
+    grid_levels: tuple[int, ...] = (8, 16, 32)  # grid backend: vertices per side of each level over the node cube
+    grid_channels: int = 4  # grid backend: features per level
     # rendering
     samples_per_ray: int = 64  # uniform samples between the ray's entry/exit of the node spheres
+    # empty-space skipping (deviation when on, see model/occupancy.py and docs/fit.md)
+    occupancy: bool = False  # evaluate only samples in occupied cells of the per-node occupancy grids
+    occ_res: int = 16  # cells per side of each node's occupancy grid
+    occ_threshold: float = 0.5  # density (1/metre) at or above which a cell is occupied
+    occ_decay: float = 0.95  # EMA-max decay of a cell's density at each observation
+    occ_explore: float = 0.05  # training: share of skipped samples evaluated anyway (so cells can re-open)
+    early_stop_eps: float = 0.0  # rendering without gradients: stop a ray once its transmittance is below this
     # pose condition (Eq. 8)
     pose_attention_hops: int = 2
     # ablations
@@ -81,8 +93,16 @@ class ModelConfig:
             if not ok:
                 raise ValueError(f"ModelConfig: {msg}")
 
+        if isinstance(self.grid_levels, (list, int)):  # JSON lists; `--set model.grid_levels=16` gives one level
+            levels = [self.grid_levels] if isinstance(self.grid_levels, int) else self.grid_levels
+            object.__setattr__(self, "grid_levels", tuple(levels))
+        need(isinstance(self.grid_levels, tuple) and len(self.grid_levels) > 0
+             and all(isinstance(d, int) and not isinstance(d, bool) and 2 <= d <= 128 for d in self.grid_levels),
+             f"grid_levels must be ints in [2, 128], got {self.grid_levels!r}")
+        need(self.field in FIELDS, f"field must be one of {FIELDS}, got {self.field!r}")
+
         for name in ("num_nodes", "embed_dim", "latent_dim", "node_width", "node_depth", "feature_dim",
-                     "head_width", "cvae_width", "samples_per_ray"):
+                     "head_width", "cvae_width", "samples_per_ray", "grid_channels", "occ_res"):
             v = getattr(self, name)
             need(isinstance(v, int) and not isinstance(v, bool) and v > 0, f"{name} must be a positive int, got {v!r}")
         for name in ("pe_coords", "pe_views", "pe_time", "pose_attention_hops"):
@@ -96,7 +116,11 @@ class ModelConfig:
         need(0 < self.eps < 1, f"eps must be in (0, 1), got {self.eps}")
         need(self.latent in LATENTS, f"latent must be one of {LATENTS}, got {self.latent!r}")
         need(self.variant in VARIANTS, f"variant must be one of {VARIANTS}, got {self.variant!r}")
-        for name in ("use_delta_n", "use_embedding", "sparse", "local_coords_in_sigma"):
+        need(self.occ_threshold >= 0, f"occ_threshold must be >= 0 (density, 1/metre), got {self.occ_threshold}")
+        need(0.0 <= self.occ_decay <= 1.0, f"occ_decay must be in [0, 1], got {self.occ_decay}")
+        need(0.0 <= self.occ_explore <= 1.0, f"occ_explore must be in [0, 1], got {self.occ_explore}")
+        need(0.0 <= self.early_stop_eps < 1.0, f"early_stop_eps must be in [0, 1), got {self.early_stop_eps}")
+        for name in ("use_delta_n", "use_embedding", "sparse", "local_coords_in_sigma", "occupancy"):
             need(isinstance(getattr(self, name), bool), f"{name} must be a bool, got {getattr(self, name)!r}")
         for name in ("lambda_rec", "lambda_trans", "lambda_ebd", "lambda_kl"):
             need(getattr(self, name) >= 0, f"{name} must be >= 0, got {getattr(self, name)}")
@@ -113,7 +137,7 @@ class ModelConfig:
         return self.sigma * math.sqrt(-2.0 * math.log(self.eps))
 
     def to_json(self) -> dict[str, Any]:
-        return {"schema_version": SCHEMA_VERSION, **asdict(self)}
+        return {"schema_version": SCHEMA_VERSION, **asdict(self), "grid_levels": list(self.grid_levels)}
 
     @classmethod
     def from_json(cls, d: dict[str, Any]) -> "ModelConfig":
