@@ -12,7 +12,7 @@ import pytest
 
 from avatarctl.body.motion import BodyMotion
 from avatarctl.project import Project
-from avatarctl.render.cameras import Camera, look_at
+from avatarctl.geometry.cameras import Camera, look_at
 
 
 def ring_cameras(n: int, size: int, radius: float = 2.6, height: float = 0.0) -> list[Camera]:

@@ -20,7 +20,7 @@ pytestmark = pytest.mark.gpu
 
 def _move(cond, rb, device):
     from avatarctl.model import FrameConditioning
-    from avatarctl.render.rays import RayBatch
+    from avatarctl.geometry.rays import RayBatch
 
     c = FrameConditioning(*(t.to(device) for t in (cond.joint_transforms, cond.pose_features, cond.time,
                                                      cond.frame_ids)))

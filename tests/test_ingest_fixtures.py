@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from avatarctl.body.motion import BodyMotion
-from avatarctl.render.cameras import Camera, look_at
+from avatarctl.geometry.cameras import Camera, look_at
 
 BODY_RGB = np.array([205, 70, 60], np.uint8)
 

@@ -14,7 +14,7 @@ import pytest
 
 from avatarctl.body.motion import BodyMotion
 from avatarctl.errors import InputError
-from avatarctl.render.cameras import Camera
+from avatarctl.geometry.cameras import Camera
 from smpl_fixtures import write_random_smpl_npz
 from test_ingest_fixtures import plate, render, ring_cameras
 
@@ -93,7 +93,7 @@ def test_rhth_conversion_is_exact_for_rigid_points():
 @pytest.mark.parametrize("root_pose", [False, True])
 def test_rhth_conversion_matches_the_vertices_the_fit_implies(smpl, root_pose):
     from avatarctl.ingest.fits import to_body_motion
-    from avatarctl.ingest.source import RhThFits
+    from avatarctl.io.capture import RhThFits
 
     _, body = smpl
     Rh, Th, poses, shapes = random_rhth(4, seed=2, root_pose=root_pose)
@@ -148,7 +148,7 @@ def test_zju_313_frame_names():
 
     assert zju_frame_number("Camera (1)/CoreView_313_Camera_(1)_0001_2019-08-23_16-08-50.592.jpg") == 0
     assert zju_frame_number("Camera_B3/000123.jpg") == 123
-    from avatarctl.ingest.source import safe_camera_name
+    from avatarctl.io.capture import safe_camera_name
 
     assert safe_camera_name("Camera (12)") == "Camera_12"
     with pytest.raises(InputError):

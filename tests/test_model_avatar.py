@@ -7,7 +7,7 @@ import torch
 
 from avatarctl.model import FrameConditioning, ModelConfig, SlrfAvatar
 from avatarctl.model.toy import sphere_template, toy_joint_transforms
-from avatarctl.render.rays import RayBatch
+from avatarctl.geometry.rays import RayBatch
 
 # sparse and dense differ only by float reassociation (packed vs. dense bmm, index_add vs. sum)
 ATOL_OUT = 1e-5

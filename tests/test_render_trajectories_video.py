@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from avatarctl.errors import InputError
-from avatarctl.render.cameras import Camera, look_at
+from avatarctl.geometry.cameras import Camera, look_at
 from avatarctl.render.trajectories import OrbitSpec, orbit_cameras, orbit_defaults, smooth_centers, up_from_cameras
 
 

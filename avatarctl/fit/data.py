@@ -30,8 +30,8 @@ from avatarctl.evaluate.protocols import bbox_region
 from avatarctl.fit.conditioning import PoseTable, make_conditioning, time_stamps
 from avatarctl.io.project_io import ProjectCapture
 from avatarctl.model.avatar import FrameConditioning
-from avatarctl.render.cameras import Camera
-from avatarctl.render.rays import RayBatch, camera_rays
+from avatarctl.geometry.cameras import Camera
+from avatarctl.geometry.rays import RayBatch, camera_rays
 
 
 @dataclass(frozen=True)

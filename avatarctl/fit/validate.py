@@ -22,7 +22,7 @@ from avatarctl.evaluate.metrics import metric_settings, psnr
 from avatarctl.evaluate.protocols import bbox_region
 from avatarctl.fit.conditioning import make_conditioning, time_stamps
 from avatarctl.io.project_io import ProjectCapture
-from avatarctl.render.cameras import Camera
+from avatarctl.geometry.cameras import Camera
 from avatarctl.render.engine import render_view
 
 

@@ -24,7 +24,7 @@ import numpy as np
 
 from avatarctl.errors import InputError, ProjectError
 from avatarctl.ingest.config import IngestConfig, select_frames
-from avatarctl.ingest.source import CaptureSource, check_complete, fmt_list
+from avatarctl.io.capture import CaptureSource, check_complete, fmt_list
 
 ProgressFn = Callable[[int, int], None]  # (frames done, frames total)
 MIN_INSIDE = 0.90  # warn when fewer of the posed vertices than this project inside the masks
@@ -228,7 +228,7 @@ def run_ingest(cfg: IngestConfig, progress: ProgressFn | None = None) -> IngestR
 
 def _undistorted_plates(src: CaptureSource, und: dict) -> dict[str, np.ndarray]:
     """camera -> undistorted (and resized) background plate, RGB uint8 [H, W, 3]."""
-    from avatarctl.ingest.source import read_image_file
+    from avatarctl.io.capture import read_image_file
 
     plates = {}
     for c, u in und.items():

@@ -16,7 +16,7 @@ from avatarctl.atomic import atomic_path, write_json
 from avatarctl.body.motion import BodyMotion
 from avatarctl.errors import ProjectError
 from avatarctl.project import Project
-from avatarctl.render.cameras import Camera
+from avatarctl.geometry.cameras import Camera
 
 JPEG_QUALITY = 95
 

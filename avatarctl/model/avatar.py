@@ -34,7 +34,7 @@ from avatarctl.model.field import (BlockPacking, CanonicalField, NodeFields, Pac
                                    fuse_features_dense)
 from avatarctl.model.losses import (LossTerms, embedding_loss, kl_loss, reconstruction_loss, total_loss,
                                     translation_loss)
-from avatarctl.render.rays import RayBatch
+from avatarctl.geometry.rays import RayBatch
 from avatarctl.render.volume import march
 
 

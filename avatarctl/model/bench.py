@@ -31,7 +31,7 @@ import torch
 
 from avatarctl.model.avatar import FrameConditioning, SlrfAvatar
 from avatarctl.model.config import ModelConfig
-from avatarctl.render.rays import RayBatch
+from avatarctl.geometry.rays import RayBatch
 
 
 @dataclass

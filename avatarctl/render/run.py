@@ -30,7 +30,7 @@ import numpy as np
 
 from avatarctl.errors import InputError
 from avatarctl.project import Project, check_name, now_iso
-from avatarctl.render.cameras import Camera
+from avatarctl.geometry.cameras import Camera
 
 SCHEMA_VERSION = 1
 LATENT_MODES = ("auto", "mean", "zero", "sample")
