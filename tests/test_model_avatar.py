@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from avatarctl.model import FrameConditioning, ModelConfig, SlrfAvatar
-from avatarctl.model.toy import sphere_template, toy_joint_transforms
+from avatarctl.body.toy import sphere_template, toy_joint_transforms
 from avatarctl.geometry.rays import RayBatch
 
 # sparse and dense differ only by float reassociation (packed vs. dense bmm, index_add vs. sum)

@@ -13,7 +13,7 @@ import math
 import torch
 
 from avatarctl.model import FrameConditioning, ModelConfig, SlrfAvatar
-from avatarctl.model.toy import sphere_template, toy_joint_transforms
+from avatarctl.body.toy import sphere_template, toy_joint_transforms
 from avatarctl.geometry.rays import RayBatch
 
 
