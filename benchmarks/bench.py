@@ -170,7 +170,7 @@ def throughput(template, batch: Batch, device: torch.device, steps: int) -> dict
 
 
 def main(argv: list[str] | None = None) -> dict[str, Any]:
-    ap = argparse.ArgumentParser(prog="python -m benchmarks.bench  (from the repository root)", description=__doc__.split("\n")[0])
+    ap = argparse.ArgumentParser(prog="python -m benchmarks.bench", description=__doc__.split("\n")[0])
     ap.add_argument("--out", help="write the results as JSON here")
     ap.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     ap.add_argument("--rays-paper", type=int, default=None, help="rays for the paper preset (CPU 48, CUDA 2048)")

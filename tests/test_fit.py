@@ -16,7 +16,7 @@ from typer.testing import CliRunner
 from avatarctl.errors import InputError
 from avatarctl.fit.config import FitConfig, parse_ablations, preset, resolve_fit_config
 from avatarctl.fit.schedule import lr_at, make_optimizer, make_scheduler
-from avatarctl.project import Project
+from avatarctl.project import BodyModelRef, Project, SourceRef
 
 
 # ---- config (no body model needed) ---------------------------------------------------------------------------------
@@ -86,7 +86,7 @@ def test_lr_schedule_halves_every_decay_period():
 def test_cli_set_typo_is_one_line_error_and_writes_nothing(tmp_path):
     from avatarctl.cli.app import app
 
-    Project.create(tmp_path / "p", body_model={"name": "anny"}, source={})
+    Project.create(tmp_path / "p", body_model=BodyModelRef("anny"), source=SourceRef("test", "synthetic", "", 0))
     res = CliRunner().invoke(app, ["fit", str(tmp_path / "p"), "--set", "itres=5"])
     assert res.exit_code == 2, res.output
     assert "unknown config key 'itres'" in res.output and "did you mean 'iters'" in res.output

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from avatarctl.body.motion import BodyMotion
-from avatarctl.project import Project
+from avatarctl.project import BodyModelRef, Project, SourceRef
 from avatarctl.geometry.cameras import Camera, look_at
 
 
@@ -52,8 +52,8 @@ def make_tiny_project(root, size: int = 40, frames: int = 3, cams: int = 4) -> P
     pose = identity_pose(frames)
     pose[:, 0, 0, 3] = np.linspace(-0.03, 0.03, frames)  # root translation along x per frame
     motion = BodyMotion(body_model="anny", frame_index=np.arange(frames), fps=30.0, pose_parameters=pose)
-    project = Project.create(root, body_model={"name": "anny", "path": None},
-                             source={"path": "test", "format": "synthetic", "sha256": "", "files": 0})
+    project = Project.create(root, body_model=BodyModelRef(name="anny", path=None),
+                             source=SourceRef(path="test", format="synthetic", sha256="", files=0))
     body = load_body_model("anny")
     template = body.template(motion)
     posed = body.pose(motion)

@@ -140,7 +140,7 @@ def test_zju_reader_and_ingest(smpl, tmp_path):
     pc = load_project_capture(Project.open(tmp_path / "proj"))
     np.testing.assert_allclose(pc.cameras["Camera_B2"].T, cams[1].T, atol=1e-9)  # metres
     assert pc.frames == [0, 1, 2]
-    assert Project.open(tmp_path / "proj").manifest.body_model["path"] == str(path.resolve())
+    assert Project.open(tmp_path / "proj").manifest.body_model.path == str(path.resolve())
 
 
 def test_zju_313_frame_names():

@@ -23,7 +23,8 @@ from typing import Callable
 import numpy as np
 
 from avatarctl.errors import InputError, ProjectError
-from avatarctl.ingest.config import IngestConfig, select_frames
+from avatarctl.frames import select_frames
+from avatarctl.ingest.config import IngestConfig
 from avatarctl.io.capture import CaptureSource, check_complete, fmt_list
 
 ProgressFn = Callable[[int, int], None]  # (frames done, frames total)
@@ -164,7 +165,7 @@ def run_ingest(cfg: IngestConfig, progress: ProgressFn | None = None) -> IngestR
     from avatarctl.ingest.split import default_split, restrict_split
     from avatarctl.ingest.undistort import Undistorter
     from avatarctl.io.project_io import save_cameras, save_split, write_frame, write_mask
-    from avatarctl.project import Project, hash_tree, now_iso
+    from avatarctl.project import BodyModelRef, Project, SourceRef, hash_tree, now_iso
 
     t0 = time.perf_counter()
     started = now_iso()
@@ -181,9 +182,9 @@ def run_ingest(cfg: IngestConfig, progress: ProgressFn | None = None) -> IngestR
     bm_path = None if cfg.body_model_path is None or plan.body_model == "anny" else str(cfg.body_model_path.resolve())
 
     with atomic_dir(cfg.project) as tmp:
-        proj = Project.create(tmp.resolve(), body_model={"name": plan.body_model, "path": bm_path},
-                              source={"path": str(src.root.resolve()), "format": src.format, "sha256": source_hash,
-                                      "files": n_files})
+        proj = Project.create(tmp.resolve(), body_model=BodyModelRef(name=plan.body_model, path=bm_path),
+                              source=SourceRef(path=str(src.root.resolve()), format=src.format, sha256=source_hash,
+                                               files=n_files))
         for s in range(0, len(frames), POSE_CHUNK):
             with torch.no_grad():
                 verts = plan.body.pose(motion.select(slice(s, s + POSE_CHUNK))).vertices.cpu().numpy()  # [n, V, 3]

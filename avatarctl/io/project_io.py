@@ -141,4 +141,4 @@ def load_project_capture(project: Project) -> ProjectCapture:
     motion = BodyMotion.load(p.body)
     bm = project.manifest.body_model
     return ProjectCapture(project=project, cameras=load_cameras(p.cameras), split=load_split(p.split), motion=motion,
-                          body_model=str(bm.get("name", motion.body_model)), body_model_path=bm.get("path"))
+                          body_model=bm.name, body_model_path=bm.path)
