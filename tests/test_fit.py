@@ -108,7 +108,7 @@ def test_sigint_sets_the_stop_flag_instead_of_raising():
 # ---- the loop on a tiny anny project -----------------------------------------------------------------------------
 @pytest.fixture(scope="module")
 def tiny_project_dir(tmp_path_factory):
-    from test_fit_fixture import make_tiny_project
+    from fixtures.tiny_project import make_tiny_project
 
     root = tmp_path_factory.mktemp("fit") / "tiny"
     make_tiny_project(root, size=32, frames=3, cams=4)

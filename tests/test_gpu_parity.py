@@ -13,7 +13,7 @@ import copy
 
 import pytest
 import torch
-from test_model_avatar import conditioning, make, rays, small_cfg
+from fixtures.toy_model import conditioning, make, rays, small_cfg
 
 pytestmark = pytest.mark.gpu
 

@@ -13,7 +13,7 @@ from typer.testing import CliRunner
 
 from avatarctl.cli.app import app
 from avatarctl.project import hash_tree, sha256_file
-from test_ingest_fixtures import RenderedCapture, make_easymocap_capture
+from fixtures.captures import RenderedCapture, make_easymocap_capture
 
 pytestmark = pytest.mark.anny
 

@@ -15,8 +15,8 @@ import pytest
 from avatarctl.body.motion import BodyMotion
 from avatarctl.errors import InputError
 from avatarctl.geometry.cameras import Camera
-from smpl_fixtures import write_random_smpl_npz
-from test_ingest_fixtures import plate, render, ring_cameras
+from fixtures.smpl import write_random_smpl_npz
+from fixtures.captures import plate, render, ring_cameras
 
 SIZE = 112
 

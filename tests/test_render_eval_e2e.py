@@ -23,7 +23,7 @@ SIZE = 40
 @pytest.fixture(scope="module")
 def fitted(tmp_path_factory):
     """Project: frames 0, 1 train, frame 2 novel pose; views cam00, cam02 train, cam01, cam03 held out."""
-    from test_fit_fixture import make_tiny_project
+    from fixtures.tiny_project import make_tiny_project
 
     from avatarctl.fit.config import preset
     from avatarctl.fit.loop import fit

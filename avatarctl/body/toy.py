@@ -1,7 +1,12 @@
-"""A tiny synthetic body for tests and quick experiments: a sphere "body" with two joints.
+"""A tiny synthetic body for tests and quick experiments: a sphere "body" with two joints (`--body-model toy`).
 
 Joint 0 (root) holds the lower hemisphere, joint 1 the upper one, with weights blended smoothly across the
 equator; joint 1 bends about the +x axis through the sphere centre. Metres; no licensed data.
+
+`ToyBody` is a full `BodyModel` (registered as "toy" in `body.registry`): a whole ingest -> fit -> render -> eval
+chain runs on it in seconds, without anny's cache. Its motion (`BodyMotion(body_model="toy")`) carries
+`global_orient` [frames, 3] (root rotation about the sphere centre), `body_pose` [frames, 3] (joint 1, axis-angle,
+relative to the root) and `transl` [frames, 3] (metres).
 """
 
 from __future__ import annotations
@@ -11,8 +16,9 @@ import math
 import numpy as np
 import torch
 
-from avatarctl.body.base import BodyTemplate
-from avatarctl.body.lbs import axis_angle_to_matrix, make_transform
+from avatarctl.body.base import BodyTemplate, PosedBody
+from avatarctl.body.lbs import axis_angle_to_matrix, lbs, make_transform
+from avatarctl.body.motion import BodyMotion
 
 
 def sphere_template(num_vertices: int = 400, radius: float = 0.3) -> BodyTemplate:
@@ -40,3 +46,27 @@ def toy_joint_transforms(bend: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor
     aa[:, 1, 0] = bend
     M = make_transform(axis_angle_to_matrix(aa), torch.zeros(B, 2, 3))
     return M, aa
+
+
+class ToyBody:
+    """The sphere body as a `BodyModel` (no shape parameters: every subject is the same sphere)."""
+
+    name = "toy"
+
+    def __init__(self, num_vertices: int = 400, radius: float = 0.3):
+        self._template = sphere_template(num_vertices, radius)
+
+    def template(self, motion: BodyMotion) -> BodyTemplate:
+        return self._template
+
+    def pose(self, motion: BodyMotion) -> PosedBody:
+        """M_0 = [R(global_orient) | transl], M_1 = M_0 [R(body_pose) | 0] (both joints pivot at the centre)."""
+        go = torch.as_tensor(motion.global_orient, dtype=torch.float32)  # [frames, 3]
+        bend = torch.as_tensor(motion.body_pose, dtype=torch.float32)  # [frames, 3]
+        transl = torch.as_tensor(motion.transl, dtype=torch.float32)  # [frames, 3]
+        M0 = make_transform(axis_angle_to_matrix(go), transl)  # [frames, 4, 4]
+        M1 = M0 @ make_transform(axis_angle_to_matrix(bend), torch.zeros_like(transl))
+        M = torch.stack([M0, M1], dim=1)  # [frames, 2, 4, 4]
+        verts = lbs(self._template.vertices, self._template.skin_weights, M)  # [frames, V, 3]
+        feats = torch.stack([torch.zeros_like(bend), bend], dim=1)  # [frames, 2, 3], root zeroed
+        return PosedBody(joint_transforms=M, vertices=verts, pose_features=feats)

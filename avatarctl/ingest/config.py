@@ -12,7 +12,7 @@ from avatarctl.frames import parse_frame_spec
 
 SCHEMA_VERSION = 1
 FORMAT_CHOICES = ("auto", "easymocap", "zju", "thuman4", "peoplesnapshot", "colmap")
-BODY_MODEL_CHOICES = ("anny", "smpl", "smplx")
+BODY_MODEL_CHOICES = ("anny", "smpl", "smplx", "toy")
 MASK_CHOICES = ("auto", "files", "background")
 
 
@@ -21,7 +21,7 @@ class IngestConfig:
     capture: Path  # the raw capture folder (never modified)
     project: Path  # the project directory to create (must not exist, or be empty)
     format: str = "auto"  # capture layout; "auto" detects it (avatarctl.io.detect)
-    body_model: str | None = None  # anny | smpl | smplx; None: the body model the capture's fits are for
+    body_model: str | None = None  # anny | smpl | smplx | toy; None: the body model the capture's fits are for
     body_model_path: Path | None = None  # SMPL / SMPL-X model file (.pkl / .npz); not needed for anny
     masks: str = "auto"  # files | background | auto (files if the capture has masks, else background plates)
     frames: str | None = None  # "start:stop[:step]" or "a,b,c" capture frame numbers (avatarctl.frames); None: all

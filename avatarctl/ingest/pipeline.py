@@ -115,7 +115,7 @@ class IngestPlan:
     cams: list[str]  # selected camera names, capture order
     frames: list[int]  # selected capture frame numbers, ascending
     masks_mode: str  # "files" | "background"
-    body_model: str  # "anny" | "smpl" | "smplx"
+    body_model: str  # "anny" | "smpl" | "smplx" | "toy"
     body: object  # the BodyModel (AnnyBody / SmplBody)
     motion: object  # BodyMotion, one row per selected frame
     faces: np.ndarray  # [F, 3] body mesh triangles
@@ -123,7 +123,7 @@ class IngestPlan:
 
 def plan_ingest(cfg: IngestConfig) -> IngestPlan:
     """Read the capture, select views / frames, validate everything, convert the fits. Writes nothing."""
-    from avatarctl.body.registry import load_body_model
+    from avatarctl.body.registry import load_body_model, needs_model_file
     from avatarctl.ingest.fits import check_cameras_metric, check_fits, to_body_motion
 
     _check_project_dest(cfg)
@@ -144,10 +144,10 @@ def plan_ingest(cfg: IngestConfig) -> IngestPlan:
     bm_name = cfg.body_model or src.fits.body_model
     if src.fits.body_model != bm_name:
         to_body_motion(src.fits, bm_name, None)  # raises the one-line mismatch error
-    if bm_name != "anny" and cfg.body_model_path is None:
+    if needs_model_file(bm_name) and cfg.body_model_path is None:
         raise InputError(f"the capture's fits need the {bm_name} body model file", where=fits_where,
                          fix=f"pass --body-model-path /path/to/{bm_name.upper()}_NEUTRAL.pkl (or .npz)")
-    body = load_body_model(bm_name, cfg.body_model_path if bm_name != "anny" else None)
+    body = load_body_model(bm_name, cfg.body_model_path if needs_model_file(bm_name) else None)
     motion_all = to_body_motion(src.fits, bm_name, body)
     motion = motion_all.select(motion_all.rows_for(frames))
     check_fits(motion, frames, fits_where)  # converted SMPL transl, anny root translation
@@ -160,6 +160,7 @@ def run_ingest(cfg: IngestConfig, progress: ProgressFn | None = None) -> IngestR
     import torch
 
     from avatarctl.atomic import atomic_dir
+    from avatarctl.body.registry import needs_model_file
     from avatarctl.ingest.contact_sheet import Tile, pick, write_contact_sheet
     from avatarctl.ingest.silhouette import fraction_inside
     from avatarctl.ingest.split import default_split, restrict_split
@@ -179,7 +180,7 @@ def run_ingest(cfg: IngestConfig, progress: ProgressFn | None = None) -> IngestR
     sheet_cams, sheet_frames = pick(cams, 4), pick(frames, 3)
     tiles: list[Tile] = []
     inside: list[float] = []
-    bm_path = None if cfg.body_model_path is None or plan.body_model == "anny" else str(cfg.body_model_path.resolve())
+    bm_path = str(cfg.body_model_path.resolve()) if cfg.body_model_path and needs_model_file(plan.body_model) else None
 
     with atomic_dir(cfg.project) as tmp:
         proj = Project.create(tmp.resolve(), body_model=BodyModelRef(name=plan.body_model, path=bm_path),
