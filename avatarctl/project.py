@@ -132,13 +132,45 @@ class StageRecord:
     summary: dict[str, Any] = field(default_factory=dict)
 
 
+@dataclass(frozen=True)
+class BodyModelRef:
+    """Which body model a project's fits are for (`project.json` "body_model")."""
+
+    name: str  # "anny" | "smpl" | "smplx" | "toy"
+    path: str | None = None  # the user's SMPL / SMPL-X model file; None for file-free models
+
+    def to_json(self) -> dict[str, Any]:
+        return asdict(self)
+
+    @classmethod
+    def from_json(cls, d: dict[str, Any]) -> "BodyModelRef":
+        return cls(name=str(d["name"]), path=None if d["path"] is None else str(d["path"]))
+
+
+@dataclass(frozen=True)
+class SourceRef:
+    """The capture a project was ingested from (`project.json` "source")."""
+
+    path: str  # capture folder, absolute
+    format: str  # easymocap | zju | thuman4 | peoplesnapshot | colmap | synthetic (tests)
+    sha256: str  # of the capture's file tree (`hash_tree`)
+    files: int  # files hashed
+
+    def to_json(self) -> dict[str, Any]:
+        return asdict(self)
+
+    @classmethod
+    def from_json(cls, d: dict[str, Any]) -> "SourceRef":
+        return cls(path=str(d["path"]), format=str(d["format"]), sha256=str(d["sha256"]), files=int(d["files"]))
+
+
 @dataclass
 class Manifest:
     """`project.json`."""
 
     schema_version: int
-    body_model: dict[str, Any]  # {"name": "anny"|"smpl"|"smplx", "path": str|None, ...}
-    source: dict[str, Any]  # {"path": str, "format": str, "sha256": str, "files": int}
+    body_model: BodyModelRef
+    source: SourceRef
     created: str
     stages: list[StageRecord] = field(default_factory=list)
 
@@ -150,10 +182,10 @@ class Manifest:
         try:
             return cls(
                 schema_version=int(d["schema_version"]),
-                body_model=dict(d["body_model"]),
-                source=dict(d["source"]),
+                body_model=BodyModelRef.from_json(d["body_model"]),
+                source=SourceRef.from_json(d["source"]),
                 created=str(d["created"]),
-                stages=[StageRecord(**s) for s in d.get("stages", [])],
+                stages=[StageRecord(**s) for s in d["stages"]],
             )
         except (KeyError, TypeError, ValueError) as e:
             raise ProjectError(f"malformed project manifest ({e})", where=str(where),
@@ -170,7 +202,7 @@ class Project:
 
     # ---- create / open -------------------------------------------------------------------------------------
     @classmethod
-    def create(cls, root: str | os.PathLike, body_model: dict[str, Any], source: dict[str, Any]) -> "Project":
+    def create(cls, root: str | os.PathLike, body_model: BodyModelRef, source: SourceRef) -> "Project":
         """Write a fresh manifest into `root` (which must not already hold a project)."""
         root = Path(root)
         if (root / "project.json").exists():

@@ -1,6 +1,6 @@
 """SMPL / SMPL-X from a user file (`avatarctl/body/smpl.py`), checked against the `smplx` package.
 
-Model files are RANDOM arrays in the official formats (tests/smpl_fixtures.py), never real SMPL files.
+Model files are RANDOM arrays in the official formats (tests/fixtures/smpl.py), never real SMPL files.
 SMPL-X hand convention under test: hand poses are full axis-angle relative to the flat hand
 (smplx `use_pca=False, flat_hand_mean=True`); `add_hand_mean=True` matches smplx `flat_hand_mean=False`.
 """
@@ -23,7 +23,7 @@ from avatarctl.body.smpl import SMPL_JOINT_NAMES, SMPLX_JOINT_NAMES, SmplBody
 from avatarctl.errors import InputError
 
 sys.path.insert(0, str(Path(__file__).parent))
-from smpl_fixtures import (SMPL_PARENTS, SMPLX_PARENTS, random_smpl_arrays, write_random_smpl_npz,  # noqa: E402
+from fixtures.smpl import (SMPL_PARENTS, SMPLX_PARENTS, random_smpl_arrays, write_random_smpl_npz,  # noqa: E402
                            write_random_smpl_pkl)
 
 smplx = pytest.importorskip("smplx")

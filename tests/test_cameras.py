@@ -7,7 +7,7 @@ import pytest
 
 from avatarctl.errors import InputError
 from avatarctl.io.easymocap import read_easymocap_cameras, write_easymocap_cameras
-from avatarctl.render.cameras import Camera, look_at
+from avatarctl.geometry.cameras import Camera, look_at
 
 
 def _cam(dist=(0.12, -0.05, 0.001, -0.002, 0.01)):

@@ -14,12 +14,12 @@ from avatarctl.errors import InputError
 
 
 def test_demo_refuses_non_empty_out_and_unknown_preset(tmp_path):
-    from avatarctl.demo import DemoConfig, run_demo
+    from avatarctl.stages.demo import DemoConfig, run
 
     (tmp_path / "out").mkdir()
     (tmp_path / "out" / "keep.txt").write_text("mine")
     with pytest.raises(InputError, match="not empty"):
-        run_demo(DemoConfig(out=tmp_path / "out", preset="ci"))
+        run(tmp_path / "out", DemoConfig(out=tmp_path / "out", preset="ci"))
     assert (tmp_path / "out" / "keep.txt").read_text() == "mine"
     with pytest.raises(InputError, match="unknown demo preset"):
         DemoConfig(out=tmp_path / "x", preset="huge")

@@ -9,7 +9,7 @@ import pytest
 
 from avatarctl.evaluate import metrics
 from avatarctl.evaluate.protocols import bbox_region, box_corners, full_region
-from avatarctl.render.cameras import Camera
+from avatarctl.geometry.cameras import Camera
 
 
 def _camera() -> Camera:

@@ -16,7 +16,7 @@ from typer.testing import CliRunner
 from avatarctl.errors import InputError
 from avatarctl.fit.config import FitConfig, parse_ablations, preset, resolve_fit_config
 from avatarctl.fit.schedule import lr_at, make_optimizer, make_scheduler
-from avatarctl.project import Project
+from avatarctl.project import BodyModelRef, Project, SourceRef
 
 
 # ---- config (no body model needed) ---------------------------------------------------------------------------------
@@ -86,7 +86,7 @@ def test_lr_schedule_halves_every_decay_period():
 def test_cli_set_typo_is_one_line_error_and_writes_nothing(tmp_path):
     from avatarctl.cli.app import app
 
-    Project.create(tmp_path / "p", body_model={"name": "anny"}, source={})
+    Project.create(tmp_path / "p", body_model=BodyModelRef("anny"), source=SourceRef("test", "synthetic", "", 0))
     res = CliRunner().invoke(app, ["fit", str(tmp_path / "p"), "--set", "itres=5"])
     assert res.exit_code == 2, res.output
     assert "unknown config key 'itres'" in res.output and "did you mean 'iters'" in res.output
@@ -108,7 +108,7 @@ def test_sigint_sets_the_stop_flag_instead_of_raising():
 # ---- the loop on a tiny anny project -----------------------------------------------------------------------------
 @pytest.fixture(scope="module")
 def tiny_project_dir(tmp_path_factory):
-    from test_fit_fixture import make_tiny_project
+    from fixtures.tiny_project import make_tiny_project
 
     root = tmp_path_factory.mktemp("fit") / "tiny"
     make_tiny_project(root, size=32, frames=3, cams=4)

@@ -13,14 +13,14 @@ import copy
 
 import pytest
 import torch
-from test_model_avatar import conditioning, make, rays, small_cfg
+from fixtures.toy_model import conditioning, make, rays, small_cfg
 
 pytestmark = pytest.mark.gpu
 
 
 def _move(cond, rb, device):
     from avatarctl.model import FrameConditioning
-    from avatarctl.render.rays import RayBatch
+    from avatarctl.geometry.rays import RayBatch
 
     c = FrameConditioning(*(t.to(device) for t in (cond.joint_transforms, cond.pose_features, cond.time,
                                                      cond.frame_ids)))

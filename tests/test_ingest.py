@@ -13,7 +13,7 @@ from typer.testing import CliRunner
 
 from avatarctl.cli.app import app
 from avatarctl.project import hash_tree, sha256_file
-from test_ingest_fixtures import RenderedCapture, make_easymocap_capture
+from fixtures.captures import RenderedCapture, make_easymocap_capture
 
 pytestmark = pytest.mark.anny
 
@@ -70,9 +70,9 @@ def test_ingest_writes_the_project_contract(capture, ingested):
     assert pc.frames == capture.frames
     np.testing.assert_allclose(pc.motion.pose_parameters, capture.motion.pose_parameters, atol=1e-6)
     m = Project.open(proj).manifest
-    assert m.body_model == {"name": "anny", "path": None}
-    assert m.source["format"] == "easymocap" and m.source["sha256"] == hash_tree(capture.root)[0]
-    assert m.source["files"] == sum(1 for p in capture.root.rglob("*") if p.is_file())
+    assert m.body_model.to_json() == {"name": "anny", "path": None}
+    assert m.source.format == "easymocap" and m.source.sha256 == hash_tree(capture.root)[0]
+    assert m.source.files == sum(1 for p in capture.root.rglob("*") if p.is_file())
     rec = m.stages[-1]
     assert rec.summary["vertices_inside_masks"] >= 0.99
     assert (proj / "ingest" / "contact_sheet.png").is_file()

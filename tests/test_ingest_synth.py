@@ -82,7 +82,7 @@ def test_synth_capture_unchanged(synth_capture, ingested):
     proj, _, before = ingested
     after = {p.relative_to(synth_capture): sha256_file(p) for p in synth_capture.rglob("*") if p.is_file()}
     assert after == before
-    assert Project.open(proj).manifest.source["sha256"] == hash_tree(synth_capture)[0]
+    assert Project.open(proj).manifest.source.sha256 == hash_tree(synth_capture)[0]
 
 
 def test_synth_background_matting(synth_capture, ingested, tmp_path):

@@ -14,9 +14,9 @@ import pytest
 
 from avatarctl.body.motion import BodyMotion
 from avatarctl.errors import InputError
-from avatarctl.render.cameras import Camera
-from smpl_fixtures import write_random_smpl_npz
-from test_ingest_fixtures import plate, render, ring_cameras
+from avatarctl.geometry.cameras import Camera
+from fixtures.smpl import write_random_smpl_npz
+from fixtures.captures import plate, render, ring_cameras
 
 SIZE = 112
 
@@ -93,7 +93,7 @@ def test_rhth_conversion_is_exact_for_rigid_points():
 @pytest.mark.parametrize("root_pose", [False, True])
 def test_rhth_conversion_matches_the_vertices_the_fit_implies(smpl, root_pose):
     from avatarctl.ingest.fits import to_body_motion
-    from avatarctl.ingest.source import RhThFits
+    from avatarctl.io.capture import RhThFits
 
     _, body = smpl
     Rh, Th, poses, shapes = random_rhth(4, seed=2, root_pose=root_pose)
@@ -140,7 +140,7 @@ def test_zju_reader_and_ingest(smpl, tmp_path):
     pc = load_project_capture(Project.open(tmp_path / "proj"))
     np.testing.assert_allclose(pc.cameras["Camera_B2"].T, cams[1].T, atol=1e-9)  # metres
     assert pc.frames == [0, 1, 2]
-    assert Project.open(tmp_path / "proj").manifest.body_model["path"] == str(path.resolve())
+    assert Project.open(tmp_path / "proj").manifest.body_model.path == str(path.resolve())
 
 
 def test_zju_313_frame_names():
@@ -148,7 +148,7 @@ def test_zju_313_frame_names():
 
     assert zju_frame_number("Camera (1)/CoreView_313_Camera_(1)_0001_2019-08-23_16-08-50.592.jpg") == 0
     assert zju_frame_number("Camera_B3/000123.jpg") == 123
-    from avatarctl.ingest.source import safe_camera_name
+    from avatarctl.io.capture import safe_camera_name
 
     assert safe_camera_name("Camera (12)") == "Camera_12"
     with pytest.raises(InputError):

@@ -5,36 +5,15 @@ from __future__ import annotations
 import pytest
 import torch
 
-from avatarctl.model import FrameConditioning, ModelConfig, SlrfAvatar
-from avatarctl.model.toy import sphere_template, toy_joint_transforms
-from avatarctl.render.rays import RayBatch
+from fixtures.toy_model import conditioning, make, rays, small_cfg
+
+from avatarctl.body.toy import sphere_template
+from avatarctl.geometry.rays import RayBatch
+from avatarctl.model import SlrfAvatar
 
 # sparse and dense differ only by float reassociation (packed vs. dense bmm, index_add vs. sum)
 ATOL_OUT = 1e-5
 RTOL_GRAD, ATOL_GRAD = 1e-4, 1e-6
-
-
-def small_cfg(**kw) -> ModelConfig:
-    return ModelConfig.preset("cpu").with_(num_nodes=24, node_width=16, feature_dim=16, head_width=16,
-                                           cvae_width=16, samples_per_ray=24, **kw)
-
-
-def conditioning(bends=(0.0, 0.6), times=(0.0, 0.5), ids=(0, 1)) -> FrameConditioning:
-    M, feats = toy_joint_transforms(torch.tensor(bends))
-    return FrameConditioning(M, feats, torch.tensor(times), torch.tensor(ids))
-
-
-def rays(n: int = 96, seed: int = 0, frames: int = 2) -> RayBatch:
-    g = torch.Generator().manual_seed(seed)
-    target = (torch.rand(n, 3, generator=g) - 0.5) * 0.8
-    origins = torch.tensor([0.0, -2.0, 0.0]).expand(n, 3) + 0.05 * torch.randn(n, 3, generator=g)
-    dirs = torch.nn.functional.normalize(target - origins, dim=-1)
-    return RayBatch(origins.contiguous(), dirs, torch.arange(n) % frames)
-
-
-def make(cfg: ModelConfig, num_frames: int = 4) -> SlrfAvatar:
-    torch.manual_seed(0)
-    return SlrfAvatar(cfg, sphere_template(300), num_frames=num_frames, seed=0)
 
 
 @pytest.mark.parametrize("variant,pack_block,field", [("slrf", 0, "mlp"), ("slrf", 16, "mlp"), ("slrf", 128, "mlp"),

@@ -16,7 +16,7 @@ from avatarctl.model.deformer import (blending_weights, candidate_pairs, farthes
                                       posed_node_centers, ray_sphere_bounds, support_radius)
 from avatarctl.model.encoding import encoded_dim, positional_encoding
 from avatarctl.model.field import Packing, RadianceHeads, fuse_features, fuse_features_dense
-from avatarctl.model.toy import sphere_template
+from avatarctl.body.toy import sphere_template
 
 
 def _rot_z(angle: float) -> torch.Tensor:

@@ -13,8 +13,8 @@ import math
 import torch
 
 from avatarctl.model import FrameConditioning, ModelConfig, SlrfAvatar
-from avatarctl.model.toy import sphere_template, toy_joint_transforms
-from avatarctl.render.rays import RayBatch
+from avatarctl.body.toy import sphere_template, toy_joint_transforms
+from avatarctl.geometry.rays import RayBatch
 
 
 def sphere_scene(side: int = 16) -> tuple[RayBatch, torch.Tensor]:

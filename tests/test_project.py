@@ -8,20 +8,20 @@ import pytest
 
 from avatarctl.atomic import atomic_dir, atomic_path, write_json
 from avatarctl.errors import ProjectError
-from avatarctl.project import SCHEMA_VERSION, Project, hash_tree
+from avatarctl.project import SCHEMA_VERSION, BodyModelRef, Project, SourceRef, hash_tree
 
 
 def _make(tmp_path):
-    return Project.create(tmp_path / "p", body_model={"name": "anny", "path": None},
-                          source={"path": "/cap", "format": "easymocap", "sha256": "0" * 64, "files": 3})
+    return Project.create(tmp_path / "p", body_model=BodyModelRef(name="anny", path=None),
+                          source=SourceRef(path="/cap", format="easymocap", sha256="0" * 64, files=3))
 
 
 def test_create_open_roundtrip(tmp_path):
     proj = _make(tmp_path)
     again = Project.open(proj.root)
     assert again.manifest.schema_version == SCHEMA_VERSION
-    assert again.manifest.body_model["name"] == "anny"
-    assert again.manifest.source["format"] == "easymocap"
+    assert again.manifest.body_model.name == "anny"
+    assert again.manifest.source.format == "easymocap"
 
 
 def test_create_refuses_existing_project(tmp_path):

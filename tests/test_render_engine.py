@@ -8,10 +8,10 @@ import torch
 
 from avatarctl.model.avatar import FrameConditioning, SlrfAvatar
 from avatarctl.model.config import ModelConfig
-from avatarctl.model.toy import sphere_template, toy_joint_transforms
-from avatarctl.render.cameras import Camera, look_at
+from avatarctl.body.toy import sphere_template, toy_joint_transforms
+from avatarctl.geometry.cameras import Camera, look_at
 from avatarctl.render.engine import rays_hitting_spheres, render_view
-from avatarctl.render.rays import RayBatch, camera_rays, image_pixels
+from avatarctl.geometry.rays import RayBatch, camera_rays, image_pixels
 
 SIZE = 24
 BG = (0.1, 0.5, 0.9)

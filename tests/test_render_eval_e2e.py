@@ -13,7 +13,7 @@ import pytest
 from typer.testing import CliRunner
 
 from avatarctl.errors import InputError, ProjectError
-from avatarctl.project import Project
+from avatarctl.project import BodyModelRef, Project, SourceRef
 
 pytestmark = pytest.mark.anny
 
@@ -23,7 +23,7 @@ SIZE = 40
 @pytest.fixture(scope="module")
 def fitted(tmp_path_factory):
     """Project: frames 0, 1 train, frame 2 novel pose; views cam00, cam02 train, cam01, cam03 held out."""
-    from test_fit_fixture import make_tiny_project
+    from fixtures.tiny_project import make_tiny_project
 
     from avatarctl.fit.config import preset
     from avatarctl.fit.loop import fit
@@ -50,7 +50,8 @@ def _anny_motion_file(path, frames=2):
 
 # ---- render ---------------------------------------------------------------------------------------------------------
 def test_render_project_views(fitted):
-    from avatarctl.render.run import RenderConfig, render
+    from avatarctl.stages.render import RenderConfig
+    from avatarctl.stages.render import run as render
     from avatarctl.render.video import probe_video
 
     res = render(fitted, RenderConfig(name="views", views=("cam01", "cam03"), device="cpu"))
@@ -72,7 +73,8 @@ def test_render_project_views(fitted):
 
 
 def test_render_orbit_rgba(fitted):
-    from avatarctl.render.run import RenderConfig, render
+    from avatarctl.stages.render import RenderConfig
+    from avatarctl.stages.render import run as render
     from avatarctl.render.video import probe_video
 
     res = render(fitted, RenderConfig(name="orbit", orbit=5, frames="0", resolution=32, background="transparent",
@@ -89,7 +91,8 @@ def test_render_orbit_rgba(fitted):
 
 
 def test_render_with_anny_motion_file(fitted, tmp_path):
-    from avatarctl.render.run import RenderConfig, render
+    from avatarctl.stages.render import RenderConfig
+    from avatarctl.stages.render import run as render
 
     motion = _anny_motion_file(tmp_path / "motion.npz")
     res = render(fitted, RenderConfig(name="poses", poses=str(motion), views=("cam01",), device="cpu"))
@@ -102,7 +105,8 @@ def test_render_with_anny_motion_file(fitted, tmp_path):
 
 
 def test_render_errors_are_one_line_and_write_nothing(fitted, tmp_path):
-    from avatarctl.render.run import RenderConfig, render
+    from avatarctl.stages.render import RenderConfig
+    from avatarctl.stages.render import run as render
 
     amass = tmp_path / "amass.npz"
     np.savez(amass, poses=np.zeros((2, 156)), trans=np.zeros((2, 3)), betas=np.zeros(16), mocap_framerate=120.0)
@@ -117,7 +121,8 @@ def test_render_errors_are_one_line_and_write_nothing(fitted, tmp_path):
 
 def test_render_failure_midway_leaves_no_output(fitted, monkeypatch):
     import avatarctl.render.engine as engine
-    from avatarctl.render.run import RenderConfig, render
+    from avatarctl.stages.render import RenderConfig
+    from avatarctl.stages.render import run as render
 
     calls = {"n": 0}
     real = engine.render_view
@@ -139,7 +144,9 @@ def test_render_failure_midway_leaves_no_output(fitted, monkeypatch):
 
 # ---- eval -----------------------------------------------------------------------------------------------------------
 def test_eval_novel_view_writes_metrics_csv_sheet(fitted):
-    from avatarctl.evaluate.run import EvalConfig, evaluate, read_per_frame_csv
+    from avatarctl.evaluate.report import read_per_frame_csv
+    from avatarctl.stages.evaluate import EvalConfig
+    from avatarctl.stages.evaluate import run as evaluate
 
     res = evaluate(fitted, EvalConfig(split="novel_view", protocol="bbox", device="cpu"))
     out = fitted / "eval" / "novel_view_bbox"
@@ -157,6 +164,7 @@ def test_eval_novel_view_writes_metrics_csv_sheet(fitted):
     assert np.mean([r["psnr"] for r in rows]) == pytest.approx(m["psnr"], abs=1e-3)
     assert cv2.imread(str(out / "sheet.png")) is not None
     assert res.psnr == pytest.approx(m["psnr"])
+    assert res.metrics.to_json() == m  # the typed result is the file, key for key
     rec = Project.open(fitted).last("eval")
     assert rec.summary["split"] == "novel_view" and rec.outputs == ["eval/novel_view_bbox"]
 
@@ -168,7 +176,8 @@ def test_eval_scores_against_masked_ground_truth(fitted, monkeypatch):
     from avatarctl.body.registry import load_body_model
     from avatarctl.evaluate import metrics
     from avatarctl.evaluate.protocols import bbox_region
-    from avatarctl.evaluate.run import EvalConfig, evaluate
+    from avatarctl.stages.evaluate import EvalConfig
+    from avatarctl.stages.evaluate import run as evaluate
     from avatarctl.io.project_io import load_project_capture
 
     def background_only(model, state, slot, camera, background, max_rays_per_chunk=8192, pixel_mask=None,
@@ -182,7 +191,7 @@ def test_eval_scores_against_masked_ground_truth(fitted, monkeypatch):
     cap = load_project_capture(Project.open(fitted))
     body = load_body_model("anny")
     verts = body.pose(cap.motion.select(cap.motion.rows_for([2]))).vertices[0].numpy()
-    bg = np.asarray(res.metrics["background"], np.float32)
+    bg = np.asarray(res.metrics.background, np.float32)
     assert [(s.frame, s.view) for s in res.scores] == [(2, "cam01"), (2, "cam03")]
     for s in res.scores:
         cam = cap.cameras[s.view]
@@ -193,18 +202,19 @@ def test_eval_scores_against_masked_ground_truth(fitted, monkeypatch):
         pred = np.broadcast_to(bg, gt.shape)
         assert s.psnr == pytest.approx(metrics.psnr(pred, gt, region.mask), abs=1e-4)
         assert s.ssim == pytest.approx(metrics.ssim(region.crop_image(pred), region.crop_image(gt)), abs=1e-5)
-    assert res.metrics["latent"] == "zero"
+    assert res.metrics.latent == "zero"
 
 
 def test_eval_full_protocol_and_every(fitted):
-    from avatarctl.evaluate.run import EvalConfig, evaluate
+    from avatarctl.stages.evaluate import EvalConfig
+    from avatarctl.stages.evaluate import run as evaluate
 
     from avatarctl.evaluate import metrics
     from avatarctl.io.project_io import load_project_capture
 
     res = evaluate(fitted, EvalConfig(split="train", protocol="full", every=2, views=("cam00",), sheet_rows=0,
                                       device="cpu", save_images=True))
-    assert res.metrics["frames"] == [0] and res.metrics["views"] == ["cam00"] and res.metrics["every"] == 2
+    assert res.metrics.frames == [0] and res.metrics.views == ["cam00"] and res.metrics.every == 2
     assert res.scores[0].pixels == SIZE * SIZE
     assert not (res.out_dir / "sheet.png").exists()
     # --save-images: the image that was scored, as an 8-bit PNG
@@ -212,13 +222,14 @@ def test_eval_full_protocol_and_every(fitted):
     saved = cv2.imread(str(res.out_dir / "renders" / "000000_cam00.png"))[..., ::-1].astype(np.float32) / 255
     cap = load_project_capture(Project.open(fitted))
     m = cap.mask("cam00", 0)[..., None]
-    bg = np.asarray(res.metrics["background"], np.float32)
+    bg = np.asarray(res.metrics.background, np.float32)
     gt = cap.image("cam00", 0).astype(np.float32) / 255 * m + bg * (1 - m)
     assert metrics.psnr(saved, gt) == pytest.approx(res.scores[0].psnr, abs=0.05)
 
 
 def test_eval_errors(fitted):
-    from avatarctl.evaluate.run import EvalConfig, evaluate
+    from avatarctl.stages.evaluate import EvalConfig
+    from avatarctl.stages.evaluate import run as evaluate
 
     with pytest.raises(InputError, match="unknown split"):
         EvalConfig(split="novel")
@@ -233,7 +244,8 @@ def test_compare_projects(fitted, tmp_path):
     import shutil
 
     from avatarctl.evaluate.compare import compare, latest_metrics
-    from avatarctl.evaluate.run import EvalConfig, evaluate
+    from avatarctl.stages.evaluate import EvalConfig
+    from avatarctl.stages.evaluate import run as evaluate
 
     evaluate(fitted, EvalConfig(split="novel_view", protocol="bbox", device="cpu"))
     other = tmp_path / "other"
@@ -276,15 +288,17 @@ def test_cli_render_and_eval(fitted):
 
 
 def test_render_needs_a_fit(tmp_path):
-    from avatarctl.render.run import RenderConfig, render
+    from avatarctl.stages.render import RenderConfig
+    from avatarctl.stages.render import run as render
 
-    Project.create(tmp_path / "p", body_model={"name": "anny"}, source={"path": "x"})
+    Project.create(tmp_path / "p", body_model=BodyModelRef("anny"), source=SourceRef("x", "synthetic", "", 0))
     with pytest.raises(ProjectError, match="no fit output"):
         render(tmp_path / "p", RenderConfig())
 
 
 def test_relative_project_path_records_outputs_under_the_root(fitted, monkeypatch):
-    from avatarctl.render.run import RenderConfig, render
+    from avatarctl.stages.render import RenderConfig
+    from avatarctl.stages.render import run as render
 
     monkeypatch.chdir(fitted.parent)
     render(fitted.name, RenderConfig(name="rel", frames="0", device="cpu"))

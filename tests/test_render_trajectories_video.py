@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from avatarctl.errors import InputError
-from avatarctl.render.cameras import Camera, look_at
+from avatarctl.geometry.cameras import Camera, look_at
 from avatarctl.render.trajectories import OrbitSpec, orbit_cameras, orbit_defaults, smooth_centers, up_from_cameras
 
 
@@ -86,7 +86,7 @@ def test_video_is_h264_yuv420p_with_even_size(tmp_path):
 
 
 def test_frame_selection_spec():
-    from avatarctl.render.run import select_frames
+    from avatarctl.frames import select_frames
 
     avail = [0, 2, 4, 6, 8, 10]
     assert select_frames(None, avail) == avail
@@ -102,7 +102,7 @@ def test_frame_selection_spec():
 
 
 def test_background_spec():
-    from avatarctl.render.run import RenderConfig, parse_background
+    from avatarctl.stages.render import RenderConfig, parse_background
 
     assert parse_background("fit", (0.2, 0.3, 0.4)) == ((0.2, 0.3, 0.4), False)
     assert parse_background("white", (0, 0, 0)) == ((1.0, 1.0, 1.0), False)

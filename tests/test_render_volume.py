@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 import torch
 
-from avatarctl.render.cameras import Camera, look_at
-from avatarctl.render.rays import RayBatch, camera_rays, image_pixels
+from avatarctl.geometry.cameras import Camera, look_at
+from avatarctl.geometry.rays import RayBatch, camera_rays, image_pixels
 from avatarctl.render.volume import composite, march, sample_deltas, uniform_samples
 
 

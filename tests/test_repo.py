@@ -35,7 +35,13 @@ def test_top_level_layout():
     names = {p.name for p in ROOT.iterdir() if not p.name.startswith(".")} - {"build", "dist", "out"}
     names = {n for n in names if not n.endswith(".egg-info")}
     assert {"avatarctl", "tests", "docs", "pyproject.toml", "README.md"} <= names
-    assert names <= {"avatarctl", "tests", "docs", "pyproject.toml", "README.md"}, names
+    assert names <= {"avatarctl", "benchmarks", "tests", "docs", "pyproject.toml", "README.md"}, names
+
+
+def test_benchmarks_and_test_toys_live_outside_the_core_model():
+    model = {p.name for p in (ROOT / "avatarctl" / "model").glob("*.py")}
+    assert not model & {"bench.py", "toy.py"}, model
+    assert (ROOT / "benchmarks" / "bench.py").is_file()
 
 
 def test_no_licensed_model_files_in_repo():

@@ -2,6 +2,7 @@
 
 - anny: `pose_parameters` [frames, 104, 4, 4] (anny "local-ref" deltas, exactly as passed to `anny.Anny()`;
   the root delta is the root's world pose), `phenotype` [P] with `phenotype_labels`.
+- toy (tests): `global_orient`, `body_pose`, `transl` [frames, 3] (see avatarctl.body.toy).
 - smpl / smplx: `global_orient` [frames, 3], `body_pose` [frames, 69 (smpl) | 63 (smplx)], `transl` [frames, 3]
   (the SMPL/SMPL-X package convention: rotation about the pelvis joint, then translation), `betas` [B];
   smplx also `jaw_pose`, `leye_pose`, `reye_pose` [frames, 3], `left_hand_pose`, `right_hand_pose`
@@ -17,7 +18,8 @@ from pathlib import Path
 
 import numpy as np
 
-BODY_MODELS = ("anny", "smpl", "smplx")
+BODY_MODELS = ("anny", "smpl", "smplx", "toy")
+_BODY_POSE_DIM = {"smpl": 69, "smplx": 63, "toy": 3}  # toy: joint 1 of the sphere body (avatarctl.body.toy)
 _PER_FRAME = ("pose_parameters", "global_orient", "body_pose", "transl", "jaw_pose", "leye_pose", "reye_pose",
               "left_hand_pose", "right_hand_pose", "expression")
 
@@ -67,7 +69,7 @@ class BodyMotion:
                 shape = None if self.pose_parameters is None else self.pose_parameters.shape
                 raise ValueError(f"anny motion needs pose_parameters [frames, 104, 4, 4], got {shape}")
         else:
-            want = 69 if self.body_model == "smpl" else 63
+            want = _BODY_POSE_DIM[self.body_model]
             for name, dim in (("global_orient", 3), ("transl", 3), ("body_pose", want)):
                 a = getattr(self, name)
                 if a is None or a.ndim != 2 or a.shape[1] != dim:

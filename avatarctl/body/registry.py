@@ -8,12 +8,25 @@ from avatarctl.body.base import BodyModel
 from avatarctl.errors import InputError
 
 
+FILE_FREE = ("anny", "toy")  # body models that need no model file
+
+
+def needs_model_file(name: str) -> bool:
+    """smpl / smplx need the user's licensed model file; anny and the toy sphere do not."""
+    return name not in FILE_FREE
+
+
 def load_body_model(name: str, path: str | Path | None = None, device: str = "cpu") -> BodyModel:
-    """anny (free, default) needs no file; smpl / smplx need the user's model file (.pkl or .npz)."""
+    """anny (free, default) needs no file; smpl / smplx need the user's model file (.pkl or .npz); toy is the
+    two-joint sphere of the tests (avatarctl.body.toy)."""
     if name == "anny":
         from avatarctl.body.anny_model import AnnyBody
 
         return AnnyBody(device=device)
+    if name == "toy":
+        from avatarctl.body.toy import ToyBody
+
+        return ToyBody()
     if name in ("smpl", "smplx"):
         if path is None:
             raise InputError(f"the {name} body model needs its model file",

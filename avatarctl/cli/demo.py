@@ -21,7 +21,7 @@ def register(app: typer.Typer) -> None:
         from avatarctl.cli.common import console, user_errors
 
         with user_errors():
-            from avatarctl.demo import DemoConfig
+            from avatarctl.stages.demo import DemoConfig
 
             _run(DemoConfig(out=out, preset=preset, seed=seed, iters=iters, device=device), console)
 
@@ -30,7 +30,9 @@ def _run(cfg, console) -> None:
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
     from rich.table import Table
 
-    from avatarctl.demo import StageDone, run_demo
+    from avatarctl.stages import demo
+    from avatarctl.stages.common import StageProgress
+    from avatarctl.stages.demo import StageDone
 
     s = cfg.sizes
     console.print(f"[bold]avatarctl demo[/] preset {cfg.preset}: synth {s.synth}, fit {s.fit_preset} x {s.iters} "
@@ -39,10 +41,10 @@ def _run(cfg, console) -> None:
                   console=console) as bar:
         tasks: dict[str, int] = {}
 
-        def progress(stage: str, done: int, total: int) -> None:
-            if stage not in tasks:
-                tasks[stage] = bar.add_task(stage, total=total)
-            bar.update(tasks[stage], completed=done, total=total)
+        def progress(p: StageProgress) -> None:
+            if p.stage not in tasks:
+                tasks[p.stage] = bar.add_task(p.stage, total=p.total)
+            bar.update(tasks[p.stage], completed=p.done, total=p.total)
 
         def on_stage(st: StageDone) -> None:
             t = Table(title=f"{st.stage}  ({st.seconds:.1f} s)", show_header=False, title_justify="left")
@@ -50,13 +52,13 @@ def _run(cfg, console) -> None:
                 t.add_row(k, str(v))
             bar.console.print(t)
 
-        res = run_demo(cfg, on_stage=on_stage, progress=progress)
+        res = demo.run(cfg.out, cfg, progress=progress, on_stage=on_stage)
 
     t = Table(title=f"avatarctl demo ({cfg.preset}) done in {res.seconds / 60:.1f} min")
     for col in ("split", "PSNR (bbox)", "SSIM", "images"):
         t.add_column(col)
     for split, m in res.metrics.items():
-        t.add_row(split, f"{m['psnr']:.2f} dB", f"{m['ssim']:.4f}", str(m["images"]))
+        t.add_row(split, f"{m.psnr:.2f} dB", f"{m.ssim:.4f}", str(m.images))
     console.print(t)
     for name, path in res.videos.items():
         console.print(f"video ({name}): {path}", soft_wrap=True)

@@ -46,7 +46,7 @@ def register(app: typer.Typer) -> None:
             if len(projects) > 1:
                 raise InputError(f"{len(projects)} projects given", fix="pass one PROJECT, or add --compare to "
                                  "tabulate several")
-            from avatarctl.evaluate.run import EvalConfig
+            from avatarctl.stages.evaluate import EvalConfig
 
             view_names = tuple(v.strip() for v in views.split(",") if v.strip()) if views else ()
             cfg = EvalConfig(split=split or "novel_view", protocol=protocol or "bbox", name=name, frames=frames,
@@ -60,33 +60,32 @@ def _run(project: Path, cfg, console) -> None:
     from rich.table import Table
 
     from avatarctl.cli.common import progress_bar
-    from avatarctl.evaluate.run import EvalProgress, evaluate
+    from avatarctl.stages import evaluate
+    from avatarctl.stages.common import StageProgress
 
     with progress_bar("eval", ("info",), out=console) as bar:
         task = bar.add_task("eval", total=None, info="loading avatar")
 
-        def progress(p: EvalProgress) -> None:
+        def progress(p: StageProgress) -> None:
             info = f"{p.done / max(p.seconds, 1e-9):.2f} images/s"
-            if p.last is not None:
-                info += f" | last {p.last.psnr:.2f} dB"
+            if p.detail is not None:
+                info += f" | last {p.detail.psnr:.2f} dB"
             bar.update(task, total=p.total, completed=p.done, info=info)
 
-        res = evaluate(project, cfg, progress=progress)
+        res = evaluate.run(project, cfg, progress=progress)
 
     m = res.metrics
-    t = Table(title=f"avatarctl eval — {m['split']} / {m['protocol']}", show_header=False)
-    t.add_row("PSNR", f"{m['psnr']:.3f} dB  (std {m['psnr_std']:.2f}, min {m['psnr_min']:.2f}, "
-                      f"max {m['psnr_max']:.2f})")
-    t.add_row("SSIM", f"{m['ssim']:.4f}  (skimage {m['metric_settings']['scikit_image']}, "
-                      f"win {m['metric_settings']['ssim']['win_size']}, data_range 1)")
-    t.add_row("LPIPS", f"{m['lpips']:.4f}" if m["lpips"] is not None else f"absent: {m['lpips_reason']}")
-    frames = m["frames"]
-    t.add_row("images", f"{m['images']} = {len(frames)} frames x {len(m['views'])} views "
-                        f"({', '.join(m['views'])}); every {m['every']}")
-    t.add_row("latent / background", f"{m['latent']} / {','.join(f'{c:g}' for c in m['background'])}")
-    t.add_row("ground truth", m["ground_truth"])
-    t.add_row("checkpoint step", str(m["checkpoint_step"]))
-    t.add_row("time", f"{m['seconds']:.1f} s ({m['timing']['seconds_per_image']:.2f} s per image render)")
+    t = Table(title=f"avatarctl eval — {m.split} / {m.protocol}", show_header=False)
+    t.add_row("PSNR", f"{m.psnr:.3f} dB  (std {m.psnr_std:.2f}, min {m.psnr_min:.2f}, max {m.psnr_max:.2f})")
+    t.add_row("SSIM", f"{m.ssim:.4f}  (skimage {m.metric_settings['scikit_image']}, "
+                      f"win {m.metric_settings['ssim']['win_size']}, data_range 1)")
+    t.add_row("LPIPS", f"{m.lpips:.4f}" if m.lpips is not None else f"absent: {m.lpips_reason}")
+    t.add_row("images", f"{m.images} = {len(m.frames)} frames x {len(m.views)} views "
+                        f"({', '.join(m.views)}); every {m.every}")
+    t.add_row("latent / background", f"{m.latent} / {','.join(f'{c:g}' for c in m.background)}")
+    t.add_row("ground truth", m.ground_truth)
+    t.add_row("checkpoint step", str(m.checkpoint_step))
+    t.add_row("time", f"{res.seconds:.1f} s ({m.timing['seconds_per_image']:.2f} s per image render)")
     console.print(t)
     console.print(f"metrics: {res.out_dir / 'metrics.json'}", soft_wrap=True)
     if (res.out_dir / "sheet.png").is_file():
@@ -96,7 +95,7 @@ def _run(project: Path, cfg, console) -> None:
 def _compare(projects: list[Path], split, protocol, console) -> None:
     from rich.table import Table
 
-    from avatarctl.evaluate.compare import compare
+    from avatarctl.stages.evaluate import compare
 
     rows = compare(projects, split, protocol)
     t = Table(title=f"avatarctl eval --compare — {rows[0].split} / {rows[0].protocol}")

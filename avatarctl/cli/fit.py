@@ -1,4 +1,4 @@
-"""`avatarctl fit PROJECT`: parse options -> `FitConfig` -> `avatarctl.fit.loop.fit` -> rich summary."""
+"""`avatarctl fit PROJECT`: parse options -> `FitRequest` -> `avatarctl.stages.fit.run` -> rich summary."""
 
 from __future__ import annotations
 
@@ -37,40 +37,21 @@ def _run(project_dir: Path, iters, preset, resume, fresh, seed, device, override
     from rich.table import Table
 
     from avatarctl.cli.common import progress_bar
-    from avatarctl.errors import InputError
-    from avatarctl.fit.config import FitConfig, resolve_fit_config
-    from avatarctl.fit.loop import StepReport, fit
-    from avatarctl.project import Project
+    from avatarctl.stages import fit
+    from avatarctl.stages.common import StageProgress
 
-    project = Project.open(project_dir)
-    if resume and fresh:
-        raise InputError("--resume and --fresh contradict each other", fix="pass one of them")
-    cfg: FitConfig | None
-    if resume:
-        given = [n for n, v in (("--preset", preset), ("--seed", seed), ("--ablation", ablation)) if v is not None]
-        if overrides:
-            given.append("--set")
-        if given:
-            raise InputError(f"{', '.join(given)} cannot change a fit being resumed",
-                             fix="resume with only --iters (or start over with --fresh)")
-        cfg = None
-        if iters is not None:  # extend (or shorten) the resumed run; everything else comes from the checkpoint
-            from dataclasses import replace
-
-            from avatarctl.fit.checkpoint import read_checkpoint
-
-            saved = FitConfig.from_json(read_checkpoint(project.paths.latest_checkpoint)["fit_config"])
-            cfg = replace(saved, iters=iters)
-    else:
-        cfg = resolve_fit_config(preset or "cpu", ablation=ablation, iters=iters, seed=seed, overrides=overrides)
-
+    req = fit.FitRequest(preset=preset, iters=iters, seed=seed, overrides=tuple(overrides), ablation=ablation,
+                         device=device, resume=resume, fresh=fresh)
+    plan = fit.prepare(project_dir, req)  # option errors before the progress bar
+    project = plan.project
     with progress_bar("fit", ("speed", "info"), out=console, bar_width=24) as bar:
         task = bar.add_task("fit", total=None, speed="", info="setting up")
         state = {"last_t": None, "last_step": None}
 
-        def progress(rep: StepReport) -> None:
+        def progress(p: StageProgress) -> None:
             import time
 
+            rep = p.detail  # the loop's StepReport
             if bar.tasks[task].total is None:
                 bar.update(task, total=rep.iters, completed=rep.start_step)
             now = time.perf_counter()
@@ -82,7 +63,7 @@ def _run(project_dir: Path, iters, preset, resume, fresh, seed, device, override
                 info += f" | val {rep.val_psnr:.2f} dB"
             bar.update(task, completed=rep.step, speed=f"{it_s:.2f} it/s", info=info)
 
-        result = fit(project, cfg, device=device, resume=resume, fresh=fresh, progress=progress)
+        result = fit.run(project_dir, req, progress=progress, plan=plan)
 
     table = Table(title="avatarctl fit", show_header=False)
     table.add_row("project", str(project.root))

@@ -19,10 +19,9 @@ def register(app: typer.Typer) -> None:
             proj = Project.open(project)
             m = proj.manifest
             console.print(f"[bold]{proj.root}[/]  schema_version={m.schema_version}  created={m.created}")
-            console.print(f"body model: {m.body_model}")
+            console.print(f"body model: {m.body_model.to_json()}")
             src = m.source
-            console.print(f"source: {src.get('path')}  format={src.get('format')}  "
-                          f"sha256={str(src.get('sha256', ''))[:16]}…  files={src.get('files')}")
+            console.print(f"source: {src.path}  format={src.format}  sha256={src.sha256[:16]}…  files={src.files}")
             t = Table(title="stage runs")
             for col in ("stage", "finished", "version", "outputs", "summary"):
                 t.add_column(col)

@@ -32,22 +32,19 @@ def register(app: typer.Typer) -> None:
         from rich.table import Table
 
         from avatarctl.cli.common import console, progress_bar, user_errors
-        from avatarctl.ingest.config import IngestConfig
-        from avatarctl.ingest.pipeline import run_ingest
+        from avatarctl.stages import ingest as stage
 
         with user_errors():
-            cfg = IngestConfig(capture=capture, project=project, format=format, body_model=body_model,
+            cfg = stage.IngestConfig(capture=capture, project=project, format=format, body_model=body_model,
                                body_model_path=body_model_path, masks=masks, frames=frames,
                                views=None if views is None else tuple(views.split(",")), resize=resize,
                                contact_sheet=contact_sheet)
             if cfg.format == "auto":
-                from avatarctl.io.detect import detect_format
-
-                fmt, reason = detect_format(cfg.capture)
+                fmt, reason = stage.detect(cfg.capture)
                 console.print(f"detected format [bold]{fmt}[/]: {reason}")
             with progress_bar("ingest frames", out=console) as bar:
                 task = bar.add_task("frames", total=None)
-                res = run_ingest(cfg, progress=lambda done, total: bar.update(task, completed=done, total=total))
+                res = stage.run(cfg.project, cfg, progress=lambda p: bar.update(task, completed=p.done, total=p.total))
 
             t = Table(title=f"ingest -> {res.project}")
             t.add_column("item")

@@ -49,7 +49,7 @@ def register(app: typer.Typer) -> None:
         from avatarctl.cli.common import console, user_errors
 
         with user_errors():
-            from avatarctl.render.run import RenderConfig
+            from avatarctl.stages.render import RenderConfig
 
             view_names = tuple(v.strip() for v in views.split(",") if v.strip()) if views else ()
             cfg = RenderConfig(name=name, poses=str(poses) if poses else None, frames=frames, views=view_names,
@@ -64,15 +64,16 @@ def _run(project: Path, cfg, console) -> None:
     from rich.table import Table
 
     from avatarctl.cli.common import progress_bar
-    from avatarctl.render.run import RenderProgress, render
+    from avatarctl.stages import render
+    from avatarctl.stages.common import StageProgress
 
     with progress_bar("render", ("speed",), out=console) as bar:
         task = bar.add_task("render", total=None, speed="loading avatar")
 
-        def progress(p: RenderProgress) -> None:
-            bar.update(task, total=p.total, completed=p.done, speed=f"{p.images_per_second:.2f} frames/s")
+        def progress(p: StageProgress) -> None:
+            bar.update(task, total=p.total, completed=p.done, speed=f"{p.per_second:.2f} frames/s")
 
-        res = render(project, cfg, progress=progress)
+        res = render.run(project, cfg, progress=progress)
 
     t = Table(title="avatarctl render", show_header=False)
     t.add_row("output", str(res.out_dir))

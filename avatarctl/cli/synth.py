@@ -31,11 +31,12 @@ def register(app: typer.Typer) -> None:
         with user_errors():
             from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
-            from avatarctl.synth import SynthConfig, synthesize
+            from avatarctl.stages import synth as stage
+            from avatarctl.stages.common import StageProgress
 
             overrides = {k: v for k, v in dict(views=views, train_frames=train_frames, test_frames=test_frames,
                                                 size=size, supersample=supersample).items() if v is not None}
-            config = SynthConfig.preset(preset, seed, **overrides)
+            config = stage.SynthConfig.preset(preset, seed, **overrides)
             console.print(f"synth [bold]{preset}[/] seed {seed}: {config.views} views, {config.train_frames}+"
                           f"{config.test_frames} frames, {config.size}px, {config.supersample}x"
                           f"{config.supersample} rays per pixel -> {out}")
@@ -43,12 +44,12 @@ def register(app: typer.Typer) -> None:
                           TimeElapsedColumn(), console=console, transient=False) as bar:
                 tasks: dict[str, int] = {}
 
-                def progress(stage: str, done: int, total: int) -> None:
-                    if stage not in tasks:
-                        tasks[stage] = bar.add_task(stage, total=total)
-                    bar.update(tasks[stage], completed=done)
+                def progress(p: StageProgress) -> None:
+                    if p.part not in tasks:
+                        tasks[p.part] = bar.add_task(p.part, total=p.total)
+                    bar.update(tasks[p.part], completed=p.done)
 
-                res = synthesize(out, config, progress)
+                res = stage.run(out, config, progress)
             t = res.timings
             console.print(f"[green]wrote[/] {res.out}: {len(res.cameras)} cameras "
                           f"(train {', '.join(res.train_views)}; test {', '.join(res.test_views)}), "

@@ -10,9 +10,9 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
 from avatarctl.errors import ProjectError
+from avatarctl.evaluate.report import EvalMetrics
 from avatarctl.project import Project
 
 
@@ -33,38 +33,30 @@ class ComparisonRow:
 
 
 def latest_metrics(project: Project, split: str | None = None, protocol: str | None = None
-                   ) -> tuple[Path, dict[str, Any]]:
+                   ) -> tuple[Path, EvalMetrics]:
     """(path, contents) of the latest metrics.json of `project` matching split / protocol (None = any)."""
     for rec in reversed(project.manifest.stages):
         if rec.stage != "eval":
             continue
-        cfg = rec.config or {}
-        if split is not None and cfg.get("split") != split:
+        if split is not None and rec.config["split"] != split:
             continue
-        if protocol is not None and cfg.get("protocol") != protocol:
+        if protocol is not None and rec.config["protocol"] != protocol:
             continue
         for out in rec.outputs:
             path = project.root / out / "metrics.json"
             if path.is_file():
-                return path, json.loads(path.read_text())
+                return path, _read(path)
     want = " ".join(x for x in (f"--split {split}" if split else "", f"--protocol {protocol}" if protocol else "") if x)
     raise ProjectError(f"no eval results{' for ' + want if want else ''}", where=str(project.root),
                        fix=f"run `avatarctl eval {project.root}{' ' + want if want else ''}` first")
 
 
-def _label(metrics: dict[str, Any]) -> str:
-    model = metrics.get("model") or {}
-    parts = list(model.get("ablations") or [])
-    if not parts:
-        if model.get("variant", "slrf") != "slrf":
-            parts.append(str(model["variant"]))
-        if model.get("use_delta_n") is False:
-            parts.append("no-delta-n")
-        if model.get("use_embedding") is False:
-            parts.append("no-embedding")
-        if model.get("latent", "cvae") != "cvae":
-            parts.append(f"latent={model['latent']}")
-    return ", ".join(parts) if parts else "full model"
+def _read(path: Path) -> EvalMetrics:
+    try:
+        return EvalMetrics.from_json(json.loads(path.read_text()))
+    except (KeyError, TypeError, ValueError) as e:
+        raise ProjectError(f"malformed metrics.json ({type(e).__name__}: {e})", where=str(path),
+                           fix="re-run `avatarctl eval` on this project") from None
 
 
 def compare(projects: list[str | Path], split: str | None = None, protocol: str | None = None) -> list[ComparisonRow]:
@@ -74,13 +66,12 @@ def compare(projects: list[str | Path], split: str | None = None, protocol: str 
     for p in projects:
         proj = Project.open(p)
         path, m = latest_metrics(proj, split, protocol)
-        split, protocol = m["split"], m["protocol"]  # the first project fixes them for the rest
-        pairs = {(int(f), str(v)) for f in m.get("frames", []) for v in m.get("views", [])}
+        split, protocol = m.split, m.protocol  # the first project fixes them for the rest
+        pairs = m.pairs
         if ref_pairs is None:
             ref_pairs = pairs
-        rows.append(ComparisonRow(project=str(proj.root), label=_label(m), eval_name=path.parent.name, split=split,
-                                  protocol=protocol, psnr=float(m["psnr"]), ssim=float(m["ssim"]),
-                                  lpips=m.get("lpips"), images=int(m.get("images", len(pairs))),
-                                  checkpoint_step=int(m.get("checkpoint_step", -1)), same_images=pairs == ref_pairs,
-                                  metrics_path=path))
+        rows.append(ComparisonRow(project=str(proj.root), label=m.model.label, eval_name=path.parent.name,
+                                  split=split, protocol=protocol, psnr=float(m.psnr), ssim=float(m.ssim),
+                                  lpips=m.lpips, images=m.images, checkpoint_step=m.checkpoint_step,
+                                  same_images=pairs == ref_pairs, metrics_path=path))
     return rows

@@ -1,4 +1,4 @@
-"""The one metrics module: PSNR and SSIM, used by fit-time validation and by `avatarctl eval`.
+"""The one metrics module: PSNR and SSIM (and LPIPS when installed), used by fit-time validation and `avatarctl eval`.
 
 All scores are computed in float32 on images with values in [0, 1] (uint8 inputs are divided by 255).
 SSIM is scikit-image's `structural_similarity` with the settings in `SSIM_SETTINGS` (recorded beside every number,
@@ -7,6 +7,7 @@ with the scikit-image version, because SSIM values differ between versions and s
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -65,3 +66,31 @@ def metric_settings() -> dict[str, Any]:
 
     return {"psnr": "-10*log10(MSE), images in [0,1], float32", "ssim": dict(SSIM_SETTINGS),
             "scikit_image": skimage.__version__}
+
+
+def lpips_status() -> tuple[Any | None, str]:
+    """(an LPIPS function or None, reason). Never downloads: the weights must already be on this machine."""
+    import importlib.util
+
+    if importlib.util.find_spec("lpips") is None:
+        return None, "lpips package not installed (pip install lpips, with its AlexNet weights cached locally)"
+    try:
+        import torch
+
+        hub = Path(torch.hub.get_dir()) / "checkpoints"
+        alex = sorted(hub.glob("alexnet-owt-*.pth"))
+        if not alex:
+            return None, f"AlexNet backbone weights not found in {hub} (LPIPS would download them; we never do)"
+        import lpips  # type: ignore[import-not-found]
+
+        net = lpips.LPIPS(net="alex", verbose=False).eval()
+
+        def score(pred: np.ndarray, gt: np.ndarray) -> float:
+            p = torch.from_numpy(np.ascontiguousarray(pred, dtype=np.float32)).permute(2, 0, 1)[None] * 2 - 1
+            g = torch.from_numpy(np.ascontiguousarray(gt, dtype=np.float32)).permute(2, 0, 1)[None] * 2 - 1
+            with torch.no_grad():
+                return float(net(p, g).item())
+
+        return score, f"lpips {getattr(lpips, '__version__', '?')} (alex), inputs scaled to [-1, 1]"
+    except Exception as e:  # noqa: BLE001 - any failure means LPIPS is unavailable, said plainly
+        return None, f"lpips unavailable ({type(e).__name__}: {e})"

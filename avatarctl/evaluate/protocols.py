@@ -4,6 +4,9 @@
   over the pixels inside the projected box polygon (`mask_at_box`), SSIM on the image cropped to the polygon's 2D
   bounding rectangle.
 - `full`: all pixels; the background colour used for rendering and ground-truth compositing is recorded.
+
+Ground truth (`ground_truth`, the one compositing rule of fit targets, validation and eval): the undistorted frame
+composited with its mask over the background colour the avatar is trained / rendered over.
 """
 
 from __future__ import annotations
@@ -12,9 +15,20 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from avatarctl.render.cameras import Camera
+from avatarctl.geometry.cameras import Camera
 
 PROTOCOLS = ("bbox", "full")
+GROUND_TRUTH = "undistorted ingest frame * mask + background * (1 - mask)"
+
+
+def ground_truth(rgb: np.ndarray, mask: np.ndarray, background) -> np.ndarray:
+    """[..., 3] uint8 (or float in [0, 1]) colours and [...] mask (bool or float) -> [..., 3] float32
+    rgb * mask + background * (1 - mask) (`GROUND_TRUTH`)."""
+    a = np.asarray(rgb)
+    img = a.astype(np.float32) / 255.0 if a.dtype == np.uint8 else a.astype(np.float32)
+    m = np.asarray(mask).astype(np.float32)[..., None]
+    bg = np.asarray(background, dtype=np.float32)
+    return img * m + bg * (1.0 - m)
 
 
 @dataclass(frozen=True)

@@ -37,6 +37,7 @@ from avatarctl.io.project_io import ProjectCapture
 from avatarctl.project import Project
 
 if TYPE_CHECKING:
+    from avatarctl.fit.config import FitConfig
     from avatarctl.model.avatar import FrameConditioning, SlrfAvatar
     from avatarctl.model.config import ModelConfig
 
@@ -92,7 +93,7 @@ class LoadedAvatar:
 
     model: "SlrfAvatar"
     model_config: "ModelConfig"
-    fit_config: dict  # FitConfig.to_json() as saved (background, seed, ...)
+    fit_config: "FitConfig"  # the config the avatar was trained with (background, seed, ablations, ...)
     step: int  # optimisation steps the checkpoint holds
     template: BodyTemplate
     body: BodyModel
@@ -103,7 +104,7 @@ class LoadedAvatar:
     @property
     def background(self) -> tuple[float, float, float]:
         """The colour the avatar was trained (and should be rendered / scored) over."""
-        return tuple(float(c) for c in self.fit_config.get("background", (0.0, 0.0, 0.0)))  # type: ignore[return-value]
+        return self.fit_config.background
 
     @property
     def device(self) -> torch.device:
@@ -120,6 +121,7 @@ class LoadedAvatar:
 def load_avatar(project: Project, device: str = "cpu", checkpoint: Path | None = None) -> LoadedAvatar:
     """Rebuild the fitted avatar from `checkpoint` (default: the project's latest) on `device`, in eval mode."""
     from avatarctl.body.registry import load_body_model
+    from avatarctl.fit.config import FitConfig
     from avatarctl.io.project_io import load_project_capture
     from avatarctl.model.avatar import SlrfAvatar
     from avatarctl.model.config import ModelConfig
@@ -130,9 +132,9 @@ def load_avatar(project: Project, device: str = "cpu", checkpoint: Path | None =
     body = load_body_model(capture.body_model, capture.body_model_path)
     template = body.template(capture.motion)
     cfg = ModelConfig.from_json(ckpt["model_config"])
-    fit_cfg = dict(ckpt["fit_config"])
+    fit_cfg = FitConfig.from_json(ckpt["fit_config"])
     train_frames = [int(f) for f in ckpt["train_frames"]]
-    model = SlrfAvatar(cfg, template, num_frames=len(train_frames), seed=int(fit_cfg.get("seed", 0)))
+    model = SlrfAvatar(cfg, template, num_frames=len(train_frames), seed=fit_cfg.seed)
     try:
         model.load_state_dict(ckpt["model"])
     except RuntimeError as e:

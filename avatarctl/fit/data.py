@@ -26,12 +26,12 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from avatarctl.evaluate.protocols import bbox_region
+from avatarctl.evaluate.protocols import bbox_region, ground_truth
 from avatarctl.fit.conditioning import PoseTable, make_conditioning, time_stamps
 from avatarctl.io.project_io import ProjectCapture
 from avatarctl.model.avatar import FrameConditioning
-from avatarctl.render.cameras import Camera
-from avatarctl.render.rays import RayBatch, camera_rays
+from avatarctl.geometry.cameras import Camera
+from avatarctl.geometry.rays import RayBatch, camera_rays
 
 
 @dataclass(frozen=True)
@@ -121,8 +121,7 @@ def target_colours(crop: FrameCrop, px: np.ndarray, py: np.ndarray, background: 
     cx, cy = px - crop.x0, py - crop.y0
     ok = (cx >= 0) & (cx < w) & (cy >= 0) & (cy < h)
     out = np.broadcast_to(background.astype(np.float32), (px.shape[0], 3)).copy()
-    m = crop.mask[cy[ok], cx[ok]].astype(np.float32)[:, None]
-    out[ok] = crop.rgb[cy[ok], cx[ok]].astype(np.float32) / 255.0 * m + background * (1.0 - m)
+    out[ok] = ground_truth(crop.rgb[cy[ok], cx[ok]], crop.mask[cy[ok], cx[ok]], background)
     return out
 
 

@@ -32,6 +32,7 @@ from typing import Any, Callable, Iterator
 import torch
 
 from avatarctl.atomic import write_json, write_text
+from avatarctl.device import resolve_device
 from avatarctl.errors import AvatarError, InputError, ProjectError
 from avatarctl.fit.config import FitConfig, config_summary
 from avatarctl.project import Project, now_iso
@@ -77,18 +78,6 @@ class FitResult:
     rays_per_s: float
     device: str
     config: FitConfig
-
-
-def resolve_device(device: str) -> torch.device:
-    """'auto' -> cuda when available, else cpu; 'cuda' without a GPU is an `InputError`."""
-    if device == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    if device.startswith("cuda") and not torch.cuda.is_available():
-        raise InputError("--device cuda requested but torch sees no CUDA device", fix="use --device cpu or auto")
-    try:
-        return torch.device(device)
-    except RuntimeError:
-        raise InputError(f"unknown device {device!r}", fix="use auto, cpu or cuda") from None
 
 
 @contextlib.contextmanager

@@ -3,15 +3,15 @@
 
 Pairs (`choose_val_pairs`): the i-th pair takes held-out view i mod V and the training frame at the centre of the
 i-th of n equal slices of the (time-ordered) training frames. The latent is the posterior mean (training frames).
-Ground truth = image * mask + background * (1 - mask) at full resolution, then area-resized when
-`FitConfig.val_scale` < 1 (the camera is scaled to match). The bbox region is Neural Body's: the posed mesh's 3D box
-grown by 5 cm, projected (avatarctl.evaluate.protocols.bbox_region).
+Ground truth = image * mask + background * (1 - mask) (`evaluate.protocols.ground_truth`) at full resolution, then
+area-resized when `FitConfig.val_scale` < 1 (the camera is scaled to match). The bbox region is Neural Body's: the
+posed mesh's 3D box grown by 5 cm, projected (avatarctl.evaluate.protocols.bbox_region).
 """
 
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from typing import Any
 
 import numpy as np
@@ -19,10 +19,10 @@ import torch
 
 from avatarctl.body.base import BodyModel
 from avatarctl.evaluate.metrics import metric_settings, psnr
-from avatarctl.evaluate.protocols import bbox_region
+from avatarctl.evaluate.protocols import bbox_region, ground_truth
 from avatarctl.fit.conditioning import make_conditioning, time_stamps
 from avatarctl.io.project_io import ProjectCapture
-from avatarctl.render.cameras import Camera
+from avatarctl.geometry.cameras import Camera
 from avatarctl.render.engine import render_view
 
 
@@ -69,17 +69,15 @@ class Validator:
         self._prepared: list[_Prepared] = []
         for p in pairs:
             cam = capture.cameras[p.view]
-            img = capture.image(p.view, p.frame).astype(np.float32) / 255.0
-            m = capture.mask(p.view, p.frame).astype(np.float32)[..., None]
-            gt = img * m + bg * (1.0 - m)
+            gt = ground_truth(capture.image(p.view, p.frame), capture.mask(p.view, p.frame), bg)
             if scale < 1.0:
                 cam = cam.scaled(scale)
                 gt = cv2.resize(gt, (cam.width, cam.height), interpolation=cv2.INTER_AREA)
             verts = posed.vertices[self._slot[p.frame]].detach().cpu().numpy()
             self._prepared.append(_Prepared(p, cam, gt.astype(np.float32), bbox_region(cam, verts).mask))
 
-    def run(self, model) -> dict[str, Any]:
-        """{"psnr": mean dB, "pairs": [{"view", "frame", "psnr"}], "protocol": "bbox", "seconds", ...}."""
+    def score(self, model) -> "ValidationResult":
+        """Render every pair with the posterior-mean latent and score it (PSNR, bbox protocol)."""
         t0 = time.perf_counter()
         device = next(model.parameters()).device
         was_training = model.training
@@ -91,10 +89,46 @@ class Validator:
                 for prep in self._prepared:
                     view = render_view(model, state, self._slot[prep.pair.frame], prep.camera, self.background,
                                        pixel_mask=prep.region)
-                    results.append({"view": prep.pair.view, "frame": prep.pair.frame,
-                                    "psnr": psnr(view.rgb, prep.gt, prep.region)})
+                    results.append(PairScore(view=prep.pair.view, frame=prep.pair.frame,
+                                             psnr=psnr(view.rgb, prep.gt, prep.region)))
         finally:
             model.train(was_training)
-        return {"psnr": float(np.mean([r["psnr"] for r in results])) if results else None, "pairs": results,
-                "protocol": "bbox", "latent": "mean", "scale": self.scale, "settings": metric_settings(),
-                "seconds": time.perf_counter() - t0}
+        return ValidationResult(psnr=float(np.mean([r.psnr for r in results])) if results else None,
+                                pairs=tuple(results), scale=self.scale, settings=metric_settings(),
+                                seconds=time.perf_counter() - t0)
+
+    def run(self, model) -> dict[str, Any]:
+        """`score(model).to_json()`: the record the training loop logs and returns in `FitResult.val`."""
+        return self.score(model).to_json()
+
+
+@dataclass(frozen=True)
+class PairScore:
+    view: str
+    frame: int
+    psnr: float  # dB over the bbox region
+
+
+@dataclass(frozen=True)
+class ValidationResult:
+    """One validation: the mean PSNR over the fixed pairs, and each pair's."""
+
+    psnr: float | None  # mean dB; None without pairs
+    pairs: tuple[PairScore, ...]
+    scale: float  # FitConfig.val_scale
+    settings: dict[str, Any]  # metric_settings()
+    seconds: float
+    protocol: str = "bbox"
+    latent: str = "mean"
+
+    def to_json(self) -> dict[str, Any]:
+        return {"psnr": self.psnr, "pairs": [asdict(p) for p in self.pairs], "protocol": self.protocol,
+                "latent": self.latent, "scale": self.scale, "settings": self.settings, "seconds": self.seconds}
+
+    @classmethod
+    def from_json(cls, d: dict[str, Any]) -> "ValidationResult":
+        return cls(psnr=None if d["psnr"] is None else float(d["psnr"]),
+                   pairs=tuple(PairScore(view=str(p["view"]), frame=int(p["frame"]), psnr=float(p["psnr"]))
+                               for p in d["pairs"]),
+                   scale=float(d["scale"]), settings=dict(d["settings"]), seconds=float(d["seconds"]),
+                   protocol=str(d["protocol"]), latent=str(d["latent"]))

@@ -8,10 +8,11 @@ from pathlib import Path
 from typing import Any
 
 from avatarctl.errors import InputError
+from avatarctl.frames import parse_frame_spec
 
 SCHEMA_VERSION = 1
 FORMAT_CHOICES = ("auto", "easymocap", "zju", "thuman4", "peoplesnapshot", "colmap")
-BODY_MODEL_CHOICES = ("anny", "smpl", "smplx")
+BODY_MODEL_CHOICES = ("anny", "smpl", "smplx", "toy")
 MASK_CHOICES = ("auto", "files", "background")
 
 
@@ -20,10 +21,10 @@ class IngestConfig:
     capture: Path  # the raw capture folder (never modified)
     project: Path  # the project directory to create (must not exist, or be empty)
     format: str = "auto"  # capture layout; "auto" detects it (avatarctl.io.detect)
-    body_model: str | None = None  # anny | smpl | smplx; None: the body model the capture's fits are for
+    body_model: str | None = None  # anny | smpl | smplx | toy; None: the body model the capture's fits are for
     body_model_path: Path | None = None  # SMPL / SMPL-X model file (.pkl / .npz); not needed for anny
     masks: str = "auto"  # files | background | auto (files if the capture has masks, else background plates)
-    frames: str | None = None  # "start:stop[:step]" or "a,b,c" capture frame numbers; None: every frame
+    frames: str | None = None  # "start:stop[:step]" or "a,b,c" capture frame numbers (avatarctl.frames); None: all
     views: tuple[str, ...] | None = None  # camera names to ingest; None: every calibrated camera
     resize: float = 1.0  # scale factor applied after undistortion (e.g. 0.5)
     contact_sheet: bool = True  # write ingest/contact_sheet.png
@@ -49,7 +50,7 @@ class IngestConfig:
                 raise InputError("--views is empty", fix="pass camera names separated by commas, e.g. 00,01")
             object.__setattr__(self, "views", views)
         if self.frames is not None:
-            parse_frames(self.frames)  # syntax check now; membership is checked against the capture later
+            parse_frame_spec(self.frames)  # syntax check now; membership is checked against the capture later
 
     def to_json(self) -> dict[str, Any]:
         return {"schema_version": self.schema_version, "capture": str(self.capture.resolve()),
@@ -57,47 +58,3 @@ class IngestConfig:
                 "body_model_path": None if self.body_model_path is None else str(self.body_model_path.resolve()),
                 "masks": self.masks, "frames": self.frames, "views": None if self.views is None else list(self.views),
                 "resize": self.resize, "contact_sheet": self.contact_sheet}
-
-
-def parse_frames(spec: str) -> tuple[str, tuple[int, ...]]:
-    """'a:b[:s]' -> ("slice", (a|-1, b|-1, s)); 'a,b,c' -> ("list", (a, b, c)). Frame numbers, not positions."""
-    s = spec.strip()
-    bad = InputError(f"cannot parse --frames {spec!r}",
-                     fix="use start:stop[:step] (stop exclusive, e.g. 0:300:1 or 100:) or a list like 0,10,20")
-    try:
-        if ":" in s:
-            parts = s.split(":")
-            if len(parts) > 3:
-                raise bad
-            a = int(parts[0]) if parts[0] else -1
-            b = int(parts[1]) if len(parts) > 1 and parts[1] else -1
-            step = int(parts[2]) if len(parts) > 2 and parts[2] else 1
-            if step < 1 or (a < -1) or (b < -1):
-                raise bad
-            return "slice", (a, b, step)
-        vals = tuple(int(x) for x in s.split(",") if x.strip())
-        if not vals or any(v < 0 for v in vals):
-            raise bad
-        return "list", vals
-    except ValueError:
-        raise bad from None
-
-
-def select_frames(spec: str | None, available: list[int]) -> list[int]:
-    """The frame numbers `spec` selects among `available` (ascending); list entries must exist."""
-    if spec is None:
-        return list(available)
-    kind, vals = parse_frames(spec)
-    if kind == "list":
-        missing = [v for v in vals if v not in set(available)]
-        if missing:
-            raise InputError(f"--frames asks for frames {missing[:5]} that the capture does not have",
-                             fix=f"available frames are {available[0]}..{available[-1]}" if available else None)
-        return sorted(set(vals))
-    a, b, step = vals
-    lo = available[0] if a < 0 and available else a
-    sel = [f for f in available if f >= lo and (b < 0 or f < b) and (f - lo) % step == 0]
-    if not sel:
-        raise InputError(f"--frames {spec!r} selects no frame", fix=f"the capture has frames "
-                         f"{available[0]}..{available[-1]}" if available else "the capture has no frames")
-    return sel

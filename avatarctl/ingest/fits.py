@@ -14,7 +14,7 @@ import numpy as np
 
 from avatarctl.body.motion import BodyMotion
 from avatarctl.errors import InputError
-from avatarctl.ingest.source import BodyFits, RhThFits, fmt_list
+from avatarctl.io.capture import BodyFits, RhThFits, fmt_list
 
 MAX_METRES = 50.0  # a capture volume larger than this means the numbers are millimetres
 

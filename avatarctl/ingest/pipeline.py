@@ -23,8 +23,9 @@ from typing import Callable
 import numpy as np
 
 from avatarctl.errors import InputError, ProjectError
-from avatarctl.ingest.config import IngestConfig, select_frames
-from avatarctl.ingest.source import CaptureSource, check_complete, fmt_list
+from avatarctl.frames import select_frames
+from avatarctl.ingest.config import IngestConfig
+from avatarctl.io.capture import CaptureSource, check_complete, fmt_list
 
 ProgressFn = Callable[[int, int], None]  # (frames done, frames total)
 MIN_INSIDE = 0.90  # warn when fewer of the posed vertices than this project inside the masks
@@ -114,7 +115,7 @@ class IngestPlan:
     cams: list[str]  # selected camera names, capture order
     frames: list[int]  # selected capture frame numbers, ascending
     masks_mode: str  # "files" | "background"
-    body_model: str  # "anny" | "smpl" | "smplx"
+    body_model: str  # "anny" | "smpl" | "smplx" | "toy"
     body: object  # the BodyModel (AnnyBody / SmplBody)
     motion: object  # BodyMotion, one row per selected frame
     faces: np.ndarray  # [F, 3] body mesh triangles
@@ -122,7 +123,7 @@ class IngestPlan:
 
 def plan_ingest(cfg: IngestConfig) -> IngestPlan:
     """Read the capture, select views / frames, validate everything, convert the fits. Writes nothing."""
-    from avatarctl.body.registry import load_body_model
+    from avatarctl.body.registry import load_body_model, needs_model_file
     from avatarctl.ingest.fits import check_cameras_metric, check_fits, to_body_motion
 
     _check_project_dest(cfg)
@@ -143,10 +144,10 @@ def plan_ingest(cfg: IngestConfig) -> IngestPlan:
     bm_name = cfg.body_model or src.fits.body_model
     if src.fits.body_model != bm_name:
         to_body_motion(src.fits, bm_name, None)  # raises the one-line mismatch error
-    if bm_name != "anny" and cfg.body_model_path is None:
+    if needs_model_file(bm_name) and cfg.body_model_path is None:
         raise InputError(f"the capture's fits need the {bm_name} body model file", where=fits_where,
                          fix=f"pass --body-model-path /path/to/{bm_name.upper()}_NEUTRAL.pkl (or .npz)")
-    body = load_body_model(bm_name, cfg.body_model_path if bm_name != "anny" else None)
+    body = load_body_model(bm_name, cfg.body_model_path if needs_model_file(bm_name) else None)
     motion_all = to_body_motion(src.fits, bm_name, body)
     motion = motion_all.select(motion_all.rows_for(frames))
     check_fits(motion, frames, fits_where)  # converted SMPL transl, anny root translation
@@ -159,12 +160,13 @@ def run_ingest(cfg: IngestConfig, progress: ProgressFn | None = None) -> IngestR
     import torch
 
     from avatarctl.atomic import atomic_dir
+    from avatarctl.body.registry import needs_model_file
     from avatarctl.ingest.contact_sheet import Tile, pick, write_contact_sheet
     from avatarctl.ingest.silhouette import fraction_inside
     from avatarctl.ingest.split import default_split, restrict_split
     from avatarctl.ingest.undistort import Undistorter
     from avatarctl.io.project_io import save_cameras, save_split, write_frame, write_mask
-    from avatarctl.project import Project, hash_tree, now_iso
+    from avatarctl.project import BodyModelRef, Project, SourceRef, hash_tree, now_iso
 
     t0 = time.perf_counter()
     started = now_iso()
@@ -178,12 +180,12 @@ def run_ingest(cfg: IngestConfig, progress: ProgressFn | None = None) -> IngestR
     sheet_cams, sheet_frames = pick(cams, 4), pick(frames, 3)
     tiles: list[Tile] = []
     inside: list[float] = []
-    bm_path = None if cfg.body_model_path is None or plan.body_model == "anny" else str(cfg.body_model_path.resolve())
+    bm_path = str(cfg.body_model_path.resolve()) if cfg.body_model_path and needs_model_file(plan.body_model) else None
 
     with atomic_dir(cfg.project) as tmp:
-        proj = Project.create(tmp.resolve(), body_model={"name": plan.body_model, "path": bm_path},
-                              source={"path": str(src.root.resolve()), "format": src.format, "sha256": source_hash,
-                                      "files": n_files})
+        proj = Project.create(tmp.resolve(), body_model=BodyModelRef(name=plan.body_model, path=bm_path),
+                              source=SourceRef(path=str(src.root.resolve()), format=src.format, sha256=source_hash,
+                                               files=n_files))
         for s in range(0, len(frames), POSE_CHUNK):
             with torch.no_grad():
                 verts = plan.body.pose(motion.select(slice(s, s + POSE_CHUNK))).vertices.cpu().numpy()  # [n, V, 3]
@@ -228,7 +230,7 @@ def run_ingest(cfg: IngestConfig, progress: ProgressFn | None = None) -> IngestR
 
 def _undistorted_plates(src: CaptureSource, und: dict) -> dict[str, np.ndarray]:
     """camera -> undistorted (and resized) background plate, RGB uint8 [H, W, 3]."""
-    from avatarctl.ingest.source import read_image_file
+    from avatarctl.io.capture import read_image_file
 
     plates = {}
     for c, u in und.items():

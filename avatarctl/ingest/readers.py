@@ -17,7 +17,7 @@ from pathlib import Path
 from typing import Callable
 
 from avatarctl.errors import InputError
-from avatarctl.ingest.source import CaptureSource, FileImages, FileMasks, scan_numbered
+from avatarctl.io.capture import CaptureSource, FileImages, FileMasks, scan_numbered
 from avatarctl.io.project_io import Split
 
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from avatarctl.render.cameras import Camera
+from avatarctl.geometry.cameras import Camera
 
 _SHIFT = 4  # cv2.fillPoly sub-pixel bits
 

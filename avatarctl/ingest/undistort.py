@@ -11,7 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from avatarctl.render.cameras import Camera
+from avatarctl.geometry.cameras import Camera
 
 
 @dataclass(frozen=True)

@@ -21,9 +21,9 @@ from pathlib import Path
 import numpy as np
 
 from avatarctl.errors import InputError
-from avatarctl.ingest.source import CaptureSource, FileImages, FileMasks, safe_camera_name, scan_numbered
+from avatarctl.io.capture import CaptureSource, FileImages, FileMasks, safe_camera_name, scan_numbered
 from avatarctl.io.easymocap_fits import read_capture_fits
-from avatarctl.render.cameras import Camera
+from avatarctl.geometry.cameras import Camera
 
 _MODELS = {  # model name -> function(params) -> (fx, fy, cx, cy, dist[5])
     "SIMPLE_PINHOLE": lambda p: (p[0], p[0], p[1], p[2], [0, 0, 0, 0, 0]),

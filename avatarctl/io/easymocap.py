@@ -13,7 +13,7 @@ import numpy as np
 
 from avatarctl.atomic import atomic_path
 from avatarctl.errors import InputError
-from avatarctl.render.cameras import Camera
+from avatarctl.geometry.cameras import Camera
 
 
 def _read_names(fs, path: Path) -> list[str]:

@@ -3,7 +3,7 @@
 
 EasyMocap json: a list of people ``[{id, Rh (1,3), Th (1,3), poses (1,72), shapes (1,10)}, ...]`` or the newer
 ``{"annots": [...]}`` wrapper. The person with the smallest ``id`` is used. ``Rh``/``Th`` rotate about the world
-origin then translate (metres); see `avatarctl.ingest.source.RhThFits`.
+origin then translate (metres); see `avatarctl.io.capture.RhThFits`.
 """
 
 from __future__ import annotations
@@ -15,7 +15,7 @@ import numpy as np
 
 from avatarctl.body.motion import BodyMotion
 from avatarctl.errors import InputError
-from avatarctl.ingest.source import RhThFits
+from avatarctl.io.capture import RhThFits
 
 SMPL_POSE_DIM = 72
 

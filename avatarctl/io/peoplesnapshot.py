@@ -23,8 +23,8 @@ import numpy as np
 
 from avatarctl.body.motion import BodyMotion
 from avatarctl.errors import InputError
-from avatarctl.ingest.source import CaptureSource, FileImages, scan_numbered
-from avatarctl.render.cameras import Camera
+from avatarctl.io.capture import CaptureSource, FileImages, scan_numbered
+from avatarctl.geometry.cameras import Camera
 
 CAM = "cam0"
 

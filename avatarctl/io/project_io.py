@@ -16,7 +16,7 @@ from avatarctl.atomic import atomic_path, write_json
 from avatarctl.body.motion import BodyMotion
 from avatarctl.errors import ProjectError
 from avatarctl.project import Project
-from avatarctl.render.cameras import Camera
+from avatarctl.geometry.cameras import Camera
 
 JPEG_QUALITY = 95
 
@@ -141,4 +141,4 @@ def load_project_capture(project: Project) -> ProjectCapture:
     motion = BodyMotion.load(p.body)
     bm = project.manifest.body_model
     return ProjectCapture(project=project, cameras=load_cameras(p.cameras), split=load_split(p.split), motion=motion,
-                          body_model=str(bm.get("name", motion.body_model)), body_model_path=bm.get("path"))
+                          body_model=bm.name, body_model_path=bm.path)

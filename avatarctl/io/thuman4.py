@@ -23,8 +23,8 @@ import numpy as np
 
 from avatarctl.body.motion import BodyMotion
 from avatarctl.errors import InputError
-from avatarctl.ingest.source import CaptureSource, FileImages, FileMasks, safe_camera_name, scan_numbered
-from avatarctl.render.cameras import Camera
+from avatarctl.io.capture import CaptureSource, FileImages, FileMasks, safe_camera_name, scan_numbered
+from avatarctl.geometry.cameras import Camera
 
 
 def _vec(d: dict, key: str, n: int, cam: str, where: Path) -> np.ndarray:

@@ -21,9 +21,9 @@ from pathlib import Path
 import numpy as np
 
 from avatarctl.errors import InputError
-from avatarctl.ingest.source import CaptureSource, FileImages, FileMasks, RhThFits, safe_camera_name
+from avatarctl.io.capture import CaptureSource, FileImages, FileMasks, RhThFits, safe_camera_name
 from avatarctl.io.easymocap_fits import rhth_from_records
-from avatarctl.render.cameras import Camera
+from avatarctl.geometry.cameras import Camera
 
 
 def zju_frame_number(rel: str) -> int:

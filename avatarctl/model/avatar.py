@@ -36,7 +36,7 @@ from avatarctl.model.grid_field import NodeGridFields
 from avatarctl.model.occupancy import UNSEEN, cell_index, live_points, update_occupancy
 from avatarctl.model.losses import (LossTerms, embedding_loss, kl_loss, reconstruction_loss, total_loss,
                                     translation_loss)
-from avatarctl.render.rays import RayBatch
+from avatarctl.geometry.rays import RayBatch
 from avatarctl.render.volume import march
 
 

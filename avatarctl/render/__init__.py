@@ -1,1 +1,2 @@
-"""Cameras, rays, samplers, volume compositing, trajectories and video writing."""
+"""Rendering library: volume compositing, the sparse view engine, trajectories and video writing (cameras and rays
+live in `avatarctl.geometry`)."""

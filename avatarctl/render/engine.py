@@ -22,7 +22,7 @@ from typing import TYPE_CHECKING, Callable
 import numpy as np
 import torch
 
-from avatarctl.render.cameras import Camera
+from avatarctl.geometry.cameras import Camera
 
 if TYPE_CHECKING:
     from avatarctl.model.avatar import NodeState, SlrfAvatar
@@ -72,7 +72,7 @@ def render_view(model: "SlrfAvatar", state: "NodeState", slot: int, camera: Came
     `pixel_mask` [H, W] bool restricts rendering to those pixels (e.g. the eval box); pixels outside it are
     `background` with alpha 0. `progress(done, total)` is called after each chunk with ray counts.
     """
-    from avatarctl.render.rays import RayBatch, camera_rays, image_pixels
+    from avatarctl.geometry.rays import RayBatch, camera_rays, image_pixels
 
     t0 = time.perf_counter()
     if not camera.is_pinhole:

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from avatarctl.render.cameras import Camera, look_at
+from avatarctl.geometry.cameras import Camera, look_at
 
 
 @dataclass(frozen=True)

@@ -29,7 +29,7 @@ from typing import Callable
 import numpy as np
 
 from avatarctl.errors import InputError
-from avatarctl.render.cameras import Camera, look_at
+from avatarctl.geometry.cameras import Camera, look_at
 from avatarctl.synth.config import GENERATOR_VERSION, SynthConfig
 from avatarctl.synth.motion import PHENOTYPE_LABELS, ProceduralMotion, make_motion
 

@@ -5,7 +5,7 @@ x_d = K^-1 (u, v, 1), undistorted by inverting OpenCV's radial-tangential model 
 scheme as `cv2.undistortPoints`), and becomes the world ray o = C, d = R^T (x_u, y_u, 1) / |.|. Rendering along
 these rays yields the distorted image directly, so `cv2.undistort(image, K, dist)` equals a pinhole render up to
 resampling. Supersampling casts `ss x ss` rays per pixel at offsets (k + 0.5) / ss - 0.5.
-Conventions: OpenCV cameras (world->camera, metres, pixel centres at integers), see `avatarctl.render.cameras`.
+Conventions: OpenCV cameras (world->camera, metres, pixel centres at integers), see `avatarctl.geometry.cameras`.
 """
 
 from __future__ import annotations
@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from avatarctl.render.cameras import Camera, distort_normalized
+from avatarctl.geometry.cameras import Camera, distort_normalized
 
 
 def undistort_normalized(xy_d: np.ndarray, dist: np.ndarray, iters: int = 40) -> np.ndarray:

@@ -14,7 +14,8 @@ frozen.patch(a.body)
 from avatarctl.project import Project
 from avatarctl.fit.config import resolve_fit_config
 from avatarctl.fit.loop import fit
-from avatarctl.evaluate.run import EvalConfig, evaluate
+from avatarctl.stages.evaluate import EvalConfig
+from avatarctl.stages.evaluate import run as evaluate
 dst = os.path.join(a.work, a.name); shutil.rmtree(dst, ignore_errors=True); shutil.copytree(a.src, dst)
 if a.train_frames:
     sp = json.load(open(os.path.join(dst, "ingest", "split.json")))

@@ -1,6 +1,8 @@
 """Benchmark: sparse (supplement A.2, packed) vs dense node evaluation, and training throughput.
 
-    python -m avatarctl.model.bench [--out bench.json] [--device cpu|cuda] [--rays-paper N] [--rays-cpu N]
+    python -m benchmarks.bench [--out bench.json] [--device cpu|cuda] [--rays-paper N] [--rays-cpu N]
+
+(run from the repository root: `benchmarks/` is not part of the installed package).
 
 Setup (realistic batch): nodes by FPS on the anny template (`load_body_model("anny")`), B = 4 frames in anny's
 reference pose with different time stamps, rays from cameras on a 3 m circle around the body aimed at points drawn
@@ -29,9 +31,9 @@ from typing import Any
 
 import torch
 
+from avatarctl.geometry.rays import RayBatch
 from avatarctl.model.avatar import FrameConditioning, SlrfAvatar
 from avatarctl.model.config import ModelConfig
-from avatarctl.render.rays import RayBatch
 
 
 @dataclass
@@ -168,7 +170,7 @@ def throughput(template, batch: Batch, device: torch.device, steps: int) -> dict
 
 
 def main(argv: list[str] | None = None) -> dict[str, Any]:
-    ap = argparse.ArgumentParser(prog="python -m avatarctl.model.bench", description=__doc__.split("\n")[0])
+    ap = argparse.ArgumentParser(prog="python -m benchmarks.bench", description=__doc__.split("\n")[0])
     ap.add_argument("--out", help="write the results as JSON here")
     ap.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     ap.add_argument("--rays-paper", type=int, default=None, help="rays for the paper preset (CPU 48, CUDA 2048)")

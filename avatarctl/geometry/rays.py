@@ -10,7 +10,7 @@ from dataclasses import dataclass
 
 import torch
 
-from avatarctl.render.cameras import Camera
+from avatarctl.geometry.cameras import Camera
 
 
 @dataclass

@@ -2,9 +2,9 @@
 
     synth (OUT/capture) -> ingest (OUT/project) -> fit -> render orbit + novel poses -> eval novel view / novel pose
 
-Each stage is the same Python function its command calls (`avatarctl.synth.synthesize`,
-`avatarctl.ingest.pipeline.run_ingest`, `avatarctl.fit.loop.fit`, `avatarctl.render.run.render`,
-`avatarctl.evaluate.run.evaluate`); the demo only chooses sizes. Presets (`DEMO_PRESETS`):
+Each stage is the same `run` its command calls (`avatarctl.stages.synth`, `.ingest`, `.fit`, `.render`,
+`.evaluate`); the demo only chooses sizes, and relabels their `StageProgress` ("render orbit", "eval novel_view", ...).
+Presets (`DEMO_PRESETS`):
 
 - `ci` (alias `micro`): synth "micro" (4 views, 6 + 4 frames, 64 px), fit "micro" preset for 20 steps. About a
   minute on 2 cores; checks the plumbing, the avatar is not recognisable.
@@ -22,9 +22,13 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any, Callable
+from typing import TYPE_CHECKING, Any, Callable
 
 from avatarctl.errors import InputError
+from avatarctl.stages.common import StageProgress, ProgressFn
+
+if TYPE_CHECKING:
+    from avatarctl.evaluate.report import EvalMetrics
 
 
 @dataclass(frozen=True)
@@ -92,27 +96,27 @@ class DemoResult:
     capture: Path
     project: Path
     videos: dict[str, Path] = field(default_factory=dict)  # render name -> video.mp4
-    metrics: dict[str, dict[str, Any]] = field(default_factory=dict)  # split -> metrics.json contents
+    metrics: "dict[str, EvalMetrics]" = field(default_factory=dict)  # split -> metrics.json contents
     metrics_paths: dict[str, Path] = field(default_factory=dict)
     stages: list[StageDone] = field(default_factory=list)
     seconds: float = 0.0
 
 
 StageFn = Callable[[StageDone], None]
-ProgressFn = Callable[[str, int, int], None]  # (stage, done, total)
 
 
-def run_demo(cfg: DemoConfig, on_stage: StageFn | None = None, progress: ProgressFn | None = None) -> DemoResult:
-    """Run every stage (see the module docstring); `on_stage` gets each stage's summary as soon as it is done."""
-    from avatarctl.evaluate.run import EvalConfig, evaluate
-    from avatarctl.fit.config import resolve_fit_config
-    from avatarctl.fit.loop import fit
+def run(out: str | Path, cfg: DemoConfig, progress: ProgressFn | None = None,
+        on_stage: StageFn | None = None) -> DemoResult:
+    """Run every stage into `out` (= `cfg.out`; see the module docstring); `on_stage` gets each stage's summary as
+    soon as it is done."""
     from avatarctl.ingest.config import IngestConfig
-    from avatarctl.ingest.pipeline import run_ingest
-    from avatarctl.project import Project
-    from avatarctl.render.run import RenderConfig, render
-    from avatarctl.synth import SynthConfig, synthesize
+    from avatarctl.stages import evaluate, fit, ingest, render, synth
+    from avatarctl.stages.evaluate import EvalConfig
+    from avatarctl.stages.fit import FitRequest
+    from avatarctl.stages.render import RenderConfig
+    from avatarctl.synth import SynthConfig
 
+    cfg = replace(cfg, out=Path(out))
     out = cfg.out
     if out.exists() and (not out.is_dir() or any(out.iterdir())):
         raise InputError("demo output folder exists and is not empty", where=str(out),
@@ -128,39 +132,27 @@ def run_demo(cfg: DemoConfig, on_stage: StageFn | None = None, progress: Progres
         if on_stage is not None:
             on_stage(s)
 
-    def tick(stage: str) -> Callable[..., None]:
-        def f(*args: Any) -> None:
-            if progress is not None:
-                done_, total = args[-2], args[-1]
-                progress(stage, int(done_), int(total))
-        return f
-
     # 1. synth
     t0 = time.perf_counter()
     out.mkdir(parents=True, exist_ok=True)
-    syn = synthesize(capture, SynthConfig.preset(sizes.synth, cfg.seed), progress=tick("synth"))
+    syn = synth.run(capture, SynthConfig.preset(sizes.synth, cfg.seed), progress=progress)
     done("synth", t0, {"capture": str(capture), "views": len(syn.cameras), "train frames": len(syn.train_frames),
                        "test frames": len(syn.test_frames), "size": f"{syn.cameras[0].width}x{syn.cameras[0].height}"})
 
     # 2. ingest
     t0 = time.perf_counter()
-    ing = run_ingest(IngestConfig(capture=capture, project=project_dir), progress=tick("ingest"))
+    ing = ingest.run(project_dir, IngestConfig(capture=capture, project=project_dir), progress=progress)
     done("ingest", t0, {"project": str(project_dir), "format": ing.format, "cameras": len(ing.cameras),
                         "frames": len(ing.frames), "masks": ing.masks_source,
                         "body inside masks": f"{ing.vertices_inside_masks:.3f}"})
 
     # 3. fit
     t0 = time.perf_counter()
-    project = Project.open(project_dir)
-    fit_cfg = resolve_fit_config(sizes.fit_preset, iters=sizes.iters, seed=cfg.seed,
-                                 overrides=list(sizes.fit_overrides))
-
-    def fit_progress(rep: Any) -> None:
-        if progress is not None:
-            progress("fit", rep.step, rep.iters)
-
-    fr = fit(project, fit_cfg, device=cfg.device, progress=fit_progress, handle_sigint=False)
-    val = (fr.val or {}).get("psnr")
+    fr = fit.run(project_dir, FitRequest(preset=sizes.fit_preset, iters=sizes.iters, seed=cfg.seed,
+                                         overrides=sizes.fit_overrides, device=cfg.device),
+                 progress=progress, handle_sigint=False)
+    fit_cfg = fr.config
+    val = None if fr.val is None else fr.val["psnr"]
     done("fit", t0, {"steps": fr.step, "preset": fit_cfg.preset, "rays/step": fit_cfg.rays_per_batch,
                      "rays/s": round(fr.rays_per_s), "loss": round(fr.losses.get("total", float("nan")), 5),
                      "held-out PSNR (bbox)": None if val is None else round(val, 2)})
@@ -172,7 +164,7 @@ def run_demo(cfg: DemoConfig, on_stage: StageFn | None = None, progress: Progres
         ("novel_pose", RenderConfig(name="novel_pose", frames="test", device=cfg.device)),
     ):
         t0 = time.perf_counter()
-        rr = render(project_dir, rcfg, progress=_ticker(progress, f"render {name}"))
+        rr = render.run(project_dir, rcfg, progress=_relabel(progress, f"render {name}"))
         result.videos[name] = rr.video
         done(f"render {name}", t0, {"video": str(rr.video), "images": len(rr.images),
                                     "size": f"{rr.width}x{rr.height}",
@@ -182,21 +174,22 @@ def run_demo(cfg: DemoConfig, on_stage: StageFn | None = None, progress: Progres
     # 5. eval
     for split in ("novel_view", "novel_pose"):
         t0 = time.perf_counter()
-        er = evaluate(project_dir, EvalConfig(split=split, protocol="bbox", every=sizes.eval_every,
-                                              device=cfg.device), progress=_ticker(progress, f"eval {split}"))
+        er = evaluate.run(project_dir, EvalConfig(split=split, protocol="bbox", every=sizes.eval_every,
+                                                  device=cfg.device), progress=_relabel(progress, f"eval {split}"))
         result.metrics[split] = er.metrics
         result.metrics_paths[split] = er.out_dir / "metrics.json"
         done(f"eval {split}", t0, {"PSNR (bbox)": round(er.psnr, 2), "SSIM": round(er.ssim, 4),
-                                   "images": er.metrics["images"], "latent": er.metrics["latent"],
+                                   "images": er.metrics.images, "latent": er.metrics.latent,
                                    "metrics": str(er.out_dir / "metrics.json")})
     result.seconds = time.perf_counter() - t_all
     return result
 
 
-def _ticker(progress: ProgressFn | None, stage: str) -> Callable[[Any], None] | None:
+def _relabel(progress: ProgressFn | None, stage: str) -> ProgressFn | None:
+    """`progress` with the demo's label for a stage that runs more than once ("render orbit", ...)."""
     if progress is None:
         return None
 
-    def f(p: Any) -> None:
-        progress(stage, p.done, p.total)
+    def f(p: StageProgress) -> None:
+        progress(replace(p, stage=stage))
     return f

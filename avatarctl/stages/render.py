@@ -1,7 +1,7 @@
 """The render stage (`avatarctl render PROJECT`): a fitted avatar -> PNG frames, an MP4 and a config record.
 
 Steps:
-1. load the fitted avatar (`avatarctl.fit.checkpoint.load_avatar`);
+1. load the fitted avatar (`stages.common.load_fitted`);
 2. choose the motion: the project's own frames (training frames render with the cVAE latent z = mu, novel frames
    with z = 0, paper Sec. 4.1) or a motion file (`--poses`, always novel: z = 0 unless `--latent sample`);
    a motion file's body shape is replaced by the avatar's own (`adopt_subject`) and, by default, its translation
@@ -19,85 +19,22 @@ views of one frame share a `seq` and are tiled side by side in the video).
 
 from __future__ import annotations
 
-import json
-import math
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 
 from avatarctl.errors import InputError
+from avatarctl.frames import select_frames
+from avatarctl.geometry.cameras import Camera
 from avatarctl.project import Project, check_name, now_iso
-from avatarctl.render.cameras import Camera
+from avatarctl.stages.common import StageProgress, ProgressFn, check_latent_mode, frame_node_state, latent_for, \
+    load_fitted, precheck, select_views
 
 SCHEMA_VERSION = 1
-LATENT_MODES = ("auto", "mean", "zero", "sample")
 DEFAULT_MAX_RAYS = 8192
-
-
-# ---- option parsing shared by render and eval ------------------------------------------------------------------
-
-def select_frames(spec: str | None, available: list[int], train: list[int] | None = None,
-                  test: list[int] | None = None, what: str = "--frames") -> list[int]:
-    """Frame numbers chosen by `spec` among `available` (sorted, unique).
-
-    spec: None / "all" = every available frame; "train" / "test" = the project's split (project frames only);
-    "a:b" or "a:b:s" = frame numbers n with a <= n < b stepping by s from a (either bound may be empty);
-    "3,7,9" = exactly those frames (each must exist).
-    """
-    avail = sorted(set(int(f) for f in available))
-    if spec is None or spec.strip() in ("", "all"):
-        return avail
-    s = spec.strip()
-    if s in ("train", "test"):
-        chosen = train if s == "train" else test
-        if chosen is None:
-            raise InputError(f"{what} {s!r} only applies to the project's own frames", where=what,
-                             fix="use a range a:b[:step] or a list of frame numbers for a motion file")
-        out = sorted(set(int(f) for f in chosen) & set(avail))
-        if not out:
-            raise InputError(f"the project has no {s} frames", where=what, fix="pick frames with a:b or a list")
-        return out
-    try:
-        if ":" in s:
-            parts = s.split(":")
-            if len(parts) > 3:
-                raise ValueError
-            a = int(parts[0]) if parts[0] else (avail[0] if avail else 0)
-            b = int(parts[1]) if len(parts) > 1 and parts[1] else (avail[-1] + 1 if avail else 0)
-            step = int(parts[2]) if len(parts) > 2 and parts[2] else 1
-            if step <= 0:
-                raise ValueError
-            wanted = set(range(a, b, step))
-            out = [f for f in avail if f in wanted]
-        else:
-            out = sorted(set(int(x) for x in s.split(",") if x.strip()))
-            missing = [f for f in out if f not in set(avail)]
-            if missing:
-                raise InputError(f"frame(s) {missing[:5]} not available", where=what,
-                                 fix=f"choose among frames {_ranges(avail)}")
-    except ValueError:
-        raise InputError(f"cannot parse {what} {spec!r}", where=what,
-                         fix="use all | train | test | a:b[:step] | a comma list of frame numbers") from None
-    if not out:
-        raise InputError(f"{what} {spec!r} selects no frame", where=what, fix=f"available frames: {_ranges(avail)}")
-    return out
-
-
-def _ranges(frames: list[int]) -> str:
-    if not frames:
-        return "none"
-    return f"{frames[0]}..{frames[-1]} ({len(frames)} frames)"
-
-
-def select_views(names: tuple[str, ...], cameras: dict[str, Camera], what: str = "--views") -> list[str]:
-    """Check capture camera names (in the order given)."""
-    unknown = [n for n in names if n not in cameras]
-    if unknown:
-        raise InputError(f"unknown camera(s) {unknown}", where=what, fix=f"choose among: {', '.join(cameras)}")
-    return list(dict.fromkeys(names))
 
 
 def parse_background(spec: str, fit_background: tuple[float, float, float]) -> tuple[tuple[float, float, float], bool]:
@@ -133,7 +70,7 @@ class RenderConfig:
 
     name: str = "default"  # output folder render/<name>
     poses: str | None = None  # motion file (anny npz / AMASS npz); None = the project's own frames
-    frames: str | None = None  # frame selection (see `select_frames`); None = all
+    frames: str | None = None  # frame selection (see `avatarctl.frames`); None = all
     views: tuple[str, ...] = ()  # capture cameras; () and orbit == 0 = the first held-out view
     orbit: int = 0  # > 0: that many orbit cameras over one turn instead of capture views
     elevation: float | None = None  # orbit elevation, degrees; None = mean elevation of the capture cameras
@@ -151,8 +88,7 @@ class RenderConfig:
     def __post_init__(self) -> None:
         object.__setattr__(self, "views", tuple(self.views))
         check_name(self.name, "render name")
-        if self.latent not in LATENT_MODES:
-            raise InputError(f"unknown latent mode {self.latent!r}", where="--latent", fix=f"use one of {LATENT_MODES}")
+        check_latent_mode(self.latent)
         if self.orbit < 0:
             raise InputError(f"--orbit must be >= 0, got {self.orbit}", where="--orbit", fix="e.g. --orbit 36")
         if self.orbit and self.views:
@@ -189,17 +125,6 @@ class RenderedImage:
 
 
 @dataclass
-class RenderProgress:
-    done: int  # images rendered
-    total: int  # images to render
-    seconds: float  # since the first image started
-
-    @property
-    def images_per_second(self) -> float:
-        return self.done / self.seconds if self.seconds > 0 else 0.0
-
-
-@dataclass
 class RenderResult:
     out_dir: Path
     video: Path
@@ -220,9 +145,6 @@ class RenderResult:
         return self.render_seconds / max(len(self.images), 1)
 
 
-ProgressFn = Callable[[RenderProgress], None]
-
-
 # ---- the stage -------------------------------------------------------------------------------------------------
 
 @dataclass(frozen=True)
@@ -239,22 +161,22 @@ class _Plan:
     source: str
 
 
-def render(project_dir: str | Path, cfg: RenderConfig, progress: ProgressFn | None = None) -> RenderResult:
+def run(project_dir: str | Path, cfg: RenderConfig, progress: ProgressFn | None = None) -> RenderResult:
     """Run the render stage on `project_dir` (see the module docstring). Returns what was written."""
     import torch
 
     from avatarctl.atomic import atomic_dir, write_json
-    from avatarctl.fit.checkpoint import load_avatar
-    from avatarctl.fit.loop import resolve_device
+    from avatarctl.render.images import to_uint8, write_png
     from avatarctl.render.video import tile, write_video
 
     started = now_iso()
     t_start = time.perf_counter()
     project = Project.open(project_dir)
     project.require("fit")
-    _precheck(project, cfg)
-    ckpt = Path(cfg.checkpoint) if cfg.checkpoint else None
-    avatar = load_avatar(project, device=str(resolve_device(cfg.device)), checkpoint=ckpt)
+    if cfg.poses is not None and not Path(cfg.poses).is_file():
+        raise InputError("motion file not found", where=str(cfg.poses), fix="check the --poses path")
+    precheck(project, cfg.checkpoint, cfg.views)
+    avatar = load_fitted(project, cfg.device, cfg.checkpoint)
     background, transparent = parse_background(cfg.background, avatar.background)
     plan = _plan(avatar, cfg)
     out_dir = project.paths.render(cfg.name)
@@ -271,7 +193,8 @@ def render(project_dir: str | Path, cfg: RenderConfig, progress: ProgressFn | No
         row: list[np.ndarray] = []
         for i, (seq, pos, cam) in enumerate(plan.shots):
             if state_cache is None or state_cache[0] != pos:
-                state_cache = (pos, _node_state(avatar, plan, pos, cfg.seed))
+                state_cache = (pos, frame_node_state(avatar, plan.motion.select([pos]), plan.frames[pos],
+                                                     plan.training[pos], plan.latents[pos], cfg.seed))
             view = _render_one(avatar, state_cache[1], cam, background, cfg.max_rays_per_chunk)
             timing["render"] += view.seconds
             frame = plan.frames[pos]
@@ -279,9 +202,10 @@ def render(project_dir: str | Path, cfg: RenderConfig, progress: ProgressFn | No
             write_png(tmp / fname, view.rgb, view.alpha if transparent else None)
             images.append(RenderedImage(file=fname, seq=seq, frame=frame, view=cam.name, latent=plan.latents[pos],
                                         seconds=round(view.seconds, 4), rays=int(view.rays)))
-            row.append(_to_uint8(view.rgb))
+            row.append(to_uint8(view.rgb))
             if progress is not None:
-                progress(RenderProgress(done=len(images), total=total, seconds=time.perf_counter() - t0))
+                progress(StageProgress(stage="render", done=len(images), total=total,
+                                       seconds=time.perf_counter() - t0))
             if i + 1 == len(plan.shots) or plan.shots[i + 1][0] != seq:
                 yield tile(row, columns=len(row), pad_color=bg8)
                 row = []
@@ -327,18 +251,6 @@ def render(project_dir: str | Path, cfg: RenderConfig, progress: ProgressFn | No
     return result
 
 
-def _precheck(project: Project, cfg: RenderConfig) -> None:
-    """Cheap checks before the avatar is loaded (which takes seconds)."""
-    from avatarctl.io.project_io import load_cameras
-
-    if cfg.poses is not None and not Path(cfg.poses).is_file():
-        raise InputError("motion file not found", where=str(cfg.poses), fix="check the --poses path")
-    if cfg.checkpoint is not None and not Path(cfg.checkpoint).is_file():
-        raise InputError("checkpoint file not found", where=str(cfg.checkpoint), fix="check the --checkpoint path")
-    if cfg.views:
-        select_views(cfg.views, load_cameras(project.paths.cameras))
-
-
 def _plan(avatar: Any, cfg: RenderConfig) -> _Plan:
     """Resolve motion, frames, latent modes and cameras from the config."""
     from avatarctl.io import motion_files
@@ -363,16 +275,7 @@ def _plan(avatar: Any, cfg: RenderConfig) -> _Plan:
         training = [False] * len(frames)
         source = str(cfg.poses)
     motion = motion.select(motion.rows_for(frames))
-    latents = []
-    for is_train in training:
-        if cfg.latent == "auto":
-            latents.append("mean" if is_train else "zero")
-        elif cfg.latent == "mean" and not is_train:
-            raise InputError("--latent mean needs training frames (z = mu comes from the cVAE encoder of a training "
-                             "frame's time stamp)", where="--latent",
-                             fix="use --latent zero or sample for novel poses, or --frames train")
-        else:
-            latents.append(cfg.latent)
+    latents = [latent_for(cfg.latent, is_train) for is_train in training]
 
     cams = avatar.capture.cameras
     step = int(np.median(np.diff(frames))) if len(frames) > 1 else 1
@@ -428,19 +331,6 @@ def _boxes(avatar: Any, motion: Any, chunk: int = 64) -> tuple[np.ndarray, np.nd
     return np.concatenate(lo).astype(np.float64), np.concatenate(hi).astype(np.float64)
 
 
-def _node_state(avatar: Any, plan: _Plan, pos: int, seed: int) -> Any:
-    """NodeState for one frame (batch of 1) with that frame's latent mode."""
-    import torch
-
-    frame = plan.frames[pos]
-    cond = avatar.conditioning(plan.motion.select([pos]), frames_are_training=plan.training[pos])
-    gen = None
-    if plan.latents[pos] == "sample":
-        gen = torch.Generator(device=avatar.device).manual_seed(int(seed) * 1_000_003 + int(frame))
-    with torch.no_grad():
-        return avatar.model.node_state(cond, mode=plan.latents[pos], generator=gen)
-
-
 def _render_one(avatar: Any, state: Any, cam: Camera, background: tuple[float, float, float], max_rays: int) -> Any:
     from avatarctl.render.engine import render_view
 
@@ -452,28 +342,3 @@ def _unique_cameras(shots: list[tuple[int, int, Camera]]) -> list[Camera]:
     for _, _, c in shots:
         seen.setdefault(c.name, c)
     return list(seen.values())
-
-
-def _to_uint8(rgb: np.ndarray) -> np.ndarray:
-    return (np.clip(rgb, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
-
-
-def write_png(dest: Path, rgb: np.ndarray, alpha: np.ndarray | None) -> None:
-    """[H, W, 3] float in [0, 1] (+ [H, W] alpha for RGBA with straight colour) -> PNG."""
-    import cv2
-
-    img = _to_uint8(rgb)
-    if alpha is None:
-        ok = cv2.imwrite(str(dest), cv2.cvtColor(img, cv2.COLOR_RGB2BGR))
-    else:
-        a = np.clip(alpha, 0.0, 1.0)[..., None]
-        straight = np.where(a > 1e-4, rgb / np.maximum(a, 1e-4), 0.0)  # rendered over black = premultiplied
-        rgba = np.concatenate([_to_uint8(straight), _to_uint8(a)], axis=-1)
-        ok = cv2.imwrite(str(dest), cv2.cvtColor(rgba, cv2.COLOR_RGBA2BGRA))
-    if not ok:
-        raise OSError(f"cv2.imwrite failed for {dest}")
-
-
-def read_render_config(out_dir: Path) -> dict[str, Any]:
-    """The `config.json` of a render folder."""
-    return json.loads((Path(out_dir) / "config.json").read_text())

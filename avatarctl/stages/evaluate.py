@@ -6,7 +6,8 @@ Splits (frames x views; `--frames` / `--views` / `--every` narrow them):
 - `train`: training frames from the training views; latent z = mu.
 
 Ground truth: the ingested (undistorted) frame composited with its mask over the background colour the avatar was
-trained with (`fit_config["background"]`): gt = image * mask + background * (1 - mask). The avatar is rendered over
+trained with (`FitConfig.background`): gt = image * mask + background * (1 - mask)
+(`evaluate.protocols.ground_truth`). The avatar is rendered over
 the same colour, so pixels outside the person score only the avatar's stray density.
 
 Protocols (`avatarctl.evaluate.protocols`): `bbox` (Neural Body / SLRF: PSNR over the projected 3D body box, SSIM on
@@ -18,28 +19,27 @@ LPIPS is reported only when the `lpips` package and its AlexNet weights are alre
 downloaded); otherwise `"lpips": null` with the reason.
 
 Writes `eval/<name>/metrics.json`, `per_frame.csv`, `sheet.png` and, with `--save-images`,
-`renders/<frame:06d>_<view>.png` atomically (all or nothing), and records the stage.
+`renders/<frame:06d>_<view>.png` atomically (all or nothing), and records the stage. What is saved is typed in
+`avatarctl.evaluate.report` (`EvalMetrics`, `ImageScore`).
 """
 
 from __future__ import annotations
 
-import csv
-import io
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 
 from avatarctl.errors import InputError
+from avatarctl.evaluate.report import PSNR_CAP, SCHEMA_VERSION, EvalMetrics, ImageScore, ScoredModel
+from avatarctl.frames import select_frames
 from avatarctl.project import Project, check_name, now_iso
+from avatarctl.stages.common import StageProgress, ProgressFn, check_latent_mode, frame_node_state, latent_for, \
+    load_fitted, precheck, select_views
 
-SCHEMA_VERSION = 1
 SPLITS = ("novel_view", "novel_pose", "train")
-LATENT_MODES = ("auto", "mean", "zero", "sample")
-PSNR_CAP = 100.0  # dB; an exact reconstruction (MSE 0, PSNR inf) is reported as this so JSON stays valid
-GROUND_TRUTH = "undistorted ingest frame * mask + background * (1 - mask)"
 
 
 @dataclass(frozen=True)
@@ -49,7 +49,7 @@ class EvalConfig:
     split: str = "novel_view"  # novel_view | novel_pose | train
     protocol: str = "bbox"  # bbox | full
     name: str | None = None  # eval/<name>; None = "<split>_<protocol>"
-    frames: str | None = None  # frame selection within the split (see render.run.select_frames)
+    frames: str | None = None  # frame selection within the split (see avatarctl.frames)
     views: tuple[str, ...] = ()  # cameras; () = the split's views
     every: int = 1  # keep every N-th selected frame (Neural Body tests every 30th)
     latent: str = "auto"  # auto = mean for training frames, zero for novel; or mean | zero | sample
@@ -70,9 +70,7 @@ class EvalConfig:
         if self.protocol not in PROTOCOLS:
             raise InputError(f"unknown protocol {self.protocol!r}", where="--protocol",
                              fix=f"use one of: {', '.join(PROTOCOLS)}")
-        if self.latent not in LATENT_MODES:
-            raise InputError(f"unknown latent mode {self.latent!r}", where="--latent",
-                             fix=f"use one of: {', '.join(LATENT_MODES)}")
+        check_latent_mode(self.latent)
         if self.every < 1:
             raise InputError(f"--every must be >= 1, got {self.every}", where="--every", fix="e.g. --every 30")
         if self.sheet_rows < 0:
@@ -92,48 +90,24 @@ class EvalConfig:
         return {"schema_version": SCHEMA_VERSION, **d}
 
 
-@dataclass(frozen=True)
-class ImageScore:
-    frame: int
-    view: str
-    psnr: float  # dB over the protocol's region
-    ssim: float  # on the protocol's crop
-    mse: float
-    pixels: int  # PSNR pixels
-    latent: str
-    seconds: float  # render time
-
-
-@dataclass
-class EvalProgress:
-    done: int
-    total: int
-    seconds: float
-    last: ImageScore | None = None
-
-
 @dataclass
 class EvalResult:
     out_dir: Path
-    metrics: dict[str, Any]  # what metrics.json holds
+    metrics: EvalMetrics  # what metrics.json holds
+    seconds: float  # whole stage
     scores: list[ImageScore] = field(default_factory=list)
 
     @property
     def psnr(self) -> float:
-        return float(self.metrics["psnr"])
+        return float(self.metrics.psnr)
 
     @property
     def ssim(self) -> float:
-        return float(self.metrics["ssim"])
-
-
-ProgressFn = Callable[[EvalProgress], None]
+        return float(self.metrics.ssim)
 
 
 def split_pairs(avatar: Any, cfg: EvalConfig) -> tuple[list[int], list[str], bool]:
     """(frames, views, frames_are_training) for the split, after --frames / --views / --every."""
-    from avatarctl.render.run import select_frames, select_views
-
     cap = avatar.capture
     split = cap.split
     trained = sorted(set(int(f) for f in avatar.train_frames))
@@ -156,67 +130,28 @@ def split_pairs(avatar: Any, cfg: EvalConfig) -> tuple[list[int], list[str], boo
     return frames, views, is_train
 
 
-def lpips_status() -> tuple[Any | None, str]:
-    """(an LPIPS function or None, reason). Never downloads: the weights must already be on this machine."""
-    import importlib.util
-
-    if importlib.util.find_spec("lpips") is None:
-        return None, "lpips package not installed (pip install lpips, with its AlexNet weights cached locally)"
-    try:
-        import torch
-
-        hub = Path(torch.hub.get_dir()) / "checkpoints"
-        alex = sorted(hub.glob("alexnet-owt-*.pth"))
-        if not alex:
-            return None, f"AlexNet backbone weights not found in {hub} (LPIPS would download them; we never do)"
-        import lpips  # type: ignore[import-not-found]
-
-        net = lpips.LPIPS(net="alex", verbose=False).eval()
-
-        def score(pred: np.ndarray, gt: np.ndarray) -> float:
-            p = torch.from_numpy(np.ascontiguousarray(pred, dtype=np.float32)).permute(2, 0, 1)[None] * 2 - 1
-            g = torch.from_numpy(np.ascontiguousarray(gt, dtype=np.float32)).permute(2, 0, 1)[None] * 2 - 1
-            with torch.no_grad():
-                return float(net(p, g).item())
-
-        return score, f"lpips {getattr(lpips, '__version__', '?')} (alex), inputs scaled to [-1, 1]"
-    except Exception as e:  # noqa: BLE001 - any failure means LPIPS is unavailable, said plainly
-        return None, f"lpips unavailable ({type(e).__name__}: {e})"
-
-
-def evaluate(project_dir: str | Path, cfg: EvalConfig, progress: ProgressFn | None = None) -> EvalResult:
+def run(project_dir: str | Path, cfg: EvalConfig, progress: ProgressFn | None = None) -> EvalResult:
     """Run the eval stage on `project_dir` (see the module docstring)."""
     import torch
 
     from avatarctl.atomic import atomic_dir, write_json, write_text
-    from avatarctl.evaluate.metrics import metric_settings, mse, psnr_from_mse, ssim, to_float
-    from avatarctl.evaluate.protocols import bbox_region, full_region
+    from avatarctl.evaluate.metrics import lpips_status, metric_settings, mse, psnr_from_mse, ssim
+    from avatarctl.evaluate.protocols import GROUND_TRUTH, bbox_region, full_region, ground_truth
+    from avatarctl.evaluate.report import per_frame_csv
     from avatarctl.evaluate.sheet import SheetRow, comparison_sheet
-    from avatarctl.fit.checkpoint import load_avatar
-    from avatarctl.fit.loop import resolve_device
     from avatarctl.render.engine import render_view
-    from avatarctl.render.run import write_png
+    from avatarctl.render.images import write_png
 
     started = now_iso()
     t_start = time.perf_counter()
     project = Project.open(project_dir)
     project.require("fit")
-    if cfg.views:  # cheap check before the avatar is loaded
-        from avatarctl.io.project_io import load_cameras
-        from avatarctl.render.run import select_views
-
-        select_views(cfg.views, load_cameras(project.paths.cameras))
-    ckpt = Path(cfg.checkpoint) if cfg.checkpoint else None
-    if ckpt is not None and not ckpt.is_file():
-        raise InputError("checkpoint file not found", where=str(ckpt), fix="check the --checkpoint path")
-    avatar = load_avatar(project, device=str(resolve_device(cfg.device)), checkpoint=ckpt)
+    precheck(project, cfg.checkpoint, cfg.views)
+    avatar = load_fitted(project, cfg.device, cfg.checkpoint)
     cap = avatar.capture
     frames, views, is_train = split_pairs(avatar, cfg)
-    latent = cfg.latent if cfg.latent != "auto" else ("mean" if is_train else "zero")
-    if latent == "mean" and not is_train:
-        raise InputError("--latent mean needs training frames", where="--latent", fix="use zero or sample")
+    latent = latent_for(cfg.latent, is_train)
     background = avatar.background
-    bg = np.asarray(background, np.float32)
     lpips_fn, lpips_reason = lpips_status()
     cams = {v: cap.cameras[v].pinhole() for v in views}
     total = len(frames) * len(views)
@@ -234,11 +169,7 @@ def evaluate(project_dir: str | Path, cfg: EvalConfig, progress: ProgressFn | No
         for fi, frame in enumerate(frames):
             one = motion.select([fi])
             verts = avatar.body.pose(one).vertices[0].detach().float().cpu().numpy()  # [V, 3]
-            cond = avatar.conditioning(one, frames_are_training=is_train)
-            gen = torch.Generator(device=avatar.device).manual_seed(cfg.seed * 1_000_003 + frame) \
-                if latent == "sample" else None
-            with torch.no_grad():
-                state = avatar.model.node_state(cond, mode=latent, generator=gen)
+            state = frame_node_state(avatar, one, frame, is_train, latent, cfg.seed)
             for view in views:
                 cam = cams[view]
                 region = bbox_region(cam, verts, pad=cfg.bbox_pad) if cfg.protocol == "bbox" \
@@ -253,9 +184,7 @@ def evaluate(project_dir: str | Path, cfg: EvalConfig, progress: ProgressFn | No
                     render_mask[y0:y1, x0:x1] = True
                 view_out = render_view(avatar.model, state, 0, cam, background,
                                        max_rays_per_chunk=cfg.max_rays_per_chunk, pixel_mask=render_mask)
-                img = to_float(cap.image(view, frame))
-                m = cap.mask(view, frame)[..., None].astype(np.float32)
-                gt = img * m + bg * (1.0 - m)  # [H, W, 3]
+                gt = ground_truth(cap.image(view, frame), cap.mask(view, frame), background)  # [H, W, 3]
                 e = mse(view_out.rgb, gt, region.mask)
                 pred_crop, gt_crop = region.crop_image(view_out.rgb), region.crop_image(gt)
                 try:
@@ -275,58 +204,58 @@ def evaluate(project_dir: str | Path, cfg: EvalConfig, progress: ProgressFn | No
                                                label=f"frame {frame}  view {view}  latent {latent}  "
                                                      f"PSNR {score.psnr:.2f} dB  SSIM {score.ssim:.4f}"))
                 if progress is not None:
-                    progress(EvalProgress(done=len(scores), total=total, seconds=time.perf_counter() - t0, last=score))
+                    progress(StageProgress(stage="eval", done=len(scores), total=total,
+                                           seconds=time.perf_counter() - t0, detail=score))
 
         psnrs = np.minimum(np.array([s.psnr for s in scores], np.float64), PSNR_CAP)  # exact match: inf -> cap
         ssims = np.array([s.ssim for s in scores], np.float64)
         render_seconds = float(sum(s.seconds for s in scores))
-        fit_ablations = list(avatar.fit_config.get("ablations", []))
-        metrics: dict[str, Any] = {
-            "schema_version": SCHEMA_VERSION,
-            "split": cfg.split,
-            "protocol": cfg.protocol,
-            "psnr": _finite_mean(psnrs),
-            "ssim": _finite_mean(ssims),
-            "lpips": float(np.mean(lpips_values)) if lpips_values else None,
-            "lpips_reason": lpips_reason,
-            "psnr_std": float(psnrs.std()) if len(psnrs) else None,
-            "psnr_min": float(psnrs.min()) if len(psnrs) else None,
-            "psnr_max": float(psnrs.max()) if len(psnrs) else None,
-            "ssim_std": float(ssims.std()) if len(ssims) else None,
-            "images": len(scores),
-            "frames": frames,
-            "views": views,
-            "every": cfg.every,
-            "averaging": "mean over (frame, view) images of per-image PSNR / SSIM",
-            "checkpoint_step": avatar.step,
-            "checkpoint": str(avatar.checkpoint) if avatar.checkpoint else None,
-            "background": list(background),
-            "ground_truth": GROUND_TRUTH,
-            "latent": latent,
-            "protocol_details": _protocol_details(cfg),
-            "metric_settings": metric_settings(),
-            "model": {"variant": avatar.model_config.variant, "latent": avatar.model_config.latent,
-                      "use_delta_n": avatar.model_config.use_delta_n,
-                      "use_embedding": avatar.model_config.use_embedding, "ablations": fit_ablations},
-            "image_size": [int(cams[views[0]].width), int(cams[views[0]].height)],
-            "timing": {"render_seconds": round(render_seconds, 3),
-                       "seconds_per_image": round(render_seconds / max(len(scores), 1), 4),
-                       "device": str(avatar.device), "torch_threads": torch.get_num_threads()},
-            "config": cfg.to_json(),
-            "created": now_iso(),
-        }
-        write_json(tmp / "metrics.json", metrics)
-        write_text(tmp / "per_frame.csv", _csv(scores))
+        mc = avatar.model_config
+        metrics = EvalMetrics(
+            schema_version=SCHEMA_VERSION,
+            split=cfg.split,
+            protocol=cfg.protocol,
+            psnr=_finite_mean(psnrs),
+            ssim=_finite_mean(ssims),
+            lpips=float(np.mean(lpips_values)) if lpips_values else None,
+            lpips_reason=lpips_reason,
+            psnr_std=float(psnrs.std()) if len(psnrs) else None,
+            psnr_min=float(psnrs.min()) if len(psnrs) else None,
+            psnr_max=float(psnrs.max()) if len(psnrs) else None,
+            ssim_std=float(ssims.std()) if len(ssims) else None,
+            images=len(scores),
+            frames=frames,
+            views=views,
+            every=cfg.every,
+            averaging="mean over (frame, view) images of per-image PSNR / SSIM",
+            checkpoint_step=avatar.step,
+            checkpoint=str(avatar.checkpoint) if avatar.checkpoint else None,
+            background=list(background),
+            ground_truth=GROUND_TRUTH,
+            latent=latent,
+            protocol_details=_protocol_details(cfg),
+            metric_settings=metric_settings(),
+            model=ScoredModel(variant=mc.variant, latent=mc.latent, use_delta_n=mc.use_delta_n,
+                              use_embedding=mc.use_embedding, ablations=list(avatar.fit_config.ablations)),
+            image_size=[int(cams[views[0]].width), int(cams[views[0]].height)],
+            timing={"render_seconds": round(render_seconds, 3),
+                    "seconds_per_image": round(render_seconds / max(len(scores), 1), 4),
+                    "device": str(avatar.device), "torch_threads": torch.get_num_threads()},
+            config=cfg.to_json(),
+            created=now_iso(),
+        )
+        write_json(tmp / "metrics.json", metrics.to_json())
+        write_text(tmp / "per_frame.csv", per_frame_csv(scores))
         if sheet_rows:
             comparison_sheet(sheet_rows, tmp / "sheet.png",
                              title=f"{cfg.split} / {cfg.protocol}  step {avatar.step}  "
-                                   f"PSNR {metrics['psnr']:.2f} dB  SSIM {metrics['ssim']:.4f}")
-    metrics["seconds"] = round(time.perf_counter() - t_start, 3)
+                                   f"PSNR {metrics.psnr:.2f} dB  SSIM {metrics.ssim:.4f}")
+    seconds = round(time.perf_counter() - t_start, 3)
     project.record("eval", config=cfg.to_json(), outputs=[out_dir], started=started,
                    summary={"name": cfg.out_name, "split": cfg.split, "protocol": cfg.protocol,
-                            "psnr": round(metrics["psnr"], 3), "ssim": round(metrics["ssim"], 4),
+                            "psnr": round(metrics.psnr, 3), "ssim": round(metrics.ssim, 4),
                             "images": len(scores), "checkpoint_step": avatar.step})
-    return EvalResult(out_dir=out_dir, metrics=metrics, scores=scores)
+    return EvalResult(out_dir=out_dir, metrics=metrics, seconds=seconds, scores=scores)
 
 
 def _finite_mean(a: np.ndarray) -> float:
@@ -340,22 +269,8 @@ def _protocol_details(cfg: EvalConfig) -> str:
     return "PSNR and SSIM over every pixel of the image"
 
 
-def _csv(scores: list[ImageScore]) -> str:
-    buf = io.StringIO()
-    w = csv.writer(buf, lineterminator="\n")
-    w.writerow(["frame", "view", "psnr", "ssim", "mse", "pixels", "latent", "render_seconds"])
-    for s in scores:
-        w.writerow([s.frame, s.view, f"{min(s.psnr, PSNR_CAP):.4f}", f"{s.ssim:.6f}", f"{s.mse:.8f}", s.pixels,
-                    s.latent, f"{s.seconds:.3f}"])
-    return buf.getvalue()
+def compare(projects: list[str | Path], split: str | None = None, protocol: str | None = None) -> list[Any]:
+    """`avatarctl eval --compare`: one `ComparisonRow` per project from its latest metrics.json (nothing rendered)."""
+    from avatarctl.evaluate.compare import compare as compare_projects
 
-
-def read_per_frame_csv(path: str | Path) -> list[dict[str, Any]]:
-    """Rows of a `per_frame.csv` with numbers parsed."""
-    rows = []
-    with open(path, newline="") as fh:
-        for r in csv.DictReader(fh):
-            rows.append({"frame": int(r["frame"]), "view": r["view"], "psnr": float(r["psnr"]),
-                         "ssim": float(r["ssim"]), "mse": float(r["mse"]), "pixels": int(r["pixels"])})
-    return rows
-
+    return compare_projects(projects, split, protocol)

@@ -21,7 +21,7 @@ import numpy as np
 from avatarctl.body.motion import BodyMotion
 from avatarctl.errors import InputError
 from avatarctl.io.project_io import Split
-from avatarctl.render.cameras import Camera
+from avatarctl.geometry.cameras import Camera
 
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".bmp")
 _SAFE = re.compile(r"[^A-Za-z0-9._-]+")

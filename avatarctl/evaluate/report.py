@@ -1,0 +1,122 @@
+"""What an evaluation saves: `EvalMetrics` (`eval/<name>/metrics.json`) and the per-image scores (`per_frame.csv`).
+
+`EvalMetrics.to_json` writes exactly the keys of metrics.json (schema_version 1); `from_json` reads them back and
+fails on a missing key (a typo never turns into a default).
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+from dataclasses import asdict, dataclass, fields
+from pathlib import Path
+from typing import Any
+
+SCHEMA_VERSION = 1
+PSNR_CAP = 100.0  # dB; an exact reconstruction (MSE 0, PSNR inf) is reported as this so JSON stays valid
+
+
+@dataclass(frozen=True)
+class ImageScore:
+    frame: int
+    view: str
+    psnr: float  # dB over the protocol's region
+    ssim: float  # on the protocol's crop
+    mse: float
+    pixels: int  # PSNR pixels
+    latent: str
+    seconds: float  # render time
+
+
+@dataclass(frozen=True)
+class ScoredModel:
+    """The avatar that was scored (metrics.json "model")."""
+
+    variant: str
+    latent: str
+    use_delta_n: bool
+    use_embedding: bool
+    ablations: list[str]  # the fit's --ablation switches
+
+    @property
+    def label(self) -> str:
+        """What distinguishes it from the full model ("full model" when nothing does)."""
+        parts = list(self.ablations)
+        if not parts:
+            if self.variant != "slrf":
+                parts.append(self.variant)
+            if not self.use_delta_n:
+                parts.append("no-delta-n")
+            if not self.use_embedding:
+                parts.append("no-embedding")
+            if self.latent != "cvae":
+                parts.append(f"latent={self.latent}")
+        return ", ".join(parts) if parts else "full model"
+
+
+@dataclass(frozen=True)
+class EvalMetrics:
+    """`eval/<name>/metrics.json`, field for field."""
+
+    schema_version: int
+    split: str
+    protocol: str
+    psnr: float  # mean over (frame, view) images of the per-image PSNR, dB
+    ssim: float
+    lpips: float | None  # None when LPIPS is unavailable (see lpips_reason)
+    lpips_reason: str
+    psnr_std: float | None
+    psnr_min: float | None
+    psnr_max: float | None
+    ssim_std: float | None
+    images: int
+    frames: list[int]
+    views: list[str]
+    every: int
+    averaging: str
+    checkpoint_step: int
+    checkpoint: str | None
+    background: list[float]
+    ground_truth: str
+    latent: str
+    protocol_details: str
+    metric_settings: dict[str, Any]
+    model: ScoredModel
+    image_size: list[int]  # [W, H]
+    timing: dict[str, Any]
+    config: dict[str, Any]  # EvalConfig.to_json()
+    created: str
+
+    def to_json(self) -> dict[str, Any]:
+        return asdict(self)
+
+    @classmethod
+    def from_json(cls, d: dict[str, Any]) -> "EvalMetrics":
+        kw = {f.name: d[f.name] for f in fields(cls)}
+        kw["model"] = ScoredModel(**{f.name: d["model"][f.name] for f in fields(ScoredModel)})
+        return cls(**kw)
+
+    @property
+    def pairs(self) -> set[tuple[int, str]]:
+        """The (frame, view) images scored."""
+        return {(int(f), str(v)) for f in self.frames for v in self.views}
+
+
+def per_frame_csv(scores: list[ImageScore]) -> str:
+    buf = io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    w.writerow(["frame", "view", "psnr", "ssim", "mse", "pixels", "latent", "render_seconds"])
+    for s in scores:
+        w.writerow([s.frame, s.view, f"{min(s.psnr, PSNR_CAP):.4f}", f"{s.ssim:.6f}", f"{s.mse:.8f}", s.pixels,
+                    s.latent, f"{s.seconds:.3f}"])
+    return buf.getvalue()
+
+
+def read_per_frame_csv(path: str | Path) -> list[dict[str, Any]]:
+    """Rows of a `per_frame.csv` with numbers parsed."""
+    rows = []
+    with open(path, newline="") as fh:
+        for r in csv.DictReader(fh):
+            rows.append({"frame": int(r["frame"]), "view": r["view"], "psnr": float(r["psnr"]),
+                         "ssim": float(r["ssim"]), "mse": float(r["mse"]), "pixels": int(r["pixels"])})
+    return rows

@@ -1,0 +1,104 @@
+"""What several stages share, stated once: the progress report, view / latent selection, the sample-seed formula,
+the cheap pre-checks and loading a fitted avatar.
+
+Frame specs are `avatarctl.frames` (ingest uses them too); ground-truth compositing is
+`avatarctl.evaluate.protocols.ground_truth` (fit targets and validation use it too); devices are
+`avatarctl.device.resolve_device` (the fit loop uses it too).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, Callable
+
+from avatarctl.errors import InputError
+
+if TYPE_CHECKING:
+    from avatarctl.body.motion import BodyMotion
+    from avatarctl.fit.checkpoint import LoadedAvatar
+    from avatarctl.geometry.cameras import Camera
+    from avatarctl.model.avatar import NodeState
+    from avatarctl.project import Project
+
+LATENT_MODES = ("auto", "mean", "zero", "sample")
+
+
+@dataclass(frozen=True)
+class StageProgress:
+    """The one progress report every stage sends: `done` of `total` units of `stage` (of its `part`)."""
+
+    stage: str  # synth | ingest | fit | render | eval (the demo prefixes its own labels: "render orbit", ...)
+    done: int  # units done: frames, steps or images
+    total: int | None  # None while unknown
+    seconds: float  # since the stage started its units
+    part: str = ""  # a sub-step of the stage ("simulate" | "render" for synth), else ""
+    detail: Any = None  # the stage's own typed record: fit `StepReport`, eval `ImageScore`, else None
+
+    @property
+    def per_second(self) -> float:
+        return self.done / self.seconds if self.seconds > 0 else 0.0
+
+
+ProgressFn = Callable[[StageProgress], None]
+
+
+def check_latent_mode(mode: str) -> None:
+    if mode not in LATENT_MODES:
+        raise InputError(f"unknown latent mode {mode!r}", where="--latent",
+                         fix=f"use one of: {', '.join(LATENT_MODES)}")
+
+
+def latent_for(mode: str, is_training: bool) -> str:
+    """The latent of one frame: "auto" = the posterior mean z = mu for training frames, z = 0 for novel ones (paper
+    Sec. 4.1); "mean" needs a training frame (mu comes from the cVAE encoder of its time stamp)."""
+    if mode == "auto":
+        return "mean" if is_training else "zero"
+    if mode == "mean" and not is_training:
+        raise InputError("--latent mean needs training frames (z = mu comes from the cVAE encoder of a training "
+                         "frame's time stamp)", where="--latent",
+                         fix="use --latent zero or sample for novel poses, or training frames")
+    return mode
+
+
+def sample_seed(seed: int, frame: int) -> int:
+    """The seed of the latent sample of one frame (`--latent sample --seed N`): the same image for the same frame."""
+    return int(seed) * 1_000_003 + int(frame)
+
+
+def frame_node_state(avatar: "LoadedAvatar", one: "BodyMotion", frame: int, is_training: bool, latent: str,
+                     seed: int) -> "NodeState":
+    """NodeState of one frame (`one`: a motion of one row) with latent mode `latent` (mean | zero | sample)."""
+    import torch
+
+    cond = avatar.conditioning(one, frames_are_training=is_training)
+    gen = torch.Generator(device=avatar.device).manual_seed(sample_seed(seed, frame)) if latent == "sample" else None
+    with torch.no_grad():
+        return avatar.model.node_state(cond, mode=latent, generator=gen)
+
+
+def select_views(names: tuple[str, ...], cameras: dict[str, "Camera"], what: str = "--views") -> list[str]:
+    """Check capture camera names (in the order given, duplicates dropped)."""
+    unknown = [n for n in names if n not in cameras]
+    if unknown:
+        raise InputError(f"unknown camera(s) {unknown}", where=what, fix=f"choose among: {', '.join(cameras)}")
+    return list(dict.fromkeys(names))
+
+
+def precheck(project: "Project", checkpoint: str | None, views: tuple[str, ...]) -> None:
+    """Cheap checks before the avatar is loaded (which takes seconds): the checkpoint file and the camera names."""
+    if checkpoint is not None and not Path(checkpoint).is_file():
+        raise InputError("checkpoint file not found", where=str(checkpoint), fix="check the --checkpoint path")
+    if views:
+        from avatarctl.io.project_io import load_cameras
+
+        select_views(views, load_cameras(project.paths.cameras))
+
+
+def load_fitted(project: "Project", device: str, checkpoint: str | None) -> "LoadedAvatar":
+    """The project's fitted avatar (`checkpoint`, default the latest) on the resolved `device`, in eval mode."""
+    from avatarctl.device import resolve_device
+    from avatarctl.fit.checkpoint import load_avatar
+
+    ckpt = Path(checkpoint) if checkpoint else None
+    return load_avatar(project, device=str(resolve_device(device)), checkpoint=ckpt)

@@ -1,0 +1,94 @@
+"""The fit stage (`avatarctl fit PROJECT`): resolve the fit config from the options (or from the checkpoint being
+resumed), then train with `avatarctl.fit.loop.fit` and report each step as a `StageProgress`.
+
+Resolution: a fresh fit takes `resolve_fit_config(preset, ablation, iters, seed, overrides)`; a resumed fit keeps
+the checkpoint's config and may only change `iters`.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+from avatarctl.errors import InputError
+from avatarctl.project import Project
+from avatarctl.stages.common import StageProgress, ProgressFn
+
+if TYPE_CHECKING:
+    from avatarctl.fit.config import FitConfig
+    from avatarctl.fit.loop import FitResult, StopFlag
+
+
+@dataclass(frozen=True)
+class FitRequest:
+    """What `avatarctl fit` was asked: the options that build (or keep) the `FitConfig`, and how to run."""
+
+    preset: str | None = None  # FitConfig preset; None = "cpu" (fresh fits only)
+    iters: int | None = None  # total steps; None = the preset's (or the checkpoint's)
+    seed: int | None = None
+    overrides: tuple[str, ...] = ()  # `--set key=value`
+    ablation: str | None = None  # comma list of --ablation switches
+    device: str = "auto"  # auto | cpu | cuda
+    resume: bool = False  # continue fit/checkpoints/latest.pt
+    fresh: bool = False  # discard an existing fit
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "overrides", tuple(self.overrides))
+
+
+def fit_config(project: Project, req: FitRequest) -> "FitConfig | None":
+    """The config to train with; None = the checkpoint's unchanged (resume without --iters)."""
+    from avatarctl.fit.config import FitConfig, resolve_fit_config
+
+    if req.resume and req.fresh:
+        raise InputError("--resume and --fresh contradict each other", fix="pass one of them")
+    if not req.resume:
+        return resolve_fit_config(req.preset or "cpu", ablation=req.ablation, iters=req.iters, seed=req.seed,
+                                  overrides=list(req.overrides))
+    given = [n for n, v in (("--preset", req.preset), ("--seed", req.seed), ("--ablation", req.ablation))
+             if v is not None]
+    if req.overrides:
+        given.append("--set")
+    if given:
+        raise InputError(f"{', '.join(given)} cannot change a fit being resumed",
+                         fix="resume with only --iters (or start over with --fresh)")
+    if req.iters is None:
+        return None
+    from avatarctl.fit.checkpoint import read_checkpoint  # extend (or shorten) the resumed run
+
+    saved = FitConfig.from_json(read_checkpoint(project.paths.latest_checkpoint)["fit_config"])
+    return replace(saved, iters=req.iters)
+
+
+@dataclass(frozen=True)
+class FitPlan:
+    """A fit request checked against its project (every option error is raised before training starts)."""
+
+    project: Project
+    config: "FitConfig | None"  # None = the resumed checkpoint's, unchanged
+
+
+def prepare(project_dir: str | Path, req: FitRequest) -> FitPlan:
+    project = Project.open(project_dir)
+    return FitPlan(project, fit_config(project, req))
+
+
+def run(project_dir: str | Path, req: FitRequest, progress: ProgressFn | None = None, *,
+        plan: FitPlan | None = None, stop: "StopFlag | None" = None, handle_sigint: bool = True) -> "FitResult":
+    """Train (or resume) the project's avatar; `progress` gets every step (`detail`: the loop's `StepReport`).
+    `plan`: the result of `prepare(project_dir, req)` when the caller already has it."""
+    from avatarctl.fit.loop import StepReport, fit
+
+    plan = plan or prepare(project_dir, req)
+    project, cfg = plan.project, plan.config
+    t0 = time.perf_counter()
+
+    def on_step(rep: StepReport) -> None:
+        if progress is not None:
+            progress(StageProgress(stage="fit", done=rep.step, total=rep.iters, seconds=time.perf_counter() - t0,
+                                   detail=rep))
+
+    return fit(project, cfg, device=req.device, resume=req.resume, fresh=req.fresh, progress=on_step, stop=stop,
+               handle_sigint=handle_sigint)

@@ -1,0 +1,37 @@
+"""The ingest stage (`avatarctl ingest CAPTURE PROJECT`): a raw capture -> a project directory, through the ingest
+library (`avatarctl.ingest.pipeline.run_ingest`); every ingested frame is reported as a `StageProgress`."""
+
+from __future__ import annotations
+
+import time
+from dataclasses import replace
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+from avatarctl.ingest.config import IngestConfig
+from avatarctl.stages.common import StageProgress, ProgressFn
+
+if TYPE_CHECKING:
+    from avatarctl.ingest.pipeline import IngestResult
+
+__all__ = ["IngestConfig", "detect", "run"]
+
+
+def detect(capture: str | Path) -> tuple[str, str]:
+    """(format, why) of a capture folder (what `--format auto` picks)."""
+    from avatarctl.io.detect import detect_format
+
+    return detect_format(Path(capture))
+
+
+def run(project_dir: str | Path, cfg: IngestConfig, progress: ProgressFn | None = None) -> "IngestResult":
+    """Build the project `project_dir` from `cfg.capture` (see `avatarctl.ingest.pipeline`)."""
+    from avatarctl.ingest.pipeline import run_ingest
+
+    t0 = time.perf_counter()
+
+    def on_frame(done: int, total: int) -> None:
+        if progress is not None:
+            progress(StageProgress(stage="ingest", done=done, total=total, seconds=time.perf_counter() - t0))
+
+    return run_ingest(replace(cfg, project=Path(project_dir)), progress=on_frame)
