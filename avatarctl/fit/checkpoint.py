@@ -68,6 +68,16 @@ def save_checkpoint(project: Project, payload: dict[str, Any], keep: int = 3) ->
     return dest
 
 
+def save_snapshot(project: Project, payload: dict[str, Any], seconds: float) -> Path:
+    """Write `payload` as `checkpoints/snapshot_<seconds>s.pt` (atomic; never pruned, never `latest`): the state
+    after that much training time, for quality-versus-time benchmarks (`FitConfig.snapshot_at_s`)."""
+    payload = {"format": FORMAT, "schema_version": SCHEMA_VERSION, "avatarctl_version": __version__, **payload}
+    dest = project.paths.checkpoints / f"snapshot_{int(round(seconds)):05d}s.pt"
+    with atomic_path(dest) as tmp:
+        torch.save(payload, tmp)
+    return dest
+
+
 def read_checkpoint(path: Path, device: str | torch.device = "cpu") -> dict[str, Any]:
     """Load a checkpoint dict (tensors mapped to `device`); a clear `ProjectError` when missing or foreign."""
     path = Path(path)

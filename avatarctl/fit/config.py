@@ -62,6 +62,8 @@ class FitConfig:
     rays_per_batch: int = 512  # rays per step, over all images of the batch
     images_per_batch: int = 4  # (training frame, training view) images per step; each gets its own frame slot
     box_fraction: float = 0.9  # share of rays drawn inside the projected body box (the rest: whole image)
+    mask_fraction: float = 0.0  # focused sampling: share of rays drawn on the dilated foreground mask (before box)
+    mask_dilate_px: int = 4  # dilation of the mask for mask_fraction rays, pixels
     crop_pad: float = 0.25  # metres the posed body's 3D box is grown by, for the crop and the "inside" region
     jitter: bool = True  # stratified jitter of the ray samples during training
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)  # target = rgb * mask + background * (1 - mask)
@@ -75,6 +77,7 @@ class FitConfig:
     grad_clip: float = 0.0  # max gradient norm, 0 = off (paper: none)
     amp: bool = False  # bfloat16 autocast on CUDA (ignored on CPU)
     time_budget_s: float = 0.0  # stop (checkpoint, validate, record) after this many seconds of training; 0 = none
+    snapshot_at_s: tuple[float, ...] = ()  # also save checkpoints/snapshot_<s>s.pt after these seconds of training
     # data loading
     cache_mb: int = 2048  # RAM budget of the LRU cache of cropped frames
     # bookkeeping
@@ -90,6 +93,7 @@ class FitConfig:
     def __post_init__(self) -> None:
         object.__setattr__(self, "background", tuple(float(c) for c in self.background))
         object.__setattr__(self, "ablations", tuple(str(a) for a in self.ablations))
+        object.__setattr__(self, "snapshot_at_s", tuple(sorted(float(t) for t in self.snapshot_at_s)))
 
         def need(ok: bool, msg: str) -> None:
             if not ok:
@@ -106,6 +110,9 @@ class FitConfig:
         need(self.rays_per_batch >= self.images_per_batch,
              f"rays_per_batch ({self.rays_per_batch}) must be >= images_per_batch ({self.images_per_batch})")
         need(0.0 <= self.box_fraction <= 1.0, f"box_fraction must be in [0, 1], got {self.box_fraction}")
+        need(0.0 <= self.mask_fraction <= 1.0, f"mask_fraction must be in [0, 1], got {self.mask_fraction}")
+        need(isinstance(self.mask_dilate_px, int) and 0 <= self.mask_dilate_px <= 64,
+             f"mask_dilate_px must be an int in [0, 64], got {self.mask_dilate_px!r}")
         need(self.crop_pad >= 0.0, f"crop_pad must be >= 0 metres, got {self.crop_pad}")
         need(len(self.background) == 3 and all(0.0 <= c <= 1.0 for c in self.background),
              f"background must be 3 values in [0, 1], got {self.background}")
@@ -115,6 +122,7 @@ class FitConfig:
         need(0.0 < self.lr_decay_factor <= 1.0, f"lr_decay_factor must be in (0, 1], got {self.lr_decay_factor}")
         need(self.grad_clip >= 0.0, f"grad_clip must be >= 0, got {self.grad_clip}")
         need(self.time_budget_s >= 0.0, f"time_budget_s must be >= 0 seconds, got {self.time_budget_s}")
+        need(all(t > 0 for t in self.snapshot_at_s), f"snapshot_at_s must be > 0 seconds, got {self.snapshot_at_s}")
         need(0.0 < self.val_scale <= 1.0, f"val_scale must be in (0, 1], got {self.val_scale}")
         for a in self.ablations:
             need(a in ABLATIONS, f"unknown ablation {a!r}; expected some of {sorted(ABLATIONS)}")
@@ -125,6 +133,7 @@ class FitConfig:
         d = {f.name: getattr(self, f.name) for f in fields(self) if f.name != "model"}
         d["background"] = list(self.background)
         d["ablations"] = list(self.ablations)
+        d["snapshot_at_s"] = list(self.snapshot_at_s)
         return {"schema_version": SCHEMA_VERSION, **d, "model": self.model.to_json()}
 
     @classmethod
@@ -145,6 +154,7 @@ class FitConfig:
             raise InputError(str(e), fix="check the model section of the fit config") from None
         d["background"] = tuple(d.get("background", (0.0, 0.0, 0.0)))
         d["ablations"] = tuple(d.get("ablations", ()))
+        d["snapshot_at_s"] = tuple(d.get("snapshot_at_s", ()))
         return cls(**d, model=model)
 
 

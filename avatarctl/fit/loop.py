@@ -170,7 +170,7 @@ def fit(project: Project, cfg: FitConfig | None = None, *, device: str = "auto",
         handle_sigint: bool = True) -> FitResult:
     """Train (or resume training) the project's avatar; see the module docstring. `cfg` may be None on resume."""
     from avatarctl.body.registry import load_body_model
-    from avatarctl.fit.checkpoint import read_checkpoint, save_checkpoint
+    from avatarctl.fit.checkpoint import read_checkpoint, save_checkpoint, save_snapshot
     from avatarctl.fit.conditioning import build_pose_table
     from avatarctl.fit.data import FrameStore, RaySampler
     from avatarctl.fit.schedule import make_optimizer, make_scheduler, param_groups
@@ -216,9 +216,9 @@ def fit(project: Project, cfg: FitConfig | None = None, *, device: str = "auto",
     body = load_body_model(capture.body_model, capture.body_model_path)
     template = body.template(capture.motion)
     poses = build_pose_table(body, capture.motion, train_frames)
-    store = FrameStore(capture, poses, cfg.crop_pad, cfg.cache_mb * 2**20)
+    store = FrameStore(capture, poses, cfg.crop_pad, cfg.cache_mb * 2**20, cfg.mask_dilate_px)
     sampler = RaySampler(store, train_frames, split.train_views, cfg.rays_per_batch, cfg.images_per_batch,
-                         cfg.box_fraction, cfg.background)
+                         cfg.box_fraction, cfg.background, cfg.mask_fraction)
     pairs = choose_val_pairs(split.test_views, train_frames, cfg.val_pairs)
     validator = Validator(capture, body, pairs, train_frames, cfg.background, cfg.val_scale) if pairs else None
 
@@ -240,11 +240,15 @@ def fit(project: Project, cfg: FitConfig | None = None, *, device: str = "auto",
     use_amp = cfg.amp and dev.type == "cuda"
     stop = stop or StopFlag()
 
+    def payload(step: int) -> dict[str, Any]:
+        return {"step": step, "model": model.state_dict(), "optimizer": optimizer.state_dict(),
+                "scheduler": scheduler.state_dict(), "rng": _rng_state(sampler_gen, noise_gen),
+                "model_config": cfg.model.to_json(), "fit_config": cfg.to_json(), "train_frames": train_frames}
+
     def checkpoint(step: int) -> Path:
-        payload = {"step": step, "model": model.state_dict(), "optimizer": optimizer.state_dict(),
-                   "scheduler": scheduler.state_dict(), "rng": _rng_state(sampler_gen, noise_gen),
-                   "model_config": cfg.model.to_json(), "fit_config": cfg.to_json(), "train_frames": train_frames}
-        return save_checkpoint(project, payload, keep=cfg.keep_checkpoints)
+        return save_checkpoint(project, payload(step), keep=cfg.keep_checkpoints)
+
+    snapshots = list(cfg.snapshot_at_s)
 
     setup_seconds = time.perf_counter() - t_setup
     step = start_step
@@ -296,6 +300,8 @@ def fit(project: Project, cfg: FitConfig | None = None, *, device: str = "auto",
                 log.append({"step": step, "time": round(time.perf_counter() - t_run, 3), **record})
             if step % cfg.checkpoint_every == 0:
                 last_ckpt, saved_step = checkpoint(step), step
+            while snapshots and time.perf_counter() - t_run >= snapshots[0]:
+                save_snapshot(project, payload(step), snapshots.pop(0))
             if progress is not None:
                 progress(StepReport(step=step, iters=cfg.iters, start_step=start_step, losses=losses,
                                     lr=optimizer.param_groups[0]["lr"], rays_per_s=rays_per_s,

@@ -33,11 +33,11 @@ from avatarctl.model.deformer import (blending_weights, candidate_pairs, farthes
 from avatarctl.model.field import (BlockPacking, CanonicalField, NodeFields, Packing, RadianceHeads, fuse_features,
                                    fuse_features_dense)
 from avatarctl.model.grid_field import NodeGridFields
-from avatarctl.model.occupancy import UNSEEN, cell_index, live_points, update_occupancy
+from avatarctl.model.occupancy import UNSEEN, cell_index, occupancy_estimate, select_samples, update_occupancy
 from avatarctl.model.losses import (LossTerms, embedding_loss, kl_loss, reconstruction_loss, total_loss,
                                     translation_loss)
 from avatarctl.geometry.rays import RayBatch
-from avatarctl.render.volume import march
+from avatarctl.render.volume import composite, march, sample_deltas, uniform_samples
 
 
 @dataclass
@@ -192,9 +192,14 @@ class SlrfAvatar(nn.Module):
         if hit_idx.numel() == 0:
             return RenderOutputs(rgb=rgb.clone(), alpha=alpha, depth=depth, stats=stats)
         frame_pts = rays.frame_slot[hit_idx][:, None].expand(-1, S).reshape(-1)  # [hit * S]
+        if self.cfg.occupancy and self.cfg.sparse:
+            rgb_h, alpha_h, depth_h = self._march_occupied(rays, hit_idx, near, far, frame_pts, state, bg, jitter,
+                                                           generator, stats)
+            return RenderOutputs(rgb=rgb.index_copy(0, hit_idx, rgb_h), alpha=alpha.index_copy(0, hit_idx, alpha_h),
+                                 depth=depth.index_copy(0, hit_idx, depth_h), stats=stats)
 
         def field_fn(pts: torch.Tensor, dirs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-            c, s, st = self.query(pts.reshape(-1, 3), dirs.reshape(-1, 3), frame_pts, state, generator)
+            c, s, st = self.query(pts.reshape(-1, 3), dirs.reshape(-1, 3), frame_pts, state)
             stats.update(st)
             return c.reshape(*pts.shape[:2], 3), s.reshape(pts.shape[:2])
 
@@ -203,16 +208,50 @@ class SlrfAvatar(nn.Module):
         return RenderOutputs(rgb=rgb.index_copy(0, hit_idx, comp.rgb), alpha=alpha.index_copy(0, hit_idx, comp.alpha),
                              depth=depth.index_copy(0, hit_idx, comp.depth), stats=stats)
 
-    def query(self, points: torch.Tensor, dirs: torch.Tensor, point_frame: torch.Tensor, state: NodeState,
-              generator: torch.Generator | None = None) -> tuple[torch.Tensor, torch.Tensor, dict[str, float]]:
+    def _march_occupied(self, rays: RayBatch, hit_idx: torch.Tensor, near: torch.Tensor, far: torch.Tensor,
+                        frame_pts: torch.Tensor, state: NodeState, bg: torch.Tensor, jitter: bool,
+                        generator: torch.Generator | None, stats: dict[str, float]):
+        """`march` with empty-space skipping (model/occupancy.py): the same samples, but the field runs only at the
+        samples the occupancy grids call live (plus, in training, a random `occ_explore` share of the others);
+        skipped samples have density 0. -> rgb [hit, 3], alpha [hit], depth [hit]."""
+        cfg, S = self.cfg, self.cfg.samples_per_ray
+        o, d = rays.origins[hit_idx], rays.dirs[hit_idx]
+        t = uniform_samples(near[hit_idx], far[hit_idx], S, jitter, generator)  # [hit, S]
+        pts = (o[:, None, :] + t[..., None] * d[:, None, :]).reshape(-1, 3)  # [hit * S, 3]
+        with torch.no_grad():
+            pi, ni, fi, _, centers = self._pairs(pts, frame_pts, state)
+            cells = cell_index(self._local(pts, pi, ni, fi, centers, state), ni,
+                               cfg.support_radius * self._local_scale(), cfg.occ_res)
+            dens, unseen = occupancy_estimate(self.occupancy, cells, pi, pts.shape[0])
+            live = select_samples(dens.reshape(t.shape), unseen.reshape(t.shape), sample_deltas(t),
+                                  cfg.occ_threshold, cfg.occ_stop_eps).reshape(-1)
+            if self.training and cfg.occ_explore > 0:
+                dev = generator.device if generator is not None else pts.device
+                live |= (torch.rand(live.shape[0], generator=generator, device=dev) < cfg.occ_explore).to(pts.device)
+        idx = live.nonzero(as_tuple=True)[0]
+        rgb = pts.new_zeros(pts.shape[0], 3)
+        sigma = pts.new_zeros(pts.shape[0])
+        if idx.numel():
+            dirs = d[:, None, :].expand(-1, S, -1).reshape(-1, 3)
+            c, sg, st = self.query(pts[idx], dirs[idx], frame_pts[idx], state)
+            stats.update(st)
+            rgb, sigma = rgb.index_copy(0, idx, c), sigma.index_copy(0, idx, sg)
+        stats["samples"] = float(pts.shape[0])
+        stats["live_samples"] = float(idx.numel())
+        rgb, sigma = rgb.reshape(*t.shape, 3), sigma.reshape(t.shape)
+        out, alpha, depth, _ = composite(rgb, sigma, t, bg)
+        return out, alpha, depth
+
+    def query(self, points: torch.Tensor, dirs: torch.Tensor, point_frame: torch.Tensor,
+              state: NodeState) -> tuple[torch.Tensor, torch.Tensor, dict[str, float]]:
         """Colour and density at posed points.
 
         points [P, 3] world, dirs [P, 3] unit viewing directions, point_frame [P] long (frame slot of each point)
-        -> rgb [P, 3], sigma [P] (1/metre; exactly 0 where no node is in range, and at samples skipped by the
-        occupancy grids), stats. `generator` draws the occupancy exploration samples (training only).
+        -> rgb [P, 3], sigma [P] (1/metre; exactly 0 where no node is in range), stats. In training with
+        `cfg.occupancy`, the densities found update the occupancy grids (model/occupancy.py).
         """
         if self.cfg.sparse:
-            f, wsum, stats, occ_pairs = self._features_sparse(points, point_frame, state, generator)
+            f, wsum, stats, occ_pairs = self._features_sparse(points, point_frame, state)
             valid = (wsum > 0).nonzero(as_tuple=True)[0]
             fv = f[valid]
             # heads may run in bf16 under autocast; compositing stays in the points' float32
@@ -234,33 +273,34 @@ class SlrfAvatar(nn.Module):
     def _local_scale(self) -> float:
         return 1.0 / self.cfg.sigma if self.cfg.local_coords_in_sigma else 1.0
 
-    def _features_sparse(self, points: torch.Tensor, point_frame: torch.Tensor, state: NodeState,
-                         generator: torch.Generator | None = None):
-        """Supplement A.2: evaluate only pairs with w_i > 0, packed per node ([N, max_i S_i, C], or blocks of
-        `cfg.pack_block` rows per node, see `ModelConfig.pack_block`); with `cfg.occupancy`, only the pairs of live
-        samples (model/occupancy.py). -> f [P, F], wsum [P], stats, occupancy pairs (point_idx, cells) or None."""
-        cfg, N, P = self.cfg, self.cfg.num_nodes, points.shape[0]
+    def _pairs(self, points: torch.Tensor, point_frame: torch.Tensor, state: NodeState):
+        """The (point, node) pairs with Eq. 6 weight > 0: point_idx, node_idx, frame_idx [pairs] long, w [pairs],
+        centers [pairs, 3] (the posed node of each pair)."""
+        cfg = self.cfg
         pi, ni = candidate_pairs(points, point_frame, state.centers, cfg.support_radius)
         fi = point_frame[pi]
         centers = state.centers[fi, ni]  # [pairs, 3]
         w = blending_weights(((points[pi] - centers) ** 2).sum(-1), cfg.sigma, cfg.eps)  # Eq. 6
         keep = (w > 0).nonzero(as_tuple=True)[0]
-        pi, ni, fi, w, centers = pi[keep], ni[keep], fi[keep], w[keep], centers[keep]
-        local = None
-        if cfg.variant == "slrf" or cfg.occupancy:
-            with _float32_geometry(points.device):
-                A_inv = torch.linalg.inv(state.transforms[..., :3, :3])  # [B, N, 3, 3]
-                local = local_coordinates_centered(points[pi], A_inv[fi, ni], centers) * self._local_scale()  # Eq. 4
-        occ_pairs, live_count = None, P
+        return pi[keep], ni[keep], fi[keep], w[keep], centers[keep]
+
+    def _local(self, points: torch.Tensor, pi: torch.Tensor, ni: torch.Tensor, fi: torch.Tensor,
+               centers: torch.Tensor, state: NodeState) -> torch.Tensor:
+        """Eq. 4 local coordinates of each pair [pairs, 3] (in units of sigma with `local_coords_in_sigma`)."""
+        with _float32_geometry(points.device):
+            A_inv = torch.linalg.inv(state.transforms[..., :3, :3])  # [B, N, 3, 3]
+            return local_coordinates_centered(points[pi], A_inv[fi, ni], centers) * self._local_scale()
+
+    def _features_sparse(self, points: torch.Tensor, point_frame: torch.Tensor, state: NodeState):
+        """Supplement A.2: evaluate only pairs with w_i > 0, packed per node ([N, max_i S_i, C], or blocks of
+        `cfg.pack_block` rows per node, see `ModelConfig.pack_block`).
+        -> f [P, F], wsum [P], stats, and with `cfg.occupancy` (point_idx, cells) of the pairs, else None."""
+        cfg, N, P = self.cfg, self.cfg.num_nodes, points.shape[0]
+        pi, ni, fi, w, centers = self._pairs(points, point_frame, state)
+        local = self._local(points, pi, ni, fi, centers, state) if cfg.variant == "slrf" or cfg.occupancy else None
+        occ_pairs = None
         if cfg.occupancy:
-            cells = cell_index(local, ni, cfg.support_radius * self._local_scale(), cfg.occ_res)
-            live = live_points(self.occupancy, cells, pi, P, cfg.occ_threshold)
-            if self.training and cfg.occ_explore > 0:
-                dev = generator.device if generator is not None else points.device
-                live |= (torch.rand(P, generator=generator, device=dev) < cfg.occ_explore).to(points.device)
-            k = live[pi].nonzero(as_tuple=True)[0]
-            pi, ni, fi, w, centers, local, cells = pi[k], ni[k], fi[k], w[k], centers[k], local[k], cells[k]
-            occ_pairs, live_count = (pi, cells), int(live.sum())
+            occ_pairs = (pi, cell_index(local, ni, cfg.support_radius * self._local_scale(), cfg.occ_res))
         if cfg.variant == "slrf":
             if cfg.field == "grid":  # affine F_i: fuse grid features and B_i e_i, decode once per point (Eq. 5)
                 g, wsum = fuse_features(self.fields.grid_features(local, ni), w, pi, P)
@@ -292,8 +332,7 @@ class SlrfAvatar(nn.Module):
             Tp = w.new_zeros(P, 4, 4).index_add(0, pi, w[:, None, None] * state.transforms[fi, ni])
             f = self._canonical_features(points, Tp, wsum)
             width = slots = 0
-        stats = {"pairs": float(pi.numel()), "packed_slots": float(slots), "max_node_samples": float(width),
-                 "live_samples": float(live_count)}
+        stats = {"pairs": float(pi.numel()), "packed_slots": float(slots), "max_node_samples": float(width)}
         return f, wsum, stats, occ_pairs
 
     def _features_dense(self, points: torch.Tensor, point_frame: torch.Tensor,

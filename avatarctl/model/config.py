@@ -70,7 +70,9 @@ class ModelConfig:
     occ_threshold: float = 0.5  # density (1/metre) at or above which a cell is occupied
     occ_decay: float = 0.95  # EMA-max decay of a cell's density at each observation
     occ_explore: float = 0.05  # training: share of skipped samples evaluated anyway (so cells can re-open)
-    early_stop_eps: float = 0.0  # rendering without gradients: stop a ray once its transmittance is below this
+    occ_stop_eps: float = 0.0  # skip samples whose transmittance estimated from the cached densities is below this
+    # cVAE posterior (deviation when != 0): initial log-variance of q(z | t, theta) (issue 18, hypothesis 1)
+    posterior_logvar_init: float = 0.0  # 0: the encoder's plain init (sigma ~ 1); e.g. -6 starts sigma ~ 0.05
     # pose condition (Eq. 8)
     pose_attention_hops: int = 2
     # ablations
@@ -119,7 +121,7 @@ class ModelConfig:
         need(self.occ_threshold >= 0, f"occ_threshold must be >= 0 (density, 1/metre), got {self.occ_threshold}")
         need(0.0 <= self.occ_decay <= 1.0, f"occ_decay must be in [0, 1], got {self.occ_decay}")
         need(0.0 <= self.occ_explore <= 1.0, f"occ_explore must be in [0, 1], got {self.occ_explore}")
-        need(0.0 <= self.early_stop_eps < 1.0, f"early_stop_eps must be in [0, 1), got {self.early_stop_eps}")
+        need(0.0 <= self.occ_stop_eps < 1.0, f"occ_stop_eps must be in [0, 1), got {self.occ_stop_eps}")
         for name in ("use_delta_n", "use_embedding", "sparse", "local_coords_in_sigma", "occupancy"):
             need(isinstance(getattr(self, name), bool), f"{name} must be a bool, got {getattr(self, name)!r}")
         for name in ("lambda_rec", "lambda_trans", "lambda_ebd", "lambda_kl"):

@@ -51,6 +51,9 @@ class NodeCVAE(nn.Module):
         else:
             self.encoder = None
             dec_in = cond
+        if cfg.posterior_logvar_init != 0.0 and self.encoder is not None:
+            with torch.no_grad():  # start the posterior narrow: per-frame mu is not drowned by sigma ~ 1 noise
+                self.encoder.layers[-1].bias[..., Z:] += cfg.posterior_logvar_init
         # small initial outputs: nodes start on the body (Delta n ~ 1e-3 m) with near-zero embeddings
         self.decoder = BatchedMLP(N, [dec_in, W, W, 3 + cfg.embed_dim], last_init_scale=0.01)
 

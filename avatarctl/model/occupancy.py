@@ -6,7 +6,9 @@ limbs, in front of and behind the body). Each node i keeps a coarse grid O_i [re
 node-local coordinates (Eq. 4), so it moves and deforms with the node (pose, Delta n) like the field itself:
 
 - a sample is *live* when any node in range (Eq. 6 weight > 0) has its cell marked occupied: O_i[cell] >= threshold
-  (density, 1/metre) or O_i[cell] < 0 (never observed: occupied until seen);
+  (density, 1/metre) or O_i[cell] < 0 (never observed: occupied until seen); with `stop_eps` > 0, a sample is
+  also skipped when the transmittance estimated from the cached densities in front of it is below `stop_eps`
+  (early ray termination, for training and rendering alike);
 - only live samples (and, in training, a random `explore` share of the others, so emptied cells can come back)
   are evaluated; the others get density 0;
 - every evaluated sample updates the cells of all its pairs: O_i[cell] = max(decay * O_i[cell], density)
@@ -32,16 +34,35 @@ def cell_index(local: torch.Tensor, node: torch.Tensor, extent: float, res: int)
     return node * res ** 3 + (ijk[:, 2] * res + ijk[:, 1]) * res + ijk[:, 0]
 
 
-def live_points(occ: torch.Tensor, cells: torch.Tensor, point_idx: torch.Tensor, num_points: int,
-                threshold: float) -> torch.Tensor:
-    """[num_points] bool: does any pair of the point sit in an occupied (or unseen) cell?
+def occupancy_estimate(occ: torch.Tensor, cells: torch.Tensor, point_idx: torch.Tensor,
+                       num_points: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Per point: the largest cached density over its pairs' cells, and whether any of those cells is unseen.
 
-    occ [nodes * res^3] (flat), cells [pairs], point_idx [pairs].
+    occ [nodes * res^3] (flat), cells [pairs], point_idx [pairs] -> density [num_points] (1/metre, 0 without
+    pairs), unseen [num_points] bool.
     """
     o = occ[cells]
-    occupied = ((o >= threshold) | (o < 0)).to(torch.uint8)
-    hit = torch.zeros(num_points, dtype=torch.uint8, device=occ.device).index_add_(0, point_idx, occupied)
-    return hit > 0
+    density = torch.zeros(num_points, dtype=occ.dtype, device=occ.device).scatter_reduce_(
+        0, point_idx, o.clamp_min(0.0), "amax", include_self=True)
+    unseen = torch.zeros(num_points, dtype=torch.uint8, device=occ.device).index_add_(
+        0, point_idx, (o < 0).to(torch.uint8)) > 0
+    return density, unseen
+
+
+def select_samples(density: torch.Tensor, unseen: torch.Tensor, deltas: torch.Tensor, threshold: float,
+                   stop_eps: float) -> torch.Tensor:
+    """Which samples to evaluate. density, unseen, deltas [rays, samples] -> live [rays, samples] bool.
+
+    A sample is live when its cached density is >= `threshold` or one of its cells is unseen; with `stop_eps` > 0
+    also only while the transmittance estimated from the cached densities, exp(-sum_{l<k} density_l delta_l), is
+    above `stop_eps` (samples behind an opaque surface are skipped: early ray termination from the cache).
+    """
+    live = (density >= threshold) | unseen
+    if stop_eps > 0:
+        tau = density * deltas
+        trans = torch.exp(-(torch.cumsum(tau, dim=-1) - tau))
+        live &= trans > stop_eps
+    return live
 
 
 def update_occupancy(occ: torch.Tensor, cells: torch.Tensor, density: torch.Tensor, decay: float) -> None:
@@ -52,4 +73,4 @@ def update_occupancy(occ: torch.Tensor, cells: torch.Tensor, density: torch.Tens
     seen = torch.unique(cells)
     old = occ[seen]
     occ[seen] = torch.where(old < 0, torch.zeros_like(old), old * decay)
-    occ.index_reduce_(0, cells, density.to(occ.dtype), "amax", include_self=True)
+    occ.scatter_reduce_(0, cells, density.to(occ.dtype), "amax", include_self=True)

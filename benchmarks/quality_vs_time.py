@@ -1,0 +1,204 @@
+"""Quality versus wall time of `avatarctl fit`, per backend (issue 12's benchmark; not a test).
+
+For each backend (a name and `--set` overrides), the script copies the ingested project, runs `avatarctl fit` with
+a time budget and snapshots after the given minutes of training (`FitConfig.snapshot_at_s`), scores every snapshot
+with `avatarctl eval` (held-out views of training frames, bbox protocol, `--every 10`: the docs' protocol), and
+times a 512x512 render of the final model. Fits run `--parallel` at a time with `--threads` threads each, so that
+two 1-thread fits on the 2-core machine run under equal conditions (equal wall time, equal cores).
+
+    python -m benchmarks.quality_vs_time PROJECT OUT --minutes 2,5,10 \
+        --backend mlp= --backend "mlp+occ=model.occupancy=true" [--threads 1 --parallel 2]
+
+Writes OUT/results.csv, OUT/results.json and OUT/quality_vs_time.png (with matplotlib: `pip install -e .[bench]`).
+Every figure names the protocol; the command line is stored in results.json.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import os
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+
+def _run(cmd: list[str], threads: int, log: Path) -> subprocess.Popen:
+    env = {**os.environ, "OMP_NUM_THREADS": str(threads), "MKL_NUM_THREADS": str(threads)}
+    return subprocess.Popen(cmd, env=env, stdout=log.open("w"), stderr=subprocess.STDOUT)
+
+
+def _wait_all(procs: list[tuple[str, subprocess.Popen]]) -> dict[str, float]:
+    """Wait for every process; return each one's peak RSS (GB) from wait4, and fail loudly on a non-zero exit."""
+    peaks: dict[str, float] = {}
+    for name, p in procs:
+        _, status, usage = os.wait4(p.pid, 0)
+        p.returncode = os.waitstatus_to_exitcode(status)
+        if p.returncode != 0:
+            raise SystemExit(f"{name}: exited with {p.returncode} (see its log in OUT)")
+        peaks[name] = usage.ru_maxrss / 2**20  # KB -> GB
+    return peaks
+
+
+def _batched(items: list, n: int):
+    for i in range(0, len(items), n):
+        yield items[i:i + n]
+
+
+def _fit_record(project: Path) -> dict:
+    log = [json.loads(line) for line in (project / "fit" / "log.jsonl").read_text().splitlines()]
+    loss_recs = [r for r in log if "loss" in r]
+    last = loss_recs[-1]
+    steps, seconds = last["step"], last["time"]
+    stats = last.get("stats", {})
+    window = loss_recs[len(loss_recs) // 2:]  # second half: steady-state throughput
+    rays = sum(r["rays_per_s"] for r in window) / max(len(window), 1)
+    return {"steps": steps, "fit_seconds": seconds, "steps_per_s": steps / max(seconds, 1e-9),
+            "rays_per_s": rays, "hit_rays_per_step": stats.get("hit_rays"), "samples_per_step": stats.get("samples"),
+            "evaluated_samples_per_step": stats.get("live_samples", stats.get("samples")),
+            "pairs_per_step": stats.get("pairs")}
+
+
+def _render_512(project: Path, threads: int) -> dict:
+    """Time one 512x512 render (held-out camera scaled x2, first training frame, posterior-mean latent)."""
+    code = (
+        "import json,sys,time,torch\n"
+        "from avatarctl.project import Project\n"
+        "from avatarctl.fit.checkpoint import load_avatar\n"
+        "from avatarctl.render.engine import render_view\n"
+        "av = load_avatar(Project.open(sys.argv[1]), device='cpu')\n"
+        "cam = av.capture.cameras[av.capture.split.test_views[0]].pinhole()\n"
+        "cam = cam.scaled(512 / max(cam.width, cam.height))\n"
+        "cond = av.conditioning(av.capture.motion.select([av.train_frames[0]]), frames_are_training=True)\n"
+        "with torch.no_grad():\n"
+        "    st = av.model.node_state(cond, mode='mean')\n"
+        "    t0 = time.perf_counter(); v = render_view(av.model, st, 0, cam, av.fit_config.background)\n"
+        "print(json.dumps({'render_512_s': time.perf_counter() - t0, 'render_512_rays': v.rays,\n"
+        "                  'render_512_size': [int(cam.width), int(cam.height)]}))\n")
+    env = {**os.environ, "OMP_NUM_THREADS": str(threads)}
+    out = subprocess.run([sys.executable, "-c", code, str(project)], env=env, capture_output=True, text=True)
+    if out.returncode != 0:
+        raise SystemExit(f"render timing failed for {project}:\n{out.stderr[-2000:]}")
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+def main(argv: list[str] | None = None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("project", type=Path, help="an ingested project (e.g. of `avatarctl synth --preset small`)")
+    ap.add_argument("out", type=Path)
+    ap.add_argument("--backend", action="append", required=True,
+                    help="NAME=key=value,key=value (fit --set overrides; empty for the preset as it is)")
+    ap.add_argument("--minutes", default="2,5,10", help="snapshot times, minutes of training")
+    ap.add_argument("--preset", default="cpu")
+    ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--parallel", type=int, default=2, help="fits / evals run at the same time")
+    ap.add_argument("--every", type=int, default=10, help="eval: keep every N-th training frame")
+    args = ap.parse_args(argv)
+
+    minutes = [float(m) for m in args.minutes.split(",")]
+    backends = []
+    for spec in args.backend:
+        name, _, sets = spec.partition("=")
+        backends.append((name, [s for s in sets.split(",") if s]))
+    args.out.mkdir(parents=True, exist_ok=True)
+    exe = shutil.which("avatarctl") or "avatarctl"
+
+    # 1. fits, `parallel` at a time
+    projects = {}
+    for name, _ in backends:
+        p = args.out / name / "project"
+        if p.exists():
+            shutil.rmtree(p)
+        p.mkdir(parents=True)
+        shutil.copytree(args.project / "ingest", p / "ingest")
+        shutil.copy(args.project / "project.json", p / "project.json")
+        projects[name] = p
+    peaks: dict[str, float] = {}
+    for batch in _batched(backends, args.parallel):
+        procs = []
+        for name, sets in batch:
+            cmd = [exe, "fit", str(projects[name]), "--preset", args.preset, "--iters", "10000000",
+                   "--set", f"time_budget_s={max(minutes) * 60:g}",
+                   "--set", "snapshot_at_s=" + ",".join(f"{m * 60:g}" for m in minutes),
+                   "--set", "val_every=0", "--set", "val_pairs=0", "--set", "checkpoint_every=100000"]
+            for s in sets:
+                cmd += ["--set", s]
+            print(f"fit {name}: {' '.join(cmd)}", flush=True)
+            procs.append((name, _run(cmd, args.threads, args.out / name / "fit.log")))
+        peaks.update(_wait_all(procs))
+
+    # 2. evals of every snapshot
+    jobs = []
+    for name, _ in backends:
+        for m in minutes:
+            snap = projects[name] / "fit" / "checkpoints" / f"snapshot_{int(round(m * 60)):05d}s.pt"
+            if snap.exists():
+                jobs.append((name, m, snap))
+    for batch in _batched(jobs, args.parallel):
+        procs = []
+        for name, m, snap in batch:
+            cmd = [exe, "eval", str(projects[name]), "--split", "novel_view", "--protocol", "bbox",
+                   "--every", str(args.every), "--checkpoint", str(snap), "--name", f"t{m:g}min", "--sheet", "4"]
+            procs.append((f"{name}@{m:g}", _run(cmd, args.threads, args.out / name / f"eval_t{m:g}.log")))
+        _wait_all(procs)
+
+    # 3. render timing (alone on the machine) and the table
+    rows = []
+    for name, sets in backends:
+        rec = _fit_record(projects[name])
+        rec.update(_render_512(projects[name], threads=2))
+        for m in minutes:
+            mfile = projects[name] / "eval" / f"t{m:g}min" / "metrics.json"
+            if not mfile.exists():
+                continue
+            met = json.loads(mfile.read_text())
+            rows.append({"backend": name, "overrides": " ".join(sets), "minutes": m,
+                         "psnr_bbox": met["psnr"], "ssim_bbox": met["ssim"], "images": met["images"],
+                         "sheet": str(projects[name] / "eval" / f"t{m:g}min" / "sheet.png"),
+                         "fit_peak_rss_gb": round(peaks.get(name, float("nan")), 3), **rec})
+    with (args.out / "results.csv").open("w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=list(rows[0]))
+        w.writeheader()
+        w.writerows(rows)
+    meta = {"command": " ".join([sys.executable, "-m", "benchmarks.quality_vs_time"] + (argv or sys.argv[1:])),
+            "protocol": "held-out views of training frames (split novel_view), bbox protocol (Neural Body box), "
+                        f"every {args.every}th training frame, posterior-mean latent; full-resolution images",
+            "threads_per_fit": args.threads, "parallel": args.parallel, "date": time.strftime("%Y-%m-%d %H:%M"),
+            "rows": rows}
+    (args.out / "results.json").write_text(json.dumps(meta, indent=1))
+    _plot(rows, args.out / "quality_vs_time.png", meta["protocol"])
+    for r in rows:
+        print(f"{r['backend']:>14} {r['minutes']:>5g} min  PSNR {r['psnr_bbox']:.2f} dB  SSIM {r['ssim_bbox']:.3f}  "
+              f"{r['steps_per_s']:.2f} steps/s  {r['rays_per_s']:.0f} rays/s  512² render {r['render_512_s']:.1f} s")
+
+
+def _plot(rows: list[dict], path: Path, protocol: str) -> None:
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:
+        print("matplotlib not installed (pip install -e .[bench]): no plot written")
+        return
+    fig, ax = plt.subplots(figsize=(7, 4.5))
+    for name in dict.fromkeys(r["backend"] for r in rows):
+        pts = sorted((r["minutes"], r["psnr_bbox"]) for r in rows if r["backend"] == name)
+        ax.plot([p[0] for p in pts], [p[1] for p in pts], marker="o", label=name)
+    ax.set_xlabel("minutes of fit (wall time)")
+    ax.set_ylabel("PSNR (dB)")
+    ax.set_title("held-out-view PSNR vs fit time", fontsize=10)
+    ax.text(0.0, -0.18, protocol, transform=ax.transAxes, fontsize=6, wrap=True)
+    ax.grid(alpha=0.3)
+    ax.legend()
+    fig.tight_layout()
+    tmp = path.with_suffix(".tmp.png")
+    fig.savefig(tmp, dpi=120)
+    os.replace(tmp, path)
+
+
+if __name__ == "__main__":
+    main()
