@@ -7,7 +7,7 @@ times a 512x512 render of the final model. Fits run `--parallel` at a time with 
 two 1-thread fits on the 2-core machine run under equal conditions (equal wall time, equal cores).
 
     python -m benchmarks.quality_vs_time PROJECT OUT --minutes 2,5,10 \
-        --backend mlp= --backend "mlp+occ=model.occupancy=true" [--threads 1 --parallel 2]
+        --backend mlp= --backend "grid=model.field=grid model.grid_levels=8,16,32" [--threads 1 --parallel 2]
 
 Writes OUT/results.csv, OUT/results.json and OUT/quality_vs_time.png (with matplotlib: `pip install -e .[bench]`).
 Every figure names the protocol; the command line is stored in results.json.
@@ -90,34 +90,42 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("project", type=Path, help="an ingested project (e.g. of `avatarctl synth --preset small`)")
     ap.add_argument("out", type=Path)
     ap.add_argument("--backend", action="append", required=True,
-                    help="NAME=key=value,key=value (fit --set overrides; empty for the preset as it is)")
+                    help="'NAME=key=value key=value' (fit --set overrides, space-separated; empty: the preset)")
     ap.add_argument("--minutes", default="2,5,10", help="snapshot times, minutes of training")
     ap.add_argument("--preset", default="cpu")
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--parallel", type=int, default=2, help="fits / evals run at the same time")
     ap.add_argument("--every", type=int, default=10, help="eval: keep every N-th training frame")
+    ap.add_argument("--reuse", action="store_true",
+                    help="keep backends whose OUT/NAME/project already holds a finished fit (no re-fit, no re-eval)")
     args = ap.parse_args(argv)
 
     minutes = [float(m) for m in args.minutes.split(",")]
     backends = []
     for spec in args.backend:
         name, _, sets = spec.partition("=")
-        backends.append((name, [s for s in sets.split(",") if s]))
+        backends.append((name, sets.split()))
     args.out.mkdir(parents=True, exist_ok=True)
     exe = shutil.which("avatarctl") or "avatarctl"
 
     # 1. fits, `parallel` at a time
-    projects = {}
+    projects, done = {}, set()
     for name, _ in backends:
         p = args.out / name / "project"
+        projects[name] = p
+        if args.reuse and (p / "fit" / "checkpoints" / "latest.pt").exists():
+            done.add(name)
+            continue
         if p.exists():
             shutil.rmtree(p)
         p.mkdir(parents=True)
         shutil.copytree(args.project / "ingest", p / "ingest")
         shutil.copy(args.project / "project.json", p / "project.json")
-        projects[name] = p
     peaks: dict[str, float] = {}
-    for batch in _batched(backends, args.parallel):
+    peaks_file = args.out / "fit_peak_rss_gb.json"
+    if peaks_file.exists():
+        peaks.update(json.loads(peaks_file.read_text()))
+    for batch in _batched([b for b in backends if b[0] not in done], args.parallel):
         procs = []
         for name, sets in batch:
             cmd = [exe, "fit", str(projects[name]), "--preset", args.preset, "--iters", "10000000",
@@ -129,13 +137,14 @@ def main(argv: list[str] | None = None) -> None:
             print(f"fit {name}: {' '.join(cmd)}", flush=True)
             procs.append((name, _run(cmd, args.threads, args.out / name / "fit.log")))
         peaks.update(_wait_all(procs))
+        peaks_file.write_text(json.dumps(peaks))
 
     # 2. evals of every snapshot
     jobs = []
     for name, _ in backends:
         for m in minutes:
             snap = projects[name] / "fit" / "checkpoints" / f"snapshot_{int(round(m * 60)):05d}s.pt"
-            if snap.exists():
+            if snap.exists() and not (projects[name] / "eval" / f"t{m:g}min" / "metrics.json").exists():
                 jobs.append((name, m, snap))
     for batch in _batched(jobs, args.parallel):
         procs = []

@@ -285,5 +285,5 @@ def test_time_budget_stops_with_checkpoint_and_validation(project):
 
     res = fit(project, _cfg(iters=1000, time_budget_s=1e-9), device="cpu")
     assert res.stop_reason == "time_budget" and not res.interrupted and res.step == 0
-    assert res.val is not None and np.isfinite(res.val["psnr"])  # still validated
+    assert res.val is not None and np.isfinite(res.val.psnr)  # still validated
     assert torch.load(project.paths.latest_checkpoint, weights_only=True)["step"] == 0

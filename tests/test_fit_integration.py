@@ -22,7 +22,7 @@ def test_synth_ingest_fit_render(tmp_path):
     run_ingest(IngestConfig(capture=tmp_path / "capture", project=tmp_path / "proj", contact_sheet=False))
     project = Project.open(tmp_path / "proj")
     res = fit(project, resolve_fit_config("micro", iters=4, overrides=["val_every=2", "log_every=2"]), device="cpu")
-    assert res.step == 4 and res.val is not None and np.isfinite(res.val["psnr"])
+    assert res.step == 4 and res.val is not None and np.isfinite(res.val.psnr)
     av = load_avatar(project)
     frame = av.train_frames[-1]
     motion = av.capture.motion.select(av.capture.motion.rows_for([frame]))

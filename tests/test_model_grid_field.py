@@ -54,3 +54,22 @@ def test_affine_field_fuse_then_decode_equals_eq5_on_per_node_features():
     fused = f.decode((w[:, None] * f.grid_features(local, node)).sum(0, keepdim=True) / w.sum(),
                      (w[:, None] * f.embed_bias(e)[0, node]).sum(0, keepdim=True) / w.sum())
     assert torch.allclose(fused[0], eq5, atol=1e-6)
+
+
+def test_gather_blend_matches_its_plain_autograd_twin_values_and_gradients():
+    g = torch.Generator().manual_seed(3)
+    res, C, P = 6, 3, 500
+    table = torch.randn(4 * res ** 3, C, generator=g)
+    node = torch.randint(0, 4, (P,), generator=g)
+    u0 = torch.rand(P, 3, generator=g)
+    upstream = torch.randn(P, C, generator=g)
+    outs = []
+    for reference in (False, True):
+        t = table.clone().requires_grad_(True)
+        u = u0.clone().requires_grad_(True)
+        out = trilinear_lookup(t, res, node, u, reference=reference)
+        (out * upstream).sum().backward()
+        outs.append((out.detach(), t.grad, u.grad))
+    for a, b in zip(*outs):
+        assert torch.allclose(a, b, atol=1e-5), (a - b).abs().max()
+    assert float(outs[0][2].abs().sum()) > 0  # the position gradient (it moves Delta n) is not dropped

@@ -67,3 +67,17 @@ def test_empty_grid_skips_every_sample_and_training_fills_cells():
     occ.losses(out, torch.zeros(len(rays()), 3), st).total.backward()
     seen = occ.occupancy >= 0
     assert 0 < int(seen.sum()) < seen.numel()  # the cells the samples visited now hold densities
+
+
+def test_training_warm_up_evaluates_everything_then_skips_empty_cells():
+    _, occ = _pair()
+    occ.train()
+    occ.occupancy.fill_(0.0)  # every cell seen empty
+    st = occ.node_state(conditioning(), "mean")
+    with torch.no_grad():
+        warm = occ.render(rays(), st, torch.ones(3), generator=torch.Generator().manual_seed(0))
+        occ.occupancy_updates.fill_(occ.cfg.occ_warmup)
+        after = occ.render(rays(), st, torch.ones(3), generator=torch.Generator().manual_seed(0))
+    assert warm.stats["live_samples"] == warm.stats["samples"]
+    # past the warm-up only the exploration share of the samples is evaluated
+    assert 0 < after.stats["live_samples"] < 3 * occ.cfg.occ_explore * after.stats["samples"]

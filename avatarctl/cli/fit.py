@@ -74,9 +74,9 @@ def _run(project_dir: Path, iters, preset, resume, fresh, seed, device, override
     table.add_row("time", f"{result.seconds:.1f} s training + {result.setup_seconds:.1f} s set-up")
     table.add_row("rays/s", f"{result.rays_per_s:.0f}")
     table.add_row("losses", " ".join(f"{k} {v:.4g}" for k, v in result.losses.items()))
-    if result.val is not None and result.val.get("psnr") is not None:
-        pairs = ", ".join(f"{p['view']}@{p['frame']} {p['psnr']:.2f}" for p in result.val["pairs"])
-        table.add_row("held-out PSNR (bbox)", f"{result.val['psnr']:.2f} dB  ({pairs})")
+    if result.val is not None and result.val.psnr is not None:
+        pairs = ", ".join(f"{p.view}@{p.frame} {p.psnr:.2f}" for p in result.val.pairs)
+        table.add_row("held-out PSNR (bbox)", f"{result.val.psnr:.2f} dB  ({pairs})")
     table.add_row("checkpoint", str(result.checkpoint))
     table.add_row("log / config", f"{project.paths.fit_log} / {project.paths.fit_config}")
     console.print(table)

@@ -27,7 +27,7 @@ import threading
 import time
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any, Callable, Iterator
+from typing import TYPE_CHECKING, Any, Callable, Iterator
 
 import torch
 
@@ -36,6 +36,9 @@ from avatarctl.device import resolve_device
 from avatarctl.errors import AvatarError, InputError, ProjectError
 from avatarctl.fit.config import FitConfig, config_summary
 from avatarctl.project import Project, now_iso
+
+if TYPE_CHECKING:
+    from avatarctl.fit.validate import ValidationResult
 
 
 class StopFlag:
@@ -74,7 +77,7 @@ class FitResult:
     seconds: float  # wall time of this run (excluding set-up)
     setup_seconds: float
     losses: dict[str, float]
-    val: dict[str, Any] | None  # latest validation (see validate.Validator.run)
+    val: "ValidationResult | None"  # latest validation (fit/validate.py)
     rays_per_s: float
     device: str
     config: FitConfig
@@ -130,10 +133,11 @@ class _Log:
             os.close(fd)
 
 
-def _val_record(val: dict[str, Any]) -> dict[str, Any]:
+def _val_record(val: "ValidationResult") -> dict[str, Any]:
     """The log's view of a validation result."""
-    return {"psnr": val["psnr"], "pairs": val["pairs"], "protocol": val["protocol"], "scale": val["scale"],
-            "seconds": round(val["seconds"], 2)}
+    d = val.to_json()
+    return {"psnr": d["psnr"], "pairs": d["pairs"], "protocol": d["protocol"], "scale": d["scale"],
+            "seconds": round(d["seconds"], 2)}
 
 
 def _rng_state(sampler_gen: torch.Generator, noise_gen: torch.Generator) -> dict[str, Any]:
@@ -253,7 +257,7 @@ def fit(project: Project, cfg: FitConfig | None = None, *, device: str = "auto",
     setup_seconds = time.perf_counter() - t_setup
     step = start_step
     losses: dict[str, float] = {}
-    val: dict[str, Any] | None = None
+    val: ValidationResult | None = None
     last_ckpt: Path | None = paths.latest_checkpoint if ckpt is not None else None
     saved_step = start_step if ckpt is not None else -1
     window_t, window_rays, rays_per_s = time.perf_counter(), 0, 0.0
@@ -294,7 +298,7 @@ def fit(project: Project, cfg: FitConfig | None = None, *, device: str = "auto",
                                     "hits": store.hits, "misses": store.misses},
                           "stats": {k: float(v) for k, v in out.stats.items()}}
             if validator is not None and cfg.val_every and step % cfg.val_every == 0:
-                val = validator.run(model)
+                val = validator.score(model)
                 record["val"] = _val_record(val)
             if record:
                 log.append({"step": step, "time": round(time.perf_counter() - t_run, 3), **record})
@@ -305,7 +309,7 @@ def fit(project: Project, cfg: FitConfig | None = None, *, device: str = "auto",
             if progress is not None:
                 progress(StepReport(step=step, iters=cfg.iters, start_step=start_step, losses=losses,
                                     lr=optimizer.param_groups[0]["lr"], rays_per_s=rays_per_s,
-                                    val_psnr=None if val is None else val["psnr"]))
+                                    val_psnr=None if val is None else val.psnr))
     seconds = time.perf_counter() - t_run
     if step > start_step and step % cfg.log_every:  # stopped between log steps: report the last step's losses
         losses = terms.as_floats()
@@ -314,15 +318,15 @@ def fit(project: Project, cfg: FitConfig | None = None, *, device: str = "auto",
     if saved_step != step:
         last_ckpt = checkpoint(step)
     if validator is not None and not interrupted and (val is None or not cfg.val_every or step % cfg.val_every):
-        val = validator.run(model)
+        val = validator.score(model)
         log.append({"step": step, "time": round(time.perf_counter() - t_run, 3), "val": _val_record(val)})
     assert last_ckpt is not None
     summary = {"step": step, "iters": cfg.iters, "start_step": start_step, "interrupted": interrupted,
                "stop_reason": stop_reason,
                "seconds": round(seconds, 2), "setup_seconds": round(setup_seconds, 2), "losses": losses,
                "rays_per_s": round(rays_per_s, 1), "device": str(dev),
-               "val_psnr_bbox": None if val is None else val["psnr"],
-               "val_pairs": None if val is None else val["pairs"], **config_summary(cfg)}
+               "val_psnr_bbox": None if val is None else val.psnr,
+               "val_pairs": None if val is None else val.to_json()["pairs"], **config_summary(cfg)}
     project.record("fit", {"fit": cfg.to_json(), "device": str(dev), "resume": resume},
                    [paths.fit_config, paths.fit_log, paths.latest_checkpoint], started, summary)
     return FitResult(step=step, iters=cfg.iters, interrupted=interrupted, stop_reason=stop_reason,

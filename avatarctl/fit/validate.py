@@ -97,10 +97,6 @@ class Validator:
                                 pairs=tuple(results), scale=self.scale, settings=metric_settings(),
                                 seconds=time.perf_counter() - t0)
 
-    def run(self, model) -> dict[str, Any]:
-        """`score(model).to_json()`: the record the training loop logs and returns in `FitResult.val`."""
-        return self.score(model).to_json()
-
 
 @dataclass(frozen=True)
 class PairScore:

@@ -118,9 +118,18 @@ class SlrfAvatar(nn.Module):
         else:
             # one canonical network of comparable total capacity: twice as wide and two layers deeper than an F_i
             self.canonical = CanonicalField(cfg.pe_coords, 2 * cfg.node_width, cfg.node_depth + 2, cfg.feature_dim)
-        self.heads = RadianceHeads(cfg.feature_dim, cfg.head_width, cfg.pe_views)
+        self.heads = RadianceHeads(cfg.feature_dim, cfg.head_width, cfg.pe_views, cfg.density_scale,
+                                   cfg.density_shift)
         if cfg.occupancy:  # [N * occ_res^3] per-node occupancy grids (model/occupancy.py), saved with the weights
             self.register_buffer("occupancy", torch.full((cfg.num_nodes * cfg.occ_res ** 3,), UNSEEN))
+            self.register_buffer("occupancy_updates", torch.zeros((), dtype=torch.long))  # training steps seen
+
+    def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):
+        # checkpoints written before `occupancy_updates` existed: their grids are past any warm-up
+        key = prefix + "occupancy_updates"
+        if self.cfg.occupancy and prefix + "occupancy" in state_dict and key not in state_dict:
+            state_dict[key] = torch.tensor(self.cfg.occ_warmup, dtype=torch.long)
+        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
 
     # ---- step 1: nodes ------------------------------------------------------------------------------------------
     def node_state(self, cond: FrameConditioning, mode: str,
@@ -225,7 +234,9 @@ class SlrfAvatar(nn.Module):
             dens, unseen = occupancy_estimate(self.occupancy, cells, pi, pts.shape[0])
             live = select_samples(dens.reshape(t.shape), unseen.reshape(t.shape), sample_deltas(t),
                                   cfg.occ_threshold, cfg.occ_stop_eps).reshape(-1)
-            if self.training and cfg.occ_explore > 0:
+            if self.training and int(self.occupancy_updates) < cfg.occ_warmup:
+                live = torch.ones_like(live)  # warm-up: evaluate everything while the grids fill
+            elif self.training and cfg.occ_explore > 0:
                 dev = generator.device if generator is not None else pts.device
                 live |= (torch.rand(live.shape[0], generator=generator, device=dev) < cfg.occ_explore).to(pts.device)
         idx = live.nonzero(as_tuple=True)[0]
@@ -260,6 +271,7 @@ class SlrfAvatar(nn.Module):
                                                                   self.heads.color(fv, dirs[valid]).to(points.dtype))
             if occ_pairs is not None and self.training and torch.is_grad_enabled():
                 update_occupancy(self.occupancy, occ_pairs[1], sigma.detach()[occ_pairs[0]], self.cfg.occ_decay)
+                self.occupancy_updates += 1
         else:
             f, wsum, stats = self._features_dense(points, point_frame, state)
             valid_mask = wsum > 0

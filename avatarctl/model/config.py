@@ -11,7 +11,8 @@ our choice because the paper's architecture figure (supp. Fig. A) is not availab
 - per-node cVAE encoder and decoder: two ReLU layers of `cvae_width` channels each.
 
 Presets: "paper" = the defaults; "cpu" = the same model with narrower networks (node 2 x 32 -> 32, heads 64,
-cVAE 32) so a training step with a few hundred rays takes well under a second on 2 CPU cores.
+cVAE 32) so a training step with a few hundred rays takes well under a second on 2 CPU cores, and with empty-space
+skipping on (`occupancy`, model/occupancy.py: same images, ~20 % more steps per second, measured in docs/fit.md).
 
 Choices beyond the paper text (documented, switchable):
 - `local_coords_in_sigma`: local coordinates p_i (Eq. 4) are divided by sigma before the positional encoding, so
@@ -62,6 +63,9 @@ class ModelConfig:
     field: str = "mlp"  # "mlp": the paper's F_i MLPs | "grid": per-node multi-resolution feature grids + decoder
     grid_levels: tuple[int, ...] = (8, 16, 32)  # grid backend: vertices per side of each level over the node cube
     grid_channels: int = 4  # grid backend: features per level
+    # density head H (deviation when not 1 / 0, see model/field.py RadianceHeads)
+    density_scale: float = 1.0  # sigma = density_scale * softplus(x + density_shift), 1/metre
+    density_shift: float = 0.0
     # rendering
     samples_per_ray: int = 64  # uniform samples between the ray's entry/exit of the node spheres
     # empty-space skipping (deviation when on, see model/occupancy.py and docs/fit.md)
@@ -70,6 +74,7 @@ class ModelConfig:
     occ_threshold: float = 0.5  # density (1/metre) at or above which a cell is occupied
     occ_decay: float = 0.95  # EMA-max decay of a cell's density at each observation
     occ_explore: float = 0.05  # training: share of skipped samples evaluated anyway (so cells can re-open)
+    occ_warmup: int = 256  # training: grid updates (steps) during which every sample is evaluated
     occ_stop_eps: float = 0.0  # skip samples whose transmittance estimated from the cached densities is below this
     # cVAE posterior (deviation when != 0): initial log-variance of q(z | t, theta) (issue 18, hypothesis 1)
     posterior_logvar_init: float = 0.0  # 0: the encoder's plain init (sigma ~ 1); e.g. -6 starts sigma ~ 0.05
@@ -107,7 +112,7 @@ class ModelConfig:
                      "head_width", "cvae_width", "samples_per_ray", "grid_channels", "occ_res"):
             v = getattr(self, name)
             need(isinstance(v, int) and not isinstance(v, bool) and v > 0, f"{name} must be a positive int, got {v!r}")
-        for name in ("pe_coords", "pe_views", "pe_time", "pose_attention_hops"):
+        for name in ("pe_coords", "pe_views", "pe_time", "pose_attention_hops", "occ_warmup"):
             v = getattr(self, name)
             need(isinstance(v, int) and not isinstance(v, bool) and v >= 0, f"{name} must be an int >= 0, got {v!r}")
         need(isinstance(self.pack_block, int) and self.pack_block >= 0, f"pack_block must be an int >= 0, got "
@@ -118,6 +123,7 @@ class ModelConfig:
         need(0 < self.eps < 1, f"eps must be in (0, 1), got {self.eps}")
         need(self.latent in LATENTS, f"latent must be one of {LATENTS}, got {self.latent!r}")
         need(self.variant in VARIANTS, f"variant must be one of {VARIANTS}, got {self.variant!r}")
+        need(self.density_scale > 0, f"density_scale must be > 0, got {self.density_scale}")
         need(self.occ_threshold >= 0, f"occ_threshold must be >= 0 (density, 1/metre), got {self.occ_threshold}")
         need(0.0 <= self.occ_decay <= 1.0, f"occ_decay must be in [0, 1], got {self.occ_decay}")
         need(0.0 <= self.occ_explore <= 1.0, f"occ_explore must be in [0, 1], got {self.occ_explore}")
@@ -158,11 +164,11 @@ class ModelConfig:
 
     @classmethod
     def preset(cls, name: str) -> "ModelConfig":
-        """"paper": the defaults. "cpu": narrower networks for 2-core CPUs (see module docstring)."""
+        """"paper": the defaults. "cpu": narrower networks and empty-space skipping (see module docstring)."""
         if name == "paper":
             return cls()
         if name == "cpu":
-            return cls(node_width=32, node_depth=2, feature_dim=32, head_width=64, cvae_width=32)
+            return cls(node_width=32, node_depth=2, feature_dim=32, head_width=64, cvae_width=32, occupancy=True)
         raise ValueError(f"ModelConfig: unknown preset {name!r}; use 'paper' or 'cpu'")
 
     def with_(self, **changes: Any) -> "ModelConfig":

@@ -155,21 +155,30 @@ class CanonicalField(nn.Module):
 class RadianceHeads(nn.Module):
     """Eq. 7: Density(p) = H(f), Colour(p) = G(f, v).
 
-    H: Linear(F, head_width) -> ReLU -> Linear(1) -> softplus (1/metre).
+    H: Linear(F, head_width) -> ReLU -> Linear(1) -> softplus (1/metre), optionally shifted and scaled (a named
+    deviation, `ModelConfig.density_scale`: Adam moves a pre-activation by ~lr per step, so reaching an opaque
+    surface's 100-1000 /m through a plain softplus takes thousands of steps).
     G: Linear([f, gamma(v)], head_width) -> ReLU -> Linear(head_width // 2) -> ReLU -> Linear(3) -> sigmoid.
     v is the unit viewing direction in world space (m = pe_views).
     """
 
-    def __init__(self, feature_dim: int, width: int, pe_views: int):
+    def __init__(self, feature_dim: int, width: int, pe_views: int, density_scale: float = 1.0,
+                 density_shift: float = 0.0):
         super().__init__()
         self.pe_views = pe_views
+        self.density_scale, self.density_shift = float(density_scale), float(density_shift)
         self.density_net = nn.Sequential(nn.Linear(feature_dim, width), nn.ReLU(), nn.Linear(width, 1))
         self.color_net = nn.Sequential(nn.Linear(feature_dim + encoded_dim(3, pe_views), width), nn.ReLU(),
                                        nn.Linear(width, width // 2), nn.ReLU(), nn.Linear(width // 2, 3))
 
     def density(self, f: torch.Tensor) -> torch.Tensor:
-        """H(f): [points, F] -> [points] >= 0."""
-        return nn.functional.softplus(self.density_net(f)[..., 0])
+        """H(f): [points, F] -> [points] >= 0 (1/metre): density_scale * softplus(net(f) + density_shift); the
+        paper's plain softplus is scale 1, shift 0 (`ModelConfig.density_scale`)."""
+        x = self.density_net(f)[..., 0]
+        if self.density_shift:
+            x = x + self.density_shift
+        out = nn.functional.softplus(x)
+        return out * self.density_scale if self.density_scale != 1.0 else out
 
     def color(self, f: torch.Tensor, view_dirs: torch.Tensor) -> torch.Tensor:
         """G(f, v): [points, F], [points, 3] -> [points, 3] in (0, 1)."""

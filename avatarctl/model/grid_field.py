@@ -30,11 +30,13 @@ from avatarctl.model.batched_mlp import BatchedLinear
 _CORNERS = torch.tensor([[(c >> 0) & 1, (c >> 1) & 1, (c >> 2) & 1] for c in range(8)], dtype=torch.long)
 
 
-def trilinear_lookup(table: torch.Tensor, res: int, node: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
+def trilinear_lookup(table: torch.Tensor, res: int, node: torch.Tensor, u: torch.Tensor,
+                     reference: bool = False) -> torch.Tensor:
     """Trilinear interpolation in per-node dense grids.
 
     table [nodes * res^3, C] (node-major, then z, y, x), node [pairs] long, u [pairs, 3] in [0, 1] (x, y, z;
-    clamped) -> [pairs, C]. Grid vertices sit at u = k / (res - 1).
+    clamped) -> [pairs, C]. Grid vertices sit at u = k / (res - 1). `reference=True` runs the plain-autograd twin
+    of the weighted gather (`embedding` + sum) instead of `_GatherBlend`; a test keeps the two equal.
     """
     assert u.ndim == 2 and u.shape[1] == 3 and node.shape == u.shape[:1], \
         f"u: expected [pairs, 3] with node [pairs], got {tuple(u.shape)} and {tuple(node.shape)}"
@@ -46,6 +48,8 @@ def trilinear_lookup(table: torch.Tensor, res: int, node: torch.Tensor, u: torch
     idx = base[:, None] + ((corners[:, 2] * res + corners[:, 1]) * res + corners[:, 0])[None]  # [pairs, 8]
     wx, wy, wz = (torch.stack([1.0 - frac[:, k], frac[:, k]], -1) for k in range(3))  # [pairs, 2] each
     wc = (wz[:, :, None, None] * wy[:, None, :, None] * wx[:, None, None, :]).reshape(-1, 8)  # corner c = x + 2y + 4z
+    if reference:
+        return (nn.functional.embedding(idx, table) * wc[..., None].to(table.dtype)).sum(1)
     return _GatherBlend.apply(table, idx, wc.to(table.dtype))
 
 

@@ -152,7 +152,7 @@ def run(out: str | Path, cfg: DemoConfig, progress: ProgressFn | None = None,
                                          overrides=sizes.fit_overrides, device=cfg.device),
                  progress=progress, handle_sigint=False)
     fit_cfg = fr.config
-    val = None if fr.val is None else fr.val["psnr"]
+    val = None if fr.val is None else fr.val.psnr
     done("fit", t0, {"steps": fr.step, "preset": fit_cfg.preset, "rays/step": fit_cfg.rays_per_batch,
                      "rays/s": round(fr.rays_per_s), "loss": round(fr.losses.get("total", float("nan")), 5),
                      "held-out PSNR (bbox)": None if val is None else round(val, 2)})

@@ -1,0 +1,106 @@
+"""Field evaluations per ray at equal quality: one trained avatar rendered with and without empty-space skipping.
+
+For a checkpoint trained with `model.occupancy=true`, renders held-out views of training frames (bbox protocol, the
+eval's pixels) three ways on the same weights: every sample evaluated (occupancy off: the paper's 64 uniform
+samples), occupancy skipping, and skipping + early stop from the cached transmittance (`occ_stop_eps`). Reports,
+per way: evaluated samples and node-field evaluations ((point, node) pairs) per rendered ray, seconds per image,
+PSNR against the ground truth, and PSNR of the render against the all-samples render (how much skipping changes).
+
+    python -m benchmarks.sampling_efficiency PROJECT [--checkpoint FILE] [--images 4] [--stop-eps 1e-3]
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+
+def main(argv: list[str] | None = None) -> None:
+    from avatarctl.evaluate.metrics import psnr
+    from avatarctl.evaluate.protocols import bbox_region, ground_truth
+    from avatarctl.fit.checkpoint import load_avatar
+    from avatarctl.project import Project
+    from avatarctl.render.engine import render_view
+
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("project", type=Path)
+    ap.add_argument("--checkpoint", type=Path, default=None)
+    ap.add_argument("--images", type=int, default=4)
+    ap.add_argument("--stop-eps", type=float, default=1e-3)
+    ap.add_argument("--out", type=Path, default=None, help="write the results as JSON here")
+    args = ap.parse_args(argv)
+
+    av = load_avatar(Project.open(args.project), device="cpu", checkpoint=args.checkpoint)
+    if not av.model_config.occupancy:
+        raise SystemExit("this avatar was trained without model.occupancy=true: it has no occupancy grids")
+    cap, model = av.capture, av.model
+    views = list(cap.split.test_views)
+    frames = av.train_frames[:: max(1, len(av.train_frames) // args.images)][: args.images]
+    bg = np.asarray(av.fit_config.background, dtype=np.float32)
+    ways = {"all samples": dataclasses.replace(model.cfg, occupancy=False),
+            "occupancy": dataclasses.replace(model.cfg, occ_stop_eps=0.0),
+            f"occupancy + stop {args.stop_eps:g}": dataclasses.replace(model.cfg, occ_stop_eps=args.stop_eps)}
+    stats = {name: {"samples": 0.0, "pairs": 0.0, "rays": 0, "seconds": 0.0, "psnr_gt": [], "psnr_vs_all": []}
+             for name in ways}
+    for k, frame in enumerate(frames):
+        cam = cap.cameras[views[k % len(views)]].pinhole()
+        cond = av.conditioning(cap.motion.select([frame]), frames_are_training=True)
+        verts = av.body.pose(cap.motion.select([frame])).vertices[0].detach().cpu().numpy()
+        region = bbox_region(cam, verts, pad=0.05)
+        gt = ground_truth(cap.image(cam.name, frame), cap.mask(cam.name, frame), bg)
+        ref = None
+        for name, cfg in ways.items():
+            model.cfg = cfg
+            counts = {"samples": 0.0, "pairs": 0.0}
+            orig = model.query
+
+            def counting(*a, _orig=orig, _c=counts, **kw):
+                rgb, sigma, st = _orig(*a, **kw)
+                _c["samples"] += st.get("samples", 0.0)
+                _c["pairs"] += st.get("pairs", 0.0)
+                return rgb, sigma, st
+
+            model.query = counting
+            with torch.no_grad():
+                st = model.node_state(cond, mode="mean")
+                t0 = time.perf_counter()
+                v = render_view(model, st, 0, cam, av.fit_config.background, pixel_mask=region.mask)
+                dt = time.perf_counter() - t0
+            del model.query
+            m = region.mask
+            s = stats[name]
+            s["samples"] += counts["samples"]
+            s["pairs"] += counts["pairs"]
+            s["rays"] += v.rays
+            s["seconds"] += dt
+            s["psnr_gt"].append(psnr(v.rgb, gt, m))
+            if ref is None:
+                ref = v.rgb
+            else:
+                s["psnr_vs_all"].append(psnr(v.rgb, ref, m))
+    model.cfg = ways["all samples"]
+    out = {}
+    for name, s in stats.items():
+        out[name] = {"field_samples_per_ray": s["samples"] / max(s["rays"], 1),
+                     "node_field_evals_per_ray": s["pairs"] / max(s["rays"], 1),
+                     "seconds_per_image": s["seconds"] / len(frames), "psnr_bbox_vs_gt": float(np.mean(s["psnr_gt"])),
+                     "psnr_vs_all_samples": float(np.mean(s["psnr_vs_all"])) if s["psnr_vs_all"] else None}
+        o = out[name]
+        vs = o["psnr_vs_all_samples"]
+        print(f"{name:>24}: {o['field_samples_per_ray']:6.1f} samples/ray  {o['node_field_evals_per_ray']:7.1f} "
+              f"node-field evals/ray  {o['seconds_per_image']:6.2f} s/image  PSNR {o['psnr_bbox_vs_gt']:.2f} dB"
+              + ("" if vs is None else f"  (vs all-samples render {vs:.1f} dB)"))
+    if args.out:
+        args.out.write_text(json.dumps({"images": len(frames), "checkpoint": str(args.checkpoint or "latest"),
+                                        "protocol": "bbox pixels of held-out views of training frames, mean latent",
+                                        "ways": out}, indent=1))
+
+
+if __name__ == "__main__":
+    main()
