@@ -111,7 +111,7 @@ class SlrfAvatar(nn.Module):
             self.latent = NodeCVAE(cfg, J, num_frames)
             if cfg.field == "grid":
                 self.fields = NodeGridFields(cfg.num_nodes, cfg.grid_levels, cfg.grid_channels, cfg.embed_dim,
-                                             cfg.feature_dim, extent=cfg.support_radius * self._local_scale())
+                                             cfg.feature_dim, extent=self._node_extent())
             else:
                 self.fields = NodeFields(cfg.num_nodes, cfg.pe_coords, cfg.embed_dim, cfg.node_width,
                                          cfg.node_depth, cfg.feature_dim)
@@ -230,7 +230,7 @@ class SlrfAvatar(nn.Module):
         with torch.no_grad():
             pi, ni, fi, _, centers = self._pairs(pts, frame_pts, state)
             cells = cell_index(self._local(pts, pi, ni, fi, centers, state), ni,
-                               cfg.support_radius * self._local_scale(), cfg.occ_res)
+                               self._node_extent(), cfg.occ_res)
             dens, unseen = occupancy_estimate(self.occupancy, cells, pi, pts.shape[0])
             live = select_samples(dens.reshape(t.shape), unseen.reshape(t.shape), sample_deltas(t),
                                   cfg.occ_threshold, cfg.occ_stop_eps).reshape(-1)
@@ -239,12 +239,14 @@ class SlrfAvatar(nn.Module):
             elif self.training and cfg.occ_explore > 0:
                 dev = generator.device if generator is not None else pts.device
                 live |= (torch.rand(live.shape[0], generator=generator, device=dev) < cfg.occ_explore).to(pts.device)
+            keep = live[pi]  # the live samples' pairs, renumbered: query need not search them again
+            candidates = ((torch.cumsum(live, 0) - 1)[pi[keep]], ni[keep])
         idx = live.nonzero(as_tuple=True)[0]
         rgb = pts.new_zeros(pts.shape[0], 3)
         sigma = pts.new_zeros(pts.shape[0])
         if idx.numel():
             dirs = d[:, None, :].expand(-1, S, -1).reshape(-1, 3)
-            c, sg, st = self.query(pts[idx], dirs[idx], frame_pts[idx], state)
+            c, sg, st = self.query(pts[idx], dirs[idx], frame_pts[idx], state, candidates)
             stats.update(st)
             rgb, sigma = rgb.index_copy(0, idx, c), sigma.index_copy(0, idx, sg)
         stats["samples"] = float(pts.shape[0])
@@ -253,16 +255,18 @@ class SlrfAvatar(nn.Module):
         out, alpha, depth, _ = composite(rgb, sigma, t, bg)
         return out, alpha, depth
 
-    def query(self, points: torch.Tensor, dirs: torch.Tensor, point_frame: torch.Tensor,
-              state: NodeState) -> tuple[torch.Tensor, torch.Tensor, dict[str, float]]:
+    def query(self, points: torch.Tensor, dirs: torch.Tensor, point_frame: torch.Tensor, state: NodeState,
+              candidates: tuple[torch.Tensor, torch.Tensor] | None = None
+              ) -> tuple[torch.Tensor, torch.Tensor, dict[str, float]]:
         """Colour and density at posed points.
 
         points [P, 3] world, dirs [P, 3] unit viewing directions, point_frame [P] long (frame slot of each point)
         -> rgb [P, 3], sigma [P] (1/metre; exactly 0 where no node is in range), stats. In training with
-        `cfg.occupancy`, the densities found update the occupancy grids (model/occupancy.py).
+        `cfg.occupancy`, the densities found update the occupancy grids (model/occupancy.py). `candidates`
+        (point_idx, node_idx) [pairs]: the pairs in range, already found (sparse path only).
         """
         if self.cfg.sparse:
-            f, wsum, stats, occ_pairs = self._features_sparse(points, point_frame, state)
+            f, wsum, stats, occ_pairs = self._features_sparse(points, point_frame, state, candidates)
             valid = (wsum > 0).nonzero(as_tuple=True)[0]
             fv = f[valid]
             # heads may run in bf16 under autocast; compositing stays in the points' float32
@@ -285,11 +289,18 @@ class SlrfAvatar(nn.Module):
     def _local_scale(self) -> float:
         return 1.0 / self.cfg.sigma if self.cfg.local_coords_in_sigma else 1.0
 
-    def _pairs(self, points: torch.Tensor, point_frame: torch.Tensor, state: NodeState):
+    def _node_extent(self) -> float:
+        """Half side of a node's support cube in local-coordinate units (grid fields and occupancy grids)."""
+        return self.cfg.support_radius * self._local_scale()
+
+    def _pairs(self, points: torch.Tensor, point_frame: torch.Tensor, state: NodeState,
+               candidates: tuple[torch.Tensor, torch.Tensor] | None = None):
         """The (point, node) pairs with Eq. 6 weight > 0: point_idx, node_idx, frame_idx [pairs] long, w [pairs],
-        centers [pairs, 3] (the posed node of each pair)."""
+        centers [pairs, 3] (the posed node of each pair). `candidates`: (point_idx, node_idx) found before, in the
+        order `candidate_pairs` gives, instead of a new neighbour search."""
         cfg = self.cfg
-        pi, ni = candidate_pairs(points, point_frame, state.centers, cfg.support_radius)
+        pi, ni = candidates if candidates is not None else candidate_pairs(points, point_frame, state.centers,
+                                                                             cfg.support_radius)
         fi = point_frame[pi]
         centers = state.centers[fi, ni]  # [pairs, 3]
         w = blending_weights(((points[pi] - centers) ** 2).sum(-1), cfg.sigma, cfg.eps)  # Eq. 6
@@ -303,16 +314,17 @@ class SlrfAvatar(nn.Module):
             A_inv = torch.linalg.inv(state.transforms[..., :3, :3])  # [B, N, 3, 3]
             return local_coordinates_centered(points[pi], A_inv[fi, ni], centers) * self._local_scale()
 
-    def _features_sparse(self, points: torch.Tensor, point_frame: torch.Tensor, state: NodeState):
+    def _features_sparse(self, points: torch.Tensor, point_frame: torch.Tensor, state: NodeState,
+                         candidates: tuple[torch.Tensor, torch.Tensor] | None = None):
         """Supplement A.2: evaluate only pairs with w_i > 0, packed per node ([N, max_i S_i, C], or blocks of
         `cfg.pack_block` rows per node, see `ModelConfig.pack_block`).
         -> f [P, F], wsum [P], stats, and with `cfg.occupancy` (point_idx, cells) of the pairs, else None."""
         cfg, N, P = self.cfg, self.cfg.num_nodes, points.shape[0]
-        pi, ni, fi, w, centers = self._pairs(points, point_frame, state)
+        pi, ni, fi, w, centers = self._pairs(points, point_frame, state, candidates)
         local = self._local(points, pi, ni, fi, centers, state) if cfg.variant == "slrf" or cfg.occupancy else None
         occ_pairs = None
         if cfg.occupancy:
-            occ_pairs = (pi, cell_index(local, ni, cfg.support_radius * self._local_scale(), cfg.occ_res))
+            occ_pairs = (pi, cell_index(local, ni, self._node_extent(), cfg.occ_res))
         if cfg.variant == "slrf":
             if cfg.field == "grid":  # affine F_i: fuse grid features and B_i e_i, decode once per point (Eq. 5)
                 g, wsum = fuse_features(self.fields.grid_features(local, ni), w, pi, P)
