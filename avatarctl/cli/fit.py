@@ -26,14 +26,21 @@ def register(app: typer.Typer) -> None:
                                                       "(FitConfig field or model.<field>); repeatable."),
         ablation: Optional[str] = typer.Option(None, "--ablation", help="Comma list of: no-delta-n, no-embedding, "
                                                "deterministic, per-frame-latent, lbs-baseline."),
+        nproc: int = typer.Option(1, "--nproc", help="Train data-parallel on N ranks of this machine (gloo on CPU, "
+                                  "NCCL on GPUs); the batch options stay the global batch. Clusters: torchrun "
+                                  "--nproc_per_node N -m avatarctl fit ..."),
+        shards: Optional[int] = typer.Option(None, "--shards", help="Ray shards (default: the number of ranks); a "
+                                             "fit samples the same rays on any --nproc dividing them."),
     ) -> None:
         from avatarctl.cli.common import console, user_errors
 
         with user_errors():
-            _run(project, iters, preset, resume, fresh, seed, device, overrides or [], ablation, console)
+            _run(project, iters, preset, resume, fresh, seed, device, overrides or [], ablation, nproc, shards,
+                 console)
 
 
-def _run(project_dir: Path, iters, preset, resume, fresh, seed, device, overrides, ablation, console) -> None:
+def _run(project_dir: Path, iters, preset, resume, fresh, seed, device, overrides, ablation, nproc, shards,
+         console) -> None:
     from rich.table import Table
 
     from avatarctl.cli.common import progress_bar
@@ -41,9 +48,12 @@ def _run(project_dir: Path, iters, preset, resume, fresh, seed, device, override
     from avatarctl.stages.common import StageProgress
 
     req = fit.FitRequest(preset=preset, iters=iters, seed=seed, overrides=tuple(overrides), ablation=ablation,
-                         device=device, resume=resume, fresh=fresh)
+                         device=device, resume=resume, fresh=fresh, nproc=nproc, shards=shards)
     plan = fit.prepare(project_dir, req)  # option errors before the progress bar
     project = plan.project
+    if not fit.is_main_rank():  # a torchrun rank > 0: train quietly, rank 0 reports
+        fit.run(project_dir, req, plan=plan)
+        return
     with progress_bar("fit", ("speed", "info"), out=console, bar_width=24) as bar:
         task = bar.add_task("fit", total=None, speed="", info="setting up")
         state = {"last_t": None, "last_step": None}

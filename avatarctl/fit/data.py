@@ -6,7 +6,8 @@ body's 3D bounding box grown by `FitConfig.crop_pad` metres, and kept in an LRU 
 memory (only the per-frame `PoseTable` is resident).
 
 Ray sampling per step (`RaySampler.sample`): `images_per_batch` images, each a (training frame, training view)
-pair drawn uniformly with replacement; the step's `rays_per_batch` rays are split evenly over them. Of an image's
+pair drawn uniformly with replacement (from all pairs, or from the sampler's own `pairs`: a ray shard of a
+data-parallel fit, fit/distributed.py); the step's `rays_per_batch` rays are split evenly over them. Of an image's
 rays, `mask_fraction` are drawn uniformly among the foreground pixels of the mask dilated by `mask_dilate_px`
 (focused sampling, a deviation; 0 in the `paper` preset); of the others, `box_fraction` (default 90%) uniformly
 among the pixels inside the projected grown box (the crop's polygon), the rest uniformly over the whole image.
@@ -142,8 +143,9 @@ class RaySampler:
 
     def __init__(self, store: FrameStore, train_frames: list[int], train_views: list[str], rays_per_batch: int,
                  images_per_batch: int, box_fraction: float, background: tuple[float, float, float],
-                 mask_fraction: float = 0.0):
+                 mask_fraction: float = 0.0, pairs: list[tuple[int, str]] | None = None):
         self.store = store
+        self.pairs = None if pairs is None else [(int(f), str(v)) for f, v in pairs]  # None = every pair
         self.mask_fraction = float(mask_fraction)
         self.train_frames = sorted(int(f) for f in train_frames)
         self.train_views = list(train_views)
@@ -158,12 +160,16 @@ class RaySampler:
 
     def sample(self, generator: torch.Generator, device: str | torch.device = "cpu") -> TrainBatch:
         B, R = self.images_per_batch, self.rays_per_batch
-        fi = torch.randint(len(self.train_frames), (B,), generator=generator).tolist()
-        vi = torch.randint(len(self.train_views), (B,), generator=generator).tolist()
+        if self.pairs is None:
+            fi = torch.randint(len(self.train_frames), (B,), generator=generator).tolist()
+            vi = torch.randint(len(self.train_views), (B,), generator=generator).tolist()
+            frames = [self.train_frames[i] for i in fi]
+            views = [self.train_views[i] for i in vi]
+        else:
+            picks = [self.pairs[i] for i in torch.randint(len(self.pairs), (B,), generator=generator).tolist()]
+            frames, views = [f for f, _ in picks], [v for _, v in picks]
         counts = [R // B + (1 if b < R % B else 0) for b in range(B)]
         origins, dirs, slots, targets = [], [], [], []
-        frames = [self.train_frames[i] for i in fi]
-        views = [self.train_views[i] for i in vi]
         for b, (frame, view, n) in enumerate(zip(frames, views, counts)):
             cam: Camera = self.store.capture.cameras[view]
             crop = self.store.get(view, frame)

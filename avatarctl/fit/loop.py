@@ -12,7 +12,11 @@ optimiser and the scheduler, so N steps straight and N/2 + `resume` N/2 give the
 in our test).
 
 Interruption: Ctrl-C (SIGINT, first press) or `StopFlag.set()` ends the run after the current step with a
-checkpoint; a second Ctrl-C aborts immediately. `FitConfig.time_budget_s` ends a run the same way after that many
+checkpoint; a second Ctrl-C aborts immediately.
+
+Several ranks (`env`, `avatarctl.dist`): data-parallel over ray shards (fit/distributed.py: `Replicas` samples,
+renders and synchronises); rank 0 alone writes the config, log, checkpoints and project record and validates; the
+ranks stop after the same step. `FitConfig.time_budget_s` ends a run the same way after that many
 seconds of training, but still validates (stop_reason "time_budget").
 """
 
@@ -33,19 +37,22 @@ import torch
 
 from avatarctl.atomic import write_json, write_text
 from avatarctl.device import resolve_device
+from avatarctl.dist import rank_device
 from avatarctl.errors import AvatarError, InputError, ProjectError
 from avatarctl.fit.config import FitConfig, config_summary
 from avatarctl.project import Project, now_iso
 
 if TYPE_CHECKING:
+    from avatarctl.dist import DistEnv
+    from avatarctl.fit.distributed import Replicas
     from avatarctl.fit.validate import ValidationResult
 
 
 class StopFlag:
     """Ask a running `fit` to stop after the current step (what Ctrl-C does)."""
 
-    def __init__(self) -> None:
-        self._event = threading.Event()
+    def __init__(self, event: Any = None) -> None:
+        self._event = event if event is not None else threading.Event()  # or a multiprocessing Event
 
     def set(self) -> None:
         self._event.set()
@@ -140,17 +147,15 @@ def _val_record(val: "ValidationResult") -> dict[str, Any]:
             "seconds": round(d["seconds"], 2)}
 
 
-def _rng_state(sampler_gen: torch.Generator, noise_gen: torch.Generator) -> dict[str, Any]:
+def _rng_state(replicas: "Replicas") -> dict[str, Any]:
     return {"torch": torch.get_rng_state(), "cuda": torch.cuda.get_rng_state_all() if torch.cuda.is_available() else [],
-            "sampler": sampler_gen.get_state(), "noise": noise_gen.get_state()}
+            **replicas.rng_state()}
 
 
-def _set_rng_state(rng: dict[str, Any], sampler_gen: torch.Generator, noise_gen: torch.Generator) -> None:
+def _set_rng_state(rng: dict[str, Any]) -> None:
     torch.set_rng_state(rng["torch"].cpu())
     if rng.get("cuda") and torch.cuda.is_available():
         torch.cuda.set_rng_state_all([s.cpu() for s in rng["cuda"]])
-    sampler_gen.set_state(rng["sampler"].cpu())
-    noise_gen.set_state(rng["noise"].cpu())
 
 
 def _resume_config(cfg: FitConfig | None, saved: FitConfig) -> FitConfig:
@@ -171,12 +176,15 @@ def _resume_config(cfg: FitConfig | None, saved: FitConfig) -> FitConfig:
 
 def fit(project: Project, cfg: FitConfig | None = None, *, device: str = "auto", resume: bool = False,
         fresh: bool = False, progress: Callable[[StepReport], None] | None = None, stop: StopFlag | None = None,
-        handle_sigint: bool = True) -> FitResult:
-    """Train (or resume training) the project's avatar; see the module docstring. `cfg` may be None on resume."""
+        handle_sigint: bool = True, env: "DistEnv | None" = None, shards: int | None = None) -> FitResult:
+    """Train (or resume training) the project's avatar; see the module docstring. `cfg` may be None on resume.
+    `env`: this process's rank in a started group (None: one process); `shards`: ray shards (fit/distributed.py;
+    None = the world size for a fresh fit, the checkpoint's on resume when the world size divides them)."""
     from avatarctl.body.registry import load_body_model
     from avatarctl.fit.checkpoint import read_checkpoint, save_checkpoint, save_snapshot
     from avatarctl.fit.conditioning import build_pose_table
     from avatarctl.fit.data import FrameStore, RaySampler
+    from avatarctl.fit.distributed import Replicas, saved_shards
     from avatarctl.fit.schedule import make_optimizer, make_scheduler, param_groups
     from avatarctl.fit.validate import Validator, choose_val_pairs
     from avatarctl.io.project_io import load_project_capture
@@ -185,7 +193,8 @@ def fit(project: Project, cfg: FitConfig | None = None, *, device: str = "auto",
     t_setup = time.perf_counter()
     started = now_iso()
     paths = project.paths
-    dev = resolve_device(device)
+    dev = rank_device(env, resolve_device(device))
+    main = env is None or env.is_main
     capture = load_project_capture(project)
     split = capture.split
     if not split.train_frames or not split.train_views:
@@ -210,20 +219,26 @@ def fit(project: Project, cfg: FitConfig | None = None, *, device: str = "auto",
         if paths.latest_checkpoint.exists() and not fresh:
             raise ProjectError("this project already has a fit", where=str(paths.fit),
                                fix="pass --resume to continue it, or --fresh to discard it and start over")
-        if fresh:
+        if fresh and main:
             for p in list(paths.checkpoints.glob("*.pt")) + [paths.fit_log]:
                 p.unlink(missing_ok=True)
     assert cfg is not None
     start_step = int(ckpt["step"]) if ckpt is not None else 0
-    write_json(paths.fit_config, cfg.to_json())
+    world = env.world_size if env is not None else 1
+    if shards is None:
+        shards = world if ckpt is None else saved_shards(ckpt["rng"])
+        shards = shards if shards % world == 0 else world
+    if main:
+        write_json(paths.fit_config, cfg.to_json())
 
     body = load_body_model(capture.body_model, capture.body_model_path)
     template = body.template(capture.motion)
     poses = build_pose_table(body, capture.motion, train_frames)
     store = FrameStore(capture, poses, cfg.crop_pad, cfg.cache_mb * 2**20, cfg.mask_dilate_px)
-    sampler = RaySampler(store, train_frames, split.train_views, cfg.rays_per_batch, cfg.images_per_batch,
-                         cfg.box_fraction, cfg.background, cfg.mask_fraction)
-    pairs = choose_val_pairs(split.test_views, train_frames, cfg.val_pairs)
+    replicas = Replicas(env, shards, lambda pairs, rays, images: RaySampler(
+        store, train_frames, split.train_views, rays, images, cfg.box_fraction, cfg.background, cfg.mask_fraction,
+        pairs), train_frames, list(split.train_views), cfg.rays_per_batch, cfg.images_per_batch, cfg.seed, dev)
+    pairs = choose_val_pairs(split.test_views, train_frames, cfg.val_pairs) if main else []
     validator = Validator(capture, body, pairs, train_frames, cfg.background, cfg.val_scale) if pairs else None
 
     with torch.random.fork_rng(devices=[]):  # weights initialised from cfg.seed, global RNG left as it was
@@ -232,25 +247,25 @@ def fit(project: Project, cfg: FitConfig | None = None, *, device: str = "auto",
     model.train()
     optimizer = make_optimizer(cfg, param_groups(cfg, model))
     scheduler = make_scheduler(cfg, optimizer)
-    sampler_gen = torch.Generator().manual_seed(cfg.seed)
-    noise_gen = torch.Generator(device=dev).manual_seed(cfg.seed + 1)
     if ckpt is not None:
         model.load_state_dict(ckpt["model"])
         optimizer.load_state_dict(ckpt["optimizer"])
         scheduler.load_state_dict(ckpt["scheduler"])
-        _set_rng_state(ckpt["rng"], sampler_gen, noise_gen)
-    log = _Log(paths.fit_log, _read_log(paths.fit_log, start_step) if resume else [])
+        _set_rng_state(ckpt["rng"])
+        replicas.load_rng_state(ckpt["rng"], cfg.seed, start_step)
+    log = _Log(paths.fit_log, _read_log(paths.fit_log, start_step) if resume else []) if main else None
     background = torch.tensor(cfg.background, dtype=torch.float32, device=dev)
     use_amp = cfg.amp and dev.type == "cuda"
     stop = stop or StopFlag()
 
     def payload(step: int) -> dict[str, Any]:
         return {"step": step, "model": model.state_dict(), "optimizer": optimizer.state_dict(),
-                "scheduler": scheduler.state_dict(), "rng": _rng_state(sampler_gen, noise_gen),
+                "scheduler": scheduler.state_dict(), "rng": _rng_state(replicas),
                 "model_config": cfg.model.to_json(), "fit_config": cfg.to_json(), "train_frames": train_frames}
 
-    def checkpoint(step: int) -> Path:
-        return save_checkpoint(project, payload(step), keep=cfg.keep_checkpoints)
+    def checkpoint(step: int) -> Path:  # every rank (the shards' generator states are gathered), rank 0 writes
+        data = payload(step)
+        return save_checkpoint(project, data, keep=cfg.keep_checkpoints) if main else paths.checkpoint(step)
 
     snapshots = list(cfg.snapshot_at_s)
 
@@ -264,28 +279,30 @@ def fit(project: Project, cfg: FitConfig | None = None, *, device: str = "auto",
     t_run = time.perf_counter()
     sig = _sigint_sets(stop) if handle_sigint else contextlib.nullcontext()
     with sig:
-        budget_hit = False
-        while step < cfg.iters and not stop.is_set():
-            if cfg.time_budget_s and time.perf_counter() - t_run >= cfg.time_budget_s:
+        budget_hit = agreed_stop = False  # several ranks stop on the flags they agreed on, never on a local one
+        while step < cfg.iters and not (agreed_stop if replicas.distributed else stop.is_set()):
+            if not replicas.distributed and cfg.time_budget_s and time.perf_counter() - t_run >= cfg.time_budget_s:
                 budget_hit = True
                 break
-            batch = sampler.sample(sampler_gen, dev)
+            occ_start = replicas.begin_step(model)
             with torch.autocast(device_type="cuda", dtype=torch.bfloat16) if use_amp else contextlib.nullcontext():
-                state = model.node_state(batch.cond, mode="posterior", generator=noise_gen)
-                out = model.render(batch.rays, state, background, jitter=cfg.jitter, generator=noise_gen)
-                terms = model.losses(out, batch.target, state)
+                terms, out, step_rays = replicas.forward(model, background, cfg.jitter)
             optimizer.zero_grad(set_to_none=True)
             terms.total.backward()
+            elapsed = time.perf_counter() - t_run
+            agreed = replicas.sync(model, terms, occ_start, stop=stop.is_set(),
+                                   budget=main and bool(cfg.time_budget_s) and elapsed >= cfg.time_budget_s,
+                                   snapshot=main and bool(snapshots) and elapsed >= snapshots[0])
             if cfg.grad_clip > 0:
                 torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.grad_clip)
             optimizer.step()
             scheduler.step()
             step += 1
-            window_rays += batch.target.shape[0]
+            window_rays += step_rays
 
             record: dict[str, Any] = {}
             if step % cfg.log_every == 0 or step == cfg.iters:
-                losses = terms.as_floats()
+                losses = agreed.losses or terms.as_floats()
                 if not all(math.isfinite(v) for v in losses.values()):
                     raise AvatarError(f"training diverged: non-finite loss at step {step} ({losses})",
                                       where=str(paths.fit),
@@ -300,25 +317,36 @@ def fit(project: Project, cfg: FitConfig | None = None, *, device: str = "auto",
             if validator is not None and cfg.val_every and step % cfg.val_every == 0:
                 val = validator.score(model)
                 record["val"] = _val_record(val)
-            if record:
+            if record and log is not None:
                 log.append({"step": step, "time": round(time.perf_counter() - t_run, 3), **record})
             if step % cfg.checkpoint_every == 0:
                 last_ckpt, saved_step = checkpoint(step), step
-            while snapshots and time.perf_counter() - t_run >= snapshots[0]:
-                save_snapshot(project, payload(step), snapshots.pop(0))
+            while snapshots and (agreed.snapshot if replicas.distributed else
+                                 time.perf_counter() - t_run >= snapshots[0]):
+                data = payload(step)
+                if main:
+                    save_snapshot(project, data, snapshots[0])
+                snapshots.pop(0)
+                agreed = replace(agreed, snapshot=False)
             if progress is not None:
                 progress(StepReport(step=step, iters=cfg.iters, start_step=start_step, losses=losses,
                                     lr=optimizer.param_groups[0]["lr"], rays_per_s=rays_per_s,
                                     val_psnr=None if val is None else val.psnr))
+            if agreed.stop:
+                agreed_stop = True
+            if agreed.budget:
+                budget_hit = True
+                break
     seconds = time.perf_counter() - t_run
     if step > start_step and step % cfg.log_every:  # stopped between log steps: report the last step's losses
-        losses = terms.as_floats()
+        losses = agreed.losses or terms.as_floats()
     interrupted = step < cfg.iters and not budget_hit
     stop_reason = "interrupted" if interrupted else ("time_budget" if budget_hit else "done")
     if saved_step != step:
         last_ckpt = checkpoint(step)
     if validator is not None and not interrupted and (val is None or not cfg.val_every or step % cfg.val_every):
         val = validator.score(model)
+        assert log is not None
         log.append({"step": step, "time": round(time.perf_counter() - t_run, 3), "val": _val_record(val)})
     assert last_ckpt is not None
     summary = {"step": step, "iters": cfg.iters, "start_step": start_step, "interrupted": interrupted,
@@ -326,9 +354,12 @@ def fit(project: Project, cfg: FitConfig | None = None, *, device: str = "auto",
                "seconds": round(seconds, 2), "setup_seconds": round(setup_seconds, 2), "losses": losses,
                "rays_per_s": round(rays_per_s, 1), "device": str(dev),
                "val_psnr_bbox": None if val is None else val.psnr,
-               "val_pairs": None if val is None else val.to_json()["pairs"], **config_summary(cfg)}
-    project.record("fit", {"fit": cfg.to_json(), "device": str(dev), "resume": resume},
-                   [paths.fit_config, paths.fit_log, paths.latest_checkpoint], started, summary)
+               "val_pairs": None if val is None else val.to_json()["pairs"], "ranks": world, "ray_shards": shards,
+               **config_summary(cfg)}
+    if main:
+        project.record("fit", {"fit": cfg.to_json(), "device": str(dev), "resume": resume, "ranks": world,
+                               "ray_shards": shards},
+                       [paths.fit_config, paths.fit_log, paths.latest_checkpoint], started, summary)
     return FitResult(step=step, iters=cfg.iters, interrupted=interrupted, stop_reason=stop_reason,
                      checkpoint=last_ckpt, seconds=seconds,
                      setup_seconds=setup_seconds, losses=losses, val=val, rays_per_s=rays_per_s, device=str(dev),

@@ -85,6 +85,16 @@ class RenderOutputs:
     depth: torch.Tensor  # [rays] expected termination distance (metres) given termination; 0 where alpha = 0
     stats: dict[str, float] = field(default_factory=dict)  # pairs, max_node_samples, hit_rays, ...
 
+    @staticmethod
+    def cat(outs: list["RenderOutputs"]) -> "RenderOutputs":
+        """The outputs of consecutive ray chunks as one (stats summed, "max*" stats maximised)."""
+        stats: dict[str, float] = {}
+        for o in outs:
+            for k, v in o.stats.items():
+                stats[k] = max(stats.get(k, 0.0), v) if k.startswith("max") else stats.get(k, 0.0) + v
+        return RenderOutputs(rgb=torch.cat([o.rgb for o in outs]), alpha=torch.cat([o.alpha for o in outs]),
+                             depth=torch.cat([o.depth for o in outs]), stats=stats)
+
 
 class SlrfAvatar(nn.Module):
     """The SLRF avatar of one subject. See the module docstring for the data flow."""
@@ -178,14 +188,8 @@ class SlrfAvatar(nn.Module):
             raise ValueError(f"frame_slot {int(rays.frame_slot.max())} out of range for {state.num_frames} frames")
         if chunk is None or len(rays) <= chunk:
             return self._render_rays(rays, state, bg, jitter, generator)
-        outs = [self._render_rays(rays.select(slice(s, s + chunk)), state, bg, jitter, generator)
-                for s in range(0, len(rays), chunk)]
-        stats: dict[str, float] = {}
-        for o in outs:
-            for k, v in o.stats.items():
-                stats[k] = max(stats.get(k, 0.0), v) if k.startswith("max") else stats.get(k, 0.0) + v
-        return RenderOutputs(rgb=torch.cat([o.rgb for o in outs]), alpha=torch.cat([o.alpha for o in outs]),
-                             depth=torch.cat([o.depth for o in outs]), stats=stats)
+        return RenderOutputs.cat([self._render_rays(rays.select(slice(s, s + chunk)), state, bg, jitter, generator)
+                                  for s in range(0, len(rays), chunk)])
 
     def _render_rays(self, rays: RayBatch, state: NodeState, bg: torch.Tensor, jitter: bool,
                      generator: torch.Generator | None) -> RenderOutputs:

@@ -3,10 +3,16 @@ resumed), then train with `avatarctl.fit.loop.fit` and report each step as a `St
 
 Resolution: a fresh fit takes `resolve_fit_config(preset, ablation, iters, seed, overrides)`; a resumed fit keeps
 the checkpoint's config and may only change `iters`.
+
+Ranks (`avatarctl.dist`): `nproc > 1` spawns that many ranks on this machine (`dist.launch`); a process started
+by torchrun (WORLD_SIZE in the environment) joins its group. Either way the loop trains data-parallel over ray
+shards (fit/distributed.py) and rank 0 writes; in the `nproc` case the progress and result come back to this
+process.
 """
 
 from __future__ import annotations
 
+import signal
 import time
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -21,6 +27,9 @@ if TYPE_CHECKING:
     from avatarctl.fit.loop import FitResult, StopFlag
 
 
+_STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
+
+
 @dataclass(frozen=True)
 class FitRequest:
     """What `avatarctl fit` was asked: the options that build (or keep) the `FitConfig`, and how to run."""
@@ -33,9 +42,15 @@ class FitRequest:
     device: str = "auto"  # auto | cpu | cuda
     resume: bool = False  # continue fit/checkpoints/latest.pt
     fresh: bool = False  # discard an existing fit
+    nproc: int = 1  # ranks to spawn on this machine (1 = this process, or the torchrun group it belongs to)
+    shards: int | None = None  # ray shards (fit/distributed.py); None = the number of ranks / the checkpoint's
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "overrides", tuple(self.overrides))
+        if self.nproc < 1:
+            raise InputError(f"--nproc must be >= 1, got {self.nproc}", where="--nproc", fix="e.g. --nproc 2")
+        if self.shards is not None and self.shards < 1:
+            raise InputError(f"--shards must be >= 1, got {self.shards}", where="--shards", fix="e.g. --shards 2")
 
 
 def fit_config(project: Project, req: FitRequest) -> "FitConfig | None":
@@ -71,15 +86,29 @@ class FitPlan:
 
 
 def prepare(project_dir: str | Path, req: FitRequest) -> FitPlan:
+    from avatarctl.dist import DistEnv
+
+    if req.nproc > 1 and DistEnv.from_env() is not None:
+        raise InputError("--nproc inside a torchrun launch", where="--nproc",
+                         fix="let torchrun start the ranks (--nproc_per_node) and drop --nproc")
     project = Project.open(project_dir)
     return FitPlan(project, fit_config(project, req))
+
+
+def is_main_rank() -> bool:
+    """False in the ranks > 0 of a torchrun launch (they print nothing)."""
+    from avatarctl.dist import DistEnv
+
+    env = DistEnv.from_env()
+    return env is None or env.is_main
 
 
 def run(project_dir: str | Path, req: FitRequest, progress: ProgressFn | None = None, *,
         plan: FitPlan | None = None, stop: "StopFlag | None" = None, handle_sigint: bool = True) -> "FitResult":
     """Train (or resume) the project's avatar; `progress` gets every step (`detail`: the loop's `StepReport`).
     `plan`: the result of `prepare(project_dir, req)` when the caller already has it."""
-    from avatarctl.fit.loop import StepReport, fit
+    from avatarctl.dist import DistEnv, launch, process_group, signals_request_stop
+    from avatarctl.fit.loop import StepReport, StopFlag, fit
 
     plan = plan or prepare(project_dir, req)
     project, cfg = plan.project, plan.config
@@ -90,5 +119,35 @@ def run(project_dir: str | Path, req: FitRequest, progress: ProgressFn | None = 
             progress(StageProgress(stage="fit", done=rep.step, total=rep.iters, seconds=time.perf_counter() - t0,
                                    detail=rep))
 
-    return fit(project, cfg, device=req.device, resume=req.resume, fresh=req.fresh, progress=on_step, stop=stop,
-               handle_sigint=handle_sigint)
+    if req.nproc > 1:
+        return launch(_fit_rank, req.nproc, (str(project.root), req), on_progress=on_step, what="fit",
+                      fix=f"the last checkpoint is intact: `avatarctl fit {project.root} --resume` "
+                          f"(any --nproc dividing the ray shards)")
+    env = DistEnv.from_env()
+    if env is None:
+        return fit(project, cfg, device=req.device, resume=req.resume, fresh=req.fresh, progress=on_step, stop=stop,
+                   handle_sigint=handle_sigint, shards=req.shards)
+    stop = stop or StopFlag()  # a torchrun rank: Ctrl-C / SIGTERM ask for a stop the ranks agree on
+    with process_group(env, _device(req)), signals_request_stop(stop, _STOP_SIGNALS):
+        return fit(project, cfg, device=req.device, resume=req.resume, fresh=req.fresh,
+                   progress=on_step if env.is_main else None, stop=stop, handle_sigint=False, env=env,
+                   shards=req.shards)
+
+
+def _device(req: FitRequest):
+    from avatarctl.device import resolve_device
+
+    return resolve_device(req.device)
+
+
+def _fit_rank(env, channel, project_dir: str, req: FitRequest) -> "FitResult":
+    """One rank spawned by `run` (`dist.launch`): join the group, train, hand rank 0's result back."""
+    from avatarctl.dist import process_group, signals_request_stop
+    from avatarctl.fit.loop import fit, StopFlag
+
+    stop = StopFlag(channel.stop)
+    with process_group(env, _device(req)), signals_request_stop(stop):
+        plan = prepare(project_dir, replace(req, nproc=1))
+        return fit(plan.project, plan.config, device=req.device, resume=req.resume, fresh=req.fresh,
+                   progress=channel.send_progress if env.is_main else None, stop=stop, handle_sigint=False, env=env,
+                   shards=req.shards)

@@ -1,0 +1,256 @@
+"""Data-parallel fitting over the ranks of a `torch.distributed` group (`avatarctl.dist`): `Replicas`.
+
+Every rank holds a full copy of the model. The step's batch (`FitConfig.rays_per_batch` rays over
+`images_per_batch` images) is cut into S *ray shards*: shard k owns the (training frame, training view) pairs
+pairs[k::S] (pairs in frame-major order), draws `images_per_batch / S` images from them and
+`rays_per_batch / S` rays, with its own sampler generator and its own noise generator (cVAE posterior sample,
+sample jitter, occupancy exploration), seeded `seed + 1_000_003 k` (+1 for the noise): with S = 1 that is the
+single-process fit exactly. Rank r works on shards r, r + N, ... (N ranks; N must divide S). So a fit samples the
+same rays and noise with any N dividing S: the 2-rank run of S = 2 equals a 1-rank run of S = 2 up to float
+rounding (tests/test_fit_distributed.py), and a fit started on 2 ranks resumes on 1 (or 2 on 4 with S = 4, ...).
+Each rank's frame cache only holds its shard's images.
+
+The rule (effective batch and learning rate): `rays_per_batch` and `images_per_batch` are the *global* batch. N
+does not change the optimisation: each rank computes the loss of its R / N rays (Eq. 12 is normalised per ray, the
+regularisers per frame, so each rank's loss is the mean over its share), the gradients are averaged over the ranks
+(= the gradient of the loss of all R rays), and lr, schedule and step count stay as configured. What N changes is
+the time per step. To fill more devices, grow the global batch with `--set rays_per_batch=.. images_per_batch=..`
+(a new recipe: Adam's update is invariant to the gradient scale, so lr stays; the sqrt(k) rule for a k-times batch
+is not applied automatically).
+
+Synchronisation per step (after the backward pass), all in one flat SUM all-reduce plus one MAX all-reduce:
+- gradients: explicit all-reduce of all parameter gradients as one flat buffer, divided by N; a parameter that no
+  rank gave a gradient stays without one (Adam skips it, as in one process). Why not `DistributedDataParallel`:
+  a step is three calls (`node_state`, `render`, `losses`), not one `forward`, and the sparse per-node evaluation
+  leaves parameters without gradients on a rank whose rays miss them (DDP would need `find_unused_parameters` and
+  its graph walk every step); DDP would also broadcast rank 0's buffers over the occupancy grids each rank updated
+  from its own rays. The price: the all-reduce does not overlap the backward pass.
+- stop flags (Ctrl-C, time budget, snapshot due) and the loss terms ride in the same buffer, so every rank stops
+  after the same step and logs the mean losses;
+- the occupancy grids (`model.occupancy`, updated in the forward pass from each rank's own densities): see
+  `merge_occupancy`; all ranks end the step with the grid one process would have.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Callable
+
+import torch
+
+from avatarctl.dist import DistEnv, active
+from avatarctl.errors import InputError
+
+if TYPE_CHECKING:
+    from avatarctl.fit.data import RaySampler, TrainBatch
+    from avatarctl.model.avatar import NodeState, RenderOutputs, SlrfAvatar
+    from avatarctl.model.losses import LossTerms
+
+SHARD_SEED_STRIDE = 1_000_003
+_UNCHANGED = -2.0  # below every occupancy value (UNSEEN = -1, densities >= 0)
+_LOSS_KEYS = ("total", "rec", "trans", "ebd", "kl", "mse")
+
+
+def shard_seed(seed: int, shard: int) -> int:
+    """Seed of shard `shard`'s ray sampler (its noise generator: + 1); shard 0 keeps the single-process seed."""
+    return int(seed) + SHARD_SEED_STRIDE * int(shard)
+
+
+def check_shards(shards: int, world: int, rays: int, images: int, pairs: int) -> None:
+    """The batch must split evenly over the shards and the shards over the ranks (see the module docstring)."""
+    fix = (f"use --nproc dividing the shards, or --set rays_per_batch / images_per_batch to multiples of {shards} "
+           "(they are the global batch)")
+    if shards < 1:
+        raise InputError(f"ray shards must be >= 1, got {shards}", where="--shards", fix="e.g. --shards 2")
+    if shards % world:
+        raise InputError(f"{world} ranks cannot share {shards} ray shards evenly", where="--nproc / --shards", fix=fix)
+    if rays % shards or images % shards:
+        raise InputError(f"rays_per_batch {rays} and images_per_batch {images} must be multiples of the {shards} "
+                         "ray shards", where="--nproc / --shards", fix=fix)
+    if shards > pairs:
+        raise InputError(f"{shards} ray shards but only {pairs} (training frame, training view) pairs",
+                         where="--nproc / --shards", fix="use fewer ranks / shards")
+
+
+def merge_occupancy(before: torch.Tensor, afters: list[torch.Tensor]) -> torch.Tensor:
+    """The occupancy grid one process would have after observing the union of what each copy observed.
+
+    before [cells]: the grid at the start of the step (the same everywhere); afters: [cells] each, the grid after a
+    copy applied its own observations (`model.occupancy.update_occupancy`: a cell observed becomes
+    a = max(base, d) with base = decay * before (0 if unseen) and d its largest observed density). One process
+    observing everything gives max(base, max_k d_k) = max over the copies that observed the cell of a_k; a copy that
+    did not observe it leaves it at `before`. So: a cell some copy changed takes the largest changed value, else
+    `before`. (A copy whose observation left a cell unchanged, a_k == before, is taken as not observing it; that
+    differs from one process only when another copy changed the cell to a value below `before`, i.e. a density
+    exactly equal to the cached one.)
+    """
+    best = torch.full_like(before, _UNCHANGED)
+    for a in afters:
+        best = torch.maximum(best, changed_values(before, a))
+    return torch.where(best > _UNCHANGED, best, before)
+
+
+def changed_values(before: torch.Tensor, after: torch.Tensor) -> torch.Tensor:
+    """after where it differs from before, else a value below any occupancy ([cells])."""
+    return torch.where(after != before, after, torch.full_like(after, _UNCHANGED))
+
+
+@dataclass(frozen=True)
+class StepSync:
+    """What the ranks agreed on after a step."""
+
+    stop: bool  # some rank was asked to stop (Ctrl-C / StopFlag)
+    budget: bool  # rank 0's time budget is spent
+    snapshot: bool  # rank 0's next snapshot time is reached
+    losses: dict[str, float] | None  # loss terms averaged over the ranks (None in one process: read them locally)
+
+
+class Replicas:
+    """This rank's share of a data-parallel fit: its ray shards (each a sampler and two generators), the step's
+    forward pass over them, and the synchronisation after the backward pass (see the module docstring)."""
+
+    def __init__(self, env: DistEnv | None, shards: int, make_sampler: Callable[[list | None, int, int], "RaySampler"],
+                 train_frames: list[int], train_views: list[str], rays: int, images: int, seed: int,
+                 device: torch.device):
+        world = env.world_size if env is not None else 1
+        pairs = [(f, v) for f in train_frames for v in train_views]
+        check_shards(shards, world, rays, images, len(pairs))
+        self.env, self.shards, self.world, self.device = env, shards, world, device
+        self.local = [k for k in range(shards) if k % world == (env.rank if env is not None else 0)]
+        self.samplers = {k: make_sampler(None if shards == 1 else pairs[k::shards], rays // shards, images // shards)
+                         for k in self.local}
+        self.reseed(seed)
+
+    @property
+    def distributed(self) -> bool:
+        return active(self.env)
+
+    def reseed(self, seed: int) -> None:
+        """Fresh generators for every local shard from `seed` (shard_seed)."""
+        self.sampler_gens = {k: torch.Generator().manual_seed(shard_seed(seed, k)) for k in self.local}
+        self.noise_gens = {k: torch.Generator(device=self.device).manual_seed(shard_seed(seed, k) + 1)
+                           for k in self.local}
+
+    # ---- one step -----------------------------------------------------------------------------------------------
+    def forward(self, model: "SlrfAvatar", background: torch.Tensor, jitter: bool
+                ) -> tuple["LossTerms", "RenderOutputs", int]:
+        """Sample the local shards, compute node states, render and the loss of Eq. 11 over this rank's rays.
+        -> (loss terms, render outputs, rays of the whole step over all ranks)."""
+        parts = [(k, self.samplers[k].sample(self.sampler_gens[k], self.device)) for k in self.local]
+        if len(parts) == 1:
+            k, b = parts[0]
+            state = model.node_state(b.cond, mode="posterior", generator=self.noise_gens[k])
+            out = model.render(b.rays, state, background, jitter=jitter, generator=self.noise_gens[k])
+            terms = model.losses(out, b.target, state)
+            return terms, out, b.target.shape[0] * self.world
+        state, out, target = self._forward_shards(model, parts, background, jitter)
+        return model.losses(out, target, state), out, target.shape[0] * self.world
+
+    def _forward_shards(self, model: "SlrfAvatar", parts: list[tuple[int, "TrainBatch"]], background: torch.Tensor,
+                        jitter: bool) -> tuple["NodeState", "RenderOutputs", torch.Tensor]:
+        """Several shards on this rank: each rendered as its own rank would (its noise generator, the occupancy grid
+        of the step's start), then concatenated; the grids merged as across ranks."""
+        from avatarctl.model.avatar import RenderOutputs
+
+        occ = getattr(model, "occupancy", None) if model.cfg.occupancy else None
+        start = (occ.clone(), model.occupancy_updates.clone()) if occ is not None else None
+        states, outs, afters = [], [], []
+        for k, b in parts:
+            if start is not None:
+                model.occupancy.copy_(start[0])
+                model.occupancy_updates.copy_(start[1])
+            st = model.node_state(b.cond, mode="posterior", generator=self.noise_gens[k])
+            states.append(st)
+            outs.append(model.render(b.rays, st, background, jitter=jitter, generator=self.noise_gens[k]))
+            if start is not None:
+                afters.append(model.occupancy.clone())
+        if start is not None:
+            model.occupancy.copy_(merge_occupancy(start[0], afters))
+        return _cat_states(states), RenderOutputs.cat(outs), torch.cat([b.target for _, b in parts])
+
+    def begin_step(self, model: "SlrfAvatar") -> torch.Tensor | None:
+        """Call before `forward`: the occupancy grid of the step's start, for the cross-rank merge in `sync`."""
+        if self.distributed and model.cfg.occupancy:
+            return model.occupancy.detach().clone()
+        return None
+
+    def sync(self, model: "SlrfAvatar", terms: "LossTerms", occupancy_start: torch.Tensor | None, *, stop: bool,
+             budget: bool, snapshot: bool) -> StepSync:
+        """After `backward`: average the gradients, merge the occupancy grids, agree on the flags (module
+        docstring). In one process: the flags as given."""
+        if not self.distributed:
+            return StepSync(stop=stop, budget=budget, snapshot=snapshot, losses=None)
+        import torch.distributed as dist
+
+        params = [p for p in model.parameters() if p.requires_grad]
+        dev = params[0].device
+        grads = [p.grad.detach().reshape(-1).float() if p.grad is not None else p.new_zeros(p.numel(),
+                                                                                               dtype=torch.float32)
+                 for p in params]
+        had = torch.tensor([p.grad is not None for p in params], dtype=torch.float32, device=dev)
+        flags = torch.tensor([stop, budget, snapshot], dtype=torch.float32, device=dev)
+        losses = torch.stack([getattr(terms, k).detach().float().reshape(()) for k in _LOSS_KEYS]).to(dev)
+        flat = torch.cat(grads + [had, flags, losses])
+        dist.all_reduce(flat)
+        had_any = (flat[-9 - len(params):-9] > 0).tolist()
+        offset = 0
+        for p, has in zip(params, had_any):
+            n = p.numel()
+            p.grad = (flat[offset:offset + n] / self.world).view_as(p).to(p.dtype) if has else None
+            offset += n
+        if occupancy_start is not None:
+            best = changed_values(occupancy_start, model.occupancy)
+            dist.all_reduce(best, op=dist.ReduceOp.MAX)
+            model.occupancy.copy_(torch.where(best > _UNCHANGED, best, occupancy_start))
+        tail = flat[-9:].cpu()
+        return StepSync(stop=bool(tail[0] > 0), budget=bool(tail[1] > 0), snapshot=bool(tail[2] > 0),
+                        losses={k: float(v) / self.world for k, v in zip(_LOSS_KEYS, tail[3:].tolist())})
+
+    # ---- generator state (checkpoints) --------------------------------------------------------------------------
+    def rng_state(self) -> dict[str, torch.Tensor | int]:
+        """Sampler and noise generator states of all S shards (a collective when distributed): "sampler" and
+        "noise" are shard 0's (the single-process checkpoint format); with S > 1 also "sampler_shards" and
+        "noise_shards" [S, state bytes]."""
+        mine = {k: (self.sampler_gens[k].get_state(), self.noise_gens[k].get_state().cpu()) for k in self.local}
+        if self.distributed:
+            import torch.distributed as dist
+
+            everyone: list = [None] * self.world
+            dist.all_gather_object(everyone, mine)
+            for d in everyone:
+                mine.update(d)
+        out: dict[str, torch.Tensor | int] = {"sampler": mine[0][0], "noise": mine[0][1]}
+        if self.shards > 1:
+            out["sampler_shards"] = torch.stack([mine[k][0] for k in range(self.shards)])
+            out["noise_shards"] = torch.stack([mine[k][1] for k in range(self.shards)])
+        return out
+
+    def load_rng_state(self, rng: dict, seed: int, step: int) -> bool:
+        """Restore this rank's shard generators from a checkpoint's `rng`. When the checkpoint has another number
+        of shards (a resume with another --nproc that does not divide them), the shards are new: their generators
+        start from `seed` and `step` instead (returns False: the random stream differs from an uninterrupted run)."""
+        if saved_shards(rng) != self.shards:
+            self.reseed(shard_seed(seed, 7_919 * step))
+            return False
+        for k in self.local:
+            s = rng["sampler_shards"][k] if self.shards > 1 else rng["sampler"]
+            n = rng["noise_shards"][k] if self.shards > 1 else rng["noise"]
+            self.sampler_gens[k].set_state(s.cpu().clone())  # a row of the stack: own storage (set_state
+            self.noise_gens[k].set_state(n.cpu().clone())  # reads from the storage's start)
+        return True
+
+
+def saved_shards(rng: dict) -> int:
+    """The number of ray shards a checkpoint's `rng` was written with."""
+    return int(rng["sampler_shards"].shape[0]) if "sampler_shards" in rng else 1
+
+
+def _cat_states(states: list["NodeState"]) -> "NodeState":
+    from avatarctl.model.avatar import NodeState
+
+    def cat(name: str) -> torch.Tensor | None:
+        vals = [getattr(s, name) for s in states]
+        return None if any(v is None for v in vals) else torch.cat(vals)
+
+    return NodeState(transforms=cat("transforms"), centers=cat("centers"), delta_n=cat("delta_n"),
+                     embed=cat("embed"), mu=cat("mu"), logvar=cat("logvar"))

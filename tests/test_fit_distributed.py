@@ -1,0 +1,182 @@
+"""Data-parallel fitting on torch.distributed (gloo, CPU): the occupancy merge, the shard rules, 2 ranks against
+1 rank of the same ray shards, resume across N = 2 -> 1, a killed rank and Ctrl-C. Toy body, micro preset, a few
+steps; every multi-process run has a timeout."""
+
+from __future__ import annotations
+
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+import torch
+from fixtures.toy_capture import make_toy_capture
+
+from avatarctl.errors import InputError
+from avatarctl.fit.distributed import check_shards, merge_occupancy
+from avatarctl.model.occupancy import UNSEEN, update_occupancy
+
+TINY = ("val_every=0", "val_pairs=0", "log_every=1", "checkpoint_every=1", "keep_checkpoints=10")
+RANK_TOL = 1e-5  # max |parameter difference| after a few steps, 2 ranks vs 1 (measured: 0, bitwise, on CPU)
+WAIT_S = 90  # no multi-process test may take longer than this
+
+
+# ---- pure rules -------------------------------------------------------------------------------------------------
+def test_merged_occupancy_equals_one_update_over_all_observations():
+    g = torch.Generator().manual_seed(0)
+    before = torch.rand(64, generator=g) * 3
+    before[::5] = UNSEEN
+    cells = torch.randint(64, (200,), generator=g)
+    dens = torch.rand(200, generator=g) * 4
+    one = before.clone()
+    update_occupancy(one, cells, dens, 0.9)
+    halves = []
+    for part in (slice(0, 100), slice(100, 200)):
+        a = before.clone()
+        update_occupancy(a, cells[part], dens[part], 0.9)
+        halves.append(a)
+    assert torch.equal(merge_occupancy(before, halves), one)
+    assert torch.equal(merge_occupancy(before, [before.clone()]), before)
+
+
+@pytest.mark.parametrize("shards, world, rays, images, needle", [
+    (2, 3, 128, 2, "cannot share"),
+    (4, 2, 128, 2, "multiples"),
+    (8, 1, 128, 8, "pairs"),
+])
+def test_shard_rules_are_one_line_input_errors(shards, world, rays, images, needle):
+    with pytest.raises(InputError, match=needle) as e:
+        check_shards(shards, world, rays, images, pairs=6)
+    assert "\n" not in e.value.one_line()
+
+
+# ---- multi-process runs -----------------------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def toy_project(tmp_path_factory):
+    from avatarctl.stages import ingest
+    from avatarctl.stages.ingest import IngestConfig
+
+    root = tmp_path_factory.mktemp("dist")
+    cap, proj = make_toy_capture(root / "cap"), root / "proj"
+    ingest.run(proj, IngestConfig(capture=cap, project=proj))
+    return proj
+
+
+def _copy(src: Path, dst: Path) -> Path:
+    shutil.copytree(src, dst)
+    return dst
+
+
+def _params(path: Path) -> dict[str, torch.Tensor]:
+    return torch.load(path, weights_only=True)["model"]
+
+
+def _max_diff(a: dict, b: dict) -> float:
+    assert a.keys() == b.keys()
+    return max(float((a[k].double() - b[k].double()).abs().max()) if a[k].numel() else 0.0 for k in a)
+
+
+def _env() -> dict[str, str]:
+    root = str(Path(__file__).resolve().parents[1])
+    return {**os.environ, "PYTHONPATH": os.pathsep.join([root, os.environ.get("PYTHONPATH", "")]),
+            "OMP_NUM_THREADS": "1", "AVATARCTL_DIST_TIMEOUT": "30"}
+
+
+def test_two_ranks_match_one_rank_and_resume_on_one(toy_project, tmp_path):
+    """Same ray shards (S = 2) -> same rays, noise, loss normalisation and occupancy grids: 2 ranks of R/2 rays equal
+    1 rank of R rays; a fit started on 2 ranks continues on 1 as if it had not stopped."""
+    from avatarctl.stages import fit
+    from avatarctl.stages.fit import FitRequest
+
+    one, two = _copy(toy_project, tmp_path / "one"), _copy(toy_project, tmp_path / "two")
+    base = dict(preset="micro", overrides=TINY, device="cpu")
+    r1 = fit.run(one, FitRequest(iters=4, shards=2, **base), handle_sigint=False)
+    t0 = time.perf_counter()
+    r2 = fit.run(two, FitRequest(iters=2, nproc=2, **base))
+    assert time.perf_counter() - t0 < WAIT_S
+    assert r2.step == 2 and r2.config.rays_per_batch == 128
+    ckpt = lambda p, s: p / "fit" / "checkpoints" / f"step_{s:08d}.pt"  # noqa: E731
+    assert _max_diff(_params(ckpt(one, 2)), _params(ckpt(two, 2))) <= RANK_TOL
+    occ1, occ2 = _params(ckpt(one, 2))["occupancy"], _params(ckpt(two, 2))["occupancy"]
+    assert (occ1 >= 0).any() and torch.allclose(occ1, occ2, atol=RANK_TOL)  # the grids were updated, identically
+    r3 = fit.run(two, FitRequest(iters=4, resume=True, device="cpu"), handle_sigint=False)  # N = 2 -> 1
+    assert r3.step == 4 and r1.step == 4
+    assert _max_diff(_params(ckpt(one, 4)), _params(ckpt(two, 4))) <= RANK_TOL
+    assert abs(r1.losses["total"] - r3.losses["total"]) <= 1e-3 * abs(r1.losses["total"])
+    from avatarctl.project import Project
+
+    rec = Project.open(two).manifest.stages[-1]
+    assert rec.stage == "fit"
+
+
+def _spawn_cli(args: list[str], **kw) -> subprocess.Popen:
+    return subprocess.Popen([sys.executable, "-m", "avatarctl", *args], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True, env=_env(), **kw)
+
+
+def _wait_for(path: Path, proc: subprocess.Popen, seconds: float = WAIT_S) -> None:
+    t0 = time.perf_counter()
+    while not path.exists():
+        assert proc.poll() is None, proc.communicate()
+        assert time.perf_counter() - t0 < seconds, f"{path} never appeared"
+        time.sleep(0.1)
+
+
+def _rank_pids(parent: int) -> list[int]:
+    """The spawned ranks of `parent` (not its multiprocessing resource tracker), in pid order."""
+    pids = []
+    for d in Path("/proc").iterdir():
+        if not d.name.isdigit():
+            continue
+        try:
+            ppid = int((d / "stat").read_text().rsplit(")", 1)[1].split()[1])
+            cmd = (d / "cmdline").read_bytes()
+        except (OSError, IndexError, ValueError):
+            continue
+        if ppid == parent and b"spawn_main" in cmd:
+            pids.append(int(d.name))
+    return sorted(pids)
+
+
+@pytest.mark.skipif(not Path("/proc").is_dir(), reason="needs /proc to find the ranks")
+def test_a_killed_rank_is_reported_and_the_checkpoint_survives(toy_project, tmp_path):
+    from avatarctl.fit.checkpoint import read_checkpoint
+
+    proj = _copy(toy_project, tmp_path / "p")
+    proc = _spawn_cli(["fit", str(proj), "--preset", "micro", "--iters", "100000", "--device", "cpu", "--nproc", "2",
+                       *sum((["--set", s] for s in TINY), [])])
+    try:
+        _wait_for(proj / "fit" / "checkpoints" / "step_00000002.pt", proc)
+        ranks = _rank_pids(proc.pid)
+        assert len(ranks) == 2
+        os.kill(ranks[-1], signal.SIGKILL)
+        out, err = proc.communicate(timeout=WAIT_S)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode != 0
+    assert "SIGKILL" in err and "rank" in err and "--resume" in err and "Traceback" not in err, err
+    assert read_checkpoint(proj / "fit" / "checkpoints" / "latest.pt")["step"] >= 2
+
+
+def test_ctrl_c_stops_every_rank_after_the_same_step_with_a_checkpoint(toy_project, tmp_path):
+    from avatarctl.fit.checkpoint import read_checkpoint
+
+    proj = _copy(toy_project, tmp_path / "p")
+    proc = _spawn_cli(["fit", str(proj), "--preset", "micro", "--iters", "100000", "--device", "cpu", "--nproc", "2",
+                       *sum((["--set", s] for s in TINY), [])], start_new_session=True)
+    try:
+        _wait_for(proj / "fit" / "checkpoints" / "step_00000002.pt", proc)
+        os.killpg(proc.pid, signal.SIGINT)  # what the terminal does: the whole foreground group
+        out, err = proc.communicate(timeout=WAIT_S)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+    assert proc.returncode == 0, err
+    assert "stopped early" in out and "--resume" in out
+    ckpt = read_checkpoint(proj / "fit" / "checkpoints" / "latest.pt")
+    assert 2 <= ckpt["step"] < 100000 and ckpt["rng"]["sampler_shards"].shape[0] == 2
