@@ -35,6 +35,8 @@ def register(app: typer.Typer) -> None:
         compare: bool = typer.Option(False, "--compare", help="Do not render: print a side-by-side table of the "
                                      "projects' latest metrics.json (same split/protocol), e.g. "
                                      "`avatarctl eval FULL --compare ABL1 ABL2`."),
+        nproc: int = typer.Option(1, "--nproc", help="Split the frames over N ranks of this machine (same scores "
+                                  "as one process). Clusters: torchrun ... -m avatarctl eval ..."),
     ) -> None:
         from avatarctl.cli.common import console, user_errors
         from avatarctl.errors import InputError
@@ -53,10 +55,10 @@ def register(app: typer.Typer) -> None:
                              views=view_names, every=every, latent=latent, seed=seed, sheet_rows=sheet,
                              max_rays_per_chunk=max_rays, device=device,
                              checkpoint=str(checkpoint) if checkpoint else None, save_images=save_images)
-            _run(projects[0], cfg, console)
+            _run(projects[0], cfg, nproc, console)
 
 
-def _run(project: Path, cfg, console) -> None:
+def _run(project: Path, cfg, nproc: int, console) -> None:
     from rich.table import Table
 
     from avatarctl.cli.common import progress_bar
@@ -72,7 +74,9 @@ def _run(project: Path, cfg, console) -> None:
                 info += f" | last {p.detail.psnr:.2f} dB"
             bar.update(task, total=p.total, completed=p.done, info=info)
 
-        res = evaluate.run(project, cfg, progress=progress)
+        res = evaluate.run(project, cfg, progress=progress, nproc=nproc)
+    if res is None:  # a torchrun rank > 0: rank 0 reports
+        return
 
     m = res.metrics
     t = Table(title=f"avatarctl eval — {m.split} / {m.protocol}", show_header=False)

@@ -45,6 +45,8 @@ def register(app: typer.Typer) -> None:
         device: str = typer.Option("auto", "--device", help="auto | cpu | cuda."),
         checkpoint: Optional[Path] = typer.Option(None, "--checkpoint", help="Checkpoint file (default: "
                                                   "fit/checkpoints/latest.pt)."),
+        nproc: int = typer.Option(1, "--nproc", help="Split the video frames over N ranks of this machine (same "
+                                  "files as one process). Clusters: torchrun ... -m avatarctl render ..."),
     ) -> None:
         from avatarctl.cli.common import console, user_errors
 
@@ -57,10 +59,10 @@ def register(app: typer.Typer) -> None:
                                resolution=resolution, background=background, fps=fps, recenter=recenter,
                                max_rays_per_chunk=max_rays, device=device,
                                checkpoint=str(checkpoint) if checkpoint else None)
-            _run(project, cfg, console)
+            _run(project, cfg, nproc, console)
 
 
-def _run(project: Path, cfg, console) -> None:
+def _run(project: Path, cfg, nproc: int, console) -> None:
     from rich.table import Table
 
     from avatarctl.cli.common import progress_bar
@@ -73,7 +75,9 @@ def _run(project: Path, cfg, console) -> None:
         def progress(p: StageProgress) -> None:
             bar.update(task, total=p.total, completed=p.done, speed=f"{p.per_second:.2f} frames/s")
 
-        res = render.run(project, cfg, progress=progress)
+        res = render.run(project, cfg, progress=progress, nproc=nproc)
+    if res is None:  # a torchrun rank > 0: rank 0 reports
+        return
 
     t = Table(title="avatarctl render", show_header=False)
     t.add_row("output", str(res.out_dir))

@@ -1,5 +1,5 @@
 """What several stages share, stated once: the progress report, view / latent selection, the sample-seed formula,
-the cheap pre-checks and loading a fitted avatar.
+the cheap pre-checks, loading a fitted avatar and running a stage on several ranks (`run_ranked`).
 
 Frame specs are `avatarctl.frames` (ingest uses them too); ground-truth compositing is
 `avatarctl.evaluate.protocols.ground_truth` (fit targets and validation use it too); devices are
@@ -102,3 +102,43 @@ def load_fitted(project: "Project", device: str, checkpoint: str | None) -> "Loa
 
     ckpt = Path(checkpoint) if checkpoint else None
     return load_avatar(project, device=str(resolve_device(device)), checkpoint=ckpt)
+
+
+def run_ranked(stage: Callable[..., Any], nproc: int, args: tuple, progress: ProgressFn | None, device: str,
+               what: str) -> Any:
+    """Run `stage(env, progress, *args)` on ranks (render and eval; fit has its own, with a stop protocol):
+    `nproc > 1` spawns them here (`dist.launch`, rank 0's progress and result come back); in a torchrun launch
+    this process is one of them; else `env` is None (one process). `stage` must be a module-level function."""
+    from avatarctl.device import resolve_device
+    from avatarctl.dist import DistEnv, launch, process_group
+
+    if nproc < 1:
+        raise InputError(f"--nproc must be >= 1, got {nproc}", where="--nproc", fix="e.g. --nproc 2")
+    env = DistEnv.from_env()
+    if nproc > 1:
+        if env is not None:
+            raise InputError("--nproc inside a torchrun launch", where="--nproc",
+                             fix="let torchrun start the ranks (--nproc_per_node) and drop --nproc")
+        return launch(_ranked, nproc, (stage, device, args), on_progress=progress, what=what,
+                      fix="nothing was written (outputs are renamed into place only when complete); re-run")
+    if env is None:
+        return stage(None, progress, *args)
+    with process_group(env, resolve_device(device)):
+        return stage(env, progress if env.is_main else None, *args)
+
+
+def _ranked(env: Any, channel: Any, stage: Callable[..., Any], device: str, args: tuple) -> Any:
+    """A rank spawned by `run_ranked`: join the group and run the stage, rank 0 sending its progress back."""
+    from avatarctl.device import resolve_device
+    from avatarctl.dist import process_group
+
+    with process_group(env, resolve_device(device)):
+        return stage(env, channel.send_progress if env.is_main else None, *args)
+
+
+def rank_device_name(env: Any, device: str) -> str:
+    """`--device` for this rank: cuda:LOCAL_RANK on a CUDA run of several ranks, else the option's device."""
+    from avatarctl.device import resolve_device
+    from avatarctl.dist import rank_device
+
+    return str(rank_device(env, resolve_device(device)))

@@ -18,6 +18,10 @@ over (frame, view) images of the per-image PSNR / SSIM (Neural Body's averaging)
 LPIPS is reported only when the `lpips` package and its AlexNet weights are already on this machine (nothing is
 downloaded); otherwise `"lpips": null` with the reason.
 
+Several ranks (`nproc`, or a torchrun launch; `stages.common.run_ranked`): rank r scores the frames r, r + N, ...
+(every view of a frame on one rank; `--save-images` PNGs go into rank 0's temporary directory), rank 0 gathers the
+scores in the single-process order and writes the report: the same numbers as one process.
+
 Writes `eval/<name>/metrics.json`, `per_frame.csv`, `sheet.png` and, with `--save-images`,
 `renders/<frame:06d>_<view>.png` atomically (all or nothing), and records the stage. What is saved is typed in
 `avatarctl.evaluate.report` (`EvalMetrics`, `ImageScore`).
@@ -37,7 +41,7 @@ from avatarctl.evaluate.report import PSNR_CAP, SCHEMA_VERSION, EvalMetrics, Ima
 from avatarctl.frames import select_frames
 from avatarctl.project import Project, check_name, now_iso
 from avatarctl.stages.common import StageProgress, ProgressFn, check_latent_mode, frame_node_state, latent_for, \
-    load_fitted, precheck, select_views
+    load_fitted, precheck, rank_device_name, run_ranked, select_views
 
 SPLITS = ("novel_view", "novel_pose", "train")
 
@@ -130,24 +134,41 @@ def split_pairs(avatar: Any, cfg: EvalConfig) -> tuple[list[int], list[str], boo
     return frames, views, is_train
 
 
-def run(project_dir: str | Path, cfg: EvalConfig, progress: ProgressFn | None = None) -> EvalResult:
-    """Run the eval stage on `project_dir` (see the module docstring)."""
+def run(project_dir: str | Path, cfg: EvalConfig, progress: ProgressFn | None = None, *,
+        nproc: int = 1) -> EvalResult | None:
+    """Run the eval stage on `project_dir` (see the module docstring) on `nproc` ranks (None on the ranks > 0 of
+    a torchrun launch)."""
+    return run_ranked(_run, nproc, (str(project_dir), cfg), progress, cfg.device, "eval")
+
+
+@dataclass
+class _Scored:
+    """One scored (frame, view) image as a rank hands it to rank 0."""
+
+    index: int  # position in the single-process order (frames outer, views inner)
+    score: ImageScore
+    lpips: float | None
+    sheet: Any  # evaluate.sheet.SheetRow when the image is on the sheet, else None
+
+
+def _run(env: Any, progress: ProgressFn | None, project_dir: str, cfg: EvalConfig) -> EvalResult | None:
+    import contextlib
+
     import torch
 
     from avatarctl.atomic import atomic_dir, write_json, write_text
-    from avatarctl.evaluate.metrics import lpips_status, metric_settings, mse, psnr_from_mse, ssim
-    from avatarctl.evaluate.protocols import GROUND_TRUTH, bbox_region, full_region, ground_truth
+    from avatarctl.dist import active, broadcast_from_main, gather_to_main
+    from avatarctl.evaluate.metrics import lpips_status, metric_settings
+    from avatarctl.evaluate.protocols import GROUND_TRUTH
     from avatarctl.evaluate.report import per_frame_csv
-    from avatarctl.evaluate.sheet import SheetRow, comparison_sheet
-    from avatarctl.render.engine import render_view
-    from avatarctl.render.images import write_png
+    from avatarctl.evaluate.sheet import comparison_sheet
 
     started = now_iso()
     t_start = time.perf_counter()
     project = Project.open(project_dir)
     project.require("fit")
     precheck(project, cfg.checkpoint, cfg.views)
-    avatar = load_fitted(project, cfg.device, cfg.checkpoint)
+    avatar = load_fitted(project, rank_device_name(env, cfg.device), cfg.checkpoint)
     cap = avatar.capture
     frames, views, is_train = split_pairs(avatar, cfg)
     latent = latent_for(cfg.latent, is_train)
@@ -158,54 +179,33 @@ def run(project_dir: str | Path, cfg: EvalConfig, progress: ProgressFn | None = 
     sheet_at = set(np.linspace(0, total - 1, min(cfg.sheet_rows, total)).round().astype(int).tolist()) \
         if cfg.sheet_rows else set()
     out_dir = project.paths.eval(cfg.out_name)
-    with atomic_dir(out_dir) as tmp:  # renders (--save-images) are written as they come; all or nothing
-        if cfg.save_images:
+    world = env.world_size if active(env) else 1
+    main = env is None or env.is_main
+    with atomic_dir(out_dir) if main else contextlib.nullcontext() as tmp:  # all or nothing
+        if main and cfg.save_images:
             (tmp / "renders").mkdir()
-        scores: list[ImageScore] = []
-        lpips_values: list[float] = []
-        sheet_rows: list[SheetRow] = []
+        tmp = broadcast_from_main(tmp, env)
+        mine: list[_Scored] = []
         t0 = time.perf_counter()
         motion = cap.motion.select(cap.motion.rows_for(frames))
-        for fi, frame in enumerate(frames):
-            one = motion.select([fi])
+        for fi in range(env.rank if world > 1 else 0, len(frames), world):
+            frame, one = frames[fi], motion.select([fi])
             verts = avatar.body.pose(one).vertices[0].detach().float().cpu().numpy()  # [V, 3]
             state = frame_node_state(avatar, one, frame, is_train, latent, cfg.seed)
-            for view in views:
-                cam = cams[view]
-                region = bbox_region(cam, verts, pad=cfg.bbox_pad) if cfg.protocol == "bbox" \
-                    else full_region(cam.height, cam.width)
-                if not region.mask.any():
-                    raise InputError(f"the body box of frame {frame} is outside camera {view}", where=str(project.root),
-                                     fix="check the body fits / cameras (`avatarctl info`), or use --protocol full")
-                x0, y0, x1, y1 = region.crop
-                render_mask = None
-                if cfg.protocol == "bbox":
-                    render_mask = np.zeros((cam.height, cam.width), bool)
-                    render_mask[y0:y1, x0:x1] = True
-                view_out = render_view(avatar.model, state, 0, cam, background,
-                                       max_rays_per_chunk=cfg.max_rays_per_chunk, pixel_mask=render_mask)
-                gt = ground_truth(cap.image(view, frame), cap.mask(view, frame), background)  # [H, W, 3]
-                e = mse(view_out.rgb, gt, region.mask)
-                pred_crop, gt_crop = region.crop_image(view_out.rgb), region.crop_image(gt)
-                try:
-                    s = ssim(pred_crop, gt_crop)
-                except ValueError as err:
-                    raise InputError(f"cannot score frame {frame} view {view}: {err}", where=str(project.root),
-                                     fix="use --protocol full or a higher-resolution capture") from None
-                score = ImageScore(frame=frame, view=view, psnr=psnr_from_mse(e), ssim=s, mse=e,
-                                   pixels=int(region.mask.sum()), latent=latent, seconds=round(view_out.seconds, 4))
-                scores.append(score)
-                if cfg.save_images:  # the full image; outside the bbox crop it is the background (not rendered)
-                    write_png(tmp / "renders" / f"{frame:06d}_{view}.png", view_out.rgb, None)
-                if lpips_fn is not None:
-                    lpips_values.append(lpips_fn(pred_crop, gt_crop))
-                if len(scores) - 1 in sheet_at:
-                    sheet_rows.append(SheetRow(gt=gt_crop, render=pred_crop, region=region.crop_image(region.mask),
-                                               label=f"frame {frame}  view {view}  latent {latent}  "
-                                                     f"PSNR {score.psnr:.2f} dB  SSIM {score.ssim:.4f}"))
+            for vi, view in enumerate(views):
+                k = fi * len(views) + vi
+                mine.append(_score_image(avatar, cfg, project, state, verts, frame, view, cams[view], latent,
+                                         lpips_fn, k in sheet_at, tmp, k))
                 if progress is not None:
-                    progress(StageProgress(stage="eval", done=len(scores), total=total,
-                                           seconds=time.perf_counter() - t0, detail=score))
+                    progress(StageProgress(stage="eval", done=min(len(mine) * world, total), total=total,
+                                           seconds=time.perf_counter() - t0, detail=mine[-1].score))
+        gathered = gather_to_main(mine, env)
+        if not main:
+            return None
+        done = sorted((s for part in gathered for s in part), key=lambda s: s.index)
+        scores = [s.score for s in done]
+        lpips_values = [s.lpips for s in done if s.lpips is not None]
+        sheet_rows = [s.sheet for s in done if s.sheet is not None]
 
         psnrs = np.minimum(np.array([s.psnr for s in scores], np.float64), PSNR_CAP)  # exact match: inf -> cap
         ssims = np.array([s.ssim for s in scores], np.float64)
@@ -256,6 +256,47 @@ def run(project_dir: str | Path, cfg: EvalConfig, progress: ProgressFn | None = 
                             "psnr": round(metrics.psnr, 3), "ssim": round(metrics.ssim, 4),
                             "images": len(scores), "checkpoint_step": avatar.step})
     return EvalResult(out_dir=out_dir, metrics=metrics, seconds=seconds, scores=scores)
+
+
+def _score_image(avatar: Any, cfg: EvalConfig, project: Project, state: Any, verts: np.ndarray, frame: int, view: str,
+                 cam: Any, latent: str, lpips_fn: Any, on_sheet: bool, tmp: Path, index: int) -> _Scored:
+    """Render one (frame, view) over the protocol's region and score it against the ground truth."""
+    from avatarctl.evaluate.metrics import mse, psnr_from_mse, ssim
+    from avatarctl.evaluate.protocols import bbox_region, full_region, ground_truth
+    from avatarctl.evaluate.sheet import SheetRow
+    from avatarctl.render.engine import render_view
+    from avatarctl.render.images import write_png
+
+    cap, background = avatar.capture, avatar.background
+    region = bbox_region(cam, verts, pad=cfg.bbox_pad) if cfg.protocol == "bbox" \
+        else full_region(cam.height, cam.width)
+    if not region.mask.any():
+        raise InputError(f"the body box of frame {frame} is outside camera {view}", where=str(project.root),
+                         fix="check the body fits / cameras (`avatarctl info`), or use --protocol full")
+    x0, y0, x1, y1 = region.crop
+    render_mask = None
+    if cfg.protocol == "bbox":
+        render_mask = np.zeros((cam.height, cam.width), bool)
+        render_mask[y0:y1, x0:x1] = True
+    view_out = render_view(avatar.model, state, 0, cam, background, max_rays_per_chunk=cfg.max_rays_per_chunk,
+                           pixel_mask=render_mask)
+    gt = ground_truth(cap.image(view, frame), cap.mask(view, frame), background)  # [H, W, 3]
+    e = mse(view_out.rgb, gt, region.mask)
+    pred_crop, gt_crop = region.crop_image(view_out.rgb), region.crop_image(gt)
+    try:
+        s = ssim(pred_crop, gt_crop)
+    except ValueError as err:
+        raise InputError(f"cannot score frame {frame} view {view}: {err}", where=str(project.root),
+                         fix="use --protocol full or a higher-resolution capture") from None
+    score = ImageScore(frame=frame, view=view, psnr=psnr_from_mse(e), ssim=s, mse=e, pixels=int(region.mask.sum()),
+                       latent=latent, seconds=round(view_out.seconds, 4))
+    if cfg.save_images:  # the full image; outside the bbox crop it is the background (not rendered)
+        write_png(tmp / "renders" / f"{frame:06d}_{view}.png", view_out.rgb, None)
+    sheet = SheetRow(gt=gt_crop, render=pred_crop, region=region.crop_image(region.mask),
+                     label=f"frame {frame}  view {view}  latent {latent}  PSNR {score.psnr:.2f} dB  "
+                           f"SSIM {score.ssim:.4f}") if on_sheet else None
+    return _Scored(index=index, score=score, lpips=lpips_fn(pred_crop, gt_crop) if lpips_fn is not None else None,
+                   sheet=sheet)
 
 
 def _finite_mean(a: np.ndarray) -> float:

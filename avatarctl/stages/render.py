@@ -13,12 +13,19 @@ Steps:
 5. write `render/<name>/frames/*.png`, `video.mp4` (H.264 / yuv420p) and `config.json` into a temporary directory,
    rename it into place (`atomic_dir`) and record the stage in the manifest.
 
+Several ranks (`nproc`, or a torchrun launch; `stages.common.run_ranked`): rank r renders the video frames
+seq = r, r + N, ... (all views of a frame on one rank), writing their PNGs into rank 0's temporary directory (the
+project directory is shared) and each video tile as a `.npy` part; rank 0 gathers the image records, encodes the
+video from the parts in order and writes the rest. The files are those of one process (same renders, same
+encoders); only the timings differ.
+
 Image naming: `frames/<seq:05d>_<view>_<frame:06d>.png`, where `seq` is the video frame the image belongs to (several
 views of one frame share a `seq` and are tiled side by side in the video).
 """
 
 from __future__ import annotations
 
+import shutil
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -31,7 +38,7 @@ from avatarctl.frames import select_frames
 from avatarctl.geometry.cameras import Camera
 from avatarctl.project import Project, check_name, now_iso
 from avatarctl.stages.common import StageProgress, ProgressFn, check_latent_mode, frame_node_state, latent_for, \
-    load_fitted, precheck, select_views
+    load_fitted, precheck, rank_device_name, run_ranked, select_views
 
 SCHEMA_VERSION = 1
 DEFAULT_MAX_RAYS = 8192
@@ -161,12 +168,20 @@ class _Plan:
     source: str
 
 
-def run(project_dir: str | Path, cfg: RenderConfig, progress: ProgressFn | None = None) -> RenderResult:
-    """Run the render stage on `project_dir` (see the module docstring). Returns what was written."""
+def run(project_dir: str | Path, cfg: RenderConfig, progress: ProgressFn | None = None, *,
+        nproc: int = 1) -> RenderResult | None:
+    """Run the render stage on `project_dir` (see the module docstring), on `nproc` ranks. Returns what was written
+    (None on the ranks > 0 of a torchrun launch)."""
+    return run_ranked(_run, nproc, (str(project_dir), cfg), progress, cfg.device, "render")
+
+
+def _run(env: Any, progress: ProgressFn | None, project_dir: str, cfg: RenderConfig) -> RenderResult | None:
+    import contextlib
+
     import torch
 
     from avatarctl.atomic import atomic_dir, write_json
-    from avatarctl.render.images import to_uint8, write_png
+    from avatarctl.dist import active, broadcast_from_main, gather_to_main
     from avatarctl.render.video import tile, write_video
 
     started = now_iso()
@@ -176,44 +191,63 @@ def run(project_dir: str | Path, cfg: RenderConfig, progress: ProgressFn | None 
     if cfg.poses is not None and not Path(cfg.poses).is_file():
         raise InputError("motion file not found", where=str(cfg.poses), fix="check the --poses path")
     precheck(project, cfg.checkpoint, cfg.views)
-    avatar = load_fitted(project, cfg.device, cfg.checkpoint)
+    avatar = load_fitted(project, rank_device_name(env, cfg.device), cfg.checkpoint)
     background, transparent = parse_background(cfg.background, avatar.background)
     plan = _plan(avatar, cfg)
     out_dir = project.paths.render(cfg.name)
 
     images: list[RenderedImage] = []
-    timing = {"render": 0.0}
     total = len(plan.shots)
     t0 = time.perf_counter()
     bg8 = tuple(int(round(c * 255)) for c in background)
+    world = env.world_size if active(env) else 1
+    main = env is None or env.is_main
 
-    def video_frames(tmp: Path):
-        """Render shot by shot, write each PNG, and yield one tiled video frame per `seq` (streamed, not held)."""
+    def shots(tmp: Path, mine: list[int]):
+        """Render the shots `mine` (indices into plan.shots), write each PNG; yield (index, record, uint8 image)."""
         state_cache: tuple[int, Any] | None = None
-        row: list[np.ndarray] = []
-        for i, (seq, pos, cam) in enumerate(plan.shots):
+        for n, i in enumerate(mine):
+            seq, pos, cam = plan.shots[i]
             if state_cache is None or state_cache[0] != pos:
                 state_cache = (pos, frame_node_state(avatar, plan.motion.select([pos]), plan.frames[pos],
                                                      plan.training[pos], plan.latents[pos], cfg.seed))
-            view = _render_one(avatar, state_cache[1], cam, background, cfg.max_rays_per_chunk)
-            timing["render"] += view.seconds
-            frame = plan.frames[pos]
-            fname = f"frames/{seq:05d}_{cam.name}_{frame:06d}.png"
-            write_png(tmp / fname, view.rgb, view.alpha if transparent else None)
-            images.append(RenderedImage(file=fname, seq=seq, frame=frame, view=cam.name, latent=plan.latents[pos],
-                                        seconds=round(view.seconds, 4), rays=int(view.rays)))
-            row.append(to_uint8(view.rgb))
+            image, rgb8 = _render_shot(avatar, state_cache[1], plan, i, background, transparent, cfg, tmp)
             if progress is not None:
-                progress(StageProgress(stage="render", done=len(images), total=total,
+                progress(StageProgress(stage="render", done=min((n + 1) * world, total), total=total,
                                        seconds=time.perf_counter() - t0))
-            if i + 1 == len(plan.shots) or plan.shots[i + 1][0] != seq:
+            yield i, image, rgb8
+
+    def video_frames(rows: Any):
+        """One tiled video frame per `seq` from (index, record, uint8 image) in shot order (streamed, not held)."""
+        row: list[np.ndarray] = []
+        for i, image, rgb8 in rows:
+            images.append(image)
+            row.append(rgb8)
+            if i + 1 == len(plan.shots) or plan.shots[i + 1][0] != image.seq:
                 yield tile(row, columns=len(row), pad_color=bg8)
                 row = []
 
-    with atomic_dir(out_dir) as tmp:
-        (tmp / "frames").mkdir()
-        vinfo = write_video(video_frames(tmp), tmp / "video.mp4", fps=plan.fps, pad_color=bg8)
-        render_seconds = timing["render"]
+    with atomic_dir(out_dir) if main else contextlib.nullcontext() as tmp:
+        if main:
+            (tmp / "frames").mkdir()
+        tmp = broadcast_from_main(tmp, env)
+        if world == 1:
+            rows: Any = shots(tmp, list(range(total)))
+        else:  # this rank's video frames, then rank 0 encodes from the parts every rank wrote
+            parts = tmp / ".parts"
+            parts.mkdir(exist_ok=True)
+            mine = []
+            for i, image, rgb8 in shots(tmp, [i for i, s in enumerate(plan.shots) if s[0] % world == env.rank]):
+                np.save(parts / f"{i:07d}.npy", rgb8)
+                mine.append((i, image))
+            gathered = gather_to_main(mine, env)
+            if not main:
+                return None
+            rows = ((i, image, np.load(parts / f"{i:07d}.npy")) for i, image in sorted(sum(gathered, [])))
+        vinfo = write_video(video_frames(rows), tmp / "video.mp4", fps=plan.fps, pad_color=bg8)
+        if world > 1:
+            shutil.rmtree(tmp / ".parts")
+        render_seconds = float(sum(im.seconds for im in images))
         h, w = plan.shots[0][2].height, plan.shots[0][2].width
         latent_counts: dict[str, int] = {}
         for im in images:
@@ -331,10 +365,19 @@ def _boxes(avatar: Any, motion: Any, chunk: int = 64) -> tuple[np.ndarray, np.nd
     return np.concatenate(lo).astype(np.float64), np.concatenate(hi).astype(np.float64)
 
 
-def _render_one(avatar: Any, state: Any, cam: Camera, background: tuple[float, float, float], max_rays: int) -> Any:
+def _render_shot(avatar: Any, state: Any, plan: _Plan, i: int, background: tuple[float, float, float],
+                 transparent: bool, cfg: RenderConfig, tmp: Path) -> tuple[RenderedImage, np.ndarray]:
+    """Render shot i of the plan, write its PNG into `tmp`; -> its record and its uint8 RGB [H, W, 3] (the video's)."""
     from avatarctl.render.engine import render_view
+    from avatarctl.render.images import to_uint8, write_png
 
-    return render_view(avatar.model, state, 0, cam, background, max_rays_per_chunk=max_rays)
+    seq, pos, cam = plan.shots[i]
+    view = render_view(avatar.model, state, 0, cam, background, max_rays_per_chunk=cfg.max_rays_per_chunk)
+    frame = plan.frames[pos]
+    fname = f"frames/{seq:05d}_{cam.name}_{frame:06d}.png"
+    write_png(tmp / fname, view.rgb, view.alpha if transparent else None)
+    return (RenderedImage(file=fname, seq=seq, frame=frame, view=cam.name, latent=plan.latents[pos],
+                          seconds=round(view.seconds, 4), rays=int(view.rays)), to_uint8(view.rgb))
 
 
 def _unique_cameras(shots: list[tuple[int, int, Camera]]) -> list[Camera]:
