@@ -84,6 +84,9 @@ def rank_device(env: DistEnv | None, device: "torch.device") -> "torch.device":
 
     if env is None or device.type != "cuda":
         return device
+    if env.local_rank >= torch.cuda.device_count():
+        raise InputError(f"local rank {env.local_rank} has no GPU (torch sees {torch.cuda.device_count()})",
+                         where="--nproc / --nproc_per_node", fix="start at most one rank per GPU, or --device cpu")
     dev = torch.device("cuda", env.local_rank)
     torch.cuda.set_device(dev)
     return dev

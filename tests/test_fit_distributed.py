@@ -113,6 +113,26 @@ def test_two_ranks_match_one_rank_and_resume_on_one(toy_project, tmp_path):
     assert rec.stage == "fit"
 
 
+@pytest.mark.skipif(shutil.which("torchrun") is None and not (Path(sys.executable).parent / "torchrun").is_file(),
+                    reason="torchrun not installed")
+def test_torchrun_ranks_read_the_environment_and_train_like_one_process(toy_project, tmp_path):
+    """The cluster path: torchrun starts the ranks (RANK / WORLD_SIZE / MASTER_* in the environment)."""
+    from avatarctl.stages import fit
+    from avatarctl.stages.fit import FitRequest
+
+    one, two = _copy(toy_project, tmp_path / "one"), _copy(toy_project, tmp_path / "two")
+    fit.run(one, FitRequest(preset="micro", iters=2, shards=2, overrides=TINY, device="cpu"), handle_sigint=False)
+    torchrun = shutil.which("torchrun") or str(Path(sys.executable).parent / "torchrun")
+    proc = subprocess.run([torchrun, "--standalone", "--nproc_per_node", "2", "-m", "avatarctl", "fit", str(two),
+                           "--preset", "micro", "--iters", "2", "--device", "cpu",
+                           *sum((["--set", s] for s in TINY), [])], capture_output=True, text=True, env=_env(),
+                          timeout=WAIT_S)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert proc.stdout.count("avatarctl fit") == 1  # rank 0 reports, rank 1 is quiet
+    latest = lambda p: p / "fit" / "checkpoints" / "latest.pt"  # noqa: E731
+    assert _max_diff(_params(latest(one)), _params(latest(two))) <= RANK_TOL
+
+
 def _spawn_cli(args: list[str], **kw) -> subprocess.Popen:
     return subprocess.Popen([sys.executable, "-m", "avatarctl", *args], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                             text=True, env=_env(), **kw)

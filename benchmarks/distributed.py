@@ -1,0 +1,139 @@
+"""Benchmark: data-parallel fit throughput (steps/s, rays/s) on N = 1, 2 ranks of this machine.
+
+    python -m benchmarks.distributed [--project DIR] [--seconds 20] [--preset cpu] [--out bench_dist.json]
+
+(run from the repository root: `benchmarks/` is not part of the installed package).
+
+Project: an ingested project (`--project`), else `avatarctl synth --preset tiny` + `ingest` into a cache folder
+(~30 s once). Runs, each a fresh fit of `--seconds` of training (FitConfig.time_budget_s; no validation, one
+checkpoint at the end), the global batch as the preset says (cpu: 512 rays over 4 images):
+
+- N = 1 with 1 thread, N = 1 with `--threads` threads (the whole CPU for one process),
+- N = 2, ranks of 1 thread each (`--nproc 2`, gloo), the same global batch (each rank: half the rays).
+
+steps/s = steps / training seconds (set-up excluded); rays/s = steps x rays_per_batch / training seconds (all ranks
+together). Also the cost of the per-step synchronisation alone: the median time of one gloo all-reduce of a flat
+float32 buffer the size of the model's gradients (+ one MAX all-reduce of the occupancy grids), 2 ranks. On a shared 2-core machine the figures move with the other load: compare runs taken together.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import tempfile
+from pathlib import Path
+
+
+def ensure_project(cache: Path) -> Path:
+    """A tiny synthetic project in `cache` (made once)."""
+    from avatarctl.stages import ingest, synth
+    from avatarctl.stages.ingest import IngestConfig
+    from avatarctl.synth.config import SynthConfig
+
+    proj = cache / "proj"
+    if (proj / "project.json").is_file():
+        return proj
+    shutil.rmtree(cache, ignore_errors=True)
+    cache.mkdir(parents=True)
+    synth.run(cache / "cap", SynthConfig.preset("tiny"))
+    ingest.run(proj, IngestConfig(capture=cache / "cap", project=proj))
+    return proj
+
+
+def fit_once(project: Path, work: Path, nproc: int, threads: int, seconds: float, preset: str) -> dict:
+    import torch
+
+    from avatarctl.stages import fit
+    from avatarctl.stages.fit import FitRequest
+
+    dest = work / f"n{nproc}_t{threads}"
+    shutil.rmtree(dest, ignore_errors=True)
+    shutil.copytree(project, dest, ignore=shutil.ignore_patterns("fit", "render", "eval"))
+    os.environ["OMP_NUM_THREADS"] = str(threads)  # the spawned ranks read it when they import torch
+    torch.set_num_threads(threads)
+    req = FitRequest(preset=preset, iters=1_000_000, device="cpu", nproc=nproc,
+                     overrides=(f"time_budget_s={seconds}", "val_every=0", "val_pairs=0", "log_every=10",
+                                "checkpoint_every=1000000"))
+    res = fit.run(dest, req, handle_sigint=False)
+    steps = res.step
+    return {"nproc": nproc, "threads_per_rank": threads, "steps": steps, "train_seconds": round(res.seconds, 2),
+            "setup_seconds": round(res.setup_seconds, 2), "steps_per_s": round(steps / res.seconds, 3),
+            "rays_per_s": round(steps * res.config.rays_per_batch / res.seconds, 1),
+            "rays_per_batch": res.config.rays_per_batch, "final_mse": res.losses.get("mse")}
+
+
+def _allreduce_rank(env, channel, numel: int, occ: int, reps: int) -> float:
+    """One rank of the all-reduce timing: median seconds of SUM(numel) + MAX(occ), as `Replicas.sync` does."""
+    import statistics
+    import time
+
+    import torch
+    import torch.distributed as dist
+
+    from avatarctl.dist import process_group
+
+    with process_group(env, torch.device("cpu")):
+        flat, grid = torch.ones(numel), torch.ones(occ)
+        times = []
+        for _ in range(reps + 2):
+            dist.barrier()
+            t0 = time.perf_counter()
+            dist.all_reduce(flat)
+            if occ:
+                dist.all_reduce(grid, op=dist.ReduceOp.MAX)
+            times.append(time.perf_counter() - t0)
+        return statistics.median(times[2:])
+
+
+def allreduce_seconds(numel: int, occ: int, reps: int = 10) -> float:
+    from avatarctl.dist import launch
+
+    os.environ["OMP_NUM_THREADS"] = "1"
+    return launch(_allreduce_rank, 2, (numel, occ, reps), what="all-reduce benchmark")
+
+
+def model_sizes(project: Path, preset: str) -> tuple[int, int]:
+    """(parameters, occupancy cells) of the preset's model on the project's body."""
+    from avatarctl.body.registry import load_body_model
+    from avatarctl.fit.config import preset as fit_preset
+    from avatarctl.io.project_io import load_project_capture
+    from avatarctl.model.avatar import SlrfAvatar
+    from avatarctl.project import Project
+
+    cap = load_project_capture(Project.open(project))
+    body = load_body_model(cap.body_model, cap.body_model_path)
+    model = SlrfAvatar(fit_preset(preset).model, body.template(cap.motion), num_frames=len(cap.split.train_frames))
+    occ = model.occupancy.numel() if model.cfg.occupancy else 0
+    return sum(p.numel() for p in model.parameters()), occ
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--project", type=Path, default=None)
+    ap.add_argument("--cache", type=Path, default=Path(tempfile.gettempdir()) / "avatarctl_bench_dist")
+    ap.add_argument("--seconds", type=float, default=20.0)
+    ap.add_argument("--threads", type=int, default=2, help="threads of the one-process comparison run")
+    ap.add_argument("--preset", default="cpu")
+    ap.add_argument("--out", type=Path, default=Path("bench_dist.json"))
+    ap.add_argument("--sync-only", action="store_true", help="only the all-reduce timing")
+    args = ap.parse_args()
+    project = args.project or ensure_project(args.cache)
+    work = args.cache / "runs"
+    work.mkdir(parents=True, exist_ok=True)
+    rows = []
+    for nproc, threads in () if args.sync_only else ((1, 1), (1, args.threads), (2, 1)):
+        row = fit_once(project, work, nproc, threads, args.seconds, args.preset)
+        print(json.dumps(row), flush=True)
+        rows.append(row)
+    params, occ = model_sizes(project, args.preset)
+    sync = {"parameters": params, "occupancy_cells": occ, "allreduce_s": round(allreduce_seconds(params, occ), 4)}
+    print(json.dumps(sync), flush=True)
+    args.out.write_text(json.dumps({"project": str(project), "preset": args.preset, "seconds": args.seconds,
+                                    "cpu_count": os.cpu_count(), "runs": rows, "sync": sync}, indent=2))
+    print(f"wrote {args.out}")
+
+
+if __name__ == "__main__":
+    main()
