@@ -12,7 +12,10 @@ checkpoint at the end), the global batch as the preset says (cpu: 512 rays over 
 - N = 2, ranks of 1 thread each (`--nproc 2`, gloo), the same global batch (each rank: half the rays).
 
 steps/s = steps / training seconds (set-up excluded); rays/s = steps x rays_per_batch / training seconds (all ranks
-together). Also the cost of the per-step synchronisation alone: the median time of one gloo all-reduce of a flat
+together). Because the machine is shared, also the CPU time per step, which the other load does not change much:
+fits of `--cpu-steps` and of 3 steps, the difference of their CPU seconds (this process, or all ranks: the waited-for
+children's rusage) over the difference of steps; on an otherwise idle machine with a core per rank the wall time
+per step would be about the CPU time per step divided by N. Also the cost of the per-step synchronisation alone: the median time of one gloo all-reduce of a flat
 float32 buffer the size of the model's gradients (+ one MAX all-reduce of the occupancy grids), 2 ranks. On a shared 2-core machine the figures move with the other load: compare runs taken together.
 """
 
@@ -62,6 +65,31 @@ def fit_once(project: Path, work: Path, nproc: int, threads: int, seconds: float
             "setup_seconds": round(res.setup_seconds, 2), "steps_per_s": round(steps / res.seconds, 3),
             "rays_per_s": round(steps * res.config.rays_per_batch / res.seconds, 1),
             "rays_per_batch": res.config.rays_per_batch, "final_mse": res.losses.get("mse")}
+
+
+def cpu_per_step(project: Path, work: Path, nproc: int, steps: int, preset: str) -> float:
+    """CPU seconds per training step of all ranks together (1 thread each), set-up cancelled out."""
+    import resource
+    import time
+
+    import torch
+
+    from avatarctl.stages import fit
+    from avatarctl.stages.fit import FitRequest
+
+    os.environ["OMP_NUM_THREADS"] = "1"
+    torch.set_num_threads(1)
+    used = []
+    for iters in (3, 3 + steps):
+        dest = work / f"cpu_n{nproc}_{iters}"
+        shutil.rmtree(dest, ignore_errors=True)
+        shutil.copytree(project, dest, ignore=shutil.ignore_patterns("fit", "render", "eval"))
+        r0, c0 = resource.getrusage(resource.RUSAGE_CHILDREN), time.process_time()
+        fit.run(dest, FitRequest(preset=preset, iters=iters, device="cpu", nproc=nproc,
+                                 overrides=("val_every=0", "val_pairs=0", "log_every=10")), handle_sigint=False)
+        r1, c1 = resource.getrusage(resource.RUSAGE_CHILDREN), time.process_time()
+        used.append((c1 - c0) if nproc == 1 else (r1.ru_utime + r1.ru_stime - r0.ru_utime - r0.ru_stime))
+    return (used[1] - used[0]) / steps
 
 
 def _allreduce_rank(env, channel, numel: int, occ: int, reps: int) -> float:
@@ -117,21 +145,29 @@ def main() -> None:
     ap.add_argument("--threads", type=int, default=2, help="threads of the one-process comparison run")
     ap.add_argument("--preset", default="cpu")
     ap.add_argument("--out", type=Path, default=Path("bench_dist.json"))
-    ap.add_argument("--sync-only", action="store_true", help="only the all-reduce timing")
+    ap.add_argument("--parts", default="wall,cpu,sync", help="which measurements: wall, cpu, sync (comma list)")
+    ap.add_argument("--cpu-steps", type=int, default=20, help="steps of the CPU-time runs")
     args = ap.parse_args()
     project = args.project or ensure_project(args.cache)
     work = args.cache / "runs"
     work.mkdir(parents=True, exist_ok=True)
     rows = []
-    for nproc, threads in () if args.sync_only else ((1, 1), (1, args.threads), (2, 1)):
+    parts = set(args.parts.split(","))
+    for nproc, threads in ((1, 1), (1, args.threads), (2, 1)) if "wall" in parts else ():
         row = fit_once(project, work, nproc, threads, args.seconds, args.preset)
         print(json.dumps(row), flush=True)
         rows.append(row)
-    params, occ = model_sizes(project, args.preset)
-    sync = {"parameters": params, "occupancy_cells": occ, "allreduce_s": round(allreduce_seconds(params, occ), 4)}
-    print(json.dumps(sync), flush=True)
+    cpu = {}
+    for nproc in (1, 2) if "cpu" in parts else ():
+        cpu[f"n{nproc}_cpu_s_per_step"] = round(cpu_per_step(project, work, nproc, args.cpu_steps, args.preset), 3)
+        print(json.dumps(cpu), flush=True)
+    sync = {}
+    if "sync" in parts:
+        params, occ = model_sizes(project, args.preset)
+        sync = {"parameters": params, "occupancy_cells": occ, "allreduce_s": round(allreduce_seconds(params, occ), 4)}
+        print(json.dumps(sync), flush=True)
     args.out.write_text(json.dumps({"project": str(project), "preset": args.preset, "seconds": args.seconds,
-                                    "cpu_count": os.cpu_count(), "runs": rows, "sync": sync}, indent=2))
+                                    "cpu_count": os.cpu_count(), "runs": rows, "cpu_time": cpu, "sync": sync}, indent=2))
     print(f"wrote {args.out}")
 
 

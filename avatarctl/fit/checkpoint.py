@@ -10,6 +10,8 @@ with `torch.load(weights_only=True)`):
     optimizer         Adam state_dict
     scheduler         LambdaLR state_dict
     rng               {"torch": ByteTensor, "cuda": [ByteTensor], "sampler": ByteTensor, "noise": ByteTensor}
+                      (shard 0's generators), with S > 1 ray shards also "sampler_shards", "noise_shards":
+                      ByteTensor [S, state bytes] (fit/distributed.py)
     model_config      ModelConfig.to_json()
     fit_config        FitConfig.to_json()
     train_frames      [int], capture frame numbers the model was trained on, in time-stamp order
