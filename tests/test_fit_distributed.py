@@ -133,6 +133,24 @@ def test_torchrun_ranks_read_the_environment_and_train_like_one_process(toy_proj
     assert _max_diff(_params(latest(one)), _params(latest(two))) <= RANK_TOL
 
 
+def test_bad_rank_options_are_one_line_errors_before_or_from_the_ranks(toy_project, tmp_path):
+    """Shard arithmetic is checked before any rank starts; an AvatarError inside the ranks (here: resume without a
+    checkpoint) comes back as that one-line error, not a traceback."""
+    from avatarctl.errors import ProjectError
+    from avatarctl.stages import fit
+    from avatarctl.stages.fit import FitRequest
+
+    proj = _copy(toy_project, tmp_path / "p")
+    res = subprocess.run([sys.executable, "-m", "avatarctl", "fit", str(proj), "--preset", "micro", "--nproc", "3",
+                          "--device", "cpu"], capture_output=True, text=True, env=_env(), timeout=WAIT_S)
+    assert res.returncode != 0 and "Traceback" not in res.stderr
+    lines = [ln for ln in res.stderr.splitlines() if ln.strip()]
+    assert len(lines) == 1 and "must be multiples of the 3 ray shards" in lines[0], res.stderr
+    assert not (proj / "fit" / "checkpoints").exists() or not any((proj / "fit" / "checkpoints").iterdir())
+    with pytest.raises(ProjectError, match="checkpoint not found"):
+        fit.run(proj, FitRequest(resume=True, nproc=2, device="cpu"))
+
+
 def _spawn_cli(args: list[str], **kw) -> subprocess.Popen:
     return subprocess.Popen([sys.executable, "-m", "avatarctl", *args], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                             text=True, env=_env(), **kw)

@@ -92,7 +92,16 @@ def prepare(project_dir: str | Path, req: FitRequest) -> FitPlan:
         raise InputError("--nproc inside a torchrun launch", where="--nproc",
                          fix="let torchrun start the ranks (--nproc_per_node) and drop --nproc")
     project = Project.open(project_dir)
-    return FitPlan(project, fit_config(project, req))
+    plan = FitPlan(project, fit_config(project, req))
+    if req.nproc > 1 and plan.config is not None and not req.resume:  # shard errors before the ranks start
+        from avatarctl.fit.distributed import check_shards
+        from avatarctl.io.project_io import load_split
+
+        project.require("ingest")
+        split = load_split(project.paths.split)
+        check_shards(req.shards or req.nproc, req.nproc, plan.config.rays_per_batch, plan.config.images_per_batch,
+                     len(split.train_frames) * len(split.train_views))
+    return plan
 
 
 def is_main_rank() -> bool:
