@@ -214,6 +214,8 @@ def _rank_main(rank: int, fn: Callable, world: int, port: int, channel: RankChan
     except AvatarError as e:
         channel.queue.put(("error", rank, type(e).__name__, e.what, e.where, e.fix))
         sys.exit(1)
+    except KeyboardInterrupt:  # Ctrl-C in a stage that does not stop gracefully (render, eval): the launcher says so
+        sys.exit(130)
     except BaseException as e:  # a lost peer, or a bug: the launcher names the rank
         last = traceback.format_exception_only(type(e), e)[-1].strip().splitlines()[0][:300]
         channel.queue.put(("crash", rank, last, _lost_peer(e), traceback.format_exc()))
@@ -283,7 +285,7 @@ def launch(fn: Callable, nproc: int, args: tuple = (), *, on_progress: Callable[
                 done = procs.join(timeout=0.2, grace_period=2.0)
             except ProcessException as e:
                 drain(quiet_s=0.5)
-                if presses["n"] > 1:
+                if presses["n"]:  # interrupted: the CLI says "interrupted"
                     raise KeyboardInterrupt from None
                 codes = [p.exitcode for p in procs.processes]
                 raise _failure_error(_failure(e, codes, messages), nproc, what, fix) from None
