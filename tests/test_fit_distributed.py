@@ -113,6 +113,23 @@ def test_two_ranks_match_one_rank_and_resume_on_one(toy_project, tmp_path):
     assert rec.stage == "fit"
 
 
+def test_resume_on_more_ranks_than_shards_reshards_and_says_so(toy_project, tmp_path):
+    """A fit of 1 shard resumed on 2 ranks: new shards (2), their own streams, a note in the log."""
+    import json
+
+    from avatarctl.fit.checkpoint import read_checkpoint
+    from avatarctl.stages import fit
+    from avatarctl.stages.fit import FitRequest
+
+    proj = _copy(toy_project, tmp_path / "p")
+    fit.run(proj, FitRequest(preset="micro", iters=2, overrides=TINY, device="cpu"), handle_sigint=False)
+    r = fit.run(proj, FitRequest(iters=4, resume=True, nproc=2, device="cpu"))
+    assert r.step == 4
+    assert read_checkpoint(proj / "fit" / "checkpoints" / "latest.pt")["rng"]["sampler_shards"].shape[0] == 2
+    notes = [json.loads(ln) for ln in (proj / "fit" / "log.jsonl").read_text().splitlines() if "note" in ln]
+    assert len(notes) == 1 and notes[0]["step"] == 2 and "resharded to 2" in notes[0]["note"]
+
+
 @pytest.mark.skipif(shutil.which("torchrun") is None and not (Path(sys.executable).parent / "torchrun").is_file(),
                     reason="torchrun not installed")
 def test_torchrun_ranks_read_the_environment_and_train_like_one_process(toy_project, tmp_path):

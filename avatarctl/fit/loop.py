@@ -12,12 +12,12 @@ optimiser and the scheduler, so N steps straight and N/2 + `resume` N/2 give the
 in our test).
 
 Interruption: Ctrl-C (SIGINT, first press) or `StopFlag.set()` ends the run after the current step with a
-checkpoint; a second Ctrl-C aborts immediately.
+checkpoint; a second Ctrl-C aborts immediately. `FitConfig.time_budget_s` ends a run the same way after that many
+seconds of training, but still validates (stop_reason "time_budget").
 
 Several ranks (`env`, `avatarctl.dist`): data-parallel over ray shards (fit/distributed.py: `Replicas` samples,
 renders and synchronises); rank 0 alone writes the config, log, checkpoints and project record and validates; the
-ranks stop after the same step. `FitConfig.time_budget_s` ends a run the same way after that many
-seconds of training, but still validates (stop_reason "time_budget").
+ranks stop after the same step (docs/distributed.md).
 """
 
 from __future__ import annotations
@@ -252,8 +252,11 @@ def fit(project: Project, cfg: FitConfig | None = None, *, device: str = "auto",
         optimizer.load_state_dict(ckpt["optimizer"])
         scheduler.load_state_dict(ckpt["scheduler"])
         _set_rng_state(ckpt["rng"])
-        replicas.load_rng_state(ckpt["rng"], cfg.seed, start_step)
+        same_stream = replicas.load_rng_state(ckpt["rng"], cfg.seed, start_step)
     log = _Log(paths.fit_log, _read_log(paths.fit_log, start_step) if resume else []) if main else None
+    if ckpt is not None and not same_stream and log is not None:
+        log.append({"step": start_step, "note": f"resumed on {world} ranks: {saved_shards(ckpt['rng'])} ray shards "
+                                                f"resharded to {shards}, new sampling streams"})
     background = torch.tensor(cfg.background, dtype=torch.float32, device=dev)
     use_amp = cfg.amp and dev.type == "cuda"
     stop = stop or StopFlag()
