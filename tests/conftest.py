@@ -7,6 +7,7 @@ import os
 import pytest
 
 os.environ.setdefault("OMP_NUM_THREADS", "2")
+os.environ.setdefault("AVATARCTL_DIST_TIMEOUT", "60")  # multi-rank tests: a lost rank ends a collective in 60 s
 
 
 def pytest_collection_modifyitems(config, items):
