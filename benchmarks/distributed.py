@@ -11,12 +11,17 @@ checkpoint at the end), the global batch as the preset says (cpu: 512 rays over 
 - N = 1 with 1 thread, N = 1 with `--threads` threads (the whole CPU for one process),
 - N = 2, ranks of 1 thread each (`--nproc 2`, gloo), the same global batch (each rank: half the rays).
 
-steps/s = steps / training seconds (set-up excluded); rays/s = steps x rays_per_batch / training seconds (all ranks
-together). Because the machine is shared, also the CPU time per step, which the other load does not change much:
-fits of `--cpu-steps` and of 3 steps, the difference of their CPU seconds (this process, or all ranks: the waited-for
-children's rusage) over the difference of steps; on an otherwise idle machine with a core per rank the wall time
-per step would be about the CPU time per step divided by N. Also the cost of the per-step synchronisation alone: the median time of one gloo all-reduce of a flat
-float32 buffer the size of the model's gradients (+ one MAX all-reduce of the occupancy grids), 2 ranks. On a shared 2-core machine the figures move with the other load: compare runs taken together.
+Parts (`--parts`, default all):
+- `wall`: steps/s = steps / training seconds (set-up excluded); rays/s = steps x rays_per_batch / training seconds
+  (all ranks together). On a shared machine these move with the other load: compare runs taken together.
+- `cpu`: CPU seconds per step of all ranks together: fits of 3 and of 3 + `--cpu-steps` steps, the difference of
+  their CPU time (this process, or the waited-for children's rusage) over the difference of steps.
+- `phases`: CPU seconds per step of rank 0 in the forward pass (`Replicas.forward`), the backward pass and the
+  synchronisation (`Replicas.sync`), wrapped with `time.process_time`: 1 process at the full and at half the batch,
+  and rank 0 of 2 ranks. The least load-sensitive figure: on an idle machine with a core per rank the wall time per
+  step is about rank 0's CPU time per step.
+- `sync`: the median time of one gloo all-reduce of a flat float32 buffer the size of the model's gradients (+ one
+  MAX all-reduce of the occupancy grids), 2 ranks.
 """
 
 from __future__ import annotations
@@ -92,6 +97,76 @@ def cpu_per_step(project: Path, work: Path, nproc: int, steps: int, preset: str)
     return (used[1] - used[0]) / steps
 
 
+_ACC: dict[str, float] = {}
+
+
+def _timed() -> dict[str, float]:
+    """Wrap Replicas.forward / Replicas.sync / Tensor.backward of this process with CPU-time accumulators (once;
+    later calls reset them)."""
+    import time
+
+    import torch
+
+    from avatarctl.fit import distributed
+
+    installed = bool(_ACC)
+    _ACC.update({"forward": 0.0, "backward": 0.0, "sync": 0.0, "steps": 0.0})
+    if installed:
+        return _ACC
+    acc = _ACC
+
+    def wrap(owner: object, name: str, key: str) -> None:
+        inner = getattr(owner, name)
+
+        def timed(*a, **k):
+            t = time.process_time()
+            out = inner(*a, **k)
+            acc[key] += time.process_time() - t
+            acc["steps"] += key == "forward"
+            return out
+
+        setattr(owner, name, timed)
+
+    wrap(distributed.Replicas, "forward", "forward")
+    wrap(distributed.Replicas, "sync", "sync")
+    wrap(torch.Tensor, "backward", "backward")
+    return _ACC
+
+
+def _phases_rank(env, channel, project: str, req) -> dict[str, float]:
+    from avatarctl.stages.fit import _fit_rank
+
+    acc = _timed()
+    _fit_rank(env, channel, project, req)
+    return dict(acc)
+
+
+def phase_times(project: Path, work: Path, nproc: int, rays: int, images: int, steps: int, preset: str) -> dict:
+    """CPU seconds per step by phase (rank 0), 1 thread per rank."""
+    import torch
+
+    from avatarctl.dist import launch
+    from avatarctl.stages import fit
+    from avatarctl.stages.fit import FitRequest
+
+    dest = work / f"phases_n{nproc}_{rays}"
+    shutil.rmtree(dest, ignore_errors=True)
+    shutil.copytree(project, dest, ignore=shutil.ignore_patterns("fit", "render", "eval"))
+    os.environ["OMP_NUM_THREADS"] = "1"
+    req = FitRequest(preset=preset, iters=steps, device="cpu", nproc=nproc,
+                     overrides=("val_every=0", "val_pairs=0", "log_every=10", f"rays_per_batch={rays}",
+                                f"images_per_batch={images}"))
+    if nproc == 1:
+        torch.set_num_threads(1)
+        acc = _timed()
+        fit.run(dest, req, handle_sigint=False)
+    else:
+        acc = launch(_phases_rank, nproc, (str(dest), req), what="phase benchmark")
+    n = max(acc["steps"], 1.0)
+    return {"nproc": nproc, "rays_per_batch": rays,
+            **{f"{k}_cpu_s": round(v / n, 4) for k, v in acc.items() if k != "steps"}}
+
+
 def _allreduce_rank(env, channel, numel: int, occ: int, reps: int) -> float:
     """One rank of the all-reduce timing: median seconds of SUM(numel) + MAX(occ), as `Replicas.sync` does."""
     import statistics
@@ -145,7 +220,8 @@ def main() -> None:
     ap.add_argument("--threads", type=int, default=2, help="threads of the one-process comparison run")
     ap.add_argument("--preset", default="cpu")
     ap.add_argument("--out", type=Path, default=Path("bench_dist.json"))
-    ap.add_argument("--parts", default="wall,cpu,sync", help="which measurements: wall, cpu, sync (comma list)")
+    ap.add_argument("--parts", default="wall,cpu,phases,sync",
+                    help="which measurements: wall, cpu, phases, sync (comma list)")
     ap.add_argument("--cpu-steps", type=int, default=20, help="steps of the CPU-time runs")
     args = ap.parse_args()
     project = args.project or ensure_project(args.cache)
@@ -161,13 +237,22 @@ def main() -> None:
     for nproc in (1, 2) if "cpu" in parts else ():
         cpu[f"n{nproc}_cpu_s_per_step"] = round(cpu_per_step(project, work, nproc, args.cpu_steps, args.preset), 3)
         print(json.dumps(cpu), flush=True)
+    phases = []
+    if "phases" in parts:
+        from avatarctl.fit.config import preset as fit_preset
+
+        full = fit_preset(args.preset)
+        r, b = full.rays_per_batch, full.images_per_batch
+        for nproc, rays, images in ((1, r, b), (1, r // 2, b // 2), (2, r, b)):
+            phases.append(phase_times(project, work, nproc, rays, images, args.cpu_steps, args.preset))
+            print(json.dumps(phases[-1]), flush=True)
     sync = {}
     if "sync" in parts:
         params, occ = model_sizes(project, args.preset)
         sync = {"parameters": params, "occupancy_cells": occ, "allreduce_s": round(allreduce_seconds(params, occ), 4)}
         print(json.dumps(sync), flush=True)
     args.out.write_text(json.dumps({"project": str(project), "preset": args.preset, "seconds": args.seconds,
-                                    "cpu_count": os.cpu_count(), "runs": rows, "cpu_time": cpu, "sync": sync}, indent=2))
+                                    "cpu_count": os.cpu_count(), "runs": rows, "cpu_time": cpu, "phases": phases, "sync": sync}, indent=2))
     print(f"wrote {args.out}")
 
 
