@@ -164,6 +164,16 @@ class SlrfAvatar(nn.Module):
             centers = posed_node_centers(T, self.node_rest, delta.to(T.dtype))  # [B, N, 3]  Eq. 3
         return NodeState(transforms=T, centers=centers, delta_n=delta, embed=embed, mu=mu, logvar=logvar)
 
+    def knock_out(self, state: NodeState, delta_n: bool = False, embedding: bool = False) -> NodeState:
+        """`state` with Delta n_i and/or e_i set to zero at render time (the paper's render-time knockout of a
+        trained model, supp. Tab. A): the nodes move back to their skinned positions (Eq. 3 with Delta n = 0)."""
+        delta = torch.zeros_like(state.delta_n) if delta_n else state.delta_n
+        embed = torch.zeros_like(state.embed) if embedding else state.embed
+        with _float32_geometry(state.transforms.device):
+            centers = posed_node_centers(state.transforms, self.node_rest, delta.to(state.transforms.dtype))
+        return NodeState(transforms=state.transforms, centers=centers, delta_n=delta, embed=embed, mu=state.mu,
+                         logvar=state.logvar)
+
     # ---- step 2: rendering --------------------------------------------------------------------------------------
     def render(self, rays: RayBatch, state: NodeState, background: torch.Tensor, *, jitter: bool = False,
                generator: torch.Generator | None = None, chunk: int | None = None) -> RenderOutputs:

@@ -40,6 +40,7 @@ from avatarctl.stages.common import StageProgress, ProgressFn, check_latent_mode
     load_fitted, precheck, select_views
 
 SPLITS = ("novel_view", "novel_pose", "train")
+KNOCKOUTS = ("delta-n", "embedding")  # render-time knockouts (supp. Tab. A): the trained value set to zero
 
 
 @dataclass(frozen=True)
@@ -60,17 +61,27 @@ class EvalConfig:
     device: str = "auto"  # auto | cpu | cuda
     checkpoint: str | None = None  # None = fit/checkpoints/latest.pt
     save_images: bool = False  # also write every render to eval/<name>/renders/<frame:06d>_<view>.png
+    region: str = "all"  # what the headline PSNR is over: all (the protocol's region) | garment | body
+    knockout: tuple[str, ...] = ()  # render-time knockout of a trained model: delta-n and/or embedding
 
     def __post_init__(self) -> None:
         from avatarctl.evaluate.protocols import PROTOCOLS
 
         object.__setattr__(self, "views", tuple(self.views))
+        object.__setattr__(self, "knockout", tuple(self.knockout))
+        bad = [k for k in self.knockout if k not in KNOCKOUTS]
+        if bad:
+            raise InputError(f"unknown knockout {bad}", where="--knockout", fix=f"use: {', '.join(KNOCKOUTS)}")
         if self.split not in SPLITS:
             raise InputError(f"unknown split {self.split!r}", where="--split", fix=f"use one of: {', '.join(SPLITS)}")
         if self.protocol not in PROTOCOLS:
             raise InputError(f"unknown protocol {self.protocol!r}", where="--protocol",
                              fix=f"use one of: {', '.join(PROTOCOLS)}")
         check_latent_mode(self.latent)
+        from avatarctl.evaluate.regions import REGIONS
+
+        if self.region not in REGIONS:
+            raise InputError(f"unknown region {self.region!r}", where="--region", fix=f"use one of: {', '.join(REGIONS)}")
         if self.every < 1:
             raise InputError(f"--every must be >= 1, got {self.every}", where="--every", fix="e.g. --every 30")
         if self.sheet_rows < 0:
@@ -86,6 +97,7 @@ class EvalConfig:
     def to_json(self) -> dict[str, Any]:
         d = asdict(self)
         d["views"] = list(self.views)
+        d["knockout"] = list(self.knockout)
         d["name"] = self.out_name
         return {"schema_version": SCHEMA_VERSION, **d}
 
@@ -137,7 +149,7 @@ def run(project_dir: str | Path, cfg: EvalConfig, progress: ProgressFn | None = 
     from avatarctl.atomic import atomic_dir, write_json, write_text
     from avatarctl.evaluate.metrics import lpips_status, metric_settings, mse, psnr_from_mse, ssim
     from avatarctl.evaluate.protocols import GROUND_TRUTH, bbox_region, full_region, ground_truth
-    from avatarctl.evaluate.report import per_frame_csv
+    from avatarctl.evaluate.report import per_frame_csv, region_scores
     from avatarctl.evaluate.sheet import SheetRow, comparison_sheet
     from avatarctl.render.engine import render_view
     from avatarctl.render.images import write_png
@@ -153,6 +165,7 @@ def run(project_dir: str | Path, cfg: EvalConfig, progress: ProgressFn | None = 
     latent = latent_for(cfg.latent, is_train)
     background = avatar.background
     lpips_fn, lpips_reason = lpips_status()
+    geometry = _gt_geometry(project, cfg.region)
     cams = {v: cap.cameras[v].pinhole() for v in views}
     total = len(frames) * len(views)
     sheet_at = set(np.linspace(0, total - 1, min(cfg.sheet_rows, total)).round().astype(int).tolist()) \
@@ -170,6 +183,9 @@ def run(project_dir: str | Path, cfg: EvalConfig, progress: ProgressFn | None = 
             one = motion.select([fi])
             verts = avatar.body.pose(one).vertices[0].detach().float().cpu().numpy()  # [V, 3]
             state = frame_node_state(avatar, one, frame, is_train, latent, cfg.seed)
+            if cfg.knockout:
+                state = avatar.model.knock_out(state, delta_n="delta-n" in cfg.knockout,
+                                               embedding="embedding" in cfg.knockout)
             for view in views:
                 cam = cams[view]
                 region = bbox_region(cam, verts, pad=cfg.bbox_pad) if cfg.protocol == "bbox" \
@@ -192,8 +208,12 @@ def run(project_dir: str | Path, cfg: EvalConfig, progress: ProgressFn | None = 
                 except ValueError as err:
                     raise InputError(f"cannot score frame {frame} view {view}: {err}", where=str(project.root),
                                      fix="use --protocol full or a higher-resolution capture") from None
+                region_mse = region_pixels = None
+                if geometry is not None:
+                    region_mse, region_pixels = _region_errors(view_out.rgb, gt, region.mask, cam, geometry, frame)
                 score = ImageScore(frame=frame, view=view, psnr=psnr_from_mse(e), ssim=s, mse=e,
-                                   pixels=int(region.mask.sum()), latent=latent, seconds=round(view_out.seconds, 4))
+                                   pixels=int(region.mask.sum()), latent=latent, seconds=round(view_out.seconds, 4),
+                                   region_mse=region_mse, region_pixels=region_pixels)
                 scores.append(score)
                 if cfg.save_images:  # the full image; outside the bbox crop it is the background (not rendered)
                     write_png(tmp / "renders" / f"{frame:06d}_{view}.png", view_out.rgb, None)
@@ -207,7 +227,12 @@ def run(project_dir: str | Path, cfg: EvalConfig, progress: ProgressFn | None = 
                     progress(StageProgress(stage="eval", done=len(scores), total=total,
                                            seconds=time.perf_counter() - t0, detail=score))
 
-        psnrs = np.minimum(np.array([s.psnr for s in scores], np.float64), PSNR_CAP)  # exact match: inf -> cap
+        regions = region_scores(scores)
+        if cfg.region == "all":
+            psnrs = np.minimum(np.array([s.psnr for s in scores], np.float64), PSNR_CAP)  # exact match: inf -> cap
+        else:  # images where the region is empty are not scored
+            psnrs = np.minimum(np.array([psnr_from_mse(s.region_mse[cfg.region]) for s in scores
+                                         if s.region_pixels[cfg.region] > 0], np.float64), PSNR_CAP)
         ssims = np.array([s.ssim for s in scores], np.float64)
         render_seconds = float(sum(s.seconds for s in scores))
         mc = avatar.model_config
@@ -243,6 +268,8 @@ def run(project_dir: str | Path, cfg: EvalConfig, progress: ProgressFn | None = 
                     "device": str(avatar.device), "torch_threads": torch.get_num_threads()},
             config=cfg.to_json(),
             created=now_iso(),
+            region=cfg.region,
+            regions={k: asdict(v) for k, v in regions.items()} if regions else None,
         )
         write_json(tmp / "metrics.json", metrics.to_json())
         write_text(tmp / "per_frame.csv", per_frame_csv(scores))
@@ -256,6 +283,34 @@ def run(project_dir: str | Path, cfg: EvalConfig, progress: ProgressFn | None = 
                             "psnr": round(metrics.psnr, 3), "ssim": round(metrics.ssim, 4),
                             "images": len(scores), "checkpoint_step": avatar.step})
     return EvalResult(out_dir=out_dir, metrics=metrics, seconds=seconds, scores=scores)
+
+
+def _gt_geometry(project: Project, region: str) -> Any:
+    """The source capture's ground-truth geometry (`io.gt_geometry`), or None; required when `region` is not all."""
+    from avatarctl.io.gt_geometry import find_gt_geometry, load_gt_geometry
+
+    path = find_gt_geometry(project.manifest.source.path)
+    if path is None:
+        if region != "all":
+            raise InputError(f"--region {region} needs the capture's ground-truth garment geometry, and "
+                             f"{project.manifest.source.path} has none", where="--region",
+                             fix="use --region all, or a capture made by `avatarctl synth` (it writes gt/geometry.npz)")
+        return None
+    return load_gt_geometry(path)
+
+
+def _region_errors(rgb: np.ndarray, gt: np.ndarray, mask: np.ndarray, cam: Any, geometry: Any, frame: int
+                   ) -> tuple[dict[str, float], dict[str, int]]:
+    """({"garment": mse, "body": mse}, {"garment": pixels, "body": pixels}) inside the protocol's `mask`."""
+    from avatarctl.evaluate.metrics import mse
+    from avatarctl.evaluate.regions import garment_mask, split_region
+
+    r = geometry.row(frame)
+    parts = split_region(mask, garment_mask(cam, geometry.body_vertices[r], geometry.body_faces,
+                                            geometry.garment_vertices[r], geometry.garment_faces))
+    names = ("garment", "body")
+    return ({n: mse(rgb, gt, parts[n]) if parts[n].any() else 0.0 for n in names},
+            {n: int(parts[n].sum()) for n in names})
 
 
 def _finite_mean(a: np.ndarray) -> float:

@@ -30,6 +30,7 @@ import numpy as np
 
 from avatarctl.errors import InputError
 from avatarctl.geometry.cameras import Camera, look_at
+from avatarctl.io.gt_geometry import GT_GEOMETRY
 from avatarctl.synth.config import GENERATOR_VERSION, SynthConfig
 from avatarctl.synth.motion import PHENOTYPE_LABELS, ProceduralMotion, make_motion
 
@@ -72,7 +73,7 @@ def load_scene(out: Path) -> Scene:
     """The ground-truth `Scene` of a written capture (from `gt/geometry.npz` and `capture.json`), e.g. to
     re-render it through other cameras."""
     out = Path(out)
-    with np.load(out / "gt" / "geometry.npz") as z:
+    with np.load(out / GT_GEOMETRY) as z:
         g = {k: z[k] for k in z.files}
     info = json.loads((out / "capture.json").read_text())
     return Scene(body_vertices=g["body_vertices"], skirt_vertices=g["garment_vertices"], body_faces=g["body_faces"],
@@ -383,8 +384,8 @@ def synthesize(out: Path, config: SynthConfig, progress: Progress | None = None)
 
         with open(tmp / "motion.npz", "wb") as fh:
             np.savez(fh, **bm.to_npz_dict(), bone_labels=np.array(AnnyBody("cpu").joint_names))
-        (tmp / "gt").mkdir()
-        with open(tmp / "gt" / "geometry.npz", "wb") as fh:
+        (tmp / GT_GEOMETRY).parent.mkdir()
+        with open(tmp / GT_GEOMETRY, "wb") as fh:
             np.savez(fh, frame_index=np.array(frames), body_vertices=scene.body_vertices,
                      garment_vertices=scene.skirt_vertices, body_faces=scene.body_faces,
                      garment_faces=scene.skirt_faces, garment_param=scene.skirt_param.astype(np.float32),
