@@ -73,6 +73,7 @@ def test_eval_reports_garment_and_body_regions(tmp_path):
     assert m.region == "garment" and m.psnr == pytest.approx(g["psnr"])
     assert 0 < g["share_of_pixels"] < 1 and g["share_of_pixels"] + b["share_of_pixels"] == pytest.approx(1.0)
     assert g["share_of_error"] + b["share_of_error"] == pytest.approx(1.0)
+    assert g["flat_colour_psnr"] is not None and b["flat_colour_psnr"] is not None
     assert g["pixels"] + b["pixels"] == sum(s.pixels for s in res.scores)
     # the pooled errors of the two regions recombine into the whole region's error
     whole = sum(s.mse * s.pixels for s in res.scores) / sum(s.pixels for s in res.scores)

@@ -89,7 +89,8 @@ def _run(project: Path, cfg, console) -> None:
     for rname, r in (m.regions or {}).items():
         t.add_row(f"  {rname} region", (f"{r['psnr']:.3f} dB" if r["psnr"] is not None else "empty")
                   + f"  ({r['share_of_pixels']:.1%} of the pixels, {r['share_of_error']:.1%} of the squared error;"
-                  f" pooled {r['pooled_psnr'] or float('nan'):.2f} dB)")
+                  f" pooled {r['pooled_psnr'] or float('nan'):.2f} dB; its best flat colour "
+                  f"{r['flat_colour_psnr'] or float('nan'):.2f} dB)")
     t.add_row("SSIM", f"{m.ssim:.4f}  (skimage {m.metric_settings['scikit_image']}, "
                       f"win {m.metric_settings['ssim']['win_size']}, data_range 1)")
     t.add_row("LPIPS", f"{m.lpips:.4f}" if m.lpips is not None else f"absent: {m.lpips_reason}")

@@ -28,7 +28,7 @@ class ImageScore:
     pixels: int  # PSNR pixels
     latent: str
     seconds: float  # render time
-    region_mse: dict[str, float] | None = None  # {"garment": mse, "body": mse} with ground-truth geometry
+    region_mse: dict[str, float] | None = None  # {"garment", "body", "garment_flat", "body_flat"} with gt geometry
     region_pixels: dict[str, int] | None = None
 
 
@@ -119,6 +119,7 @@ class RegionScore:
     pixels: int  # region pixels over all images
     share_of_pixels: float  # of the protocol's region
     share_of_error: float  # of the squared error summed over the protocol's region
+    flat_colour_psnr: float | None  # mean over images of the PSNR of the region's best flat colour (a floor)
 
 
 def region_scores(scores: list[ImageScore]) -> dict[str, RegionScore] | None:
@@ -130,22 +131,25 @@ def region_scores(scores: list[ImageScore]) -> dict[str, RegionScore] | None:
     total_err = sum(s.mse * s.pixels for s in scores)
     total_px = sum(s.pixels for s in scores)
     out = {}
-    for name in scores[0].region_mse:
+    for name in scores[0].region_pixels:
         got = [(s.region_mse[name], s.region_pixels[name]) for s in scores if s.region_pixels[name] > 0]
+        flat = [min(PSNR_CAP, -10 * math.log10(s.region_mse[f"{name}_flat"])) if s.region_mse[f"{name}_flat"] > 0
+                else PSNR_CAP for s in scores if s.region_pixels[name] > 0]
         err = sum(m * n for m, n in got)
         px = sum(n for _, n in got)
         db = [min(PSNR_CAP, -10 * math.log10(m)) if m > 0 else PSNR_CAP for m, _ in got]
         out[name] = RegionScore(psnr=sum(db) / len(db) if db else None,
                                 pooled_psnr=min(PSNR_CAP, -10 * math.log10(err / px)) if px and err > 0 else None,
                                 images=len(got), pixels=px, share_of_pixels=px / max(total_px, 1),
-                                share_of_error=err / total_err if total_err > 0 else 0.0)
+                                share_of_error=err / total_err if total_err > 0 else 0.0,
+                                flat_colour_psnr=sum(flat) / len(flat) if flat else None)
     return out
 
 
 def per_frame_csv(scores: list[ImageScore]) -> str:
     buf = io.StringIO()
     w = csv.writer(buf, lineterminator="\n")
-    names = list(scores[0].region_mse) if scores and scores[0].region_mse is not None else []
+    names = list(scores[0].region_pixels) if scores and scores[0].region_pixels is not None else []
     w.writerow(["frame", "view", "psnr", "ssim", "mse", "pixels", "latent", "render_seconds"]
                + [f"{n}_{k}" for n in names for k in ("psnr", "pixels")])
     for s in scores:

@@ -301,7 +301,8 @@ def _gt_geometry(project: Project, region: str) -> Any:
 
 def _region_errors(rgb: np.ndarray, gt: np.ndarray, mask: np.ndarray, cam: Any, geometry: Any, frame: int
                    ) -> tuple[dict[str, float], dict[str, int]]:
-    """({"garment": mse, "body": mse}, {"garment": pixels, "body": pixels}) inside the protocol's `mask`."""
+    """({"garment": mse, "body": mse, "garment_flat": mse, "body_flat": mse}, {"garment": pixels, "body": pixels})
+    inside the protocol's `mask`; *_flat: the error of the region's best flat colour (its mean ground truth)."""
     from avatarctl.evaluate.metrics import mse
     from avatarctl.evaluate.regions import garment_mask, split_region
 
@@ -309,8 +310,11 @@ def _region_errors(rgb: np.ndarray, gt: np.ndarray, mask: np.ndarray, cam: Any, 
     parts = split_region(mask, garment_mask(cam, geometry.body_vertices[r], geometry.body_faces,
                                             geometry.garment_vertices[r], geometry.garment_faces))
     names = ("garment", "body")
-    return ({n: mse(rgb, gt, parts[n]) if parts[n].any() else 0.0 for n in names},
-            {n: int(parts[n].sum()) for n in names})
+    err = {n: mse(rgb, gt, parts[n]) if parts[n].any() else 0.0 for n in names}
+    # the region's best flat colour (its mean ground-truth colour): the floor a useful render must beat
+    err.update({f"{n}_flat": float(((gt[parts[n]] - gt[parts[n]].mean(0)) ** 2).mean()) if parts[n].any() else 0.0
+                for n in names})
+    return err, {n: int(parts[n].sum()) for n in names}
 
 
 def _finite_mean(a: np.ndarray) -> float:
