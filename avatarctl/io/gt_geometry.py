@@ -15,6 +15,7 @@ import numpy as np
 from avatarctl.errors import InputError
 
 GT_GEOMETRY = Path("gt") / "geometry.npz"  # relative to the capture folder
+GT_MOTION = Path("gt") / "motion.npz"  # the true body fits, when the capture's motion.npz was written with noise
 _KEYS = ("frame_index", "body_vertices", "garment_vertices", "body_faces", "garment_faces")
 
 
