@@ -42,9 +42,10 @@ class PoseRefinement(nn.Module):
     def __init__(self, num_frames: int, parents: tuple[int, ...]):
         super().__init__()
         J = len(parents)
-        order = sorted(range(J), key=lambda j: _depth(parents, j))
         self.parents = tuple(int(p) for p in parents)
-        self.order = tuple(order)  # parents before children
+        depth = [_depth(self.parents, j) for j in range(J)]
+        # joints grouped by tree depth, so the composition down the tree is one batched product per level
+        self.levels = [torch.tensor([j for j in range(J) if depth[j] == d]) for d in range(max(depth) + 1)]
         self.delta = nn.Parameter(torch.zeros(num_frames, J, 3))  # [T, J, 3] axis-angle, radians
         self.tau = nn.Parameter(torch.zeros(num_frames, 3))  # [T, 3] root translation, metres
         self.register_buffer("centres", torch.zeros(J, 3))  # [J, 3] canonical joint centres c_j
@@ -64,17 +65,15 @@ class PoseRefinement(nn.Module):
         R = _rodrigues(self.delta[ids].to(dt))  # [B, J, 3, 3]
         x = (M[..., :3, :3] @ self.centres.to(dt)[None, :, :, None])[..., 0] + M[..., :3, 3]  # [B, J, 3] x_j
         t = x - (R @ x[..., None])[..., 0]  # [B, J, 3]: rotation about x_j
-        DR: list[torch.Tensor | None] = [None] * len(self.parents)
-        Dt: list[torch.Tensor | None] = [None] * len(self.parents)
-        for j in self.order:
-            p = self.parents[j]
-            if p < 0:
-                DR[j], Dt[j] = R[:, j], t[:, j] + self.tau[ids].to(dt)
-            else:
-                DR[j] = DR[p] @ R[:, j]
-                Dt[j] = (DR[p] @ t[:, j, :, None])[..., 0] + Dt[p]
-        Dr = torch.stack(DR, 1)  # [B, J, 3, 3]
-        Dtt = torch.stack(Dt, 1)  # [B, J, 3]
+        t = t + (torch.tensor([p < 0 for p in self.parents], device=M.device)[None, :, None]
+                 * self.tau[ids].to(dt)[:, None, :])  # the root's correction also translates by tau
+        Dr, Dtt = R, t  # [B, J, 3, 3], [B, J, 3]: D_j for the joints composed so far (the roots: L_root)
+        for level in self.levels[1:]:
+            lv = level.to(M.device)
+            par = torch.tensor([self.parents[j] for j in level.tolist()], device=M.device)
+            Rp, tp = Dr[:, par], Dtt[:, par]  # parents are one level up: already composed
+            Dr = Dr.index_copy(1, lv, Rp @ R[:, lv])
+            Dtt = Dtt.index_copy(1, lv, (Rp @ t[:, lv, :, None])[..., 0] + tp)
         out_R = Dr @ M[..., :3, :3]
         out_t = (Dr @ M[..., :3, 3:])[..., 0] + Dtt
         refined = torch.cat([torch.cat([out_R, out_t[..., None]], -1), M[..., 3:, :]], -2)
