@@ -119,3 +119,25 @@ def test_fit_with_pose_refinement_on_the_toy_chain(tmp_path):
         av.model.pose_refine = None
         plain = av.model.node_state(train, mode="mean").centers
     assert not torch.allclose(refined, plain), "renders of training frames use the refined pose"
+
+
+def test_pose_refinement_is_on_by_default_unless_the_fits_are_ground_truth(tmp_path):
+    import json
+
+    from fixtures.toy_capture import make_toy_capture
+
+    from avatarctl.project import Project
+    from avatarctl.stages import ingest
+    from avatarctl.stages.fit import FitRequest, fit_config
+    from avatarctl.stages.ingest import IngestConfig
+
+    cap, proj = make_toy_capture(tmp_path / "cap"), tmp_path / "proj"
+    ingest.run(proj, IngestConfig(capture=cap, project=proj))
+    p = Project.open(proj)
+    assert fit_config(p, FitRequest()).model.pose_refine  # a capture without ground-truth fits
+    assert not fit_config(p, FitRequest(preset="paper")).model.pose_refine
+    assert not fit_config(p, FitRequest(overrides=("model.pose_refine=false",))).model.pose_refine
+    (cap / "capture.json").write_text(json.dumps({"generator": "synth-1", "config": {"fit_noise_deg": 0.0}}))
+    assert not fit_config(p, FitRequest()).model.pose_refine  # synth with exact fits
+    (cap / "capture.json").write_text(json.dumps({"generator": "synth-1", "config": {"fit_noise_deg": 2.0}}))
+    assert fit_config(p, FitRequest()).model.pose_refine

@@ -39,6 +39,20 @@ class GroundTruthGeometry:
         return int(hit[0])
 
 
+def fits_are_ground_truth(capture_dir: str | Path) -> bool:
+    """True for a capture made by `avatarctl synth` with exact body fits (no `--fit-noise`): its motion.npz is the
+    pose the images were rendered from. Any other capture (real, or synth with noisy fits) -> False."""
+    import json
+
+    try:
+        info = json.loads((Path(capture_dir) / "capture.json").read_text())
+        cfg = info["config"]
+        return str(info["generator"]).startswith("synth") and not cfg.get("fit_noise_deg") \
+            and not cfg.get("fit_noise_cm")
+    except (OSError, ValueError, KeyError, TypeError):
+        return False
+
+
 def find_gt_geometry(capture_dir: str | Path) -> Path | None:
     """The capture's ground-truth geometry file, or None when it carries none."""
     p = Path(capture_dir) / GT_GEOMETRY
