@@ -209,3 +209,36 @@ def test_motion_amass_to_smplx_and_bvh(tmp_path):
     assert not r.retargeted and "used as is" in r.summary and any("finger" in n for n in r.notes)
     back = read_motion(tmp_path / "walk_s.bvh")
     assert back.kind == "bvh" and back.skeleton.skeleton.num_joints == 24
+
+
+def test_a_mixamo_named_bvh_retargets_like_the_smpl_motion_it_came_from(tmp_path):
+    """An SMPL walk written as BVH with Mixamo joint names (cm, y up) and read back retargets onto SMPL-X exactly as
+    the SMPL motion does: the BVH path (reader, built-in names, units, axes) adds nothing."""
+    from dataclasses import replace
+
+    from avatarctl.body import rig_motion
+    from avatarctl.body.motion import BodyMotion
+    from avatarctl.body.retarget import retarget
+    from avatarctl.io.bvh import write_bvh
+
+    poses, trans = smpl_walk(10)
+    m = BodyMotion(body_model="smpl", frame_index=np.arange(10), global_orient=poses[:, :3], body_pose=poses[:, 3:],
+                   transl=trans)
+    sm = rig_motion.to_skeleton_motion(m, rig_motion.skeleton_of("smpl"))
+    mixamo = {"pelvis": "mixamorig:Hips", "spine1": "Spine", "spine2": "Spine1", "spine3": "Spine2", "neck": "Neck",
+              "head": "Head", "left_hand": "LeftPalm", "right_hand": "RightPalm"}
+    for s, B in (("left", "Left"), ("right", "Right")):
+        mixamo.update({f"{s}_hip": f"{B}UpLeg", f"{s}_knee": f"{B}Leg", f"{s}_ankle": f"{B}Foot",
+                       f"{s}_foot": f"{B}ToeBase", f"{s}_collar": f"{B}Shoulder", f"{s}_shoulder": f"{B}Arm",
+                       f"{s}_elbow": f"{B}ForeArm", f"{s}_wrist": f"{B}Hand"})
+    names = tuple(mixamo[n] for n in sm.skeleton.joint_names)
+    write_bvh(tmp_path / "walk.bvh", replace(sm, skeleton=replace(sm.skeleton, joint_names=names)))
+    bvh = read_motion(tmp_path / "walk.bvh").skeleton
+    assert sum(c is not None for c in bvh.skeleton.canonical) == 22  # the palms have no Mixamo name
+    target = rig_motion.skeleton_of("smplx")
+    a, _ = retarget(sm, target)
+    b, rep = retarget(bvh, target)
+    assert rep.scale == pytest.approx(0.01, rel=1e-6)  # centimetres in the file
+    body = slice(0, 22)  # the palms' rotation reaches SMPL-X's middle fingers only in `a`
+    assert np.abs(a.local[:, body] - b.local[:, body]).max() < 1e-6
+    assert np.abs(a.root_position - b.root_position).max() < 1e-6

@@ -112,7 +112,7 @@ def read_motion(path: str | Path, up: str | None = None, name_map: dict[str, str
         raise InputError(f"unknown up axis {up!r}", where="--up", fix="use --up y or --up z")
     with open(p, "rb") as fh:
         head = fh.read(64)
-    if head.lstrip().upper().startswith(b"HIERARCHY"):
+    if head.removeprefix(b"\xef\xbb\xbf").lstrip().upper().startswith(b"HIERARCHY"):  # (a UTF-8 BOM allowed)
         from avatarctl.io.bvh import read_bvh
 
         bvh = read_bvh(p, up=up or "y", name_map=name_map)
