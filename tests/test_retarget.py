@@ -7,12 +7,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from avatarctl.body import rig_motion, rigs
+from avatarctl.body import rig_motion
 from avatarctl.body.motion import BodyMotion
 from avatarctl.body.registry import load_body_model
 from avatarctl.body.retarget import direction_errors, floor_errors, match_joints, retarget
 from avatarctl.body.skeleton import SkeletonMotion, rotation_angle
-from fixtures.smpl import smpl_walk, write_random_smpl_npz
+from fixtures.smpl import grounded_smpl_walk, write_random_smpl_npz, write_t_pose_smpl_npz
 
 
 def _random_smpl_motion(frames: int = 6, seed: int = 0) -> BodyMotion:
@@ -59,30 +59,10 @@ def test_random_smpl_poses_on_anny_keep_every_bone_direction(tmp_path, anny_skel
     assert err.rest_degrees.mean() > 20.0  # not vacuous: the random rest skeletons disagree a lot
 
 
-def _t_pose_smpl_file(tmp_path, scale: float = 1.08):
-    """A random SMPL model file whose rest joints form a T-pose (a taller person than the generic table)."""
-    rng = np.random.default_rng(7)
-    rest = np.array([rigs.GENERIC_T_POSE[n] for n in rigs.SMPL_NAMES]) * scale + rng.normal(0, 0.005, (24, 3))
-    rest[:, 1] += 0.25  # SMPL's pelvis is not at the origin either
-    return write_random_smpl_npz(tmp_path / "tpose.npz", "smpl", seed=4, rest_joints=rest)
-
-
-def _grounded_walk(path, frames: int = 40) -> BodyMotion:
-    """The procedural walk with the lowest foot joint (SmplBody's own joints) on z = 0 in every frame."""
-    poses, trans = smpl_walk(frames)
-    m = BodyMotion(body_model="smpl", frame_index=np.arange(frames), global_orient=poses[:, :3],
-                   body_pose=poses[:, 3:], transl=trans)
-    joints = load_body_model("smpl", path).joints(m).numpy()
-    feet = [rigs.SMPL_NAMES.index(n) for n in rigs.FEET]
-    trans[:, 2] -= joints[:, feet, 2].min(1)
-    return BodyMotion(body_model="smpl", frame_index=np.arange(frames), global_orient=poses[:, :3],
-                      body_pose=poses[:, 3:], transl=trans)
-
-
 @pytest.mark.anny
 def test_walk_on_anny_keeps_feet_on_the_floor_and_the_hip_track(tmp_path, anny_skeleton):
-    path = _t_pose_smpl_file(tmp_path)
-    m = _grounded_walk(path)
+    path = write_t_pose_smpl_npz(tmp_path / "tpose.npz")
+    m = grounded_smpl_walk(path)
     src = rig_motion.to_skeleton_motion(m, rig_motion.skeleton_of("smpl", m, path))
     out, report = retarget(src, anny_skeleton)
     assert 0.8 < report.scale < 1.0  # anny's legs are shorter than this 1.08x person's

@@ -31,8 +31,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from avatarctl.body import rigs
-from avatarctl.body.skeleton import Skeleton, SkeletonMotion, joint_positions, local_from_world, to_common, \
-    world_rotations
+from avatarctl.body.skeleton import Skeleton, SkeletonMotion, joint_positions, local_from_world, to_common
 
 
 @dataclass(frozen=True)

@@ -25,13 +25,12 @@ ROOT = Path(__file__).resolve().parents[3]
 sys.path.insert(0, str(ROOT / "tests"))
 OUT = Path(__file__).resolve().parent
 
-from fixtures.smpl import smpl_walk, write_random_smpl_npz  # noqa: E402
+from fixtures.smpl import grounded_smpl_walk, write_random_smpl_npz, write_t_pose_smpl_npz  # noqa: E402
 from fixtures.tiny_project import paint  # noqa: E402
 
 from avatarctl.body import rig_motion, rigs  # noqa: E402
 from avatarctl.body.anny_model import AnnyBody  # noqa: E402
 from avatarctl.body.motion import BodyMotion  # noqa: E402
-from avatarctl.body.registry import load_body_model  # noqa: E402
 from avatarctl.body.retarget import common_positions, direction_errors, floor_errors, retarget  # noqa: E402
 from avatarctl.geometry.cameras import Camera, look_at  # noqa: E402
 
@@ -47,17 +46,6 @@ def per_group(err) -> dict[str, dict[str, float]]:
             out[g] = {"mean": float(d.mean()), "max": float(d.max()), "bones": len(cols)}
     out["all"] = {"mean": float(err.degrees.mean()), "max": float(err.degrees.max()), "bones": len(err.bones)}
     return out
-
-
-def grounded_walk(path: Path, frames: int) -> BodyMotion:
-    poses, trans = smpl_walk(frames)
-    m = BodyMotion(body_model="smpl", frame_index=np.arange(frames), global_orient=poses[:, :3],
-                   body_pose=poses[:, 3:], transl=trans)
-    joints = load_body_model("smpl", path).joints(m).numpy()
-    feet = [rigs.SMPL_NAMES.index(n) for n in rigs.FEET]
-    trans[:, 2] -= joints[:, feet, 2].min(1)
-    return BodyMotion(body_model="smpl", frame_index=np.arange(frames), global_orient=poses[:, :3],
-                      body_pose=poses[:, 3:], transl=trans)
 
 
 def main() -> None:
@@ -77,11 +65,8 @@ def main() -> None:
     numbers["random_poses_shape_aware"] = per_group(direction_errors(src, out))
 
     # ---- a grounded walk, with and without the model file ------------------------------------------------------
-    rest = np.array([rigs.GENERIC_T_POSE[n] for n in rigs.SMPL_NAMES]) * 1.08 + \
-        np.random.default_rng(7).normal(0, 0.005, (24, 3))
-    rest[:, 1] += 0.25
-    walk_path = write_random_smpl_npz(tmp / "tpose.npz", "smpl", seed=4, rest_joints=rest)
-    walk = grounded_walk(walk_path, 48)
+    walk_path = write_t_pose_smpl_npz(tmp / "tpose.npz")
+    walk = grounded_smpl_walk(walk_path, 48)
     truth = rig_motion.to_skeleton_motion(walk, rig_motion.skeleton_of("smpl", walk, walk_path))
     out_w, rep_w = retarget(truth, anny_sk)
     numbers["walk_shape_aware"] = per_group(direction_errors(truth, out_w))
