@@ -7,6 +7,7 @@ walk: source SMPL skeleton above, the anny body below), `numbers.json`.
 
 SMPL model files are random files in the official npz format (tests/fixtures/smpl.py: never a licensed model):
 - "random": random rest skeleton, random poses (sigma 0.35 rad), shape-aware retarget (the file is passed);
+- "SMPL+H": random body and finger poses, the generic T-pose table (no model file) -> anny's fingers;
 - "walk": rest joints placed in a T-pose (a person 1.08x the generic table), a procedural walk whose lowest foot
   joint touches the floor in every frame; retargeted shape-aware, and once more without the model file (the
   generic T-pose table stands in for the file's rest joints) but scored against the file's true joints.
@@ -34,7 +35,7 @@ from avatarctl.body.motion import BodyMotion  # noqa: E402
 from avatarctl.body.retarget import common_positions, direction_errors, floor_errors, retarget  # noqa: E402
 from avatarctl.geometry.cameras import Camera, look_at  # noqa: E402
 
-GROUPS = ("legs", "spine", "arms", "head")
+GROUPS = ("legs", "spine", "arms", "head", "hands")
 
 
 def per_group(err) -> dict[str, dict[str, float]]:
@@ -64,6 +65,15 @@ def main() -> None:
     out, _ = retarget(src, anny_sk)
     numbers["random_poses_shape_aware"] = per_group(direction_errors(src, out))
 
+    # ---- SMPL+H with random finger poses (no model file: the generic table on both sides of the score) ----------
+    hands = BodyMotion(body_model="smpl", frame_index=np.arange(F), global_orient=rng.normal(0, 0.4, (F, 3)),
+                       body_pose=rng.normal(0, 0.35, (F, 69)), transl=np.zeros((F, 3)),
+                       left_hand_pose=rng.normal(0, 0.35, (F, 45)), right_hand_pose=rng.normal(0, 0.35, (F, 45)))
+    src_h = rig_motion.to_skeleton_motion(hands, rig_motion.skeleton_of("smpl", hands, hands=True))
+    out_h, rep_h = retarget(src_h, anny_sk)
+    numbers["smplh_fingers_generic_table"] = per_group(direction_errors(src_h, out_h))
+    numbers["smplh_fingers_generic_table"]["joints_mapped"] = len(rep_h.mapped)
+
     # ---- a grounded walk, with and without the model file ------------------------------------------------------
     walk_path = write_t_pose_smpl_npz(tmp / "tpose.npz")
     walk = grounded_smpl_walk(walk_path, 48)
@@ -92,13 +102,14 @@ def main() -> None:
     import matplotlib.pyplot as plt
 
     cases = [("random poses,\nmodel file", "random_poses_shape_aware"), ("walk,\nmodel file", "walk_shape_aware"),
-             ("walk, no model file (generic\nT-pose table vs the file's joints)", "walk_generic_table")]
+             ("walk, no model file (generic\nT-pose table vs the file's joints)", "walk_generic_table"),
+             ("SMPL+H random poses with fingers,\ngeneric table", "smplh_fingers_generic_table")]
     fig, ax = plt.subplots(figsize=(7.5, 3.2), dpi=100)
-    w = 0.25
+    w = 0.2
     for k, (label, key) in enumerate(cases):
         means = [numbers[key].get(g, {}).get("mean", 0.0) for g in GROUPS]
         maxs = [numbers[key].get(g, {}).get("max", 0.0) for g in GROUPS]
-        x = np.arange(len(GROUPS)) + (k - 1) * w
+        x = np.arange(len(GROUPS)) + (k - 1.5) * w
         ax.bar(x, means, w, label=label.replace("\n", " "))
         ax.scatter(x, maxs, marker="_", s=120, color="k", zorder=3)
     ax.set_yscale("log")
