@@ -204,6 +204,9 @@ def test_motion_amass_to_smplx_and_bvh(tmp_path):
     assert "retargeted smplh" in r.summary and r.floor_error_cm is not None and r.floor_error_cm[1] < 1e-3
     inp = read_motion(tmp_path / "walk_x.npz")
     assert inp.kind == "smplx" and inp.num_frames == 12 and inp.fps == 60.0
+    with np.load(tmp_path / "walk_x.npz") as z:  # the output says where it came from
+        prov = json.loads(str(z["provenance"]))
+    assert prov["to"] == "smplx" and prov["source_kind"] == "smplh" and ["left_hip", "left_hip"] in prov["mapped"]
     # made for SMPL already: used as is (the fingers dropped), written as a 24-joint BVH
     r = run(MotionConfig(source=str(tmp_path / "walk.npz"), to="smpl", out=str(tmp_path / "walk_s.bvh")))
     assert not r.retargeted and "used as is" in r.summary and any("finger" in n for n in r.notes)
@@ -242,3 +245,12 @@ def test_a_mixamo_named_bvh_retargets_like_the_smpl_motion_it_came_from(tmp_path
     body = slice(0, 22)  # the palms' rotation reaches SMPL-X's middle fingers only in `a`
     assert np.abs(a.local[:, body] - b.local[:, body]).max() < 1e-6
     assert np.abs(a.root_position - b.root_position).max() < 1e-6
+
+
+def test_retargeting_onto_the_toy_body_is_refused(tmp_path):
+    from avatarctl.io.motion_convert import convert_motion
+
+    poses, trans = smpl_walk(3)
+    inp = read_motion(write_amass_npz(tmp_path / "walk.npz", poses, trans))
+    with pytest.raises(InputError, match="cannot retarget motion onto the 'toy' body model"):
+        convert_motion(inp, "toy")

@@ -221,8 +221,8 @@ def retarget(motion: SkeletonMotion, target: Skeleton, world_up: str = "z") -> t
     source = motion.skeleton
     match = match_joints(source, target)
     if not match.pairs or match.pairs[0][0] != 0:
-        raise ValueError(f"cannot retarget {source.name} onto {target.name}: their roots do not match "
-                         f"(matched {len(match.pairs)} joints)")
+        raise ValueError(f"no {source.name} joint matches the {target.name} root ({target.canonical[0]}); "
+                         f"{len(match.pairs)} joints matched")
     rc = rest_corrections(source, target, match)
     Cs, Ct = to_common(source.canonical_up), to_common(target.canonical_up)
     Vs, Vt = to_common(motion.world_up), to_common(world_up)

@@ -145,8 +145,9 @@ def read_motion(path: str | Path, up: str | None = None, name_map: dict[str, str
             motion = _read_amass_smplx(arrays)
     except (KeyError, ValueError) as e:
         msg = str(e).strip("'\"")
-        raise InputError(f"malformed {_describe(kind)} motion file: {msg}", where=where,
-                         fix="check the arrays' names and shapes against docs/render_eval.md") from None
+        fix = "repair or drop the frames with NaN / inf values" if "non-finite" in msg else \
+            "check the arrays' names and shapes against docs/motion.md"
+        raise InputError(f"malformed {_describe(kind)} motion file: {msg}", where=where, fix=fix) from None
     if motion.num_frames == 0:
         raise InputError("motion file has no frames", where=where, fix="pass a motion with at least one frame")
     return MotionInput(path=where, kind=kind, body=motion, skeleton=None, world_up=up or "z")

@@ -3,16 +3,20 @@ a motion for another body model, retargeting it (`avatarctl.io.motion_convert`, 
 
 Steps: read the file (anny / AMASS npz, AIST++ pkl, BVH; `io.motion_files.read_motion`), retarget it onto the
 target body model's skeleton unless it was made for it, write OUT atomically (`.npz`: a `BodyMotion` file that
-`render --poses` reads; `.bvh`: the retargeted skeleton motion, y up, centimetres) and report frames, fps, joints
+`render --poses` reads, with `provenance` (this config, the summary, the joint pairs, JSON) and, for anny, the
+rig's `bone_labels`; `.bvh`: the retargeted skeleton motion, y up, centimetres) and report frames, fps, joints
 mapped / dropped, the translation scale and the feet's floor error. No project is involved.
 """
 
 from __future__ import annotations
 
+import json
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
+
+import numpy as np
 
 from avatarctl.errors import InputError
 
@@ -85,6 +89,18 @@ def run(cfg: MotionConfig) -> MotionResult:
         fe = floor_errors(conv.source, conv.target, conv.report)
         err = fe.height_error * 100.0 / conv.target.skeleton.units_per_metre
         floor = (float(err.mean()), float(err.max()))
+    r = conv.report
+    _write(out, cfg, inp, conv)
+    return MotionResult(out=out, source_kind=inp.kind, target=cfg.to, frames=conv.motion.num_frames,
+                        fps=float(conv.motion.fps), retargeted=r is not None, summary=conv.summary(inp.kind),
+                        mapped=len(r.mapped) if r else 0, dropped=r.dropped if r else (),
+                        scale=r.scale if r else 1.0, floor_error_cm=floor, notes=conv.notes,
+                        seconds=time.perf_counter() - t0)
+
+
+def _write(out: Path, cfg: MotionConfig, inp: Any, conv: Any) -> None:
+    """OUT.bvh: the motion on the target's skeleton; OUT.npz: the `BodyMotion` plus provenance (and anny's
+    `bone_labels`)."""
     if out.suffix.lower() == ".bvh":
         from avatarctl.io.bvh import write_bvh
 
@@ -97,11 +113,12 @@ def run(cfg: MotionConfig) -> MotionResult:
             skel = rig_motion.skeleton_of(motion.body_model, motion, cfg.body_model_path, hands=hands)
             sm = rig_motion.to_skeleton_motion(motion, skel, world_up=inp.world_up)
         write_bvh(out, sm)
-    else:
-        conv.motion.save(out)
+        return
     r = conv.report
-    return MotionResult(out=out, source_kind=inp.kind, target=cfg.to, frames=conv.motion.num_frames,
-                        fps=float(conv.motion.fps), retargeted=r is not None, summary=conv.summary(inp.kind),
-                        mapped=len(r.mapped) if r else 0, dropped=r.dropped if r else (),
-                        scale=r.scale if r else 1.0, floor_error_cm=floor, notes=conv.notes,
-                        seconds=time.perf_counter() - t0)
+    record = {**cfg.to_json(), "source_kind": inp.kind, "summary": conv.summary(inp.kind), "notes": list(conv.notes),
+              "mapped": [list(p) for p in r.mapped] if r else [], "dropped": list(r.dropped) if r else [],
+              "scale": r.scale if r else 1.0}
+    extra = {"provenance": np.array(json.dumps(record))}
+    if conv.target is not None and cfg.to == "anny":  # render --poses checks them against the avatar's rig
+        extra["bone_labels"] = np.array(conv.target.skeleton.joint_names)
+    conv.motion.save(out, extra=extra)
