@@ -254,3 +254,16 @@ def test_retargeting_onto_the_toy_body_is_refused(tmp_path):
     inp = read_motion(write_amass_npz(tmp_path / "walk.npz", poses, trans))
     with pytest.raises(InputError, match="cannot retarget motion onto the 'toy' body model"):
         convert_motion(inp, "toy")
+
+
+def test_bvh_writer_euler_angles_recompose_even_at_gimbal_lock():
+    from avatarctl.body.skeleton import axis_angle_to_matrix
+    from avatarctl.io.bvh import _axis_rotation, _zyx_degrees
+
+    def compose(deg):  # Zrotation Yrotation Xrotation, as the writer declares its channels
+        return _axis_rotation(2, deg[..., 0]) @ _axis_rotation(1, deg[..., 1]) @ _axis_rotation(0, deg[..., 2])
+
+    R = axis_angle_to_matrix(np.random.default_rng(0).normal(0, 2, (500, 3)))
+    R = np.concatenate([R, compose(np.array([[30.0, 90.0, 20.0], [10.0, -90.0, 45.0]]))])  # y = +-90 deg
+    err = rotation_angle(np.swapaxes(R, -1, -2) @ compose(_zyx_degrees(R)))
+    assert err.max() < 1e-9

@@ -182,7 +182,7 @@ def leg_length(skel: Skeleton) -> float:
     """Mean rest length of hip -> knee -> ankle over both legs (skeleton units)."""
     lengths = [v for v in (skel.bone_length(chain) for chain in rigs.LEGS) if v is not None]
     if not lengths:
-        raise ValueError(f"the {skel.name} skeleton has no mapped legs (pelvis, hips, knees, ankles)")
+        raise ValueError(f"the {skel.name} skeleton has no mapped legs (hips, knees, ankles)")
     return float(np.mean(lengths))
 
 
