@@ -3,8 +3,9 @@
 Steps:
 1. load the fitted avatar (`stages.common.load_fitted`);
 2. choose the motion: the project's own frames (training frames render with the cVAE latent z = mu, novel frames
-   with z = 0, paper Sec. 4.1) or a motion file (`--poses`, always novel: z = 0 unless `--latent sample`);
-   a motion file's body shape is replaced by the avatar's own (`adopt_subject`) and, by default, its translation
+   with z = 0, paper Sec. 4.1) or a motion file (`--poses`, always novel: z = 0 unless `--latent sample`; any rig:
+   anny / AMASS npz, AIST++ pkl, BVH, retargeted onto the avatar's body model when made for another,
+   `io.motion_convert`); a motion file's body shape is replaced by the avatar's own (`adopt_subject`) and, by default, its translation
    is moved so its first frame starts where the avatar's first training frame stands (`recenter`);
 3. choose the cameras: capture views (`views`, scaled to `resolution`) or an orbit (`orbit` views over one turn
    around the subject's smoothed box centre, `trajectories.orbit_cameras`);
@@ -138,6 +139,7 @@ class RenderResult:
     checkpoint_step: int
     background: tuple[float, float, float]
     motion_source: str  # "project" or the motion file
+    retarget: str | None = None  # one line when the motion file was retargeted onto the avatar's body model
     latent_counts: dict[str, int] = field(default_factory=dict)
 
     @property
@@ -159,6 +161,7 @@ class _Plan:
     views_per_seq: int
     fps: float
     source: str
+    retarget: str | None  # what retargeting did to the motion file, None if it was made for the avatar's body
 
 
 def run(project_dir: str | Path, cfg: RenderConfig, progress: ProgressFn | None = None) -> RenderResult:
@@ -178,7 +181,7 @@ def run(project_dir: str | Path, cfg: RenderConfig, progress: ProgressFn | None 
     precheck(project, cfg.checkpoint, cfg.views)
     avatar = load_fitted(project, cfg.device, cfg.checkpoint)
     background, transparent = parse_background(cfg.background, avatar.background)
-    plan = _plan(avatar, cfg)
+    plan = _plan(avatar, cfg, project.manifest.body_model.path)
     out_dir = project.paths.render(cfg.name)
 
     images: list[RenderedImage] = []
@@ -223,6 +226,7 @@ def run(project_dir: str | Path, cfg: RenderConfig, progress: ProgressFn | None 
             "checkpoint": str(avatar.checkpoint) if avatar.checkpoint else None,
             "checkpoint_step": avatar.step,
             "motion_source": plan.source,
+            "retarget": plan.retarget,
             "background": list(background),
             "transparent": transparent,
             "image_size": [w, h],
@@ -243,7 +247,7 @@ def run(project_dir: str | Path, cfg: RenderConfig, progress: ProgressFn | None 
     result = RenderResult(out_dir=out_dir, video=out_dir / "video.mp4", images=images, width=w, height=h,
                           video_size=(vinfo.width, vinfo.height), fps=plan.fps, seconds=seconds,
                           render_seconds=render_seconds, checkpoint_step=avatar.step, background=background,
-                          motion_source=plan.source, latent_counts=latent_counts)
+                          motion_source=plan.source, retarget=plan.retarget, latent_counts=latent_counts)
     project.record("render", config=cfg.to_json(), outputs=[out_dir], started=started,
                    summary={"name": cfg.name, "images": len(images), "size": f"{w}x{h}",
                             "seconds_per_image": round(result.seconds_per_image, 3), "video": "video.mp4",
@@ -251,11 +255,13 @@ def run(project_dir: str | Path, cfg: RenderConfig, progress: ProgressFn | None 
     return result
 
 
-def _plan(avatar: Any, cfg: RenderConfig) -> _Plan:
-    """Resolve motion, frames, latent modes and cameras from the config."""
+def _plan(avatar: Any, cfg: RenderConfig, model_path: str | None = None) -> _Plan:
+    """Resolve motion, frames, latent modes and cameras from the config. `model_path`: the project's SMPL / SMPL-X
+    model file (rest joints for retargeting onto it)."""
     from avatarctl.io import motion_files
 
     cap = avatar.capture
+    retarget: str | None = None
     train_set = set(int(f) for f in avatar.train_frames)
     if cfg.poses is None:
         motion = cap.motion
@@ -263,9 +269,17 @@ def _plan(avatar: Any, cfg: RenderConfig) -> _Plan:
         training = [f in train_set for f in frames]
         source = "project"
     else:
-        motion = motion_files.read_motion_file(cfg.poses, cap.body_model)
-        if motion.body_model == "anny":
-            motion_files.check_joint_labels(cfg.poses, avatar.template.joint_names)
+        inp = motion_files.read_motion(cfg.poses)
+        if inp.family == cap.body_model and inp.body is not None:
+            motion = inp.body
+            if motion.body_model == "anny":
+                motion_files.check_joint_labels(cfg.poses, avatar.template.joint_names)
+        else:  # another rig: retarget onto the avatar's body model, its own subject, its model file
+            from avatarctl.io.motion_convert import convert_motion
+
+            conv = convert_motion(inp, cap.body_model, subject=cap.motion, model_path=model_path)
+            motion = conv.motion
+            retarget = conv.summary(inp.kind)
         motion = motion_files.adopt_subject(motion, cap.motion)
         if cfg.recenter:
             anchor_row = cap.motion.rows_for([min(train_set) if train_set else cap.frames[0]])
@@ -290,7 +304,7 @@ def _plan(avatar: Any, cfg: RenderConfig) -> _Plan:
         shots = [(i, i, c) for i in range(len(frames)) for c in views]
         views_per_seq = len(views)
     return _Plan(motion=motion, frames=frames, training=training, latents=latents, shots=shots,
-                 views_per_seq=views_per_seq, fps=fps, source=source)
+                 views_per_seq=views_per_seq, fps=fps, source=source, retarget=retarget)
 
 
 def _scaled_to(cam: Camera, longer_side: int) -> Camera:
