@@ -43,7 +43,8 @@ if TYPE_CHECKING:
 # body-model family a motion file drives; SMPL+H (AMASS "G") drives an SMPL avatar (same body skeleton).
 MOTION_KINDS = ("anny", "smpl", "smplh", "smplx")
 MOTION_FORMATS = MOTION_KINDS + ("aist", "bvh")
-_FAMILY = {"anny": "anny", "smpl": "smpl", "smplh": "smpl", "smplx": "smplx", "aist": "smpl"}
+# (a BodyMotion file of the toy sphere body, the tests' body model, drives a toy avatar)
+_FAMILY = {"anny": "anny", "smpl": "smpl", "smplh": "smpl", "smplx": "smplx", "aist": "smpl", "toy": "toy"}
 
 
 def detect_motion_kind(keys: set[str], arrays: dict[str, np.ndarray], where: str) -> str:
@@ -215,7 +216,7 @@ def _read_aist(p: Path) -> tuple[BodyMotion, tuple[str, ...]]:
 
 def _describe(kind: str) -> str:
     return {"anny": "anny", "smpl": "SMPL", "smplh": "SMPL+H (SMPL)", "smplx": "SMPL-X", "aist": "AIST++ (SMPL)",
-            "bvh": "BVH"}[kind]
+            "bvh": "BVH", "toy": "toy sphere"}[kind]
 
 
 FPS_KEYS = ("fps", "mocap_framerate", "mocap_frame_rate")
