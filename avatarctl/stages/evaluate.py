@@ -35,9 +35,9 @@ import numpy as np
 from avatarctl.errors import InputError
 from avatarctl.evaluate.report import PSNR_CAP, SCHEMA_VERSION, EvalMetrics, ImageScore, ScoredModel
 from avatarctl.frames import select_frames
-from avatarctl.project import Project, check_name, now_iso
+from avatarctl.project import check_name, now_iso
 from avatarctl.stages.common import StageProgress, ProgressFn, check_latent_mode, frame_node_state, latent_for, \
-    load_fitted, precheck, select_views
+    load_fitted, open_fitted, select_views
 
 SPLITS = ("novel_view", "novel_pose", "train")
 KNOCKOUTS = ("delta-n", "embedding")  # render-time knockouts (supp. Tab. A): the trained value set to zero
@@ -156,9 +156,7 @@ def run(project_dir: str | Path, cfg: EvalConfig, progress: ProgressFn | None = 
 
     started = now_iso()
     t_start = time.perf_counter()
-    project = Project.open(project_dir)
-    project.require("fit")
-    precheck(project, cfg.checkpoint, cfg.views)
+    project = open_fitted(project_dir, cfg.checkpoint, cfg.views)
     avatar = load_fitted(project, cfg.device, cfg.checkpoint)
     cap = avatar.capture
     frames, views, is_train = split_pairs(avatar, cfg)

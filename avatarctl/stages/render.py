@@ -30,9 +30,9 @@ import numpy as np
 from avatarctl.errors import InputError
 from avatarctl.frames import select_frames
 from avatarctl.geometry.cameras import Camera
-from avatarctl.project import Project, check_name, now_iso
+from avatarctl.project import check_name, now_iso
 from avatarctl.stages.common import StageProgress, ProgressFn, check_latent_mode, frame_node_state, latent_for, \
-    load_fitted, precheck, select_views
+    load_fitted, motion_for_avatar, open_fitted, select_views
 
 SCHEMA_VERSION = 1
 DEFAULT_MAX_RAYS = 8192
@@ -174,14 +174,10 @@ def run(project_dir: str | Path, cfg: RenderConfig, progress: ProgressFn | None 
 
     started = now_iso()
     t_start = time.perf_counter()
-    project = Project.open(project_dir)
-    project.require("fit")
-    if cfg.poses is not None and not Path(cfg.poses).is_file():
-        raise InputError("motion file not found", where=str(cfg.poses), fix="check the --poses path")
-    precheck(project, cfg.checkpoint, cfg.views)
+    project = open_fitted(project_dir, cfg.checkpoint, cfg.views, cfg.poses)
     avatar = load_fitted(project, cfg.device, cfg.checkpoint)
     background, transparent = parse_background(cfg.background, avatar.background)
-    plan = _plan(avatar, cfg, project.manifest.body_model.path)
+    plan = _plan(avatar, cfg)
     out_dir = project.paths.render(cfg.name)
 
     images: list[RenderedImage] = []
@@ -255,11 +251,8 @@ def run(project_dir: str | Path, cfg: RenderConfig, progress: ProgressFn | None 
     return result
 
 
-def _plan(avatar: Any, cfg: RenderConfig, model_path: str | None = None) -> _Plan:
-    """Resolve motion, frames, latent modes and cameras from the config. `model_path`: the project's SMPL / SMPL-X
-    model file (rest joints for retargeting onto it)."""
-    from avatarctl.io import motion_files
-
+def _plan(avatar: Any, cfg: RenderConfig) -> _Plan:
+    """Resolve motion, frames, latent modes and cameras from the config."""
     cap = avatar.capture
     retarget: str | None = None
     train_set = set(int(f) for f in avatar.train_frames)
@@ -269,22 +262,7 @@ def _plan(avatar: Any, cfg: RenderConfig, model_path: str | None = None) -> _Pla
         training = [f in train_set for f in frames]
         source = "project"
     else:
-        inp = motion_files.read_motion(cfg.poses)
-        if inp.family == cap.body_model and inp.body is not None:
-            motion = inp.body
-            if motion.body_model == "anny":
-                motion_files.check_joint_labels(cfg.poses, avatar.template.joint_names)
-        else:  # another rig: retarget onto the avatar's body model, its own subject, its model file
-            from avatarctl.io.motion_convert import convert_motion
-
-            conv = convert_motion(inp, cap.body_model, subject=cap.motion, model_path=model_path)
-            motion = conv.motion
-            retarget = conv.summary(inp.kind)
-        motion = motion_files.adopt_subject(motion, cap.motion)
-        if cfg.recenter:
-            anchor_row = cap.motion.rows_for([min(train_set) if train_set else cap.frames[0]])
-            anchor = motion_files.root_translation(cap.motion.select(anchor_row))[0]
-            motion = motion_files.shift_motion(motion, anchor - motion_files.root_translation(motion)[0])
+        motion, retarget = motion_for_avatar(avatar, cfg.poses, cfg.recenter)
         frames = select_frames(cfg.frames, [int(f) for f in motion.frame_index])
         training = [False] * len(frames)
         source = str(cfg.poses)
