@@ -108,6 +108,8 @@ def test_glb_loads_in_trimesh_and_static_formats(tmp_path):
     scene = trimesh.load(str(path), force="scene")
     geom = list(scene.geometry.values())[0]
     assert geom.vertices.shape == (44, 3) and geom.faces.shape == (80, 3)
+    colour = np.asarray(geom.visual.vertex_attributes["color"])
+    assert np.allclose(colour[:, :3] / (255.0 if colour.dtype.kind in "iu" else 1.0), 0.5, atol=1 / 255)
     mesh, _, _ = chain()
     for ext in ("glb", "ply", "obj"):
         write_mesh(tmp_path / f"m.{ext}", mesh)

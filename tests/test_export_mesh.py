@@ -47,6 +47,19 @@ def test_sphere_surface_normals_winding_and_colours():
     assert 0 < queried < grid_points, "only points inside a node support are queried"
 
 
+def test_coarse_to_fine_grid_matches_the_full_grid_where_it_matters():
+    full = density_grid(sphere_density, CENTERS, radius=0.3, voxel=0.01)
+    fast = density_grid(sphere_density, CENTERS, radius=0.3, voxel=0.01, level=50.0, coarse=2)
+    assert fast.queried < 0.7 * full.queried
+    n = tuple(min(a, b) for a, b in zip(full.sigma.shape, fast.sigma.shape))
+    a, b = full.sigma[:n[0], :n[1], :n[2]], fast.sigma[:n[0], :n[1], :n[2]]
+    assert np.array_equal(a > 50.0, b > 50.0), "the same inside / outside everywhere"
+    v_full, _, _ = marching_cubes(full, 50.0)
+    v_fast, _, _ = marching_cubes(fast, 50.0)
+    assert len(v_full) == len(v_fast) and np.abs(np.sort(np.linalg.norm(v_full, axis=-1))
+                                                 - np.sort(np.linalg.norm(v_fast, axis=-1))).max() < 1e-5
+
+
 def test_min_component_zero_keeps_the_floater_and_no_surface_raises():
     grid = density_grid(sphere_density, CENTERS, radius=0.3, voxel=0.01)
     verts, _, _ = marching_cubes(grid, 50.0, min_component=0.0)

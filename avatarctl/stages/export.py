@@ -389,7 +389,7 @@ def _record(cfg: ExportConfig, avatar: Any, res: ExportResult, basis: np.ndarray
     return {"config": cfg.to_json(), "checkpoint": str(avatar.checkpoint) if avatar.checkpoint else None,
             "checkpoint_step": avatar.step, "motion_source": source,
             "surface": {"threshold_per_m": cfg.threshold, "voxel_m": cfg.voxel, "min_component": cfg.min_component,
-                        "colour": "volume render of a 5 cm ray segment looking at each vertex along -normal from "
+                        "colour": "volume render of a 4 cm ray segment (8 samples) looking at each vertex along -normal from "
                                   "2 voxels outside, divided by its opacity (one view direction per vertex)"},
             "glb_basis": basis.tolist(), "ply_obj_frame": "capture world (metres)",
             "meshes": [asdict(m) for m in res.meshes], "avatar": asdict(res.avatar) if res.avatar else None,
