@@ -7,7 +7,6 @@ import json
 
 import numpy as np
 import pytest
-from fixtures.toy_fitted import make_toy_fitted
 
 from avatarctl.errors import InputError
 from avatarctl.project import Project
@@ -15,23 +14,19 @@ from avatarctl.project import Project
 FAST = dict(voxel=0.03, threshold=0.3, device="cpu")  # a 10-step toy fit is faint: a low surface level
 
 
-@pytest.fixture(scope="module")
-def toy_project(tmp_path_factory):
-    return make_toy_fitted(tmp_path_factory.mktemp("toy_export"), iters=10)
-
 
 def _digest(path) -> str:
     return hashlib.sha256(path.read_bytes()).hexdigest()
 
 
-def test_export_writes_meshes_skinned_avatar_and_record(toy_project):
+def test_export_writes_meshes_skinned_avatar_and_record(toy_fitted_project):
     from avatarctl.stages import export
     from avatarctl.stages.export import ExportConfig
 
-    ckpt = Project.open(toy_project).paths.latest_checkpoint
+    ckpt = Project.open(toy_fitted_project).paths.latest_checkpoint
     before = _digest(ckpt)
     seen = []
-    res = export.run(toy_project, ExportConfig(frames="0,3", formats=("glb", "ply"), score=True, **FAST),
+    res = export.run(toy_fitted_project, ExportConfig(frames="0,3", formats=("glb", "ply"), score=True, **FAST),
                      progress=seen.append)
     out = res.out_dir
     assert [m.frame for m in res.meshes] == [0, 3] and [m.latent for m in res.meshes] == ["mean", "zero"]
@@ -47,19 +42,19 @@ def test_export_writes_meshes_skinned_avatar_and_record(toy_project):
         assert reload["vs_lbs_same_weights_max_m"] < 1e-5 and reload["rest_max_m"] < 1e-5
     assert {s.split for s in res.scores} == {"novel_view", "novel_pose"} and len(res.scores) == 4
     assert all(np.isfinite([s.psnr_mesh, s.psnr_volume]).all() for s in res.scores)
-    assert Project.open(toy_project).manifest.stages[-1].stage == "export"
+    assert Project.open(toy_fitted_project).manifest.stages[-1].stage == "export"
     assert _digest(ckpt) == before, "the fit is untouched"
     assert seen[-1].stage == "export" and seen[-1].done == seen[-1].total == 3
 
 
-def test_export_with_a_motion_file_animates_it(toy_project, tmp_path):
+def test_export_with_a_motion_file_animates_it(toy_fitted_project, tmp_path):
     from fixtures.toy_capture import toy_motion
 
     from avatarctl.stages import export
     from avatarctl.stages.export import ExportConfig
 
     toy_motion(7).save(tmp_path / "walk.npz")
-    res = export.run(toy_project, ExportConfig(name="walk", poses=str(tmp_path / "walk.npz"), frames="6",
+    res = export.run(toy_fitted_project, ExportConfig(name="walk", poses=str(tmp_path / "walk.npz"), frames="6",
                                                formats=("obj",), **FAST))
     assert res.avatar.animation_frames == 7 and res.avatar.animation_source.endswith("walk.npz")
     assert [m.latent for m in res.meshes] == ["zero"] and (res.out_dir / "meshes" / "000006.obj").is_file()
@@ -81,21 +76,21 @@ def test_config_errors(kw, match):
         ExportConfig(**kw)
 
 
-def test_no_surface_is_a_one_line_error_and_writes_nothing(toy_project):
+def test_no_surface_is_a_one_line_error_and_writes_nothing(toy_fitted_project):
     from avatarctl.stages import export
     from avatarctl.stages.export import ExportConfig
 
     with pytest.raises(InputError, match="no surface to mesh for frame 0.*lower --threshold"):
-        export.run(toy_project, ExportConfig(name="high", voxel=0.03, threshold=1e6, device="cpu"))
-    assert not (toy_project / "export" / "high").exists()
+        export.run(toy_fitted_project, ExportConfig(name="high", voxel=0.03, threshold=1e6, device="cpu"))
+    assert not (toy_fitted_project / "export" / "high").exists()
 
 
-def test_cli_errors_exit_non_zero_without_traceback(toy_project, tmp_path):
+def test_cli_errors_exit_non_zero_without_traceback(toy_fitted_project, tmp_path):
     from typer.testing import CliRunner
 
     from avatarctl.cli.app import app
 
-    r = CliRunner().invoke(app, ["export", str(toy_project), "--poses", str(tmp_path / "missing.npz")])
+    r = CliRunner().invoke(app, ["export", str(toy_fitted_project), "--poses", str(tmp_path / "missing.npz")])
     assert r.exit_code == 2 and "motion file not found" in r.output and "Traceback" not in r.output
     r = CliRunner().invoke(app, ["export", str(tmp_path / "nowhere")])
     assert r.exit_code != 0 and "Traceback" not in r.output

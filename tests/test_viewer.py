@@ -8,7 +8,6 @@ import time
 
 import numpy as np
 import pytest
-from fixtures.toy_fitted import make_toy_fitted
 
 from avatarctl.geometry.cameras import Camera, look_at
 from avatarctl.viewer.progressive import Cancelled, ProgressiveRenderer, ViewRequest
@@ -70,15 +69,11 @@ def test_progressive_preview_then_full_and_cancel():
     assert calls.count(400) >= 2 and shown.count((400, True)) == 1, "the first full render was abandoned"
 
 
-@pytest.fixture(scope="module")
-def toy_project(tmp_path_factory):
-    return make_toy_fitted(tmp_path_factory.mktemp("toy_view"), iters=10)
 
-
-def test_render_callback_draws_the_avatar(toy_project):
+def test_render_callback_draws_the_avatar(toy_fitted_project):
     from avatarctl.stages.view import ViewConfig, prepare
 
-    setup = prepare(toy_project, ViewConfig(device="cpu", latent="mean"))
+    setup = prepare(toy_fitted_project, ViewConfig(device="cpu", latent="mean"))
     s = setup.session
     assert [f.source for f in s.frames] == ["train", "train", "train", "test"]
     eye = np.asarray(setup.initial.position)
@@ -94,7 +89,7 @@ def test_render_callback_draws_the_avatar(toy_project):
 
 
 @pytest.mark.browser
-def test_viewer_page_in_headless_chromium(toy_project, tmp_path):
+def test_viewer_page_in_headless_chromium(toy_fitted_project, tmp_path):
     pytest.importorskip("viser")
     from fixtures.browser import Browser, find_chromium, free_port
 
@@ -107,7 +102,7 @@ def test_viewer_page_in_headless_chromium(toy_project, tmp_path):
 
     def serve():
         try:
-            view.run(toy_project, ViewConfig(port=free_port(), resolution=128, device="cpu"), ready=urls.append,
+            view.run(toy_fitted_project, ViewConfig(port=free_port(), resolution=128, device="cpu"), ready=urls.append,
                      stop=stop)
         except BaseException as e:  # noqa: BLE001 - reported by the test
             errors.append(e)
@@ -143,7 +138,7 @@ def test_viewer_page_in_headless_chromium(toy_project, tmp_path):
     assert not th.is_alive() and not errors, "the viewer stops cleanly"
 
 
-def test_cli_prints_the_url_and_stops_cleanly_on_ctrl_c(toy_project):
+def test_cli_prints_the_url_and_stops_cleanly_on_ctrl_c(toy_fitted_project):
     pytest.importorskip("viser")
     import os
     import signal
@@ -153,7 +148,7 @@ def test_cli_prints_the_url_and_stops_cleanly_on_ctrl_c(toy_project):
     from fixtures.browser import free_port
 
     env = {**os.environ, "PYTHONUNBUFFERED": "1", "COLUMNS": "200"}
-    proc = subprocess.Popen([sys.executable, "-m", "avatarctl.cli.app", "view", str(toy_project), "--device", "cpu",
+    proc = subprocess.Popen([sys.executable, "-m", "avatarctl.cli.app", "view", str(toy_fitted_project), "--device", "cpu",
                              "--port", str(free_port())], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
                             env=env)
     lines = []
