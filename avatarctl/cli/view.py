@@ -18,7 +18,8 @@ def register(app: typer.Typer) -> None:
                                              "render`). Default: the project's training and test frames."),
         port: int = typer.Option(8080, "--port", help="Port to serve on."),
         host: str = typer.Option("127.0.0.1", "--host", help="Interface to serve on (0.0.0.0: other machines)."),
-        resolution: int = typer.Option(512, "--resolution", help="Longer image side at full quality, pixels."),
+        resolution: Optional[int] = typer.Option(None, "--resolution", help="Longer image side at full quality, "
+                                                 "pixels (default: 512 on a GPU, 256 on the CPU)."),
         latent: str = typer.Option("auto", "--latent", help="auto | mean | zero | sample (also in the page)."),
         seed: int = typer.Option(0, "--seed", help="Seed for --latent sample."),
         fps: float = typer.Option(10.0, "--fps", help="Play speed, frames per second."),

@@ -6,8 +6,8 @@ Steps:
    drive the avatar as `render --poses` does); the latent of a frame follows `--latent` / the GUI with the "auto"
    rule (z = mu for training frames, 0 otherwise); "mean" on a frame that is not a training frame falls back to 0;
 3. a `viewer.session.ViewerSession` (the render callback: the sparse view renderer at the requested resolution)
-   served by `viewer.server.ViewerServer`: orbit camera starting at the first held-out camera, looking at the
-   subject; low resolution while the camera moves, full when it rests;
+   served by `viewer.server.ViewerServer`: orbit camera starting at the first held-out camera (its position and
+   vertical field of view), looking at the subject; low resolution while the camera moves, full when it rests;
 4. `ready(url)` is called once the server listens; the stage then serves until `stop` is set (or Ctrl-C reaches
    the caller), and stops the server and its render threads on the way out. Nothing is written to the project.
 """
@@ -32,7 +32,8 @@ class ViewConfig:
 
     host: str = "127.0.0.1"  # 0.0.0.0 to serve other machines
     port: int = 8080
-    resolution: int = 512  # longer image side at full quality, pixels (the GUI can change it)
+    resolution: int | None = None  # longer image side at full quality (the GUI can change it); None = 512 on a GPU,
+    #                                256 on the CPU (a 256² frame takes ~8 s of one core on synth small, 512² ~33 s)
     preview_scale: float = 0.25  # resolution factor while the camera moves
     settle_s: float = 0.3  # seconds still before the full-resolution render
     latent: str = "auto"  # auto | mean | zero | sample (the GUI can change it)
@@ -48,7 +49,7 @@ class ViewConfig:
         check_latent_mode(self.latent)
         if not 1 <= self.port <= 65535:
             raise InputError(f"--port {self.port} outside [1, 65535]", where="--port", fix="e.g. --port 8080")
-        if not 16 <= self.resolution <= 2048:
+        if self.resolution is not None and not 16 <= self.resolution <= 2048:
             raise InputError(f"--resolution {self.resolution} outside [16, 2048]", where="--resolution",
                              fix="e.g. --resolution 512")
         if not 0 < self.preview_scale <= 1:
@@ -107,7 +108,8 @@ def prepare(project_dir: str | Path, cfg: ViewConfig) -> ViewerSetup:
     verts = avatar.body.pose(motion.select(motion.rows_for([frames[0].frame]))).vertices[0].detach().cpu().numpy()
     center = (verts.min(0) + verts.max(0)) / 2.0
     initial = InitialView(position=tuple(float(c) for c in start.center), look_at=tuple(float(c) for c in center),
-                          up=tuple(float(c) for c in up_from_cameras(cams)))
+                          up=tuple(float(c) for c in up_from_cameras(cams)),
+                          fov_y=2.0 * float(np.arctan((start.height / 2.0) / start.K[1, 1])))
     return ViewerSetup(session=session, initial=initial, avatar=avatar)
 
 
@@ -118,11 +120,13 @@ def run(project_dir: str | Path, cfg: ViewConfig, ready: Callable[[str], None] |
 
     try:
         import_viser()
-    except ImportError as e:
-        raise InputError(str(e), where="avatarctl[view]", fix="pip install 'avatarctl[view]'") from None
+    except ImportError:
+        raise InputError("the viewer needs the `viser` package", where="avatarctl[view]",
+                         fix="pip install 'avatarctl[view]'") from None
     setup = prepare(project_dir, cfg)
+    resolution = cfg.resolution or (512 if setup.avatar.device.type == "cuda" else 256)
     try:
-        server = ViewerServer(setup.session, setup.initial, host=cfg.host, port=cfg.port, resolution=cfg.resolution,
+        server = ViewerServer(setup.session, setup.initial, host=cfg.host, port=cfg.port, resolution=resolution,
                               preview_scale=cfg.preview_scale, settle_s=cfg.settle_s, fps=cfg.fps, latent=cfg.latent)
     except OSError as e:
         raise InputError(f"cannot serve on {cfg.host}:{cfg.port} ({e.strerror or e})", where="--port",

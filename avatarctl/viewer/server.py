@@ -27,6 +27,7 @@ class InitialView:
     position: tuple[float, float, float]
     look_at: tuple[float, float, float]
     up: tuple[float, float, float]
+    fov_y: float | None = None  # vertical field of view, radians; None = the page's default
 
 
 def import_viser() -> Any:
@@ -89,6 +90,8 @@ class ViewerServer:
         client.camera.up_direction = self.initial.up
         client.camera.position = self.initial.position
         client.camera.look_at = self.initial.look_at
+        if self.initial.fov_y is not None:
+            client.camera.fov = self.initial.fov_y
 
         def render(req: ViewRequest, should_stop) -> np.ndarray:
             with self._lock:
