@@ -28,7 +28,7 @@ capture's up (estimated from the cameras) is glTF's +Y (`export.json` "glb_basis
 from __future__ import annotations
 
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
@@ -139,7 +139,6 @@ class ExportResult:
     scores: list[MeshScore]
     seconds: float
     checkpoint_step: int
-    extra: dict[str, Any] = field(default_factory=dict)
 
     def mean_psnr(self) -> tuple[float, float] | None:
         if not self.scores:

@@ -72,7 +72,7 @@ class ViewerServer:
         return f"http://{'localhost' if host in ('0.0.0.0', '127.0.0.1') else host}:{self.server.get_port()}"
 
     def _status_text(self, seconds: float | None, size: tuple[int, int] | None = None, full: bool = True) -> str:
-        pos = int(self.frame.value) if hasattr(self, "frame") else 0
+        pos = int(self.frame.value)
         label = self.session.frames[min(pos, len(self.session.frames) - 1)].label
         if seconds is None:
             return f"**{label}**"
