@@ -88,6 +88,18 @@ def test_render_callback_draws_the_avatar(toy_fitted_project):
         s.render(req, should_stop=lambda: True)
 
 
+def test_a_motion_file_becomes_the_frame_list(toy_fitted_project, tmp_path):
+    from fixtures.toy_capture import toy_motion
+
+    from avatarctl.stages.view import ViewConfig, prepare
+
+    toy_motion(5).save(tmp_path / "walk.npz")
+    setup = prepare(toy_fitted_project, ViewConfig(device="cpu", poses=str(tmp_path / "walk.npz")))
+    assert [f.source for f in setup.session.frames] == ["motion"] * 5
+    req = request_looking_at(setup.initial.position, setup.initial.look_at, setup.initial.up, resolution=32, frame=4)
+    assert setup.session.render(req).shape == (24, 32, 3)
+
+
 @pytest.mark.browser
 def test_viewer_page_in_headless_chromium(toy_fitted_project, tmp_path):
     pytest.importorskip("viser")
