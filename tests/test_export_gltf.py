@@ -38,14 +38,14 @@ def chain(frames: int = 6, seed: int = 0):
     return mesh, w.astype(np.float32), M.numpy()
 
 
-def skinned_glb(tmp_path, basis=np.eye(3)):
+def skinned_glb(tmp_path, basis=np.eye(3), influences=4):
     mesh, w, M = chain()
     from dataclasses import replace
 
     mesh_y = replace(mesh, vertices=(mesh.vertices @ basis.T).astype(np.float32))
     pivots = skinning.joint_pivots(mesh.vertices, w, PARENTS, M) @ basis.T
     M_y = skinning.conjugate(M, basis)
-    sw = skinning.sparsify(w)
+    sw = skinning.sparsify(w, influences)
     ibm = np.tile(np.eye(4), (3, 1, 1))
     ibm[:, :3, 3] = -pivots
     trs = skinning.local_trs(skinning.joint_globals(M_y, pivots), PARENTS)
@@ -87,13 +87,15 @@ def test_transfer_and_sparsify_weights():
     assert np.allclose(two.dense(2), [[0.25, 0.75]])
 
 
-@pytest.mark.parametrize("basis", [np.eye(3), skinning.up_to_y_basis(np.array([0, 0, 1.0]))])
-def test_skinned_glb_read_back_and_posed_matches_our_lbs(tmp_path, basis):
+@pytest.mark.parametrize("basis, influences", [(np.eye(3), 4), (skinning.up_to_y_basis(np.array([0, 0, 1.0])), 4),
+                                               (np.eye(3), 8)])
+def test_skinned_glb_read_back_and_posed_matches_our_lbs(tmp_path, basis, influences):
     pytest.importorskip("pygltflib")
     from avatarctl.export.gltf_read import pose_glb, read_skinned_glb
 
-    path, mesh_y, sw, M_y, trs = skinned_glb(tmp_path, basis)
+    path, mesh_y, sw, M_y, trs = skinned_glb(tmp_path, basis, influences)
     data = read_skinned_glb(path)
+    assert data.joints.shape == (44, influences) and data.weights.shape == (44, influences)
     assert data.positions.shape == (44, 3) and data.faces.shape == (80, 3) and data.animation_frames[0] == 6
     assert np.abs(pose_glb(data) - mesh_y.vertices).max() < 1e-6, "rest pose = the exported mesh"
     ours = lbs(torch.from_numpy(mesh_y.vertices.astype(np.float64)), torch.from_numpy(sw.dense(3).astype(np.float64)),

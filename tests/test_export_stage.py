@@ -64,6 +64,7 @@ def test_export_with_a_motion_file_animates_it(toy_fitted_project, tmp_path):
     (dict(formats=("fbx",)), "unknown mesh format"),
     (dict(voxel=0.5), "--voxel"),
     (dict(threshold=0.0), "--threshold"),
+    (dict(influences=5), "--influences"),
     (dict(posed=False, skinned=False), "nothing to export"),
     (dict(poses="x.npz", score=True), "--score needs"),
     (dict(name="a/b"), "invalid export name"),

@@ -27,6 +27,9 @@ def register(app: typer.Typer) -> None:
         voxel: float = typer.Option(0.008, "--voxel", help="Grid spacing of the density sampling, metres."),
         threshold: float = typer.Option(10.0, "--threshold", help="Density level of the surface, 1/metre (lower: "
                                         "fuller cloth, more haze; higher: holes in soft regions)."),
+        influences: int = typer.Option(4, "--influences", help="Skinning weights per vertex in avatar.glb: 4 (every "
+                                       "glTF viewer) or 8 (a second JOINTS_1 / WEIGHTS_1 set: closer to the body "
+                                       "model, read by Blender, not by three.js)."),
         latent: str = typer.Option("auto", "--latent", help="auto | mean | zero | sample (posed meshes)."),
         seed: int = typer.Option(0, "--seed", help="Seed for --latent sample."),
         recenter: bool = typer.Option(True, "--recenter/--no-recenter", help="With --poses: start the motion where "
@@ -46,7 +49,8 @@ def register(app: typer.Typer) -> None:
             cfg = ExportConfig(name=name, frames=frames, posed=posed, skinned=skinned,
                                poses=str(poses) if poses else None,
                                formats=tuple(f for f in formats.split(",") if f.strip()), voxel=voxel,
-                               threshold=threshold, latent=latent, seed=seed, recenter=recenter, score=score,
+                               threshold=threshold, influences=influences, latent=latent, seed=seed,
+                               recenter=recenter, score=score,
                                device=device, checkpoint=str(checkpoint) if checkpoint else None)
             _run(project, cfg, console)
 

@@ -3,7 +3,8 @@
 What a file holds (glTF 2.0 spec names):
 - one mesh primitive: POSITION, NORMAL (float32 VEC3), COLOR_0 (float32 VEC3, linear in [0, 1]), uint32 indices;
   an unlit material (`KHR_materials_unlit`: the colours are baked radiance, a viewer must not light them again);
-- with a skin (`SkinnedMesh`): JOINTS_0 (uint16 VEC4), WEIGHTS_0 (float32 VEC4), one node per joint (rest TRS,
+- with a skin (`SkinnedMesh`): JOINTS_0 (uint16 VEC4), WEIGHTS_0 (float32 VEC4) (and JOINTS_1 / WEIGHTS_1 with 8
+  influences per vertex), one node per joint (rest TRS,
   the joint tree as node children), `skins[0]` with `inverseBindMatrices` (float32 MAT4, column-major) and the
   mesh node that references it;
 - with an `Animation`: one LINEAR sampler per joint for translation and rotation (and scale when any differs from
@@ -31,7 +32,7 @@ GENERATOR = "avatarctl export"
 class SkinnedMesh:
     """What a skinned glTF needs besides the mesh (all in the file's frame)."""
 
-    weights: SkinWeights  # [verts, 4] joints / weights
+    weights: SkinWeights  # [verts, 4 | 8] joints / weights
     joint_names: tuple[str, ...]  # [J]
     parents: tuple[int, ...]  # [J], -1 = root; parents precede children
     rest: JointTrs  # one frame: the bind pose (local TRS of each joint node)
@@ -98,9 +99,13 @@ def glb_bytes(mesh: ColouredMesh, skin: SkinnedMesh | None = None, animations: t
                                  "extensions": {"KHR_materials_unlit": {}}}]}
     if skin is not None:
         J = len(skin.parents)
-        assert skin.weights.joints.shape == (mesh.num_vertices, 4), f"joints {skin.weights.joints.shape}"
-        attrs["JOINTS_0"] = b.add(skin.weights.joints.astype(np.uint16), USHORT, "VEC4", ARRAY_BUFFER)
-        attrs["WEIGHTS_0"] = b.add(skin.weights.weights.astype(np.float32), FLOAT, "VEC4", ARRAY_BUFFER)
+        n = skin.weights.joints.shape[1]
+        assert skin.weights.joints.shape == (mesh.num_vertices, n) and n in (4, 8), f"joints {skin.weights.joints.shape}"
+        for k in range(n // 4):
+            cols = slice(4 * k, 4 * k + 4)
+            attrs[f"JOINTS_{k}"] = b.add(skin.weights.joints[:, cols].astype(np.uint16), USHORT, "VEC4", ARRAY_BUFFER)
+            attrs[f"WEIGHTS_{k}"] = b.add(skin.weights.weights[:, cols].astype(np.float32), FLOAT, "VEC4",
+                                          ARRAY_BUFFER)
         children: list[list[int]] = [[] for _ in range(J)]
         for j, p in enumerate(skin.parents):
             if p >= 0:

@@ -26,8 +26,8 @@ class GltfSkinned:
     positions: np.ndarray  # [verts, 3]
     faces: np.ndarray  # [faces, 3]
     colours: np.ndarray | None  # [verts, 3|4]
-    joints: np.ndarray  # [verts, 4] node indices into `skin_joints`
-    weights: np.ndarray  # [verts, 4]
+    joints: np.ndarray  # [verts, 4 | 8] indices into `skin_joints` (JOINTS_0, then JOINTS_1 when present)
+    weights: np.ndarray  # [verts, 4 | 8]
     skin_joints: list[int]  # node index of each skin joint
     inverse_bind: np.ndarray  # [joints, 4, 4] row-major
     nodes: list[dict]  # per node: translation, rotation (x, y, z, w), scale, children
@@ -54,6 +54,8 @@ def read_skinned_glb(path: str | Path) -> GltfSkinned:
 
     prim = g.meshes[0].primitives[0]
     at = prim.attributes
+    joint_sets = [a for a in (at.JOINTS_0, getattr(at, "JOINTS_1", None)) if a is not None]
+    weight_sets = [a for a in (at.WEIGHTS_0, getattr(at, "WEIGHTS_1", None)) if a is not None]
     skin = g.skins[0]
     nodes = [{"translation": np.array(n.translation if n.translation else [0, 0, 0], np.float64),
               "rotation": np.array(n.rotation if n.rotation else [0, 0, 0, 1], np.float64),
@@ -70,7 +72,8 @@ def read_skinned_glb(path: str | Path) -> GltfSkinned:
     return GltfSkinned(positions=np.asarray(arr(at.POSITION), np.float64),
                        faces=np.asarray(arr(prim.indices), np.int64).reshape(-1, 3),
                        colours=np.asarray(arr(at.COLOR_0)) if at.COLOR_0 is not None else None,
-                       joints=np.asarray(arr(at.JOINTS_0), np.int64), weights=np.asarray(arr(at.WEIGHTS_0), np.float64),
+                       joints=np.concatenate([np.asarray(arr(i), np.int64) for i in joint_sets], axis=1),
+                       weights=np.concatenate([np.asarray(arr(i), np.float64) for i in weight_sets], axis=1),
                        skin_joints=list(skin.joints),
                        inverse_bind=np.swapaxes(arr(skin.inverseBindMatrices).reshape(-1, 4, 4), -1, -2).astype(
                            np.float64),

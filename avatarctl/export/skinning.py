@@ -23,16 +23,17 @@ from dataclasses import dataclass
 
 import numpy as np
 
-MAX_INFLUENCES = 4  # glTF JOINTS_0 / WEIGHTS_0: four (joint, weight) pairs per vertex
+INFLUENCES = (4, 8)  # (joint, weight) pairs per vertex: glTF JOINTS_0 / WEIGHTS_0 (4, what every viewer reads),
+#                      or also JOINTS_1 / WEIGHTS_1 (8; three.js reads only the first set)
 
 
 @dataclass(frozen=True)
 class SkinWeights:
-    """Sparse skinning weights of the exported vertices (glTF JOINTS_0 / WEIGHTS_0)."""
+    """Sparse skinning weights of the exported vertices (glTF JOINTS_n / WEIGHTS_n, 4 per set)."""
 
-    joints: np.ndarray  # [verts, 4] uint16 joint indices
-    weights: np.ndarray  # [verts, 4] float32, rows sum to 1 (zeros pad)
-    dense_residual: float  # max over vertices of the weight mass dropped by keeping the 4 largest
+    joints: np.ndarray  # [verts, influences] uint16 joint indices, influences = 4 or 8
+    weights: np.ndarray  # [verts, influences] float32, rows sum to 1 (zeros pad)
+    dense_residual: float  # max over vertices of the weight mass dropped by keeping the largest `influences`
 
     def dense(self, num_joints: int) -> np.ndarray:
         """[verts, J] dense float32 weights (what our LBS takes)."""
@@ -67,7 +68,7 @@ def transfer_weights(vertices: np.ndarray, template_vertices: np.ndarray, templa
     return (dense / dense.sum(-1, keepdims=True)).astype(np.float32)
 
 
-def sparsify(dense: np.ndarray, influences: int = MAX_INFLUENCES) -> SkinWeights:
+def sparsify(dense: np.ndarray, influences: int = 4) -> SkinWeights:
     """Keep the `influences` largest weights of each row [verts, J], renormalised."""
     V, J = dense.shape
     n = min(influences, J)

@@ -8,9 +8,9 @@ Steps:
    rendering each vertex head-on along its normal (`export.mesh`); written as GLB / PLY / OBJ;
 3. the animatable avatar `avatar.glb`: one mesh extracted the same way in the canonical (rest) pose
    (`export.mesh.rest_node_state`: M_j = identity, z = 0), skinning weights transferred from the body template
-   (inverse-distance blend of the 4 nearest template vertices, 4 largest kept), the body model's joints as a glTF
-   node tree bound at their pivots, and the motion (the project's frames, or `--poses`) as a glTF animation
-   (`export.skinning`, `export.gltf`);
+   (inverse-distance blend of the 4 nearest template vertices, the 4 (or `influences` = 8) largest kept), the body
+   model's joints as a glTF node tree bound at their pivots, and the motion (the project's frames, or `--poses`)
+   as a glTF animation (`export.skinning`, `export.gltf`);
 4. the reload check: `avatar.glb` is read back with pygltflib and skinned from the file's own data
    (`export.gltf_read`), against our LBS (`body.lbs.lbs`) on sampled animation frames: the vertex error with the
    exported 4 weights (file fidelity) and with the dense transferred weights (what truncation to 4 costs);
@@ -58,6 +58,7 @@ class ExportConfig:
     voxel: float = 0.008  # grid spacing, metres
     threshold: float = 10.0  # density level of the surface, 1/metre (export.mesh.DEFAULT_THRESHOLD)
     min_component: float = 0.01  # drop connected pieces with fewer than this fraction of the faces
+    influences: int = 4  # skinning weights per vertex in avatar.glb: 4 (JOINTS_0) or 8 (+ JOINTS_1)
     latent: str = "auto"  # auto | mean | zero | sample (posed meshes; the rest mesh uses z = 0)
     seed: int = 0
     recenter: bool = True  # --poses: move the motion to where the avatar's first training frame stands
@@ -80,6 +81,9 @@ class ExportConfig:
                              fix="e.g. --threshold 10")
         if not 0.0 <= self.min_component < 1.0:
             raise InputError(f"min component fraction {self.min_component} outside [0, 1)", fix="e.g. 0.01")
+        if self.influences not in (4, 8):
+            raise InputError(f"--influences {self.influences}: glTF sets hold 4 weights", where="--influences",
+                             fix="use 4 (every viewer) or 8 (two sets; Blender, not three.js)")
         if not (self.posed or self.skinned):
             raise InputError("nothing to export (--no-posed and --no-skinned)", fix="drop one of them")
         if self.score and (self.poses or not self.posed):
@@ -127,7 +131,7 @@ class SkinnedExport:
     animation_source: str
     seconds: float
     trs_residual: float  # max |TRS - local joint matrix| (0 for rigid joint transforms)
-    weight_mass_dropped: float  # max weight mass lost by keeping 4 influences
+    weight_mass_dropped: float  # max weight mass lost by keeping `influences` weights per vertex
     reload: dict[str, Any]  # the reload check (step 4): errors in metres, or the reason it was skipped
 
 
@@ -317,7 +321,7 @@ def _export_skinned(tmp: Path, avatar: Any, cfg: ExportConfig, motion: Any, sour
     mesh, _ = _extract(avatar, rest_node_state(avatar.model), cfg, "the rest pose")
     tpl = avatar.template
     dense = skinning.transfer_weights(mesh.vertices, tpl.vertices.cpu().numpy(), tpl.skin_weights.cpu().numpy())
-    weights = skinning.sparsify(dense)
+    weights = skinning.sparsify(dense, cfg.influences)
     cap = avatar.capture
     M_capture = _joint_transforms(avatar, cap.motion)  # [frames, J, 4, 4] the project's poses: pivots
     M = M_capture if motion is cap.motion else _joint_transforms(avatar, motion)
