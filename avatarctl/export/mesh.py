@@ -83,6 +83,10 @@ class NoSurfaceError(ValueError):
     """The density never crosses the threshold (nothing to mesh)."""
 
 
+class GridTooLargeError(ValueError):
+    """The grid over the node supports would hold more points than allowed at this voxel size."""
+
+
 def support_box(centers: np.ndarray, radius: float) -> tuple[np.ndarray, np.ndarray]:
     """[nodes, 3] node centres, support radius (metres) -> (lo [3], hi [3]) of the union of the support spheres."""
     c = np.asarray(centers, dtype=np.float64)
@@ -110,7 +114,7 @@ def density_grid(density: DensityFn, centers: np.ndarray, radius: float, voxel: 
     shape = tuple(k * int(np.ceil(n / k)) + 1 for n in np.ceil((hi + voxel - lo) / voxel).astype(int))
     total = int(np.prod(shape))
     if total > max_points:
-        raise ValueError(f"a {shape[0]}x{shape[1]}x{shape[2]} grid ({total:,} points) is too large at voxel "
+        raise GridTooLargeError(f"a {shape[0]}x{shape[1]}x{shape[2]} grid ({total:,} points) is too large at voxel "
                          f"{voxel} m; use a larger voxel")
     tree = cKDTree(np.asarray(centers, dtype=np.float64))
     if k == 1:

@@ -236,7 +236,7 @@ def _require(module: str, what: str, alternative: str = "") -> None:
 
 def _extract(avatar: Any, state: Any, cfg: ExportConfig, what: str) -> tuple[Any, int]:
     """The coloured mesh of frame slot 0 of `state` (export.mesh), a one-line error when there is no surface."""
-    from avatarctl.export.mesh import NoSurfaceError, extract_mesh, slrf_density, slrf_ray_colour
+    from avatarctl.export.mesh import GridTooLargeError, NoSurfaceError, extract_mesh, slrf_density, slrf_ray_colour
 
     model = avatar.model
     try:
@@ -246,10 +246,8 @@ def _extract(avatar: Any, state: Any, cfg: ExportConfig, what: str) -> tuple[Any
     except NoSurfaceError as e:
         raise InputError(f"no surface to mesh for {what}: {e}", where="--threshold",
                          fix="lower --threshold (or fit longer)") from None
-    except ValueError as e:
-        if "too large" in str(e):
-            raise InputError(str(e), where="--voxel", fix="use a larger --voxel") from None
-        raise
+    except GridTooLargeError as e:
+        raise InputError(str(e), where="--voxel", fix="use a larger --voxel") from None
 
 
 def _in_basis(mesh: Any, basis: np.ndarray) -> Any:
