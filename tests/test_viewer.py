@@ -70,6 +70,29 @@ def test_progressive_preview_then_full_and_cancel():
 
 
 
+def test_a_stream_of_requests_still_shows_previews():
+    """Play / a long drag: requests every 10 ms, previews take 40 ms: previews keep coming, full only at rest."""
+    shown = []
+
+    def render(req: ViewRequest, should_stop) -> np.ndarray:
+        time.sleep(0.04)
+        return np.zeros((req.resolution, 1, 3), np.uint8)
+
+    pr = ProgressiveRenderer(render, lambda img, req, full: shown.append((req.frame, full)), settle_s=0.1)
+    try:
+        for k in range(40):
+            pr.update(request_looking_at((0, -2, 0), (0, 0, 0), resolution=64, frame=k))
+            time.sleep(0.01)
+        streamed = list(shown)
+        deadline = time.monotonic() + 5
+        while (39, True) not in shown and time.monotonic() < deadline:
+            time.sleep(0.01)
+    finally:
+        pr.stop()
+    assert len(streamed) >= 4 and not any(full for _, full in streamed), "previews while the requests flow"
+    assert shown[-1] == (39, True), "the last request at full quality once they stop"
+
+
 def test_render_callback_draws_the_avatar(toy_fitted_project):
     from avatarctl.stages.view import ViewConfig, prepare
 

@@ -2,9 +2,10 @@
 
 `ProgressiveRenderer` runs one worker thread per client. Each `update(request)` (the camera moved, a slider changed)
 bumps a version; the worker renders the newest request at `preview_scale` of the resolution at once, and, when no
-update has come for `settle_s` seconds, renders it again at full resolution. A render in progress is abandoned as
-soon as a newer request arrives (the render callback receives a `should_stop()` it polls between ray chunks), so a
-slow full-resolution render on a CPU never holds the camera back.
+update has come for `settle_s` seconds, renders it again at full resolution. A full-resolution render in progress
+is abandoned as soon as a newer request arrives (the render callback receives a `should_stop()` it polls between
+ray chunks), so a slow render on a CPU never holds the camera back; a preview is always finished and shown (then
+the newest request is previewed next), so a continuous stream of requests — a drag, play — still shows images.
 """
 
 from __future__ import annotations
@@ -91,8 +92,11 @@ class ProgressiveRenderer:
             target = request if full else replace(
                 request, resolution=max(16, int(round(request.resolution * self.preview_scale))))
             t0 = time.perf_counter()
+            # a full render is abandoned by any newer request; a preview only by stop(), so that a stream of
+            # requests (a drag, play) still shows previews at the rate they can be made
+            should_stop = (lambda: self._version != version or self._stopped) if full else (lambda: self._stopped)
             try:
-                image = self._render(target, lambda: self._version != version or self._stopped)
+                image = self._render(target, should_stop)
             except Cancelled:
                 continue
             except Exception as e:  # noqa: BLE001 - reported to the viewer, the loop keeps serving
@@ -100,7 +104,7 @@ class ProgressiveRenderer:
                     self._on_error(e)
                 shown_version, shown_full = version, True
                 continue
-            if self._version != version:  # stale by the time it finished: the newer request is served next
+            if full and self._version != version:  # stale by the time it finished: the newer request comes next
                 continue
             self._show(image, request, full)
             self.frames_shown.append((version, full, time.perf_counter() - t0))
