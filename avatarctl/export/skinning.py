@@ -1,17 +1,14 @@
-"""An extracted canonical mesh as an animatable skinned avatar: rest-pose conditioning, skinning weights transferred
-from the body template, joint pivots, and the body model's joint transforms as a glTF joint hierarchy.
+"""An extracted canonical mesh as an animatable skinned avatar: skinning weights transferred from the body template
+and the body model's joint transforms as a glTF joint hierarchy.
 
 Skinning convention (`body/lbs.py`, Eq. 1-2): posed v = sum_j w_j M_j(theta) v_canonical, M_j: canonical -> world.
 glTF 2.0 skins compute posed v = sum_j w_j G_j(theta) B_j^-1 v, with G_j the joint node's global matrix and B_j^-1
 its inverse bind matrix. We bind every joint at its rest pivot c_j with identity rotation (B_j = translate(c_j)),
 so G_j(theta) = M_j(theta) translate(c_j): the joint node sits at the posed pivot M_j c_j and carries M_j's
 rotation; local (parent-relative) transforms are G_parent^-1 G_j, split into translation + rotation (+ the scale
-left by a polar decomposition when M_j is not rigid, reported as `TrsResidual`). Any pivot gives exact skinning;
-a good pivot makes the local translations nearly constant (bones of fixed length in other tools).
-
-Pivots (`joint_pivots`): for joint j with parent p, the point that moves the same under M_j and M_p over the given
-frames, least squares sum_f |(M_j - M_p) c|^2 + lam |c - centroid_j|^2 (centroid_j: the skinning-weighted mean
-of the template vertices, which also serves when the joint never bends); the root's pivot is its centroid.
+left by a polar decomposition when M_j is not rigid, reported in `JointTrs.residual`). Any pivot gives exact
+skinning; a good pivot makes the local translations nearly constant (bones of fixed length in other tools): the
+export takes the joint centres of `body/joints.py` (the point M_j and its parent's M_p agree on over the frames).
 
 An optional axis change `basis` [3, 3] (e.g. the capture's z-up to glTF's +Y up) conjugates everything:
 v' = C v, M_j' = C M_j C^T.
@@ -80,28 +77,6 @@ def sparsify(dense: np.ndarray, influences: int = 4) -> SkinWeights:
     weights = np.zeros((V, influences), np.float32)
     joints[:, :n], weights[:, :n] = idx, w
     return SkinWeights(joints=joints, weights=weights, dense_residual=float(np.max(1.0 - kept)) if V else 0.0)
-
-
-def joint_pivots(template_vertices: np.ndarray, template_weights: np.ndarray, parents: tuple[int, ...],
-                 joint_transforms: np.ndarray, lam: float = 1e-3) -> np.ndarray:
-    """Rest pivots [J, 3] (canonical metres) of the joints (module docstring). joint_transforms [frames, J, 4, 4]."""
-    W = np.asarray(template_weights, np.float64)
-    V = np.asarray(template_vertices, np.float64)
-    mass = W.sum(0)  # [J]
-    centroid = (W.T @ V) / np.maximum(mass, 1e-12)[:, None]  # [J, 3]
-    centroid[mass < 1e-9] = V.mean(0)
-    M = np.asarray(joint_transforms, np.float64)
-    piv = centroid.copy()
-    for j, p in enumerate(parents):
-        if p < 0:
-            continue
-        A = (M[:, j, :3, :3] - M[:, p, :3, :3]).reshape(-1, 3)  # [frames * 3, 3]
-        b = (M[:, p, :3, 3] - M[:, j, :3, 3]).reshape(-1)
-        scale = max(float(np.abs(A).max()), 1e-9) if A.size else 1.0
-        lhs = A.T @ A + lam * scale * scale * np.eye(3)
-        rhs = A.T @ b + lam * scale * scale * centroid[j]
-        piv[j] = np.linalg.solve(lhs, rhs)
-    return piv
 
 
 def _polar(A: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

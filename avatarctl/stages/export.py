@@ -9,8 +9,9 @@ Steps:
 3. the animatable avatar `avatar.glb`: one mesh extracted the same way in the canonical (rest) pose
    (`export.mesh.rest_node_state`: M_j = identity, z = 0), skinning weights transferred from the body template
    (inverse-distance blend of the 4 nearest template vertices, the 4 (or `influences` = 8) largest kept), the body
-   model's joints as a glTF node tree bound at their pivots, and the motion (the project's frames, or `--poses`)
-   as a glTF animation (`export.skinning`, `export.gltf`);
+   model's joints as a glTF node tree bound at their centres (`body.joints.joint_centres` over the project's
+   poses), and the motion (the project's frames, or `--poses`) as a glTF animation (`export.skinning`,
+   `export.gltf`);
 4. the reload check: `avatar.glb` is read back with pygltflib and skinned from the file's own data
    (`export.gltf_read`), against our LBS (`body.lbs.lbs`) on sampled animation frames: the vertex error with the
    exported 4 weights (file fidelity) and with the dense transferred weights (what truncation to 4 costs);
@@ -311,6 +312,9 @@ def _score(avatar: Any, one: Any, state: Any, mesh: Any, frame: int, is_train: b
 def _export_skinned(tmp: Path, avatar: Any, cfg: ExportConfig, motion: Any, source: str,
                     basis: np.ndarray) -> SkinnedExport:
     """Step 3 and 4: avatar.glb and its reload check."""
+    import torch
+
+    from avatarctl.body.joints import joint_centres, skin_weighted_centroids
     from avatarctl.export import skinning
     from avatarctl.export.gltf import Animation, SkinnedMesh, glb_bytes
     from avatarctl.export.mesh import rest_node_state
@@ -323,7 +327,8 @@ def _export_skinned(tmp: Path, avatar: Any, cfg: ExportConfig, motion: Any, sour
     cap = avatar.capture
     M_capture = _joint_transforms(avatar, cap.motion)  # [frames, J, 4, 4] the project's poses: pivots
     M = M_capture if motion is cap.motion else _joint_transforms(avatar, motion)
-    pivots = skinning.joint_pivots(tpl.vertices.cpu().numpy(), tpl.skin_weights.cpu().numpy(), tpl.parents, M_capture)
+    fallback = skin_weighted_centroids(tpl.vertices.cpu(), tpl.skin_weights.cpu())
+    pivots = joint_centres(torch.from_numpy(M_capture), tpl.parents, fallback).numpy()  # [J, 3] canonical
     pivots_y = pivots @ basis.T
     M_y = skinning.conjugate(M, basis)
     rest = skinning.rest_trs(pivots_y, tpl.parents)
