@@ -2,7 +2,8 @@
 
 Steps:
 1. load the fitted avatar (`stages.common.load_fitted`); choose the motion: the project's own frames (training frames
-   with the cVAE latent z = mu, novel ones with z = 0, as `render`) or a motion file (`--poses`, z = 0);
+   with the cVAE latent z = mu, novel ones with z = 0, as `render`) or a motion file (`--poses`, z = 0; any rig
+   `render --poses` takes, retargeted onto the avatar's body model when made for another: `motion_for_avatar`);
 2. posed meshes (`--frames`, default the first training frame / the motion file's first frame): the density field
    of the frame sampled on a grid over the node supports, marching cubes at `threshold`, vertex colours baked by
    rendering each vertex head-on along its normal (`export.mesh`); written as GLB / PLY / OBJ;
@@ -168,12 +169,13 @@ def run(project_dir: str | Path, cfg: ExportConfig, progress: ProgressFn | None 
     cap = avatar.capture
     basis = up_to_y_basis(up_from_cameras(list(cap.cameras.values())))
     train_set = set(int(f) for f in avatar.train_frames)
+    retarget: str | None = None
     if cfg.poses is None:
         motion, source = cap.motion, "project"
         pool = cap.frames
         default = [min(train_set)] if train_set else pool[:1]
     else:
-        motion, source = motion_for_avatar(avatar, cfg.poses, cfg.recenter), str(cfg.poses)
+        (motion, retarget), source = motion_for_avatar(avatar, cfg.poses, cfg.recenter), str(cfg.poses)
         pool = [int(f) for f in motion.frame_index]
         default = pool[:1]
     frames = (select_frames(cfg.frames, pool, train=cap.split.train_frames if cfg.poses is None else None,
@@ -218,7 +220,7 @@ def run(project_dir: str | Path, cfg: ExportConfig, progress: ProgressFn | None 
             write_png(tmp / "preview.png", np.concatenate(preview, axis=1), None)
         result = ExportResult(out_dir=out_dir, meshes=meshes, avatar=skinned, scores=scores,
                               seconds=round(time.perf_counter() - t_start, 3), checkpoint_step=avatar.step)
-        write_json(tmp / "export.json", _record(cfg, avatar, result, basis, source))
+        write_json(tmp / "export.json", _record(cfg, avatar, result, basis, source, retarget))
     project.record("export", config=cfg.to_json(), outputs=[out_dir], started=started,
                    summary={"name": cfg.name, "meshes": len(meshes), "avatar": skinned.file if skinned else None,
                             "checkpoint_step": avatar.step, "motion": source,
@@ -388,12 +390,13 @@ def _reload_check(path: Path, mesh_y: Any, weights: Any, dense: np.ndarray, M_y:
             "vs_lbs_dense_weights_max_m": float(ed.max()), "vs_lbs_dense_weights_mean_m": float(ed.mean())}
 
 
-def _record(cfg: ExportConfig, avatar: Any, res: ExportResult, basis: np.ndarray, source: str) -> dict[str, Any]:
+def _record(cfg: ExportConfig, avatar: Any, res: ExportResult, basis: np.ndarray, source: str,
+            retarget: str | None) -> dict[str, Any]:
     import torch
 
     mean = res.mean_psnr()
     return {"config": cfg.to_json(), "checkpoint": str(avatar.checkpoint) if avatar.checkpoint else None,
-            "checkpoint_step": avatar.step, "motion_source": source,
+            "checkpoint_step": avatar.step, "motion_source": source, "retarget": retarget,
             "surface": {"threshold_per_m": cfg.threshold, "voxel_m": cfg.voxel, "min_component": cfg.min_component,
                         "colour": "volume render of a 4 cm ray segment (8 samples) looking at each vertex along -normal from "
                                   "2 voxels outside, divided by its opacity (one view direction per vertex)"},

@@ -86,7 +86,7 @@ def prepare(project_dir: str | Path, cfg: ViewConfig) -> ViewerSetup:
                               source="train" if f in train_set else "test")
                   for f in cap.frames if f in train_set or f in test]
     else:
-        motion = motion_for_avatar(avatar, cfg.poses, cfg.recenter)
+        motion, _ = motion_for_avatar(avatar, cfg.poses, cfg.recenter)  # (the retarget note is not shown)
         frames = [ViewerFrame(label=f"motion frame {int(f)}", frame=int(f), source="motion")
                   for f in motion.frame_index]
     if not frames:
