@@ -15,6 +15,7 @@ Layout (see docs/project_dir.md)::
       fit/checkpoints/step_<step:08d>.pt, fit/checkpoints/latest.pt
       render/<name>/...                 frames/*.png, video.mp4, config.json
       eval/<name>/...                   metrics.json, per_frame.csv, sheet.png
+      export/<name>/...                 avatar.glb (skinned, animated), meshes/<frame:06d>.{glb,ply,obj}, export.json
 
 Only this module knows these names. Writes go through `avatarctl.atomic`.
 """
@@ -35,7 +36,7 @@ from avatarctl.atomic import write_json
 from avatarctl.errors import ProjectError
 
 SCHEMA_VERSION = 1
-STAGES = ("ingest", "fit", "render", "eval")
+STAGES = ("ingest", "fit", "render", "eval", "export")
 _NAME_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,63}$")
 
 
@@ -117,6 +118,9 @@ class ProjectPaths:
 
     def eval(self, name: str) -> Path:
         return self.root / "eval" / check_name(name, "eval name")
+
+    def export(self, name: str) -> Path:
+        return self.root / "export" / check_name(name, "export name")
 
 
 @dataclass
@@ -257,7 +261,8 @@ class Project:
         """The last record of `stage`, checking that every output it lists is still on disk."""
         rec = self.last(stage)
         hint = {"ingest": "run `avatarctl ingest CAPTURE PROJECT`", "fit": f"run `avatarctl fit {self.root}`",
-                "render": f"run `avatarctl render {self.root}`", "eval": f"run `avatarctl eval {self.root}`"}[stage]
+                "render": f"run `avatarctl render {self.root}`", "eval": f"run `avatarctl eval {self.root}`",
+                "export": f"run `avatarctl export {self.root}`"}[stage]
         if rec is None:
             raise ProjectError(f"project has no {stage} output yet", where=str(self.root), fix=hint)
         for out in rec.outputs:

@@ -34,3 +34,12 @@ def _seed_everything():
     np.random.seed(0)
     torch.manual_seed(0)
     yield
+
+
+@pytest.fixture(scope="session")
+def toy_fitted_project(tmp_path_factory):
+    """A toy-sphere project after ingest and 10 micro fit steps (seconds, no anny), shared by the export and viewer
+    tests (they add outputs beside the fit, never change it)."""
+    from fixtures.toy_fitted import make_toy_fitted
+
+    return make_toy_fitted(tmp_path_factory.mktemp("toy_fitted"), iters=10)

@@ -9,7 +9,7 @@ from typer.testing import CliRunner
 
 from avatarctl.cli.app import app
 
-COMMANDS = ("synth", "ingest", "fit", "render", "eval", "demo", "info")
+COMMANDS = ("synth", "ingest", "fit", "render", "eval", "motion", "demo", "info")
 
 
 def test_help_lists_every_command_with_one_line_help():

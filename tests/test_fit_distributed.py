@@ -103,6 +103,8 @@ def test_two_ranks_match_one_rank_and_resume_on_one(toy_project, tmp_path):
     assert _max_diff(_params(ckpt(one, 2)), _params(ckpt(two, 2))) <= RANK_TOL
     occ1, occ2 = _params(ckpt(one, 2))["occupancy"], _params(ckpt(two, 2))["occupancy"]
     assert (occ1 >= 0).any() and torch.allclose(occ1, occ2, atol=RANK_TOL)  # the grids were updated, identically
+    tau = _params(ckpt(two, 2)).get("pose_refine.tau")  # per-frame corrections (when the preset refines poses)
+    assert tau is None or tau.abs().max() > 0  # they moved, and the parameter check above covers them
     r3 = fit.run(two, FitRequest(iters=4, resume=True, device="cpu"), handle_sigint=False)  # N = 2 -> 1
     assert r3.step == 4 and r1.step == 4
     assert _max_diff(_params(ckpt(one, 4)), _params(ckpt(two, 4))) <= RANK_TOL

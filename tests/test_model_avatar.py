@@ -171,3 +171,29 @@ def test_node_transforms_follow_the_pose():
     # bending joint 1 moves the upper nodes, not the lower ones (Eq. 1-2)
     moved = (st.centers[1] - st.centers[0]).norm(dim=-1)
     assert float(moved[upper].min()) > 0.05 and float(moved[lower].max()) < 0.01
+
+
+def test_knock_out_zeroes_the_chosen_node_variables_only():
+    import torch
+
+    m = make(small_cfg(occupancy=False)).eval()
+    with torch.no_grad():
+        for p in m.parameters():  # a model whose decoder outputs are far from zero
+            p.add_(0.05 * torch.randn_like(p))
+        st = m.node_state(conditioning(), mode="mean")
+        assert st.delta_n.abs().max() > 0 and st.embed.abs().max() > 0
+        same = m.knock_out(st)
+        assert torch.equal(same.centers, st.centers) and torch.equal(same.embed, st.embed)
+        no_dn = m.knock_out(st, delta_n=True)
+        assert torch.equal(no_dn.embed, st.embed) and no_dn.delta_n.abs().max() == 0
+        skinned = m.knock_out(st, delta_n=True, embedding=True)
+        assert skinned.embed.abs().max() == 0 and torch.equal(skinned.centers, no_dn.centers)
+        # the same weights trained without Delta n / e (the ablation's forward pass) give the same nodes
+        abl = make(small_cfg(occupancy=False, use_delta_n=False, use_embedding=False)).eval()
+        abl.load_state_dict(m.state_dict())
+        ref = abl.node_state(conditioning(), mode="mean")
+        assert torch.allclose(skinned.centers, ref.centers) and torch.equal(skinned.embed, ref.embed)
+        assert (st.centers - skinned.centers).norm(dim=-1).max() > 1e-4
+        bg = torch.zeros(3)
+        r = rays()
+        assert not torch.allclose(m.render(r, st, bg).rgb, m.render(r, skinned, bg).rgb)

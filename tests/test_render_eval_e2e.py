@@ -104,13 +104,28 @@ def test_render_with_anny_motion_file(fitted, tmp_path):
     assert all(im.rays == 0 for im in far.images)  # 5 m away and behind the ring of cameras: nothing hit
 
 
+def test_render_retargets_an_amass_walk_onto_the_anny_avatar(fitted, tmp_path):
+    from fixtures.smpl import smpl_walk, write_amass_npz
+
+    from avatarctl.stages.render import RenderConfig
+    from avatarctl.stages.render import run as render
+
+    poses, trans = smpl_walk(4, fps=10.0)
+    amass = write_amass_npz(tmp_path / "walk_poses.npz", poses, trans, fps=10.0)
+    res = render(fitted, RenderConfig(name="amass", poses=str(amass), views=("cam01",), device="cpu"))
+    assert res.retarget is not None and "retargeted smplh" in res.retarget and "-> anny" in res.retarget
+    assert [im.frame for im in res.images] == [0, 1, 2, 3] and all(im.rays > 0 for im in res.images)
+    record = json.loads((res.out_dir / "config.json").read_text())
+    assert record["retarget"] == res.retarget
+
+
 def test_render_errors_are_one_line_and_write_nothing(fitted, tmp_path):
     from avatarctl.stages.render import RenderConfig
     from avatarctl.stages.render import run as render
 
     amass = tmp_path / "amass.npz"
-    np.savez(amass, poses=np.zeros((2, 156)), trans=np.zeros((2, 3)), betas=np.zeros(16), mocap_framerate=120.0)
-    with pytest.raises(InputError, match="SMPL\\+H .*avatar uses anny"):
+    np.savez(amass, poses=np.zeros((2, 156)), trans=np.zeros((2, 3)), betas=np.zeros(16), mocap_frame_rte=120.0)
+    with pytest.raises(InputError, match="frame-rate key 'mocap_frame_rte'"):
         render(fitted, RenderConfig(name="bad1", poses=str(amass), device="cpu"))
     with pytest.raises(InputError, match="latent mean needs training frames"):
         render(fitted, RenderConfig(name="bad2", frames="test", latent="mean", device="cpu"))

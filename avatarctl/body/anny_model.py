@@ -40,10 +40,10 @@ class AnnyBody:
         self.phenotype_labels = tuple(str(s) for s in self.model.phenotype_labels)
 
     # ---- helpers --------------------------------------------------------------------------------------------
-    def _phenotype(self, motion: BodyMotion) -> torch.Tensor:
-        """[1, P] phenotype in anny's label order (missing labels default to anny's 0.5)."""
+    def _phenotype(self, motion: BodyMotion | None) -> torch.Tensor:
+        """[1, P] phenotype in anny's label order (missing labels, or no motion, default to anny's 0.5)."""
         vals = {lab: 0.5 for lab in self.phenotype_labels}
-        if motion.phenotype is not None:
+        if motion is not None and motion.phenotype is not None:
             labels = motion.phenotype_labels or self.phenotype_labels
             if len(labels) != len(motion.phenotype):
                 raise ValueError(f"{len(motion.phenotype)} phenotype values but {len(labels)} labels")
@@ -83,11 +83,20 @@ class AnnyBody:
         res["rest_bone_poses"] = rest["rest_bone_poses"][0]
         return res
 
-    def template(self, motion: BodyMotion) -> BodyTemplate:
+    def _reference(self, motion: BodyMotion | None) -> dict[str, torch.Tensor]:
+        """anny's outputs for identity deltas (the reference pose at the origin) and `motion`'s phenotype."""
         pheno = self._phenotype(motion)
         with torch.no_grad():
-            o = self.model(pose_parameters=torch.eye(4, dtype=torch.float64, device=self.device).expand(1, 104, 4, 4),
-                           phenotype_kwargs=pheno)
+            return self.model(pose_parameters=torch.eye(4, dtype=torch.float64, device=self.device)
+                              .expand(1, 104, 4, 4), phenotype_kwargs=pheno)
+
+    def reference_heads(self, motion: BodyMotion | None = None) -> np.ndarray:
+        """[104, 3] bone heads of the reference (A-)pose (identity deltas, root at the origin) for `motion`'s
+        phenotype (anny's default subject when None), metres, anny world (z up), float64."""
+        return self._reference(motion)["bone_poses"][0, :, :3, 3].detach().cpu().numpy().astype(np.float64)
+
+    def template(self, motion: BodyMotion) -> BodyTemplate:
+        o = self._reference(motion)
         return BodyTemplate(name="anny", vertices=o["rest_vertices"][0].float(), faces=self.faces(),
                             skin_weights=self.dense_skin_weights().float(), parents=self.parents,
                             joint_names=self.joint_names)

@@ -59,7 +59,8 @@ class BodyMotion:
                 if a.shape[0] != n:
                     raise ValueError(f"{name} has {a.shape[0]} frames but frame_index has {n}")
                 if not np.isfinite(a).all():
-                    raise ValueError(f"{name} contains non-finite values")
+                    row = int(np.argwhere(~np.isfinite(a.reshape(n, -1)))[0, 0])
+                    raise ValueError(f"{name} contains non-finite values (first in frame row {row})")
         for name in ("phenotype", "betas"):
             a = getattr(self, name)
             if a is not None:
@@ -104,12 +105,16 @@ class BodyMotion:
             out[f.name] = np.array(v)
         return out
 
-    def save(self, path: str | Path) -> None:
+    def save(self, path: str | Path, extra: dict[str, np.ndarray] | None = None) -> None:
+        """Write the npz atomically; `extra` arrays (e.g. provenance) are stored beside and ignored by `load`."""
         from avatarctl.atomic import atomic_path
 
+        arrays = self.to_npz_dict()
+        clash = set(arrays) & set(extra or {})
+        assert not clash, f"extra arrays would overwrite {sorted(clash)}"
         with atomic_path(path) as tmp:
             with open(tmp, "wb") as fh:
-                np.savez(fh, **self.to_npz_dict())
+                np.savez(fh, **arrays, **(extra or {}))
 
     @classmethod
     def load(cls, path: str | Path) -> "BodyMotion":

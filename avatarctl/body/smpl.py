@@ -41,6 +41,7 @@ from avatarctl.body.base import BodyTemplate, PosedBody
 from avatarctl.body.lbs import axis_angle_to_matrix, forward_kinematics, lbs, matrix_to_axis_angle, transform_points
 from avatarctl.body.motion import BodyMotion
 from avatarctl.errors import InputError
+from avatarctl.safe_pickle import ArrayUnpickler
 
 SMPL_JOINT_NAMES: tuple[str, ...] = (
     "pelvis", "left_hip", "right_hip", "spine1", "left_knee", "right_knee", "spine2", "left_ankle", "right_ankle",
@@ -72,22 +73,14 @@ class _ChumpyStandIn:
         self.x = state.get("x") if isinstance(state, dict) else None
 
 
-_SAFE_GLOBALS = {
-    ("numpy", "ndarray"), ("numpy", "dtype"),
-    ("numpy.core.multiarray", "_reconstruct"), ("numpy._core.multiarray", "_reconstruct"),
-    ("numpy.core.multiarray", "scalar"), ("numpy._core.multiarray", "scalar"),
-    ("numpy.core.numeric", "_frombuffer"), ("numpy._core.numeric", "_frombuffer"),
-    ("copy_reg", "_reconstructor"), ("copyreg", "_reconstructor"), ("_codecs", "encode"),
-    ("__builtin__", "object"), ("builtins", "object"),
-}
-_SAFE_BUILTINS = {"set", "frozenset", "dict", "list", "tuple", "slice", "complex", "bytearray", "str", "bytes",
-                  "int", "float", "bool", "unicode", "long"}
 _SPARSE_CLASSES = {"csc_matrix", "csr_matrix", "coo_matrix", "lil_matrix", "dok_matrix", "bsr_matrix", "dia_matrix",
                    "csc_array", "csr_array", "coo_array", "lil_array", "dok_array", "bsr_array", "dia_array"}
 
 
-class _ModelUnpickler(pickle.Unpickler):
+class _ModelUnpickler(ArrayUnpickler):
     """Unpickler that allows only what SMPL model files contain: numpy arrays, scipy sparse, chumpy, builtins."""
+
+    what = "a body model file"
 
     def find_class(self, module: str, name: str) -> Any:
         if module == "chumpy" or module.startswith("chumpy."):
@@ -96,11 +89,7 @@ class _ModelUnpickler(pickle.Unpickler):
             import scipy.sparse  # old pickles name private modules (scipy.sparse.csc); the class is public
 
             return getattr(scipy.sparse, name)
-        if (module, name) in _SAFE_GLOBALS or (module in ("builtins", "__builtin__") and name in _SAFE_BUILTINS):
-            return super().find_class(module, name)
-        if module.startswith("numpy.dtypes") or (module == "numpy" and name.endswith("DType")):
-            return super().find_class(module, name)
-        raise pickle.UnpicklingError(f"{module}.{name} is not allowed in a body model file")
+        return super().find_class(module, name)
 
 
 def _as_array(value: Any, key: str, path: Path) -> np.ndarray:
@@ -363,6 +352,10 @@ class SmplBody:
         coeffs = self._coefficients(motion.expression if self.name == "smplx" else None, self.num_expression,
                                     "expression coefficients", (motion.num_frames,))
         return torch.as_tensor(coeffs, dtype=self.dtype, device=self.device)
+
+    def rest_joints(self, motion: BodyMotion) -> np.ndarray:
+        """[J, 3] the shaped rest (T-pose) joints for `motion`'s betas, expression zero, float64 numpy."""
+        return (self.j_template + self.j_shapedirs @ self.betas(motion)).detach().cpu().numpy().astype(np.float64)
 
     # ---- evaluation -----------------------------------------------------------------------------------------
     def shaped_template(self, motion: BodyMotion) -> torch.Tensor:

@@ -29,9 +29,9 @@ def _root(version: bool = typer.Option(False, "--version", callback=_version, is
 
 
 def _register() -> None:
-    from avatarctl.cli import demo, evaluate, fit, info, ingest, render, synth
+    from avatarctl.cli import demo, evaluate, export, fit, info, ingest, motion, render, synth, view
 
-    for mod in (synth, ingest, fit, render, evaluate, demo, info):
+    for mod in (synth, ingest, fit, render, evaluate, motion, export, view, demo, info):
         mod.register(app)
 
 

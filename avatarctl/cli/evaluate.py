@@ -32,6 +32,12 @@ def register(app: typer.Typer) -> None:
         save_images: bool = typer.Option(False, "--save-images", help="Also write each render to "
                                          "eval/NAME/renders/<frame>_<view>.png (bbox protocol: only the box is "
                                          "rendered, the rest is background)."),
+        region: str = typer.Option("all", "--region", help="What the headline PSNR is over: all (the protocol's "
+                                   "region) | garment | body. garment/body need the capture's ground-truth "
+                                   "geometry (synth writes gt/geometry.npz); with it every eval also reports both."),
+        knockout: Optional[str] = typer.Option(None, "--knockout", help="Render-time knockout of the trained "
+                                               "model (supp. Tab. A): delta-n and/or embedding, comma-separated: "
+                                               "that variable is set to zero when rendering."),
         compare: bool = typer.Option(False, "--compare", help="Do not render: print a side-by-side table of the "
                                      "projects' latest metrics.json (same split/protocol), e.g. "
                                      "`avatarctl eval FULL --compare ABL1 ABL2`."),
@@ -54,7 +60,9 @@ def register(app: typer.Typer) -> None:
             cfg = EvalConfig(split=split or "novel_view", protocol=protocol or "bbox", name=name, frames=frames,
                              views=view_names, every=every, latent=latent, seed=seed, sheet_rows=sheet,
                              max_rays_per_chunk=max_rays, device=device,
-                             checkpoint=str(checkpoint) if checkpoint else None, save_images=save_images)
+                             checkpoint=str(checkpoint) if checkpoint else None, save_images=save_images,
+                             region=region,
+                             knockout=tuple(k.strip() for k in knockout.split(",") if k.strip()) if knockout else ())
             _run(projects[0], cfg, nproc, console)
 
 
@@ -80,7 +88,13 @@ def _run(project: Path, cfg, nproc: int, console) -> None:
 
     m = res.metrics
     t = Table(title=f"avatarctl eval — {m.split} / {m.protocol}", show_header=False)
-    t.add_row("PSNR", f"{m.psnr:.3f} dB  (std {m.psnr_std:.2f}, min {m.psnr_min:.2f}, max {m.psnr_max:.2f})")
+    t.add_row("PSNR" + ("" if m.region == "all" else f" ({m.region})"),
+              f"{m.psnr:.3f} dB  (std {m.psnr_std:.2f}, min {m.psnr_min:.2f}, max {m.psnr_max:.2f})")
+    for rname, r in (m.regions or {}).items():
+        t.add_row(f"  {rname} region", (f"{r['psnr']:.3f} dB" if r["psnr"] is not None else "empty")
+                  + f"  ({r['share_of_pixels']:.1%} of the pixels, {r['share_of_error']:.1%} of the squared error;"
+                  f" pooled {r['pooled_psnr'] or float('nan'):.2f} dB; its best flat colour "
+                  f"{r['flat_colour_psnr'] or float('nan'):.2f} dB)")
     t.add_row("SSIM", f"{m.ssim:.4f}  (skimage {m.metric_settings['scikit_image']}, "
                       f"win {m.metric_settings['ssim']['win_size']}, data_range 1)")
     t.add_row("LPIPS", f"{m.lpips:.4f}" if m.lpips is not None else f"absent: {m.lpips_reason}")

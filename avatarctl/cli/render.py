@@ -16,8 +16,10 @@ def register(app: typer.Typer) -> None:
     def render_cmd(
         project: Path = typer.Argument(..., help="Project directory with a fit (`avatarctl fit`)."),
         poses: Optional[Path] = typer.Option(None, "--poses", help="Motion file to animate the avatar with: anny "
-                                             "npz (as written by `avatarctl synth`) or AMASS npz (SMPL/SMPL-X "
-                                             "projects). Default: the project's own frames."),
+                                             "npz (as written by `avatarctl synth`), AMASS npz (SMPL / SMPL+H / "
+                                             "SMPL-X), AIST++ pkl or BVH; retargeted onto the avatar's body model "
+                                             "when made for another (said in the summary). Default: the project's "
+                                             "own frames."),
         frames: Optional[str] = typer.Option(None, "--frames", help=FRAMES_HELP),
         views: Optional[str] = typer.Option(None, "--views", help="Comma list of capture cameras. Default: the "
                                             "first held-out view."),
@@ -85,6 +87,8 @@ def _run(project: Path, cfg, nproc: int, console) -> None:
     t.add_row("images", f"{len(res.images)} PNG, {res.width}x{res.height}"
               + ("  (RGBA)" if cfg.background == "transparent" else ""))
     t.add_row("motion", res.motion_source)
+    if res.retarget:
+        t.add_row("retarget", res.retarget)
     t.add_row("latent", ", ".join(f"{k}: {v}" for k, v in res.latent_counts.items()))
     t.add_row("background", ",".join(f"{c:.3g}" for c in res.background))
     t.add_row("checkpoint step", str(res.checkpoint_step))

@@ -25,6 +25,10 @@ def register(app: typer.Typer) -> None:
         supersample: Optional[int] = typer.Option(None, "--supersample", help="Rays per pixel along each axis, "
                                                   "1-4 (box-filtered: the pixel integrates its area, as a camera "
                                                   "sensor does); default: the preset's."),
+        fit_noise: Optional[str] = typer.Option(None, "--fit-noise", help="DEG,CM: write body fits that are off "
+                                                "like real ones (each joint rotation N(0, DEG^2) degrees, root "
+                                                "N(0, CM^2) cm, per frame); the true fits go to gt/motion.npz. "
+                                                "E.g. 2,1."),
     ) -> None:
         from avatarctl.cli.common import console, user_errors
 
@@ -36,6 +40,8 @@ def register(app: typer.Typer) -> None:
 
             overrides = {k: v for k, v in dict(views=views, train_frames=train_frames, test_frames=test_frames,
                                                 size=size, supersample=supersample).items() if v is not None}
+            if fit_noise is not None:
+                overrides.update(_fit_noise(fit_noise))
             config = stage.SynthConfig.preset(preset, seed, **overrides)
             console.print(f"synth [bold]{preset}[/] seed {seed}: {config.views} views, {config.train_frames}+"
                           f"{config.test_frames} frames, {config.size}px, {config.supersample}x"
@@ -63,3 +69,14 @@ def register(app: typer.Typer) -> None:
             console.print(f"  time: anny {t['anny_s']:.1f} s, simulate {t['simulate_s']:.1f} s "
                           f"({t['simulate_s_per_frame']:.3f} s/frame), render {t['render_s']:.1f} s, "
                           f"total {t['total_s']:.1f} s; contact sheet {res.out / 'contact_sheet.png'}")
+
+
+def _fit_noise(spec: str) -> dict[str, float]:
+    from avatarctl.errors import InputError
+
+    try:
+        deg, cm = (float(x) for x in spec.split(","))
+    except ValueError:
+        raise InputError(f"cannot read --fit-noise {spec!r}", where="--fit-noise",
+                         fix="give DEG,CM, e.g. --fit-noise 2,1") from None
+    return {"fit_noise_deg": deg, "fit_noise_cm": cm}

@@ -12,6 +12,8 @@ from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 SCHEMA_VERSION = 1
 PSNR_CAP = 100.0  # dB; an exact reconstruction (MSE 0, PSNR inf) is reported as this so JSON stays valid
 
@@ -26,6 +28,8 @@ class ImageScore:
     pixels: int  # PSNR pixels
     latent: str
     seconds: float  # render time
+    region_mse: dict[str, float] | None = None  # {"garment", "body", "garment_flat", "body_flat"} with gt geometry
+    region_pixels: dict[str, int] | None = None
 
 
 @dataclass(frozen=True)
@@ -86,13 +90,16 @@ class EvalMetrics:
     timing: dict[str, Any]
     config: dict[str, Any]  # EvalConfig.to_json()
     created: str
+    region: str = "all"  # what `psnr` is computed over: all (the protocol's region) | garment | body
+    regions: dict[str, Any] | None = None  # per region: RegionScore as a dict (with ground-truth geometry only)
 
     def to_json(self) -> dict[str, Any]:
         return asdict(self)
 
     @classmethod
     def from_json(cls, d: dict[str, Any]) -> "EvalMetrics":
-        kw = {f.name: d[f.name] for f in fields(cls)}
+        optional = {"region", "regions"}  # absent from metrics.json written before `--region` existed
+        kw = {f.name: d[f.name] for f in fields(cls) if f.name in d or f.name not in optional}
         kw["model"] = ScoredModel(**{f.name: d["model"][f.name] for f in fields(ScoredModel)})
         return cls(**kw)
 
@@ -102,13 +109,57 @@ class EvalMetrics:
         return {(int(f), str(v)) for f in self.frames for v in self.views}
 
 
+@dataclass(frozen=True)
+class RegionScore:
+    """One region's score over an eval (metrics.json "regions"[name])."""
+
+    psnr: float | None  # mean over images of the per-image PSNR over the region (images where it is empty skipped)
+    pooled_psnr: float | None  # PSNR of the squared error pooled over every region pixel of every image
+    images: int  # images where the region is not empty
+    pixels: int  # region pixels over all images
+    share_of_pixels: float  # of the protocol's region
+    share_of_error: float  # of the squared error summed over the protocol's region
+    flat_colour_psnr: float | None  # mean over images of the PSNR of the region's best flat colour (a floor)
+
+
+def region_scores(scores: list[ImageScore]) -> dict[str, RegionScore] | None:
+    """Per-region summary of the images' `region_mse` / `region_pixels` (None without ground-truth geometry)."""
+    import math
+
+    if not scores or scores[0].region_mse is None:
+        return None
+    total_err = sum(s.mse * s.pixels for s in scores)
+    total_px = sum(s.pixels for s in scores)
+    out = {}
+    for name in scores[0].region_pixels:
+        got = [(s.region_mse[name], s.region_pixels[name]) for s in scores if s.region_pixels[name] > 0]
+        flat = [min(PSNR_CAP, -10 * math.log10(s.region_mse[f"{name}_flat"])) if s.region_mse[f"{name}_flat"] > 0
+                else PSNR_CAP for s in scores if s.region_pixels[name] > 0]
+        err = sum(m * n for m, n in got)
+        px = sum(n for _, n in got)
+        db = [min(PSNR_CAP, -10 * math.log10(m)) if m > 0 else PSNR_CAP for m, _ in got]
+        out[name] = RegionScore(psnr=sum(db) / len(db) if db else None,
+                                pooled_psnr=min(PSNR_CAP, -10 * math.log10(err / px)) if px and err > 0 else None,
+                                images=len(got), pixels=px, share_of_pixels=px / max(total_px, 1),
+                                share_of_error=err / total_err if total_err > 0 else 0.0,
+                                flat_colour_psnr=sum(flat) / len(flat) if flat else None)
+    return out
+
+
 def per_frame_csv(scores: list[ImageScore]) -> str:
     buf = io.StringIO()
     w = csv.writer(buf, lineterminator="\n")
-    w.writerow(["frame", "view", "psnr", "ssim", "mse", "pixels", "latent", "render_seconds"])
+    names = list(scores[0].region_pixels) if scores and scores[0].region_pixels is not None else []
+    w.writerow(["frame", "view", "psnr", "ssim", "mse", "pixels", "latent", "render_seconds"]
+               + [f"{n}_{k}" for n in names for k in ("psnr", "pixels")])
     for s in scores:
+        extra = []
+        for n in names:
+            m = s.region_mse[n]
+            extra += [f"{min(PSNR_CAP, -10 * np.log10(m)) if m > 0 else PSNR_CAP:.4f}" if s.region_pixels[n] else "",
+                      s.region_pixels[n]]
         w.writerow([s.frame, s.view, f"{min(s.psnr, PSNR_CAP):.4f}", f"{s.ssim:.6f}", f"{s.mse:.8f}", s.pixels,
-                    s.latent, f"{s.seconds:.3f}"])
+                    s.latent, f"{s.seconds:.3f}"] + extra)
     return buf.getvalue()
 
 

@@ -27,6 +27,10 @@ Synchronisation per step (after the backward pass), all in one flat SUM all-redu
   from its own rays. The price: the all-reduce does not overlap the backward pass.
 - stop flags (Ctrl-C, time budget, snapshot due) and the loss terms ride in the same buffer, so every rank stops
   after the same step and logs the mean losses;
+- per-frame parameters (the pose-refinement corrections delta / tau of model/pose_refine.py, the per-frame latent
+  codes) are parameters like any other: a frame's correction gets gradients only on the rank whose rays saw it,
+  and the average makes every rank apply the same update. The pose penalty is a mean over a rank's frames, so it is
+  averaged like the other regularisers;
 - the occupancy grids (`model.occupancy`, updated in the forward pass from each rank's own densities): see
   `merge_occupancy`; all ranks end the step with the grid one process would have.
 """
@@ -166,7 +170,8 @@ class Replicas:
                 afters.append(model.occupancy.clone())
         if start is not None:
             model.occupancy.copy_(merge_occupancy(start[0], afters))
-        return _cat_states(states), RenderOutputs.cat(outs), torch.cat([b.target for _, b in parts])
+        counts = [int((b.cond.frame_ids >= 0).sum()) for _, b in parts]
+        return _cat_states(states, counts), RenderOutputs.cat(outs), torch.cat([b.target for _, b in parts])
 
     def begin_step(self, model: "SlrfAvatar") -> torch.Tensor | None:
         """Call before `forward`: the occupancy grid of the step's start, for the cross-rank merge in `sync`."""
@@ -189,10 +194,12 @@ class Replicas:
                  for p in params]
         had = torch.tensor([p.grad is not None for p in params], dtype=torch.float32, device=dev)
         flags = torch.tensor([stop, budget, snapshot], dtype=torch.float32, device=dev)
-        losses = torch.stack([getattr(terms, k).detach().float().reshape(()) for k in _LOSS_KEYS]).to(dev)
+        keys = _LOSS_KEYS + (("pose",) if terms.pose is not None else ())  # the same on every rank (the config)
+        losses = torch.stack([getattr(terms, k).detach().float().reshape(()) for k in keys]).to(dev)
         flat = torch.cat(grads + [had, flags, losses])
         dist.all_reduce(flat)
-        had_any = (flat[-9 - len(params):-9] > 0).tolist()
+        tail_n = 3 + len(keys)
+        had_any = (flat[-tail_n - len(params):-tail_n] > 0).tolist()
         offset = 0
         for p, has in zip(params, had_any):
             n = p.numel()
@@ -202,9 +209,9 @@ class Replicas:
             best = changed_values(occupancy_start, model.occupancy)
             dist.all_reduce(best, op=dist.ReduceOp.MAX)
             model.occupancy.copy_(torch.where(best > _UNCHANGED, best, occupancy_start))
-        tail = flat[-9:].cpu()
+        tail = flat[-tail_n:].cpu()
         return StepSync(stop=bool(tail[0] > 0), budget=bool(tail[1] > 0), snapshot=bool(tail[2] > 0),
-                        losses={k: float(v) / self.world for k, v in zip(_LOSS_KEYS, tail[3:].tolist())})
+                        losses={k: float(v) / self.world for k, v in zip(keys, tail[3:].tolist())})
 
     # ---- generator state (checkpoints) --------------------------------------------------------------------------
     def rng_state(self) -> dict[str, torch.Tensor | int]:
@@ -245,12 +252,17 @@ def saved_shards(rng: dict) -> int:
     return int(rng["sampler_shards"].shape[0]) if "sampler_shards" in rng else 1
 
 
-def _cat_states(states: list["NodeState"]) -> "NodeState":
+def _cat_states(states: list["NodeState"], train_counts: list[int]) -> "NodeState":
+    """The node states of several shards as one batch. The pose-refinement penalty is a mean over each shard's
+    training frames (`train_counts`): their count-weighted mean is the penalty of the whole batch."""
     from avatarctl.model.avatar import NodeState
 
     def cat(name: str) -> torch.Tensor | None:
         vals = [getattr(s, name) for s in states]
         return None if any(v is None for v in vals) else torch.cat(vals)
 
+    pose = None
+    if all(s.pose_penalty is not None for s in states) and sum(train_counts):
+        pose = sum(s.pose_penalty * n for s, n in zip(states, train_counts)) / sum(train_counts)
     return NodeState(transforms=cat("transforms"), centers=cat("centers"), delta_n=cat("delta_n"),
-                     embed=cat("embed"), mu=cat("mu"), logvar=cat("logvar"))
+                     embed=cat("embed"), mu=cat("mu"), logvar=cat("logvar"), pose_penalty=pose)

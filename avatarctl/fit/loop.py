@@ -244,6 +244,11 @@ def fit(project: Project, cfg: FitConfig | None = None, *, device: str = "auto",
     with torch.random.fork_rng(devices=[]):  # weights initialised from cfg.seed, global RNG left as it was
         torch.manual_seed(cfg.seed)
         model = SlrfAvatar(cfg.model, template, num_frames=len(train_frames), seed=cfg.seed).to(dev)
+    if model.pose_refine is not None and ckpt is None:  # canonical joint centres from the training poses
+        from avatarctl.body.joints import joint_centres, skin_weighted_centroids
+
+        model.pose_refine.set_centres(joint_centres(poses.joint_transforms, template.parents,
+                                                    skin_weighted_centroids(template.vertices, template.skin_weights)))
     model.train()
     optimizer = make_optimizer(cfg, param_groups(cfg, model))
     scheduler = make_scheduler(cfg, optimizer)

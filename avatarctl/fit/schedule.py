@@ -25,12 +25,16 @@ def make_optimizer(cfg: FitConfig, params) -> torch.optim.Adam:
 
 def param_groups(cfg: FitConfig, model: torch.nn.Module) -> list[dict]:
     """Adam param groups: the grid tables of the `grid` field backend at `cfg.lr_grid` (feature grids want a rate
-    ~20-100x an MLP's: DVGO, Instant-NGP), everything else at `cfg.lr`. Both follow the same decay."""
+    ~20-100x an MLP's: DVGO, Instant-NGP), the pose-refinement corrections at `cfg.lr_pose`, everything else at
+    `cfg.lr`. All follow the same decay."""
     fields = getattr(model, "fields", None)
     grid = fields.grid_parameters() if hasattr(fields, "grid_parameters") else []
-    grid_ids = {id(p) for p in grid}
-    rest = [p for p in model.parameters() if id(p) not in grid_ids]
-    return [{"params": rest}] + ([{"params": grid, "lr": cfg.lr_grid}] if grid else [])
+    refine = getattr(model, "pose_refine", None)
+    pose = list(refine.parameters()) if refine is not None else []
+    special = {id(p) for p in grid + pose}
+    rest = [p for p in model.parameters() if id(p) not in special]
+    return [{"params": rest}] + ([{"params": grid, "lr": cfg.lr_grid}] if grid else []) \
+        + ([{"params": pose, "lr": cfg.lr_pose}] if pose else [])
 
 
 def make_scheduler(cfg: FitConfig, optimizer: torch.optim.Optimizer) -> torch.optim.lr_scheduler.LambdaLR:

@@ -1,6 +1,7 @@
-"""Motion files for `avatarctl render --poses`: read a pose sequence from disk into a `BodyMotion`.
+"""Motion files for `avatarctl render --poses` and `avatarctl motion`: read a pose sequence from disk.
 
-Recognised layouts (`.npz`, never pickles):
+`read_motion` reads any of them (`MotionInput`); `read_motion_file` only a motion made for the avatar's own body
+model (`avatarctl.io.motion_convert` retargets the others). Recognised layouts (npz files are read without pickle):
 
 - **anny** (what `avatarctl synth` writes as `motion.npz`, and any `BodyMotion.save` file such as a project's
   `ingest/body.npz`): `body_model`, `pose_parameters` [frames, 104, 4, 4] (anny "local-ref" deltas), `phenotype`
@@ -12,25 +13,38 @@ Recognised layouts (`.npz`, never pickles):
 - **AMASS, SMPL-X "N" files**: `poses` [frames, 165] and/or `root_orient`, `pose_body`, `pose_hand`, `pose_jaw`,
   `pose_eye`; `trans`, `betas`, `mocap_frame_rate` (note the spelling). -> an SMPL-X motion (full axis-angle hands,
   no PCA; expression absent = zero).
+- **AIST++** `motions/*.pkl`: a pickled dict of numpy arrays `smpl_poses` [frames, 72], `smpl_trans` [frames, 3],
+  `smpl_scaling` [1], read with a restricted unpickler (`avatarctl.safe_pickle`: numpy arrays and builtin
+  containers only; anything else is refused). -> an SMPL motion, `transl` = smpl_trans / smpl_scaling, 60 fps,
+  y up.
+- **BVH** (`avatarctl.io.bvh`): any skeleton; joint names mapped to the retarget vocabulary by name (Mixamo /
+  SMPL / anny names built in, others through a JSON name map). -> a `SkeletonMotion`, y up.
 
-Axis-angle in radians; translations in metres, in the motion file's own world frame (AMASS: z up).
+Axis-angle in radians; translations in metres, in the motion file's own world frame (AMASS: z up). A frame-rate
+key that is none of `fps`, `mocap_framerate`, `mocap_frame_rate` but looks like one is an error, not a silent 30.
 The subject's shape (anny phenotype / SMPL betas) of a motion file is NOT the avatar's: `adopt_subject` replaces it
 with the avatar's own, so only the articulation drives the avatar.
 """
 
 from __future__ import annotations
 
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from avatarctl.body.motion import BODY_MODELS, BodyMotion
 from avatarctl.errors import InputError
 
+if TYPE_CHECKING:
+    from avatarctl.body.skeleton import SkeletonMotion
+
 # body-model family a motion file drives; SMPL+H (AMASS "G") drives an SMPL avatar (same body skeleton).
 MOTION_KINDS = ("anny", "smpl", "smplh", "smplx")
-_FAMILY = {"anny": "anny", "smpl": "smpl", "smplh": "smpl", "smplx": "smplx"}
+MOTION_FORMATS = MOTION_KINDS + ("aist", "bvh")
+# (a BodyMotion file of the toy sphere body, the tests' body model, drives a toy avatar)
+_FAMILY = {"anny": "anny", "smpl": "smpl", "smplh": "smpl", "smplx": "smplx", "aist": "smpl", "toy": "toy"}
 
 
 def detect_motion_kind(keys: set[str], arrays: dict[str, np.ndarray], where: str) -> str:
@@ -43,9 +57,7 @@ def detect_motion_kind(keys: set[str], arrays: dict[str, np.ndarray], where: str
         return bm
     if "pose_parameters" in keys:
         return "anny"
-    if {"root_orient", "pose_body"} <= keys or "mocap_frame_rate" in keys or "pose_jaw" in keys:
-        return "smplx"
-    if "poses" in keys:
+    if "poses" in keys and not {"root_orient", "pose_body"} <= keys:
         width = arrays["poses"].shape[-1] if arrays["poses"].ndim == 2 else -1
         if width == 165:
             return "smplx"
@@ -55,26 +67,66 @@ def detect_motion_kind(keys: set[str], arrays: dict[str, np.ndarray], where: str
             return "smpl"
         raise InputError(f"AMASS `poses` has shape {arrays['poses'].shape}; expected [frames, 72 | 156 | 165]",
                          where=where, fix="pass an AMASS SMPL+H (156) / SMPL-X (165) npz or an anny motion.npz")
+    if {"root_orient", "pose_body"} <= keys or "mocap_frame_rate" in keys or "pose_jaw" in keys:
+        return "smplx"
     raise InputError(f"unrecognised motion file (keys: {', '.join(sorted(keys)) or 'none'})", where=where,
                      fix="pass an anny motion.npz (pose_parameters) or an AMASS npz (poses, trans, betas, "
                          "mocap_framerate)")
 
 
-def read_motion_file(path: str | Path, body_model: str) -> BodyMotion:
-    """Read `path` for an avatar built on `body_model` ("anny" | "smpl" | "smplx").
+@dataclass(frozen=True)
+class MotionInput:
+    """A motion file as read: a `BodyMotion` (npz, AIST++ pkl) or a `SkeletonMotion` (BVH), and its world."""
 
-    Raises `InputError` (one line) when the file is missing, unreadable, malformed, or made for another body model.
-    Frame numbers are the file's `frame_index` when present, else 0..frames-1; fps from the file (default 30).
+    path: str
+    kind: str  # anny | smpl | smplh | smplx | aist | bvh (MOTION_FORMATS)
+    body: BodyMotion | None  # npz / pkl
+    skeleton: "SkeletonMotion | None"  # BVH
+    world_up: str  # up axis of the motion's world: "z" (anny, AMASS) | "y" (AIST++, BVH)
+    notes: tuple[str, ...] = ()
+
+    @property
+    def family(self) -> str:
+        """The body model the motion is made for ("anny" | "smpl" | "smplx"), or "bvh"."""
+        return "bvh" if self.kind == "bvh" else _FAMILY[self.kind]
+
+    @property
+    def num_frames(self) -> int:
+        return self.body.num_frames if self.body is not None else self.skeleton.num_frames  # type: ignore[union-attr]
+
+    @property
+    def fps(self) -> float:
+        return self.body.fps if self.body is not None else self.skeleton.fps  # type: ignore[union-attr]
+
+
+def read_motion(path: str | Path, up: str | None = None, name_map: dict[str, str] | None = None) -> MotionInput:
+    """Read any motion file avatarctl knows (module docstring), chosen by content: BVH text, AIST++ pickle, npz.
+
+    `up` overrides the world's up axis ("y" | "z"); `name_map` maps BVH joint names to the retarget vocabulary.
+    Raises `InputError` (one line: what, where, how to fix) on a missing, unreadable or malformed file.
     """
     p = Path(path)
     where = str(p)
     if not p.is_file():
-        raise InputError("motion file not found", where=where, fix="check the --poses path")
+        raise InputError("motion file not found", where=where, fix="check the motion file path")
+    if up is not None and up not in ("y", "z"):
+        raise InputError(f"unknown up axis {up!r}", where="--up", fix="use --up y or --up z")
+    with open(p, "rb") as fh:
+        head = fh.read(64)
+    if head.removeprefix(b"\xef\xbb\xbf").lstrip().upper().startswith(b"HIERARCHY"):  # (a UTF-8 BOM allowed)
+        from avatarctl.io.bvh import read_bvh
+
+        bvh = read_bvh(p, up=up or "y", name_map=name_map)
+        return MotionInput(path=where, kind="bvh", body=None, skeleton=bvh.motion, world_up=up or "y",
+                           notes=bvh.notes)
+    if head[:1] == b"\x80":
+        body, notes = _read_aist(p)
+        return MotionInput(path=where, kind="aist", body=body, skeleton=None, world_up=up or "y", notes=notes)
     import zipfile
 
     if not zipfile.is_zipfile(p):
-        raise InputError("cannot read motion file as .npz (not a zip archive)", where=where,
-                         fix="pass a .npz written by `avatarctl synth` or an AMASS .npz")
+        raise InputError("cannot read motion file: not an .npz, BVH or AIST++ .pkl", where=where,
+                         fix="pass an anny / AMASS .npz, a .bvh or an AIST++ .pkl")
     try:
         with np.load(p, allow_pickle=False) as z:
             arrays = {k: z[k] for k in z.files}
@@ -85,12 +137,6 @@ def read_motion_file(path: str | Path, body_model: str) -> BodyMotion:
         raise InputError(f"cannot read motion file as .npz ({type(e).__name__}: {e})", where=where,
                          fix="pass a .npz written by `avatarctl synth` or an AMASS .npz") from None
     kind = detect_motion_kind(set(arrays), arrays, where)
-    family = _FAMILY[kind]
-    if family != body_model:
-        raise InputError(f"motion file is for the {_describe(kind)} body model but the avatar uses {body_model}",
-                         where=where, fix=f"pass a {body_model} motion "
-                         + ("(an anny motion.npz as written by `avatarctl synth`)" if body_model == "anny"
-                            else "(an AMASS npz for " + ("SMPL/SMPL+H" if body_model == "smpl" else "SMPL-X") + ")"))
     try:
         if "body_model" in arrays or kind == "anny":
             motion = _read_body_motion(arrays)
@@ -100,24 +146,96 @@ def read_motion_file(path: str | Path, body_model: str) -> BodyMotion:
             motion = _read_amass_smplx(arrays)
     except (KeyError, ValueError) as e:
         msg = str(e).strip("'\"")
-        raise InputError(f"malformed {_describe(kind)} motion file: {msg}", where=where,
-                         fix="check the arrays' names and shapes against docs/render_eval.md") from None
+        fix = "repair or drop the frames with NaN / inf values" if "non-finite" in msg else \
+            "check the arrays' names and shapes against docs/motion.md"
+        raise InputError(f"malformed {_describe(kind)} motion file: {msg}", where=where, fix=fix) from None
     if motion.num_frames == 0:
         raise InputError("motion file has no frames", where=where, fix="pass a motion with at least one frame")
-    return motion
+    return MotionInput(path=where, kind=kind, body=motion, skeleton=None, world_up=up or "z")
+
+
+def read_motion_file(path: str | Path, body_model: str) -> BodyMotion:
+    """Read an npz motion made for `body_model` ("anny" | "smpl" | "smplx"), no retargeting.
+
+    Raises `InputError` (one line) when the file is missing, unreadable, malformed, or made for another body model
+    (`avatarctl.io.motion_convert` retargets those). Frame numbers are the file's `frame_index` when present, else
+    0..frames-1; fps from the file (default 30).
+    """
+    inp = read_motion(path)
+    if inp.family != body_model or inp.body is None:
+        raise InputError(f"motion file is for the {_describe(inp.kind)} body model but the avatar uses {body_model}",
+                         where=inp.path, fix=f"pass a {body_model} motion "
+                         + ("(an anny motion.npz as written by `avatarctl synth`)" if body_model == "anny"
+                            else "(an AMASS npz for " + ("SMPL/SMPL+H" if body_model == "smpl" else "SMPL-X") + ")"))
+    return inp.body
+
+
+def _read_aist(p: Path) -> tuple[BodyMotion, tuple[str, ...]]:
+    """An AIST++ motion pickle: dict of numpy arrays `smpl_poses` [frames, 72], `smpl_trans` [frames, 3],
+    `smpl_scaling` [1]. Read with a restricted unpickler (numpy arrays and builtin containers only). The
+    translation is `smpl_trans / smpl_scaling` (the AIST++ API's convention; the body is in metres); 60 fps."""
+    import pickle
+
+    from avatarctl.safe_pickle import ArrayUnpickler
+
+    class _Aist(ArrayUnpickler):
+        what = "an AIST++ motion file"
+
+    where = str(p)
+    try:
+        with open(p, "rb") as fh:
+            data = _Aist(fh, encoding="latin1").load()
+    except (pickle.UnpicklingError, EOFError, ValueError, TypeError, AttributeError, ImportError, IndexError) as e:
+        raise InputError(f"cannot read AIST++ pickle: {' '.join(str(e).split())[:160]}", where=where,
+                         fix="pass an AIST++ motions/*.pkl (a dict of numpy arrays); other pickles are refused") \
+            from None
+    if not isinstance(data, dict):
+        raise InputError(f"AIST++ pickle holds a {type(data).__name__}, not a dict", where=where,
+                         fix="pass an AIST++ motions/*.pkl")
+    missing = [k for k in ("smpl_poses", "smpl_trans") if k not in data]
+    if missing:
+        raise InputError(f"AIST++ pickle lacks {', '.join(missing)} (keys: {', '.join(map(str, data))})",
+                         where=where, fix="pass an AIST++ motions/*.pkl with smpl_poses, smpl_trans, smpl_scaling")
+    try:
+        poses = _per_frame(data, "smpl_poses", 72)
+        trans = _per_frame(data, "smpl_trans", 3)
+        scaling = float(np.asarray(data.get("smpl_scaling", 1.0), dtype=np.float64).reshape(-1)[0])
+        if not (np.isfinite(scaling) and scaling > 0):
+            raise ValueError(f"smpl_scaling = {scaling} is not positive")
+        fps = _fps(data) if any(k in data for k in FPS_KEYS) else 60.0
+        motion = BodyMotion(body_model="smpl", frame_index=np.arange(poses.shape[0]), fps=fps,
+                            global_orient=poses[:, :3], body_pose=poses[:, 3:], transl=trans / scaling)
+    except ValueError as e:
+        raise InputError(f"malformed AIST++ motion file: {e}", where=where,
+                         fix="smpl_poses [frames, 72], smpl_trans [frames, 3], smpl_scaling > 0, finite values") \
+            from None
+    if motion.num_frames == 0:
+        raise InputError("motion file has no frames", where=where, fix="pass a motion with at least one frame")
+    return motion, (f"AIST++: translation = smpl_trans / smpl_scaling ({scaling:g})",)
 
 
 def _describe(kind: str) -> str:
-    return {"anny": "anny", "smpl": "SMPL", "smplh": "SMPL+H (SMPL)", "smplx": "SMPL-X"}[kind]
+    return {"anny": "anny", "smpl": "SMPL", "smplh": "SMPL+H (SMPL)", "smplx": "SMPL-X", "aist": "AIST++ (SMPL)",
+            "bvh": "BVH", "toy": "toy sphere"}[kind]
+
+
+FPS_KEYS = ("fps", "mocap_framerate", "mocap_frame_rate")
 
 
 def _fps(arrays: dict[str, np.ndarray]) -> float:
-    for key in ("fps", "mocap_framerate", "mocap_frame_rate"):
+    """The file's frame rate (30 when it names none); a key that looks like a misspelt frame rate is an error."""
+    for key in FPS_KEYS:
         if key in arrays:
             fps = float(np.asarray(arrays[key]).reshape(-1)[0])
             if not np.isfinite(fps) or fps <= 0:
                 raise ValueError(f"{key} = {fps} is not a positive frame rate")
             return fps
+    import difflib
+
+    odd = [k for k in arrays if "fps" in k.lower() or "rate" in k.lower()
+           or difflib.get_close_matches(k.lower(), FPS_KEYS, n=1, cutoff=0.75)]
+    if odd:
+        raise ValueError(f"frame-rate key {odd[0]!r} is not one of {', '.join(FPS_KEYS)} (rename it)")
     return 30.0
 
 
@@ -159,8 +277,10 @@ def _read_amass_smpl(arrays: dict[str, np.ndarray]) -> BodyMotion:
         body = np.concatenate([body, np.zeros((n, 6), np.float32)], axis=1)
     trans = _per_frame(arrays, "trans", 3) if "trans" in arrays else np.zeros((n, 3), np.float32)
     betas = np.asarray(arrays["betas"], dtype=np.float32).ravel() if "betas" in arrays else None
+    hands = {"left_hand_pose": poses[:, 66:111], "right_hand_pose": poses[:, 111:156]} \
+        if poses.shape[1] == 156 else {}  # kept for retargeting onto rigs with fingers; SMPL ignores them
     return BodyMotion(body_model="smpl", frame_index=_frame_index(arrays, n), fps=_fps(arrays),
-                      global_orient=poses[:, :3], body_pose=body, transl=trans, betas=betas)
+                      global_orient=poses[:, :3], body_pose=body, transl=trans, betas=betas, **hands)
 
 
 def _read_amass_smplx(arrays: dict[str, np.ndarray]) -> BodyMotion:

@@ -72,6 +72,7 @@ class NodeState:
     embed: torch.Tensor  # [B, N, E] dynamic detail embeddings
     mu: torch.Tensor | None = None  # [B, N, Z] (None when the encoder did not run)
     logvar: torch.Tensor | None = None  # [B, N, Z]
+    pose_penalty: torch.Tensor | None = None  # [] pose-refinement penalty of these frames (None when off)
 
     @property
     def num_frames(self) -> int:
@@ -117,6 +118,14 @@ class SlrfAvatar(nn.Module):
         self.register_buffer("node_skin_weights", weights[idx].clone())  # [N, J] omega_i
         self.register_buffer("pose_attention", node_pose_attention(  # [N, J] (W . omega_i), Eq. 8
             weights[idx], pose_attention_map(template.parents, cfg.pose_attention_hops)))
+        self.pose_refine = None
+        if cfg.pose_refine and num_frames > 0:
+            from avatarctl.body.joints import skin_weighted_centroids
+            from avatarctl.model.pose_refine import PoseRefinement
+
+            self.pose_refine = PoseRefinement(num_frames, template.parents)
+            # a rough start; the fit replaces it with centres solved from the training poses (set_centres)
+            self.pose_refine.set_centres(skin_weighted_centroids(template.vertices.detach().float(), weights))
         if cfg.variant == "slrf":
             self.latent = NodeCVAE(cfg, J, num_frames)
             if cfg.field == "grid":
@@ -158,8 +167,13 @@ class SlrfAvatar(nn.Module):
         cond = FrameConditioning(cond.joint_transforms.to(dev, dt), cond.pose_features.to(dev, dt),
                                  cond.time.to(dev, dt), cond.frame_ids.to(dev))
         B, N = cond.time.shape[0], self.cfg.num_nodes
+        pose_penalty = None
         with _float32_geometry(dev):
-            T = node_transforms(self.node_skin_weights, cond.joint_transforms)  # [B, N, 4, 4]  Eq. 1
+            joints = cond.joint_transforms
+            if self.pose_refine is not None:  # training frames: refined M'_j (model/pose_refine.py)
+                joints = self.pose_refine(joints, cond.frame_ids)
+                pose_penalty = self.pose_refine.penalty(cond.frame_ids)
+            T = node_transforms(self.node_skin_weights, joints)  # [B, N, 4, 4]  Eq. 1
         mu = logvar = None
         if self.cfg.variant == "slrf":
             theta_i = node_pose_condition(cond.pose_features, self.pose_attention)  # [B, N, 3J]  Eq. 8
@@ -172,7 +186,18 @@ class SlrfAvatar(nn.Module):
             embed = T.new_zeros(B, N, self.cfg.embed_dim)
         with _float32_geometry(dev):
             centers = posed_node_centers(T, self.node_rest, delta.to(T.dtype))  # [B, N, 3]  Eq. 3
-        return NodeState(transforms=T, centers=centers, delta_n=delta, embed=embed, mu=mu, logvar=logvar)
+        return NodeState(transforms=T, centers=centers, delta_n=delta, embed=embed, mu=mu, logvar=logvar,
+                         pose_penalty=pose_penalty)
+
+    def knock_out(self, state: NodeState, delta_n: bool = False, embedding: bool = False) -> NodeState:
+        """`state` with Delta n_i and/or e_i set to zero at render time (the paper's render-time knockout of a
+        trained model, supp. Tab. A): the nodes move back to their skinned positions (Eq. 3 with Delta n = 0)."""
+        delta = torch.zeros_like(state.delta_n) if delta_n else state.delta_n
+        embed = torch.zeros_like(state.embed) if embedding else state.embed
+        with _float32_geometry(state.transforms.device):
+            centers = posed_node_centers(state.transforms, self.node_rest, delta.to(state.transforms.dtype))
+        return NodeState(transforms=state.transforms, centers=centers, delta_n=delta, embed=embed, mu=state.mu,
+                         logvar=state.logvar)
 
     # ---- step 2: rendering --------------------------------------------------------------------------------------
     def render(self, rays: RayBatch, state: NodeState, background: torch.Tensor, *, jitter: bool = False,
@@ -407,7 +432,8 @@ class SlrfAvatar(nn.Module):
         zero = rec.new_zeros(())
         kl = kl_loss(state.mu, state.logvar) if state.mu is not None and state.logvar is not None else zero
         return total_loss(rec, translation_loss(state.delta_n), embedding_loss(state.embed), kl,
-                          c.lambda_rec, c.lambda_trans, c.lambda_ebd, c.lambda_kl, mse=mse)
+                          c.lambda_rec, c.lambda_trans, c.lambda_ebd, c.lambda_kl, mse=mse,
+                          pose=state.pose_penalty, lambda_pose=c.lambda_pose)
 
 
 def _float32_geometry(device: torch.device):

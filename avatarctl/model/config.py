@@ -78,6 +78,9 @@ class ModelConfig:
     occ_stop_eps: float = 0.0  # skip samples whose transmittance estimated from the cached densities is below this
     # cVAE posterior (deviation when != 0): initial log-variance of q(z | t, theta) (issue 18, hypothesis 1)
     posterior_logvar_init: float = 0.0  # 0: the encoder's plain init (sigma ~ 1); e.g. -6 starts sigma ~ 0.05
+    # per-frame body-pose refinement (deviation when on, see model/pose_refine.py; issue 13)
+    pose_refine: bool = False  # optimise per-training-frame joint rotations / root translation with the avatar
+    lambda_pose: float = 10.0  # weight of the refinement penalty (sum over joints of |delta|^2 + |tau / 0.1 m|^2)
     # pose condition (Eq. 8)
     pose_attention_hops: int = 2
     # ablations
@@ -128,9 +131,9 @@ class ModelConfig:
         need(0.0 <= self.occ_decay <= 1.0, f"occ_decay must be in [0, 1], got {self.occ_decay}")
         need(0.0 <= self.occ_explore <= 1.0, f"occ_explore must be in [0, 1], got {self.occ_explore}")
         need(0.0 <= self.occ_stop_eps < 1.0, f"occ_stop_eps must be in [0, 1), got {self.occ_stop_eps}")
-        for name in ("use_delta_n", "use_embedding", "sparse", "local_coords_in_sigma", "occupancy"):
+        for name in ("use_delta_n", "use_embedding", "sparse", "local_coords_in_sigma", "occupancy", "pose_refine"):
             need(isinstance(getattr(self, name), bool), f"{name} must be a bool, got {getattr(self, name)!r}")
-        for name in ("lambda_rec", "lambda_trans", "lambda_ebd", "lambda_kl"):
+        for name in ("lambda_rec", "lambda_trans", "lambda_ebd", "lambda_kl", "lambda_pose"):
             need(getattr(self, name) >= 0, f"{name} must be >= 0, got {getattr(self, name)}")
         need(self.rec_reduction in REC_REDUCTIONS,
              f"rec_reduction must be one of {REC_REDUCTIONS}, got {self.rec_reduction!r}")

@@ -29,9 +29,11 @@ class LossTerms:
     ebd: torch.Tensor  # [] Eq. 14
     kl: torch.Tensor  # [] Eq. 15
     mse: torch.Tensor  # [] mean squared colour error over rays and channels (for logs; PSNR = -10 log10 mse)
+    pose: torch.Tensor | None = None  # [] pose-refinement penalty (model/pose_refine.py), None when off
 
     def as_floats(self) -> dict[str, float]:
-        return {k: float(getattr(self, k).detach()) for k in ("total", "rec", "trans", "ebd", "kl", "mse")}
+        keys = ("total", "rec", "trans", "ebd", "kl", "mse") + (("pose",) if self.pose is not None else ())
+        return {k: float(getattr(self, k).detach()) for k in keys}
 
 
 def reconstruction_loss(rgb: torch.Tensor, target: torch.Tensor, reduction: str = "sum",
@@ -65,8 +67,12 @@ def kl_loss(mu: torch.Tensor, logvar: torch.Tensor) -> torch.Tensor:
 
 
 def total_loss(rec: torch.Tensor, trans: torch.Tensor, ebd: torch.Tensor, kl: torch.Tensor, lambda_rec: float,
-               lambda_trans: float, lambda_ebd: float, lambda_kl: float, mse: torch.Tensor) -> LossTerms:
-    """Eq. 11: L = lambda_rec L_rec + lambda_trans L_trans + lambda_ebd L_ebd + lambda_KL L_KL. `mse` (the mean
-    squared colour error) is carried along for the logs only."""
+               lambda_trans: float, lambda_ebd: float, lambda_kl: float, mse: torch.Tensor,
+               pose: torch.Tensor | None = None, lambda_pose: float = 0.0) -> LossTerms:
+    """Eq. 11: L = lambda_rec L_rec + lambda_trans L_trans + lambda_ebd L_ebd + lambda_KL L_KL, plus
+    lambda_pose L_pose when pose refinement is on (a deviation, model/pose_refine.py). `mse` (the mean squared
+    colour error) is carried along for the logs only."""
     total = lambda_rec * rec + lambda_trans * trans + lambda_ebd * ebd + lambda_kl * kl
-    return LossTerms(total=total, rec=rec, trans=trans, ebd=ebd, kl=kl, mse=mse)
+    if pose is not None:
+        total = total + lambda_pose * pose
+    return LossTerms(total=total, rec=rec, trans=trans, ebd=ebd, kl=kl, mse=mse, pose=pose)

@@ -1,5 +1,6 @@
 """What several stages share, stated once: the progress report, view / latent selection, the sample-seed formula,
-the cheap pre-checks, loading a fitted avatar and running a stage on several ranks (`run_ranked`).
+the cheap pre-checks, loading a fitted avatar, making a motion file (`--poses`) drive it and running a stage on
+several ranks (`run_ranked`).
 
 Frame specs are `avatarctl.frames` (ingest uses them too); ground-truth compositing is
 `avatarctl.evaluate.protocols.ground_truth` (fit targets and validation use it too); devices are
@@ -77,6 +78,37 @@ def frame_node_state(avatar: "LoadedAvatar", one: "BodyMotion", frame: int, is_t
         return avatar.model.node_state(cond, mode=latent, generator=gen)
 
 
+def motion_for_avatar(avatar: "LoadedAvatar", path: str | Path, recenter: bool) -> tuple["BodyMotion", str | None]:
+    """A motion file (`--poses`) made ready to drive `avatar` -> (motion, what retargeting did or None).
+
+    Any rig `io.motion_files.read_motion` reads: a motion made for the avatar's body model is used as it is (anny
+    bone labels checked), another is retargeted onto it (`io.motion_convert`, with the project's SMPL / SMPL-X model
+    file); the subject's shape is replaced by the avatar's own (`adopt_subject`) and, with `recenter`, the motion is
+    translated so its first frame starts where the avatar's first training frame stands."""
+    from avatarctl.io import motion_files
+
+    cap = avatar.capture
+    retarget: str | None = None
+    inp = motion_files.read_motion(path)
+    if inp.family == cap.body_model and inp.body is not None:
+        motion = inp.body
+        if motion.body_model == "anny":
+            motion_files.check_joint_labels(path, avatar.template.joint_names)
+    else:  # another rig: retarget onto the avatar's body model, its own subject, its model file
+        from avatarctl.io.motion_convert import convert_motion
+
+        conv = convert_motion(inp, cap.body_model, subject=cap.motion, model_path=cap.body_model_path)
+        motion = conv.motion
+        retarget = conv.summary(inp.kind)
+    motion = motion_files.adopt_subject(motion, cap.motion)
+    if recenter:
+        train = [int(f) for f in avatar.train_frames]
+        anchor_row = cap.motion.rows_for([min(train) if train else cap.frames[0]])
+        anchor = motion_files.root_translation(cap.motion.select(anchor_row))[0]
+        motion = motion_files.shift_motion(motion, anchor - motion_files.root_translation(motion)[0])
+    return motion, retarget
+
+
 def select_views(names: tuple[str, ...], cameras: dict[str, "Camera"], what: str = "--views") -> list[str]:
     """Check capture camera names (in the order given, duplicates dropped)."""
     unknown = [n for n in names if n not in cameras]
@@ -93,6 +125,20 @@ def precheck(project: "Project", checkpoint: str | None, views: tuple[str, ...])
         from avatarctl.io.project_io import load_cameras
 
         select_views(views, load_cameras(project.paths.cameras))
+
+
+def open_fitted(project_dir: "str | Path", checkpoint: str | None, views: tuple[str, ...] = (),
+                poses: str | None = None) -> "Project":
+    """The project of a stage that needs a fit, with the cheap checks done (fit recorded, checkpoint file, camera
+    names, motion file present) before the avatar is loaded."""
+    from avatarctl.project import Project
+
+    project = Project.open(project_dir)
+    project.require("fit")
+    if poses is not None and not Path(poses).is_file():
+        raise InputError("motion file not found", where=str(poses), fix="check the --poses path")
+    precheck(project, checkpoint, views)
+    return project
 
 
 def load_fitted(project: "Project", device: str, checkpoint: str | None) -> "LoadedAvatar":

@@ -39,11 +39,12 @@ import numpy as np
 from avatarctl.errors import InputError
 from avatarctl.evaluate.report import PSNR_CAP, SCHEMA_VERSION, EvalMetrics, ImageScore, ScoredModel
 from avatarctl.frames import select_frames
-from avatarctl.project import Project, check_name, now_iso
+from avatarctl.project import check_name, now_iso
 from avatarctl.stages.common import StageProgress, ProgressFn, check_latent_mode, frame_node_state, latent_for, \
-    load_fitted, precheck, rank_device_name, run_ranked, select_views
+    load_fitted, open_fitted, rank_device_name, run_ranked, select_views
 
 SPLITS = ("novel_view", "novel_pose", "train")
+KNOCKOUTS = ("delta-n", "embedding")  # render-time knockouts (supp. Tab. A): the trained value set to zero
 
 
 @dataclass(frozen=True)
@@ -64,17 +65,27 @@ class EvalConfig:
     device: str = "auto"  # auto | cpu | cuda
     checkpoint: str | None = None  # None = fit/checkpoints/latest.pt
     save_images: bool = False  # also write every render to eval/<name>/renders/<frame:06d>_<view>.png
+    region: str = "all"  # what the headline PSNR is over: all (the protocol's region) | garment | body
+    knockout: tuple[str, ...] = ()  # render-time knockout of a trained model: delta-n and/or embedding
 
     def __post_init__(self) -> None:
         from avatarctl.evaluate.protocols import PROTOCOLS
 
         object.__setattr__(self, "views", tuple(self.views))
+        object.__setattr__(self, "knockout", tuple(self.knockout))
+        bad = [k for k in self.knockout if k not in KNOCKOUTS]
+        if bad:
+            raise InputError(f"unknown knockout {bad}", where="--knockout", fix=f"use: {', '.join(KNOCKOUTS)}")
         if self.split not in SPLITS:
             raise InputError(f"unknown split {self.split!r}", where="--split", fix=f"use one of: {', '.join(SPLITS)}")
         if self.protocol not in PROTOCOLS:
             raise InputError(f"unknown protocol {self.protocol!r}", where="--protocol",
                              fix=f"use one of: {', '.join(PROTOCOLS)}")
         check_latent_mode(self.latent)
+        from avatarctl.evaluate.regions import REGIONS
+
+        if self.region not in REGIONS:
+            raise InputError(f"unknown region {self.region!r}", where="--region", fix=f"use one of: {', '.join(REGIONS)}")
         if self.every < 1:
             raise InputError(f"--every must be >= 1, got {self.every}", where="--every", fix="e.g. --every 30")
         if self.sheet_rows < 0:
@@ -90,6 +101,7 @@ class EvalConfig:
     def to_json(self) -> dict[str, Any]:
         d = asdict(self)
         d["views"] = list(self.views)
+        d["knockout"] = list(self.knockout)
         d["name"] = self.out_name
         return {"schema_version": SCHEMA_VERSION, **d}
 
@@ -158,22 +170,21 @@ def _run(env: Any, progress: ProgressFn | None, project_dir: str, cfg: EvalConfi
 
     from avatarctl.atomic import atomic_dir, write_json, write_text
     from avatarctl.dist import active, broadcast_from_main, gather_to_main
-    from avatarctl.evaluate.metrics import lpips_status, metric_settings
+    from avatarctl.evaluate.metrics import lpips_status, metric_settings, psnr_from_mse
     from avatarctl.evaluate.protocols import GROUND_TRUTH
-    from avatarctl.evaluate.report import per_frame_csv
+    from avatarctl.evaluate.report import per_frame_csv, region_scores
     from avatarctl.evaluate.sheet import comparison_sheet
 
     started = now_iso()
     t_start = time.perf_counter()
-    project = Project.open(project_dir)
-    project.require("fit")
-    precheck(project, cfg.checkpoint, cfg.views)
+    project = open_fitted(project_dir, cfg.checkpoint, cfg.views)
     avatar = load_fitted(project, rank_device_name(env, cfg.device), cfg.checkpoint)
     cap = avatar.capture
     frames, views, is_train = split_pairs(avatar, cfg)
     latent = latent_for(cfg.latent, is_train)
     background = avatar.background
     lpips_fn, lpips_reason = lpips_status()
+    geometry = _gt_geometry(project, cfg.region)
     cams = {v: cap.cameras[v].pinhole() for v in views}
     total = len(frames) * len(views)
     sheet_at = set(np.linspace(0, total - 1, min(cfg.sheet_rows, total)).round().astype(int).tolist()) \
@@ -192,10 +203,13 @@ def _run(env: Any, progress: ProgressFn | None, project_dir: str, cfg: EvalConfi
             frame, one = frames[fi], motion.select([fi])
             verts = avatar.body.pose(one).vertices[0].detach().float().cpu().numpy()  # [V, 3]
             state = frame_node_state(avatar, one, frame, is_train, latent, cfg.seed)
+            if cfg.knockout:
+                state = avatar.model.knock_out(state, delta_n="delta-n" in cfg.knockout,
+                                               embedding="embedding" in cfg.knockout)
             for vi, view in enumerate(views):
                 k = fi * len(views) + vi
                 mine.append(_score_image(avatar, cfg, project, state, verts, frame, view, cams[view], latent,
-                                         lpips_fn, k in sheet_at, tmp, k))
+                                         lpips_fn, geometry, k in sheet_at, tmp, k))
                 if progress is not None:
                     progress(StageProgress(stage="eval", done=min(len(mine) * world, total), total=total,
                                            seconds=time.perf_counter() - t0, detail=mine[-1].score))
@@ -207,7 +221,12 @@ def _run(env: Any, progress: ProgressFn | None, project_dir: str, cfg: EvalConfi
         lpips_values = [s.lpips for s in done if s.lpips is not None]
         sheet_rows = [s.sheet for s in done if s.sheet is not None]
 
-        psnrs = np.minimum(np.array([s.psnr for s in scores], np.float64), PSNR_CAP)  # exact match: inf -> cap
+        regions = region_scores(scores)
+        if cfg.region == "all":
+            psnrs = np.minimum(np.array([s.psnr for s in scores], np.float64), PSNR_CAP)  # exact match: inf -> cap
+        else:  # images where the region is empty are not scored
+            psnrs = np.minimum(np.array([psnr_from_mse(s.region_mse[cfg.region]) for s in scores
+                                         if s.region_pixels[cfg.region] > 0], np.float64), PSNR_CAP)
         ssims = np.array([s.ssim for s in scores], np.float64)
         render_seconds = float(sum(s.seconds for s in scores))
         mc = avatar.model_config
@@ -243,6 +262,8 @@ def _run(env: Any, progress: ProgressFn | None, project_dir: str, cfg: EvalConfi
                     "device": str(avatar.device), "torch_threads": torch.get_num_threads()},
             config=cfg.to_json(),
             created=now_iso(),
+            region=cfg.region,
+            regions={k: asdict(v) for k, v in regions.items()} if regions else None,
         )
         write_json(tmp / "metrics.json", metrics.to_json())
         write_text(tmp / "per_frame.csv", per_frame_csv(scores))
@@ -259,7 +280,8 @@ def _run(env: Any, progress: ProgressFn | None, project_dir: str, cfg: EvalConfi
 
 
 def _score_image(avatar: Any, cfg: EvalConfig, project: Project, state: Any, verts: np.ndarray, frame: int, view: str,
-                 cam: Any, latent: str, lpips_fn: Any, on_sheet: bool, tmp: Path, index: int) -> _Scored:
+                 cam: Any, latent: str, lpips_fn: Any, geometry: Any, on_sheet: bool, tmp: Path,
+                 index: int) -> _Scored:
     """Render one (frame, view) over the protocol's region and score it against the ground truth."""
     from avatarctl.evaluate.metrics import mse, psnr_from_mse, ssim
     from avatarctl.evaluate.protocols import bbox_region, full_region, ground_truth
@@ -288,8 +310,12 @@ def _score_image(avatar: Any, cfg: EvalConfig, project: Project, state: Any, ver
     except ValueError as err:
         raise InputError(f"cannot score frame {frame} view {view}: {err}", where=str(project.root),
                          fix="use --protocol full or a higher-resolution capture") from None
+    region_mse = region_pixels = None
+    if geometry is not None:
+        region_mse, region_pixels = _region_errors(view_out.rgb, gt, region.mask, cam, geometry, frame)
     score = ImageScore(frame=frame, view=view, psnr=psnr_from_mse(e), ssim=s, mse=e, pixels=int(region.mask.sum()),
-                       latent=latent, seconds=round(view_out.seconds, 4))
+                       latent=latent, seconds=round(view_out.seconds, 4), region_mse=region_mse,
+                       region_pixels=region_pixels)
     if cfg.save_images:  # the full image; outside the bbox crop it is the background (not rendered)
         write_png(tmp / "renders" / f"{frame:06d}_{view}.png", view_out.rgb, None)
     sheet = SheetRow(gt=gt_crop, render=pred_crop, region=region.crop_image(region.mask),
@@ -297,6 +323,38 @@ def _score_image(avatar: Any, cfg: EvalConfig, project: Project, state: Any, ver
                            f"SSIM {score.ssim:.4f}") if on_sheet else None
     return _Scored(index=index, score=score, lpips=lpips_fn(pred_crop, gt_crop) if lpips_fn is not None else None,
                    sheet=sheet)
+
+
+def _gt_geometry(project: Project, region: str) -> Any:
+    """The source capture's ground-truth geometry (`io.gt_geometry`), or None; required when `region` is not all."""
+    from avatarctl.io.gt_geometry import find_gt_geometry, load_gt_geometry
+
+    path = find_gt_geometry(project.manifest.source.path)
+    if path is None:
+        if region != "all":
+            raise InputError(f"--region {region} needs the capture's ground-truth garment geometry, and "
+                             f"{project.manifest.source.path} has none", where="--region",
+                             fix="use --region all, or a capture made by `avatarctl synth` (it writes gt/geometry.npz)")
+        return None
+    return load_gt_geometry(path)
+
+
+def _region_errors(rgb: np.ndarray, gt: np.ndarray, mask: np.ndarray, cam: Any, geometry: Any, frame: int
+                   ) -> tuple[dict[str, float], dict[str, int]]:
+    """({"garment": mse, "body": mse, "garment_flat": mse, "body_flat": mse}, {"garment": pixels, "body": pixels})
+    inside the protocol's `mask`; *_flat: the error of the region's best flat colour (its mean ground truth)."""
+    from avatarctl.evaluate.metrics import mse
+    from avatarctl.evaluate.regions import garment_mask, split_region
+
+    r = geometry.row(frame)
+    parts = split_region(mask, garment_mask(cam, geometry.body_vertices[r], geometry.body_faces,
+                                            geometry.garment_vertices[r], geometry.garment_faces))
+    names = ("garment", "body")
+    err = {n: mse(rgb, gt, parts[n]) if parts[n].any() else 0.0 for n in names}
+    # the region's best flat colour (its mean ground-truth colour): the floor a useful render must beat
+    err.update({f"{n}_flat": float(((gt[parts[n]] - gt[parts[n]].mean(0)) ** 2).mean()) if parts[n].any() else 0.0
+                for n in names})
+    return err, {n: int(parts[n].sum()) for n in names}
 
 
 def _finite_mean(a: np.ndarray) -> float:

@@ -60,8 +60,9 @@ def fit_config(project: Project, req: FitRequest) -> "FitConfig | None":
     if req.resume and req.fresh:
         raise InputError("--resume and --fresh contradict each other", fix="pass one of them")
     if not req.resume:
-        return resolve_fit_config(req.preset or "cpu", ablation=req.ablation, iters=req.iters, seed=req.seed,
-                                  overrides=list(req.overrides))
+        cfg = resolve_fit_config(req.preset or "cpu", ablation=req.ablation, iters=req.iters, seed=req.seed,
+                                 overrides=list(req.overrides))
+        return _default_pose_refine(project, cfg, req)
     given = [n for n, v in (("--preset", req.preset), ("--seed", req.seed), ("--ablation", req.ablation))
              if v is not None]
     if req.overrides:
@@ -75,6 +76,19 @@ def fit_config(project: Project, req: FitRequest) -> "FitConfig | None":
 
     saved = FitConfig.from_json(read_checkpoint(project.paths.latest_checkpoint)["fit_config"])
     return replace(saved, iters=req.iters)
+
+
+def _default_pose_refine(project: Project, cfg: "FitConfig", req: FitRequest) -> "FitConfig":
+    """Pose refinement (`model.pose_refine`, model/pose_refine.py) is on by default for captures whose body fits are
+    not ground truth (real captures, synth with --fit-noise), except in the paper preset; `--set
+    model.pose_refine=...` decides explicitly."""
+    from avatarctl.io.gt_geometry import fits_are_ground_truth
+
+    explicit = any(o.split("=", 1)[0].strip() == "model.pose_refine" for o in req.overrides)
+    if explicit or (req.preset or "cpu") == "paper":
+        return cfg
+    on = not fits_are_ground_truth(project.manifest.source.path)
+    return replace(cfg, model=cfg.model.with_(pose_refine=on)) if on != cfg.model.pose_refine else cfg
 
 
 @dataclass(frozen=True)

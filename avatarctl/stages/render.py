@@ -3,8 +3,9 @@
 Steps:
 1. load the fitted avatar (`stages.common.load_fitted`);
 2. choose the motion: the project's own frames (training frames render with the cVAE latent z = mu, novel frames
-   with z = 0, paper Sec. 4.1) or a motion file (`--poses`, always novel: z = 0 unless `--latent sample`);
-   a motion file's body shape is replaced by the avatar's own (`adopt_subject`) and, by default, its translation
+   with z = 0, paper Sec. 4.1) or a motion file (`--poses`, always novel: z = 0 unless `--latent sample`; any rig:
+   anny / AMASS npz, AIST++ pkl, BVH, retargeted onto the avatar's body model when made for another,
+   `io.motion_convert`); a motion file's body shape is replaced by the avatar's own (`adopt_subject`) and, by default, its translation
    is moved so its first frame starts where the avatar's first training frame stands (`recenter`);
 3. choose the cameras: capture views (`views`, scaled to `resolution`) or an orbit (`orbit` views over one turn
    around the subject's smoothed box centre, `trajectories.orbit_cameras`);
@@ -36,9 +37,9 @@ import numpy as np
 from avatarctl.errors import InputError
 from avatarctl.frames import select_frames
 from avatarctl.geometry.cameras import Camera
-from avatarctl.project import Project, check_name, now_iso
+from avatarctl.project import check_name, now_iso
 from avatarctl.stages.common import StageProgress, ProgressFn, check_latent_mode, frame_node_state, latent_for, \
-    load_fitted, precheck, rank_device_name, run_ranked, select_views
+    load_fitted, motion_for_avatar, open_fitted, rank_device_name, run_ranked, select_views
 
 SCHEMA_VERSION = 1
 DEFAULT_MAX_RAYS = 8192
@@ -145,6 +146,7 @@ class RenderResult:
     checkpoint_step: int
     background: tuple[float, float, float]
     motion_source: str  # "project" or the motion file
+    retarget: str | None = None  # one line when the motion file was retargeted onto the avatar's body model
     latent_counts: dict[str, int] = field(default_factory=dict)
 
     @property
@@ -166,6 +168,7 @@ class _Plan:
     views_per_seq: int
     fps: float
     source: str
+    retarget: str | None  # what retargeting did to the motion file, None if it was made for the avatar's body
 
 
 def run(project_dir: str | Path, cfg: RenderConfig, progress: ProgressFn | None = None, *,
@@ -186,11 +189,7 @@ def _run(env: Any, progress: ProgressFn | None, project_dir: str, cfg: RenderCon
 
     started = now_iso()
     t_start = time.perf_counter()
-    project = Project.open(project_dir)
-    project.require("fit")
-    if cfg.poses is not None and not Path(cfg.poses).is_file():
-        raise InputError("motion file not found", where=str(cfg.poses), fix="check the --poses path")
-    precheck(project, cfg.checkpoint, cfg.views)
+    project = open_fitted(project_dir, cfg.checkpoint, cfg.views, cfg.poses)
     avatar = load_fitted(project, rank_device_name(env, cfg.device), cfg.checkpoint)
     background, transparent = parse_background(cfg.background, avatar.background)
     plan = _plan(avatar, cfg)
@@ -257,6 +256,7 @@ def _run(env: Any, progress: ProgressFn | None, project_dir: str, cfg: RenderCon
             "checkpoint": str(avatar.checkpoint) if avatar.checkpoint else None,
             "checkpoint_step": avatar.step,
             "motion_source": plan.source,
+            "retarget": plan.retarget,
             "background": list(background),
             "transparent": transparent,
             "image_size": [w, h],
@@ -277,7 +277,7 @@ def _run(env: Any, progress: ProgressFn | None, project_dir: str, cfg: RenderCon
     result = RenderResult(out_dir=out_dir, video=out_dir / "video.mp4", images=images, width=w, height=h,
                           video_size=(vinfo.width, vinfo.height), fps=plan.fps, seconds=seconds,
                           render_seconds=render_seconds, checkpoint_step=avatar.step, background=background,
-                          motion_source=plan.source, latent_counts=latent_counts)
+                          motion_source=plan.source, retarget=plan.retarget, latent_counts=latent_counts)
     project.record("render", config=cfg.to_json(), outputs=[out_dir], started=started,
                    summary={"name": cfg.name, "images": len(images), "size": f"{w}x{h}",
                             "seconds_per_image": round(result.seconds_per_image, 3), "video": "video.mp4",
@@ -287,9 +287,8 @@ def _run(env: Any, progress: ProgressFn | None, project_dir: str, cfg: RenderCon
 
 def _plan(avatar: Any, cfg: RenderConfig) -> _Plan:
     """Resolve motion, frames, latent modes and cameras from the config."""
-    from avatarctl.io import motion_files
-
     cap = avatar.capture
+    retarget: str | None = None
     train_set = set(int(f) for f in avatar.train_frames)
     if cfg.poses is None:
         motion = cap.motion
@@ -297,14 +296,7 @@ def _plan(avatar: Any, cfg: RenderConfig) -> _Plan:
         training = [f in train_set for f in frames]
         source = "project"
     else:
-        motion = motion_files.read_motion_file(cfg.poses, cap.body_model)
-        if motion.body_model == "anny":
-            motion_files.check_joint_labels(cfg.poses, avatar.template.joint_names)
-        motion = motion_files.adopt_subject(motion, cap.motion)
-        if cfg.recenter:
-            anchor_row = cap.motion.rows_for([min(train_set) if train_set else cap.frames[0]])
-            anchor = motion_files.root_translation(cap.motion.select(anchor_row))[0]
-            motion = motion_files.shift_motion(motion, anchor - motion_files.root_translation(motion)[0])
+        motion, retarget = motion_for_avatar(avatar, cfg.poses, cfg.recenter)
         frames = select_frames(cfg.frames, [int(f) for f in motion.frame_index])
         training = [False] * len(frames)
         source = str(cfg.poses)
@@ -324,7 +316,7 @@ def _plan(avatar: Any, cfg: RenderConfig) -> _Plan:
         shots = [(i, i, c) for i in range(len(frames)) for c in views]
         views_per_seq = len(views)
     return _Plan(motion=motion, frames=frames, training=training, latents=latents, shots=shots,
-                 views_per_seq=views_per_seq, fps=fps, source=source)
+                 views_per_seq=views_per_seq, fps=fps, source=source, retarget=retarget)
 
 
 def _scaled_to(cam: Camera, longer_side: int) -> Camera:

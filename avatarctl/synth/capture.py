@@ -11,7 +11,9 @@ Layout written (see docs/formats.md)::
     OUT/images/<cam>/<frame:06d>.jpg    distorted RGB images
     OUT/masks/<cam>/<frame:06d>.png     ground-truth foreground masks (0 / 255, subpixel coverage >= 0.5)
     OUT/background/<cam>.jpg            clean background plates
-    OUT/motion.npz                      anny fits (loadable by `avatarctl.body.motion.BodyMotion.load`)
+    OUT/motion.npz                      anny fits (loadable by `avatarctl.body.motion.BodyMotion.load`); with
+                                        `fit_noise_*` > 0 perturbed like real fits (`body.perturb`)
+    OUT/gt/motion.npz                   the true fits, only when motion.npz was perturbed
     OUT/split.json                      train/test frames and views
     OUT/gt/geometry.npz                 per-frame body and skirt vertices, faces, skirt grid parameters
     OUT/capture.json                    generator version, config, seed, timings, statistics
@@ -30,6 +32,7 @@ import numpy as np
 
 from avatarctl.errors import InputError
 from avatarctl.geometry.cameras import Camera, look_at
+from avatarctl.io.gt_geometry import GT_GEOMETRY, GT_MOTION
 from avatarctl.synth.config import GENERATOR_VERSION, SynthConfig
 from avatarctl.synth.motion import PHENOTYPE_LABELS, ProceduralMotion, make_motion
 
@@ -72,7 +75,7 @@ def load_scene(out: Path) -> Scene:
     """The ground-truth `Scene` of a written capture (from `gt/geometry.npz` and `capture.json`), e.g. to
     re-render it through other cameras."""
     out = Path(out)
-    with np.load(out / "gt" / "geometry.npz") as z:
+    with np.load(out / GT_GEOMETRY) as z:
         g = {k: z[k] for k in z.files}
     info = json.loads((out / "capture.json").read_text())
     return Scene(body_vertices=g["body_vertices"], skirt_vertices=g["garment_vertices"], body_faces=g["body_faces"],
@@ -381,10 +384,18 @@ def synthesize(out: Path, config: SynthConfig, progress: Progress | None = None)
                         phenotype_labels=PHENOTYPE_LABELS)
         from avatarctl.body.anny_model import AnnyBody
 
+        bone_labels = np.array(AnnyBody("cpu").joint_names)
+        (tmp / GT_GEOMETRY).parent.mkdir()
+        written = bm
+        if config.fit_noise_deg or config.fit_noise_cm:  # realistic fit errors; the truth goes to gt/
+            from avatarctl.body.perturb import perturb_motion
+
+            written = perturb_motion(bm, config.fit_noise_deg, config.fit_noise_cm, seed=config.seed)
+            with open(tmp / GT_MOTION, "wb") as fh:
+                np.savez(fh, **bm.to_npz_dict(), bone_labels=bone_labels)
         with open(tmp / "motion.npz", "wb") as fh:
-            np.savez(fh, **bm.to_npz_dict(), bone_labels=np.array(AnnyBody("cpu").joint_names))
-        (tmp / "gt").mkdir()
-        with open(tmp / "gt" / "geometry.npz", "wb") as fh:
+            np.savez(fh, **written.to_npz_dict(), bone_labels=bone_labels)
+        with open(tmp / GT_GEOMETRY, "wb") as fh:
             np.savez(fh, frame_index=np.array(frames), body_vertices=scene.body_vertices,
                      garment_vertices=scene.skirt_vertices, body_faces=scene.body_faces,
                      garment_faces=scene.skirt_faces, garment_param=scene.skirt_param.astype(np.float32),

@@ -68,6 +68,11 @@ class SynthConfig:
     """XPBD constraint iterations per substep."""
     jpeg_quality: int = 95
     """JPEG quality of the saved images and background plates."""
+    fit_noise_deg: float = 0.0
+    """Body fits written with per-frame noise (`body.perturb`): each joint rotation off by N(0, this^2) degrees.
+    The true fits go to gt/motion.npz. 0 (and fit_noise_cm 0): exact fits."""
+    fit_noise_cm: float = 0.0
+    """Per-frame noise of the written root translation, N(0, this^2) centimetres per axis."""
 
     def __post_init__(self) -> None:
         checks = [
@@ -83,6 +88,8 @@ class SynthConfig:
             (self.substeps >= 1 and self.iterations >= 1, "substeps and iterations must be >= 1"),
             (1 <= self.jpeg_quality <= 100, "jpeg_quality must be in [1, 100]"),
             (0 <= self.seed < 2**32, "seed must be in [0, 2^32)"),
+            (0 <= self.fit_noise_deg <= 30 and 0 <= self.fit_noise_cm <= 50,
+             "fit noise must be in [0, 30] degrees and [0, 50] cm"),
         ]
         for ok, msg in checks:
             if not ok:

@@ -1,0 +1,96 @@
+"""Per-frame body-pose refinement (a deviation from the paper, issue 13; `ModelConfig.pose_refine`).
+
+Real body fits are off by centimetres; an avatar trained on them blurs. Like HumanNeRF, InstantAvatar and GauHuman,
+we optimise small per-frame corrections of the body pose jointly with the avatar. They act on the joint transforms
+M_j(theta) (Eq. 1) of the training frames, so any body model works:
+
+    x_j = M_j c_j                       the posed centre of joint j (c_j: canonical centre, `body.joints`)
+    L_j = Rot(exp(delta_j)) about x_j   a small rotation of joint j about its centre (world-aligned axes)
+    D_root = Trans(tau) L_root,  D_j = D_parent(j) L_j      corrections compose down the kinematic tree
+    M'_j = D_j M_j
+
+so rotating a joint moves everything below it, like a change of that joint's angle. delta [T, J, 3] (axis-angle,
+radians) and tau [T, 3] (metres) start at zero for each of the T training frames and are pulled towards zero by
+L_pose = lambda_pose * (sum_j |delta_j|^2 + |tau / 0.1 m|^2), averaged over the batch's frames,. Frames the avatar was not trained on (frame id -1)
+are left as they are. The corrections live in the model's state, so `render` / `eval` of training frames use the
+refined poses.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+
+def _rodrigues(aa: torch.Tensor) -> torch.Tensor:
+    """[..., 3] axis-angle -> [..., 3, 3] rotation (exact at zero: first-order series below 1e-8 rad^2)."""
+    theta2 = (aa * aa).sum(-1, keepdim=True)[..., None]  # [..., 1, 1]
+    small = theta2 < 1e-8
+    theta = torch.sqrt(theta2.clamp_min(1e-8))
+    a = torch.where(small, 1 - theta2 / 6, torch.sin(theta) / theta)
+    b = torch.where(small, 0.5 - theta2 / 24, (1 - torch.cos(theta)) / theta2.clamp_min(1e-8))
+    x, y, z = aa.unbind(-1)
+    zero = torch.zeros_like(x)
+    K = torch.stack([zero, -z, y, z, zero, -x, -y, x, zero], -1).reshape(aa.shape[:-1] + (3, 3))
+    eye = torch.eye(3, dtype=aa.dtype, device=aa.device).expand(K.shape)
+    return eye + a * K + b * (K @ K)
+
+
+class PoseRefinement(nn.Module):
+    """Per-training-frame joint rotation and root translation corrections (see the module docstring)."""
+
+    def __init__(self, num_frames: int, parents: tuple[int, ...]):
+        super().__init__()
+        J = len(parents)
+        self.parents = tuple(int(p) for p in parents)
+        depth = [_depth(self.parents, j) for j in range(J)]
+        # joints grouped by tree depth, so the composition down the tree is one batched product per level
+        self.levels = [torch.tensor([j for j in range(J) if depth[j] == d]) for d in range(max(depth) + 1)]
+        self.delta = nn.Parameter(torch.zeros(num_frames, J, 3))  # [T, J, 3] axis-angle, radians
+        self.tau = nn.Parameter(torch.zeros(num_frames, 3))  # [T, 3] root translation, metres
+        self.register_buffer("centres", torch.zeros(J, 3))  # [J, 3] canonical joint centres c_j
+
+    def set_centres(self, centres: torch.Tensor) -> None:
+        """Store the canonical joint centres (`body.joints.joint_centres` of the training poses)."""
+        self.centres.copy_(centres.to(self.centres))
+
+    def forward(self, joint_transforms: torch.Tensor, frame_ids: torch.Tensor) -> torch.Tensor:
+        """[B, J, 4, 4] M_j and [B] training-frame ids (-1: not a training frame) -> [B, J, 4, 4] M'_j."""
+        train = frame_ids >= 0
+        if not bool(train.any()):
+            return joint_transforms
+        M = joint_transforms
+        ids = frame_ids.clamp_min(0)
+        dt = M.dtype
+        R = _rodrigues(self.delta[ids].to(dt))  # [B, J, 3, 3]
+        x = (M[..., :3, :3] @ self.centres.to(dt)[None, :, :, None])[..., 0] + M[..., :3, 3]  # [B, J, 3] x_j
+        t = x - (R @ x[..., None])[..., 0]  # [B, J, 3]: rotation about x_j
+        t = t + (torch.tensor([p < 0 for p in self.parents], device=M.device)[None, :, None]
+                 * self.tau[ids].to(dt)[:, None, :])  # the root's correction also translates by tau
+        Dr, Dtt = R, t  # [B, J, 3, 3], [B, J, 3]: D_j for the joints composed so far (the roots: L_root)
+        for level in self.levels[1:]:
+            lv = level.to(M.device)
+            par = torch.tensor([self.parents[j] for j in level.tolist()], device=M.device)
+            Rp, tp = Dr[:, par], Dtt[:, par]  # parents are one level up: already composed
+            Dr = Dr.index_copy(1, lv, Rp @ R[:, lv])
+            Dtt = Dtt.index_copy(1, lv, (Rp @ t[:, lv, :, None])[..., 0] + tp)
+        out_R = Dr @ M[..., :3, :3]
+        out_t = (Dr @ M[..., :3, 3:])[..., 0] + Dtt
+        refined = torch.cat([torch.cat([out_R, out_t[..., None]], -1), M[..., 3:, :]], -2)
+        return torch.where(train[:, None, None, None], refined, M)
+
+    def penalty(self, frame_ids: torch.Tensor) -> torch.Tensor:
+        """Mean over the batch's training frames of sum_j |delta_j|^2 + |tau / 0.1 m|^2 (radians^2; 0.1 m makes
+        1 cm weigh like 0.1 rad); zero when the batch has none."""
+        ids = frame_ids[frame_ids >= 0]
+        if not len(ids):
+            return self.delta.new_zeros(())
+        return ((self.delta[ids] ** 2).sum((-1, -2)) + ((self.tau[ids] / 0.1) ** 2).sum(-1)).mean()
+
+
+def _depth(parents: tuple[int, ...], j: int) -> int:
+    d = 0
+    while parents[j] >= 0:
+        j = parents[j]
+        d += 1
+    return d

@@ -1,0 +1,409 @@
+"""The export stage (`avatarctl export PROJECT`): a fitted avatar -> posed meshes and an animatable skinned glTF.
+
+Steps:
+1. load the fitted avatar (`stages.common.load_fitted`); choose the motion: the project's own frames (training frames
+   with the cVAE latent z = mu, novel ones with z = 0, as `render`) or a motion file (`--poses`, z = 0; any rig
+   `render --poses` takes, retargeted onto the avatar's body model when made for another: `motion_for_avatar`);
+2. posed meshes (`--frames`, default the first training frame / the motion file's first frame): the density field
+   of the frame sampled on a grid over the node supports, marching cubes at `threshold`, vertex colours baked by
+   rendering each vertex head-on along its normal (`export.mesh`); written as GLB / PLY / OBJ;
+3. the animatable avatar `avatar.glb`: one mesh extracted the same way in the canonical (rest) pose
+   (`export.mesh.rest_node_state`: M_j = identity, z = 0), skinning weights transferred from the body template
+   (inverse-distance blend of the 4 nearest template vertices, the 4 (or `influences` = 8) largest kept), the body
+   model's joints as a glTF node tree bound at their centres (`body.joints.joint_centres` over the project's
+   poses), and the motion (the project's frames, or `--poses`) as a glTF animation (`export.skinning`,
+   `export.gltf`);
+4. the reload check: `avatar.glb` is read back with pygltflib and skinned from the file's own data
+   (`export.gltf_read`), against our LBS (`body.lbs.lbs`) on sampled animation frames: the vertex error with the
+   exported 4 weights (file fidelity) and with the dense transferred weights (what truncation to 4 costs);
+5. with `--score`: every posed project frame rendered as a mesh (`export.raster`, unlit baked colours) and as the
+   volume (`render.engine.render_view`) in the held-out views, both scored against the same ground truth under the
+   eval `bbox` protocol with the one metrics module (`evaluate.metrics`);
+6. `export.json` (config, sizes, timings, reload errors, scores) and `preview.png` (ground truth | volume | mesh of
+   the first posed frame in the first held-out view) are written with the meshes into a temporary directory,
+   renamed into place (`atomic_dir`), and the stage is recorded.
+
+Frames of the files: PLY / OBJ in the capture's world frame (metres, the cameras' frame); GLB files rotated so the
+capture's up (estimated from the cameras) is glTF's +Y (`export.json` "glb_basis" holds the 3x3 rotation).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from avatarctl.errors import InputError
+from avatarctl.frames import select_frames
+from avatarctl.project import check_name, now_iso
+from avatarctl.stages.common import StageProgress, ProgressFn, check_latent_mode, frame_node_state, latent_for, \
+    load_fitted, motion_for_avatar, open_fitted
+
+SCHEMA_VERSION = 1
+FORMATS = ("glb", "ply", "obj")
+CHECK_FRAMES = 8  # animation frames of the reload check
+
+
+@dataclass(frozen=True)
+class ExportConfig:
+    """What `avatarctl export` writes. Saved in `export/<name>/export.json` and the manifest."""
+
+    name: str = "default"  # output folder export/<name>
+    frames: str | None = None  # posed meshes (see avatarctl.frames); None = the first training / motion frame
+    posed: bool = True  # write posed meshes
+    skinned: bool = True  # write the animatable avatar.glb
+    poses: str | None = None  # motion file: the posed frames and the animation; None = the project's frames
+    formats: tuple[str, ...] = ("glb", "ply")  # posed mesh files: glb | ply | obj
+    voxel: float = 0.008  # grid spacing, metres
+    threshold: float = 10.0  # density level of the surface, 1/metre (export.mesh.DEFAULT_THRESHOLD)
+    min_component: float = 0.01  # drop connected pieces with fewer than this fraction of the faces
+    influences: int = 4  # skinning weights per vertex in avatar.glb: 4 (JOINTS_0) or 8 (+ JOINTS_1)
+    latent: str = "auto"  # auto | mean | zero | sample (posed meshes; the rest mesh uses z = 0)
+    seed: int = 0
+    recenter: bool = True  # --poses: move the motion to where the avatar's first training frame stands
+    score: bool = False  # mesh vs volume PSNR of the posed project frames in the held-out views
+    device: str = "auto"
+    checkpoint: str | None = None
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "formats", tuple(dict.fromkeys(f.strip().lower().lstrip(".") for f in self.formats)))
+        check_name(self.name, "export name")
+        check_latent_mode(self.latent)
+        bad = [f for f in self.formats if f not in FORMATS]
+        if bad or not self.formats:
+            raise InputError(f"unknown mesh format(s) {bad or '(none)'}", where="--format",
+                             fix=f"use a comma list of {', '.join(FORMATS)}")
+        if not 0.001 <= self.voxel <= 0.1:
+            raise InputError(f"--voxel {self.voxel} m outside [0.001, 0.1]", where="--voxel", fix="e.g. --voxel 0.008")
+        if not self.threshold > 0:
+            raise InputError(f"--threshold must be > 0 (1/metre), got {self.threshold}", where="--threshold",
+                             fix="e.g. --threshold 10")
+        if not 0.0 <= self.min_component < 1.0:
+            raise InputError(f"min component fraction {self.min_component} outside [0, 1)", fix="e.g. 0.01")
+        if self.influences not in (4, 8):
+            raise InputError(f"--influences {self.influences}: glTF sets hold 4 weights", where="--influences",
+                             fix="use 4 (every viewer) or 8 (two sets; Blender, not three.js)")
+        if not (self.posed or self.skinned):
+            raise InputError("nothing to export (--no-posed and --no-skinned)", fix="drop one of them")
+        if self.score and (self.poses or not self.posed):
+            raise InputError("--score needs posed meshes of the project's frames", where="--score",
+                             fix="drop --poses / --no-posed, or drop --score")
+
+    def to_json(self) -> dict[str, Any]:
+        d = asdict(self)
+        d["formats"] = list(self.formats)
+        return {"schema_version": SCHEMA_VERSION, **d}
+
+
+@dataclass(frozen=True)
+class ExportedMesh:
+    frame: int
+    latent: str
+    files: dict[str, int]  # relative file -> bytes
+    vertices: int
+    faces: int
+    grid_points: int  # density evaluations (grid points inside a node support)
+    seconds: float
+
+
+@dataclass(frozen=True)
+class MeshScore:
+    """One (frame, view): the mesh and the volume render scored against the same ground truth (eval bbox)."""
+
+    frame: int
+    view: str
+    split: str  # novel_view (training frame) | novel_pose
+    psnr_mesh: float
+    psnr_volume: float
+    mesh_seconds: float
+    volume_seconds: float
+
+
+@dataclass(frozen=True)
+class SkinnedExport:
+    file: str
+    bytes: int
+    vertices: int
+    faces: int
+    joints: int
+    animation_frames: int
+    animation_source: str
+    seconds: float
+    trs_residual: float  # max |TRS - local joint matrix| (0 for rigid joint transforms)
+    weight_mass_dropped: float  # max weight mass lost by keeping `influences` weights per vertex
+    reload: dict[str, Any]  # the reload check (step 4): errors in metres, or the reason it was skipped
+
+
+@dataclass
+class ExportResult:
+    out_dir: Path
+    meshes: list[ExportedMesh]
+    avatar: SkinnedExport | None
+    scores: list[MeshScore]
+    seconds: float
+    checkpoint_step: int
+
+    def mean_psnr(self) -> tuple[float, float] | None:
+        if not self.scores:
+            return None
+        return (float(np.mean([s.psnr_mesh for s in self.scores])),
+                float(np.mean([s.psnr_volume for s in self.scores])))
+
+
+def run(project_dir: str | Path, cfg: ExportConfig, progress: ProgressFn | None = None) -> ExportResult:
+    """Run the export stage on `project_dir` (see the module docstring)."""
+    from avatarctl.atomic import atomic_dir, write_json
+    from avatarctl.render.trajectories import up_from_cameras
+
+    from avatarctl.export.skinning import up_to_y_basis
+
+    started = now_iso()
+    t_start = time.perf_counter()
+    project = open_fitted(project_dir, cfg.checkpoint, (), cfg.poses)
+    if "ply" in cfg.formats or "obj" in cfg.formats:
+        _require("trimesh", "writing .ply / .obj", "or use --format glb")
+    avatar = load_fitted(project, cfg.device, cfg.checkpoint)
+    cap = avatar.capture
+    basis = up_to_y_basis(up_from_cameras(list(cap.cameras.values())))
+    train_set = set(int(f) for f in avatar.train_frames)
+    retarget: str | None = None
+    if cfg.poses is None:
+        motion, source = cap.motion, "project"
+        pool = cap.frames
+        default = [min(train_set)] if train_set else pool[:1]
+    else:
+        (motion, retarget), source = motion_for_avatar(avatar, cfg.poses, cfg.recenter), str(cfg.poses)
+        pool = [int(f) for f in motion.frame_index]
+        default = pool[:1]
+    frames = (select_frames(cfg.frames, pool, train=cap.split.train_frames if cfg.poses is None else None,
+                            test=cap.split.test_frames if cfg.poses is None else None)
+              if cfg.frames is not None else default) if cfg.posed else []
+    total = len(frames) + int(cfg.skinned)
+    out_dir = project.paths.export(cfg.name)
+    meshes: list[ExportedMesh] = []
+    scores: list[MeshScore] = []
+    skinned: SkinnedExport | None = None
+    preview: list[np.ndarray] = []
+    t0 = time.perf_counter()
+
+    def report(part: str) -> None:
+        if progress is not None:
+            progress(StageProgress(stage="export", done=len(meshes) + int(skinned is not None), total=total,
+                                   seconds=time.perf_counter() - t0, part=part))
+
+    with atomic_dir(out_dir) as tmp:
+        for frame in frames:
+            is_train = cfg.poses is None and frame in train_set
+            latent = latent_for(cfg.latent, is_train)
+            one = motion.select(motion.rows_for([frame]))
+            state = frame_node_state(avatar, one, frame, is_train, latent, cfg.seed)
+            ts = time.perf_counter()
+            mesh, queried = _extract(avatar, state, cfg, f"frame {frame}")
+            files = _write_posed(tmp, frame, mesh, cfg.formats, basis)
+            meshes.append(ExportedMesh(frame=frame, latent=latent, files=files, vertices=mesh.num_vertices,
+                                       faces=mesh.num_faces, grid_points=queried,
+                                       seconds=round(time.perf_counter() - ts, 3)))
+            if cfg.score:
+                scores += _score(avatar, one, state, mesh, frame, is_train, preview if not preview else None)
+            elif not preview:
+                preview.append(_mesh_preview(avatar, mesh))
+            report("posed")
+        if cfg.skinned:
+            skinned = _export_skinned(tmp, avatar, cfg, motion if cfg.poses else cap.motion, source, basis)
+            report("skinned")
+        if preview:
+            from avatarctl.render.images import write_png
+
+            write_png(tmp / "preview.png", np.concatenate(preview, axis=1), None)
+        result = ExportResult(out_dir=out_dir, meshes=meshes, avatar=skinned, scores=scores,
+                              seconds=round(time.perf_counter() - t_start, 3), checkpoint_step=avatar.step)
+        write_json(tmp / "export.json", _record(cfg, avatar, result, basis, source, retarget))
+    project.record("export", config=cfg.to_json(), outputs=[out_dir], started=started,
+                   summary={"name": cfg.name, "meshes": len(meshes), "avatar": skinned.file if skinned else None,
+                            "checkpoint_step": avatar.step, "motion": source,
+                            **({"psnr_mesh": round(result.mean_psnr()[0], 3),
+                                "psnr_volume": round(result.mean_psnr()[1], 3)} if scores else {})})
+    return result
+
+
+def _require(module: str, what: str, alternative: str = "") -> None:
+    import importlib.util
+
+    if importlib.util.find_spec(module) is None:
+        raise InputError(f"{what} needs the `{module}` package", where="avatarctl[export]",
+                         fix=f"pip install 'avatarctl[export]' {alternative}".strip())
+
+
+def _extract(avatar: Any, state: Any, cfg: ExportConfig, what: str) -> tuple[Any, int]:
+    """The coloured mesh of frame slot 0 of `state` (export.mesh), a one-line error when there is no surface."""
+    from avatarctl.export.mesh import GridTooLargeError, NoSurfaceError, extract_mesh, slrf_density, slrf_ray_colour
+
+    model = avatar.model
+    try:
+        return extract_mesh(slrf_density(model, state), slrf_ray_colour(model, state),
+                            state.centers[0].detach().float().cpu().numpy(), float(model.cfg.support_radius),
+                            cfg.voxel, cfg.threshold, cfg.min_component)
+    except NoSurfaceError as e:
+        raise InputError(f"no surface to mesh for {what}: {e}", where="--threshold",
+                         fix="lower --threshold (or fit longer)") from None
+    except GridTooLargeError as e:
+        raise InputError(str(e), where="--voxel", fix="use a larger --voxel") from None
+
+
+def _in_basis(mesh: Any, basis: np.ndarray) -> Any:
+    from dataclasses import replace
+
+    C = basis.astype(np.float32)
+    return replace(mesh, vertices=mesh.vertices @ C.T, normals=mesh.normals @ C.T)
+
+
+def _write_posed(tmp: Path, frame: int, mesh: Any, formats: tuple[str, ...], basis: np.ndarray) -> dict[str, int]:
+    from avatarctl.export.gltf import write_mesh
+
+    (tmp / "meshes").mkdir(exist_ok=True)
+    files = {}
+    for fmt in formats:
+        rel = f"meshes/{frame:06d}.{fmt}"
+        write_mesh(tmp / rel, _in_basis(mesh, basis) if fmt == "glb" else mesh)
+        files[rel] = (tmp / rel).stat().st_size
+    return files
+
+
+def _mesh_preview(avatar: Any, mesh: Any) -> np.ndarray:
+    from avatarctl.export.raster import render_mesh
+
+    cap = avatar.capture
+    view = (cap.split.test_views or cap.split.train_views or list(cap.cameras))[0]
+    return render_mesh(mesh, cap.cameras[view].pinhole(), avatar.background).rgb
+
+
+def _score(avatar: Any, one: Any, state: Any, mesh: Any, frame: int, is_train: bool,
+           preview: list[np.ndarray] | None) -> list[MeshScore]:
+    """Step 5 for one frame over the held-out views; fills `preview` (gt | volume | mesh) from the first view."""
+    from avatarctl.evaluate.metrics import psnr
+    from avatarctl.evaluate.protocols import bbox_region, ground_truth
+    from avatarctl.export.raster import render_mesh
+    from avatarctl.render.engine import render_view
+
+    cap = avatar.capture
+    verts = avatar.body.pose(one).vertices[0].detach().float().cpu().numpy()
+    out = []
+    for view in cap.split.test_views:
+        cam = cap.cameras[view].pinhole()
+        region = bbox_region(cam, verts)
+        gt = ground_truth(cap.image(view, frame), cap.mask(view, frame), avatar.background)
+        ts = time.perf_counter()
+        mesh_img = render_mesh(mesh, cam, avatar.background).rgb
+        mesh_s = time.perf_counter() - ts
+        x0, y0, x1, y1 = region.crop
+        box = np.zeros((cam.height, cam.width), bool)
+        box[y0:y1, x0:x1] = True
+        vol = render_view(avatar.model, state, 0, cam, avatar.background, pixel_mask=box)
+        out.append(MeshScore(frame=frame, view=view, split="novel_view" if is_train else "novel_pose",
+                             psnr_mesh=round(psnr(mesh_img, gt, region.mask), 4),
+                             psnr_volume=round(psnr(vol.rgb, gt, region.mask), 4),
+                             mesh_seconds=round(mesh_s, 4), volume_seconds=round(vol.seconds, 4)))
+        if preview is not None and not preview:
+            preview += [region.crop_image(gt), region.crop_image(vol.rgb), region.crop_image(mesh_img)]
+    return out
+
+
+def _export_skinned(tmp: Path, avatar: Any, cfg: ExportConfig, motion: Any, source: str,
+                    basis: np.ndarray) -> SkinnedExport:
+    """Step 3 and 4: avatar.glb and its reload check."""
+    import torch
+
+    from avatarctl.body.joints import joint_centres, skin_weighted_centroids
+    from avatarctl.export import skinning
+    from avatarctl.export.gltf import Animation, SkinnedMesh, glb_bytes
+    from avatarctl.export.mesh import rest_node_state
+
+    ts = time.perf_counter()
+    mesh, _ = _extract(avatar, rest_node_state(avatar.model), cfg, "the rest pose")
+    tpl = avatar.template
+    dense = skinning.transfer_weights(mesh.vertices, tpl.vertices.cpu().numpy(), tpl.skin_weights.cpu().numpy())
+    weights = skinning.sparsify(dense, cfg.influences)
+    cap = avatar.capture
+    M_capture = _joint_transforms(avatar, cap.motion)  # [frames, J, 4, 4] the project's poses: pivots
+    M = M_capture if motion is cap.motion else _joint_transforms(avatar, motion)
+    fallback = skin_weighted_centroids(tpl.vertices.cpu(), tpl.skin_weights.cpu())
+    pivots = joint_centres(torch.from_numpy(M_capture), tpl.parents, fallback).numpy()  # [J, 3] canonical
+    pivots_y = pivots @ basis.T
+    M_y = skinning.conjugate(M, basis)
+    rest = skinning.rest_trs(pivots_y, tpl.parents)
+    ibm = np.tile(np.eye(4), (len(tpl.parents), 1, 1))
+    ibm[:, :3, 3] = -pivots_y
+    trs = skinning.local_trs(skinning.joint_globals(M_y, pivots_y), tpl.parents)
+    fps = float(motion.fps) if motion.fps > 0 else 30.0
+    times = (np.asarray(motion.frame_index, np.float64) - float(motion.frame_index[0])) / fps
+    if len(times) > 1 and not np.all(np.diff(times) > 0):
+        times = np.arange(len(times)) / fps
+    mesh_y = _in_basis(mesh, basis)
+    skin = SkinnedMesh(weights=weights, joint_names=tpl.joint_names, parents=tpl.parents, rest=rest, inverse_bind=ibm)
+    data = glb_bytes(mesh_y, skin, (Animation(name=Path(source).stem if source != "project" else "capture",
+                                              times=times, trs=trs),))
+    (tmp / "avatar.glb").write_bytes(data)
+    seconds = time.perf_counter() - ts
+    reload = _reload_check(tmp / "avatar.glb", mesh_y, weights, dense, M_y)
+    return SkinnedExport(file="avatar.glb", bytes=len(data), vertices=mesh.num_vertices, faces=mesh.num_faces,
+                         joints=len(tpl.parents), animation_frames=len(times), animation_source=source,
+                         seconds=round(seconds, 3), trs_residual=float(trs.residual),
+                         weight_mass_dropped=round(weights.dense_residual, 6), reload=reload)
+
+
+def _joint_transforms(avatar: Any, motion: Any, chunk: int = 64) -> np.ndarray:
+    """[frames, J, 4, 4] M_j(theta) of every row of `motion` (float64, world)."""
+    out = [avatar.body.pose(motion.select(slice(s, s + chunk))).joint_transforms.detach().double().cpu().numpy()
+           for s in range(0, motion.num_frames, chunk)]
+    return np.concatenate(out)
+
+
+def _reload_check(path: Path, mesh_y: Any, weights: Any, dense: np.ndarray, M_y: np.ndarray) -> dict[str, Any]:
+    """Step 4: max / mean vertex error (metres) of the file skinned by its own data vs our LBS."""
+    import importlib.util
+
+    if importlib.util.find_spec("pygltflib") is None:
+        return {"checked": False, "reason": "pygltflib not installed (pip install 'avatarctl[export]')"}
+    import torch
+
+    from avatarctl.body.lbs import lbs
+    from avatarctl.export.gltf_read import pose_glb, read_skinned_glb
+
+    data = read_skinned_glb(path)
+    rest_err = float(np.abs(pose_glb(data) - mesh_y.vertices).max()) if len(mesh_y.vertices) else 0.0
+    F = M_y.shape[0]
+    sel = sorted(set(np.linspace(0, F - 1, min(CHECK_FRAMES, F)).round().astype(int).tolist()))
+    v = torch.from_numpy(mesh_y.vertices.astype(np.float64))
+    w4 = torch.from_numpy(weights.dense(dense.shape[1]).astype(np.float64))
+    wd = torch.from_numpy(dense.astype(np.float64))
+    Ms = torch.from_numpy(M_y[sel])
+    ours4, ours_dense = lbs(v, w4, Ms).numpy(), lbs(v, wd, Ms).numpy()  # [checked, verts, 3]
+    theirs = np.stack([pose_glb(data, 0, f) for f in sel])
+    e4 = np.linalg.norm(theirs - ours4, axis=-1)
+    ed = np.linalg.norm(theirs - ours_dense, axis=-1)
+    return {"checked": True, "reader": "pygltflib + export.gltf_read (the glTF skinning equation on the file's data)",
+            "frames_checked": [int(f) for f in sel], "rest_max_m": rest_err,
+            "vs_lbs_same_weights_max_m": float(e4.max()), "vs_lbs_same_weights_mean_m": float(e4.mean()),
+            "vs_lbs_dense_weights_max_m": float(ed.max()), "vs_lbs_dense_weights_mean_m": float(ed.mean())}
+
+
+def _record(cfg: ExportConfig, avatar: Any, res: ExportResult, basis: np.ndarray, source: str,
+            retarget: str | None) -> dict[str, Any]:
+    import torch
+
+    mean = res.mean_psnr()
+    return {"config": cfg.to_json(), "checkpoint": str(avatar.checkpoint) if avatar.checkpoint else None,
+            "checkpoint_step": avatar.step, "motion_source": source, "retarget": retarget,
+            "surface": {"threshold_per_m": cfg.threshold, "voxel_m": cfg.voxel, "min_component": cfg.min_component,
+                        "colour": "volume render of a 4 cm ray segment (8 samples) looking at each vertex along -normal from "
+                                  "2 voxels outside, divided by its opacity (one view direction per vertex)"},
+            "glb_basis": basis.tolist(), "ply_obj_frame": "capture world (metres)",
+            "meshes": [asdict(m) for m in res.meshes], "avatar": asdict(res.avatar) if res.avatar else None,
+            "scores": [asdict(s) for s in res.scores],
+            "score_mean": {"psnr_mesh": mean[0], "psnr_volume": mean[1], "protocol": "bbox (eval), held-out views",
+                           "mesh_render": "unlit baked vertex colours, 1 ray per pixel"} if mean else None,
+            "timing": {"seconds": res.seconds, "device": str(avatar.device), "torch_threads": torch.get_num_threads()},
+            "created": now_iso()}

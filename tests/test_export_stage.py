@@ -1,0 +1,97 @@
+"""`avatarctl export` on a fitted toy-sphere project: files, record, reload check, other outputs untouched, errors."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+
+import numpy as np
+import pytest
+
+from avatarctl.errors import InputError
+from avatarctl.project import Project
+
+FAST = dict(voxel=0.03, threshold=0.3, device="cpu")  # a 10-step toy fit is faint: a low surface level
+
+
+
+def _digest(path) -> str:
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def test_export_writes_meshes_skinned_avatar_and_record(toy_fitted_project):
+    from avatarctl.stages import export
+    from avatarctl.stages.export import ExportConfig
+
+    ckpt = Project.open(toy_fitted_project).paths.latest_checkpoint
+    before = _digest(ckpt)
+    seen = []
+    res = export.run(toy_fitted_project, ExportConfig(frames="0,3", formats=("glb", "ply"), score=True, **FAST),
+                     progress=seen.append)
+    out = res.out_dir
+    assert [m.frame for m in res.meshes] == [0, 3] and [m.latent for m in res.meshes] == ["mean", "zero"]
+    for m in res.meshes:
+        assert m.vertices > 100 and m.faces > 100
+        assert all((out / f).stat().st_size == b for f, b in m.files.items())
+    assert (out / "avatar.glb").is_file() and (out / "preview.png").is_file()
+    rec = json.loads((out / "export.json").read_text())
+    assert rec["config"]["formats"] == ["glb", "ply"] and rec["avatar"]["joints"] == 2
+    assert rec["avatar"]["animation_frames"] == 4 and rec["avatar"]["animation_source"] == "project"
+    reload = rec["avatar"]["reload"]
+    if reload["checked"]:  # pygltflib installed
+        assert reload["vs_lbs_same_weights_max_m"] < 1e-5 and reload["rest_max_m"] < 1e-5
+    assert {s.split for s in res.scores} == {"novel_view", "novel_pose"} and len(res.scores) == 4
+    assert all(np.isfinite([s.psnr_mesh, s.psnr_volume]).all() for s in res.scores)
+    assert Project.open(toy_fitted_project).manifest.stages[-1].stage == "export"
+    assert _digest(ckpt) == before, "the fit is untouched"
+    assert seen[-1].stage == "export" and seen[-1].done == seen[-1].total == 3
+
+
+def test_export_with_a_motion_file_animates_it(toy_fitted_project, tmp_path):
+    from fixtures.toy_capture import toy_motion
+
+    from avatarctl.stages import export
+    from avatarctl.stages.export import ExportConfig
+
+    toy_motion(7).save(tmp_path / "walk.npz")
+    res = export.run(toy_fitted_project, ExportConfig(name="walk", poses=str(tmp_path / "walk.npz"), frames="6",
+                                               formats=("obj",), **FAST))
+    assert res.avatar.animation_frames == 7 and res.avatar.animation_source.endswith("walk.npz")
+    assert [m.latent for m in res.meshes] == ["zero"] and (res.out_dir / "meshes" / "000006.obj").is_file()
+
+
+@pytest.mark.parametrize("kw, match", [
+    (dict(formats=("fbx",)), "unknown mesh format"),
+    (dict(voxel=0.5), "--voxel"),
+    (dict(threshold=0.0), "--threshold"),
+    (dict(influences=5), "--influences"),
+    (dict(posed=False, skinned=False), "nothing to export"),
+    (dict(poses="x.npz", score=True), "--score needs"),
+    (dict(name="a/b"), "invalid export name"),
+])
+def test_config_errors(kw, match):
+    from avatarctl.errors import AvatarError
+    from avatarctl.stages.export import ExportConfig
+
+    with pytest.raises(AvatarError, match=match):
+        ExportConfig(**kw)
+
+
+def test_no_surface_is_a_one_line_error_and_writes_nothing(toy_fitted_project):
+    from avatarctl.stages import export
+    from avatarctl.stages.export import ExportConfig
+
+    with pytest.raises(InputError, match="no surface to mesh for frame 0.*lower --threshold"):
+        export.run(toy_fitted_project, ExportConfig(name="high", voxel=0.03, threshold=1e6, device="cpu"))
+    assert not (toy_fitted_project / "export" / "high").exists()
+
+
+def test_cli_errors_exit_non_zero_without_traceback(toy_fitted_project, tmp_path):
+    from typer.testing import CliRunner
+
+    from avatarctl.cli.app import app
+
+    r = CliRunner().invoke(app, ["export", str(toy_fitted_project), "--poses", str(tmp_path / "missing.npz")])
+    assert r.exit_code == 2 and "motion file not found" in r.output and "Traceback" not in r.output
+    r = CliRunner().invoke(app, ["export", str(tmp_path / "nowhere")])
+    assert r.exit_code != 0 and "Traceback" not in r.output

@@ -1,0 +1,205 @@
+"""The viewer: camera convention of a request, progressive rendering (preview, full, cancellation), the render
+callback on a fitted toy project, and (marked `browser`, skipped without Chromium / viser) the page itself."""
+
+from __future__ import annotations
+
+import threading
+import time
+
+import numpy as np
+import pytest
+
+from avatarctl.geometry.cameras import Camera, look_at
+from avatarctl.viewer.progressive import Cancelled, ProgressiveRenderer, ViewRequest
+from avatarctl.viewer.session import request_camera
+
+
+def _wxyz(R_wc: np.ndarray) -> tuple[float, float, float, float]:
+    from avatarctl.export.skinning import matrix_to_quaternion
+
+    x, y, z, w = matrix_to_quaternion(R_wc)
+    return (w, x, y, z)
+
+
+def request_looking_at(eye, target, up=(0, 0, 1.0), resolution=64, aspect=4 / 3, frame=0, latent="auto"):
+    R, _ = look_at(np.asarray(eye, float), np.asarray(target, float), np.asarray(up, float))
+    return ViewRequest(wxyz=_wxyz(R.T), position=tuple(float(c) for c in eye), fov_y=0.8, aspect=aspect,
+                       frame=frame, latent=latent, resolution=resolution)
+
+
+def test_request_camera_follows_opencv_and_the_fov():
+    req = request_looking_at((0, -2.0, 0.5), (0, 0, 0.5), resolution=80)
+    cam = request_camera(req)
+    assert (cam.width, cam.height) == (80, 60)
+    assert np.allclose(cam.center, [0, -2.0, 0.5])
+    assert np.allclose(cam.project(np.array([[0, 0, 0.5]])), [[39.5, 29.5]]), "the target at the image centre"
+    top = cam.project(np.array([[0, 0, 0.5 + 2.0 * np.tan(0.4)]]))[0]
+    assert top[1] == pytest.approx(-0.5, abs=1e-6), "half the vertical fov reaches the top edge; image y down"
+    assert request_camera(request_looking_at((0, -2, 0), (0, 0, 0), resolution=80, aspect=0.5)).height == 80
+
+
+def test_progressive_preview_then_full_and_cancel():
+    calls, shown = [], []
+    gate = threading.Event()
+
+    def render(req: ViewRequest, should_stop) -> np.ndarray:
+        calls.append(req.resolution)
+        if req.resolution == 400 and not gate.is_set():  # a slow full render, abandoned by a newer request
+            for _ in range(200):
+                if should_stop():
+                    raise Cancelled()
+                time.sleep(0.005)
+        return np.zeros((req.resolution, req.resolution, 3), np.uint8)
+
+    pr = ProgressiveRenderer(render, lambda img, req, full: shown.append((img.shape[0], full)), preview_scale=0.25,
+                             settle_s=0.1)
+    try:
+        req = request_looking_at((0, -2, 0), (0, 0, 0), resolution=400)
+        pr.update(req)
+        time.sleep(0.15)  # the full render starts after 0.1 s of rest ...
+        pr.update(req)  # ... and a new request cancels it
+        gate.set()
+        deadline = time.monotonic() + 5
+        while (400, True) not in shown and time.monotonic() < deadline:
+            time.sleep(0.01)
+    finally:
+        pr.stop()
+    assert shown[0] == (100, False), "a preview at a quarter of the resolution first"
+    assert shown[-1] == (400, True), "full resolution once still"
+    assert calls.count(400) >= 2 and shown.count((400, True)) == 1, "the first full render was abandoned"
+
+
+
+def test_a_stream_of_requests_still_shows_previews():
+    """Play / a long drag: requests every 10 ms, previews take 40 ms: previews keep coming, full only at rest."""
+    shown = []
+
+    def render(req: ViewRequest, should_stop) -> np.ndarray:
+        time.sleep(0.04)
+        return np.zeros((req.resolution, 1, 3), np.uint8)
+
+    pr = ProgressiveRenderer(render, lambda img, req, full: shown.append((req.frame, full)), settle_s=0.1)
+    try:
+        for k in range(40):
+            pr.update(request_looking_at((0, -2, 0), (0, 0, 0), resolution=64, frame=k))
+            time.sleep(0.01)
+        streamed = list(shown)
+        deadline = time.monotonic() + 5
+        while (39, True) not in shown and time.monotonic() < deadline:
+            time.sleep(0.01)
+    finally:
+        pr.stop()
+    assert len(streamed) >= 4 and not any(full for _, full in streamed), "previews while the requests flow"
+    assert shown[-1] == (39, True), "the last request at full quality once they stop"
+
+
+def test_render_callback_draws_the_avatar(toy_fitted_project):
+    from avatarctl.stages.view import ViewConfig, prepare
+
+    setup = prepare(toy_fitted_project, ViewConfig(device="cpu", latent="mean"))
+    s = setup.session
+    assert [f.source for f in s.frames] == ["train", "train", "train", "test"]
+    eye = np.asarray(setup.initial.position)
+    req = request_looking_at(eye, setup.initial.look_at, setup.initial.up, resolution=48)
+    img = s.render(req)
+    assert img.shape == (36, 48, 3) and img.dtype == np.uint8
+    centre, corner = img[12:24, 18:30].astype(float).mean(), img[:4, :4].astype(float).mean()
+    assert centre > corner + 1, "the avatar is drawn in the middle"
+    novel = s.render(request_looking_at(eye, setup.initial.look_at, setup.initial.up, resolution=48, frame=3))
+    assert novel.shape == img.shape, "'mean' on a test frame falls back to z = 0 instead of failing"
+    with pytest.raises(Cancelled):
+        s.render(req, should_stop=lambda: True)
+
+
+def test_a_motion_file_becomes_the_frame_list(toy_fitted_project, tmp_path):
+    from fixtures.toy_capture import toy_motion
+
+    from avatarctl.stages.view import ViewConfig, prepare
+
+    toy_motion(5).save(tmp_path / "walk.npz")
+    setup = prepare(toy_fitted_project, ViewConfig(device="cpu", poses=str(tmp_path / "walk.npz")))
+    assert [f.source for f in setup.session.frames] == ["motion"] * 5
+    req = request_looking_at(setup.initial.position, setup.initial.look_at, setup.initial.up, resolution=32, frame=4)
+    assert setup.session.render(req).shape == (24, 32, 3)
+
+
+@pytest.mark.browser
+def test_viewer_page_in_headless_chromium(toy_fitted_project, tmp_path):
+    pytest.importorskip("viser")
+    from fixtures.browser import Browser, find_chromium, free_port
+
+    if find_chromium() is None:
+        pytest.skip("no chromium / chrome on this machine")
+    from avatarctl.stages import view
+    from avatarctl.stages.view import ViewConfig
+
+    stop, urls, errors = threading.Event(), [], []
+
+    def serve():
+        try:
+            view.run(toy_fitted_project, ViewConfig(port=free_port(), resolution=128, device="cpu"), ready=urls.append,
+                     stop=stop)
+        except BaseException as e:  # noqa: BLE001 - reported by the test
+            errors.append(e)
+
+    th = threading.Thread(target=serve, daemon=True)
+    th.start()
+    browser = None
+    try:
+        deadline = time.monotonic() + 60
+        while not urls and not errors and time.monotonic() < deadline:
+            time.sleep(0.1)
+        assert urls, f"viewer did not start: {errors}"
+        browser = Browser(640, 480)
+        browser.open(urls[0])
+        drawn = None
+        while time.monotonic() < deadline:
+            time.sleep(1.0)
+            shot = browser.screenshot()
+            # the avatar: the centre of the page differs from the fit background (black) of the corners
+            centre, corner = shot[200:280, 280:360].astype(float).mean(), shot[400:470, 100:200].astype(float).mean()
+            if centre > corner + 10:
+                drawn = shot
+                break
+        assert drawn is not None, "no avatar in the page's screenshot"
+        import cv2
+
+        cv2.imwrite(str(tmp_path / "viewer.png"), drawn[..., ::-1])
+    finally:
+        if browser is not None:
+            browser.close()
+        stop.set()
+        th.join(10)
+    assert not th.is_alive() and not errors, "the viewer stops cleanly"
+
+
+def test_cli_prints_the_url_and_stops_cleanly_on_ctrl_c(toy_fitted_project):
+    pytest.importorskip("viser")
+    import os
+    import signal
+    import subprocess
+    import sys
+
+    from fixtures.browser import free_port
+
+    env = {**os.environ, "PYTHONUNBUFFERED": "1", "COLUMNS": "200"}
+    proc = subprocess.Popen([sys.executable, "-m", "avatarctl.cli.app", "view", str(toy_fitted_project), "--device", "cpu",
+                             "--port", str(free_port())], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                            env=env)
+    lines = []
+    try:
+        deadline = time.monotonic() + 90
+        while time.monotonic() < deadline:
+            line = proc.stdout.readline()
+            if not line:
+                break
+            lines.append(line)
+            if "viewer ready" in line:
+                break
+        assert any("viewer ready: http://localhost:" in s for s in lines), "".join(lines)
+        proc.send_signal(signal.SIGINT)
+        out, _ = proc.communicate(timeout=30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 0 and "viewer stopped" in out and "Traceback" not in out, out
