@@ -123,7 +123,10 @@ class SlrfAvatar(nn.Module):
             from avatarctl.body.joints import skin_weighted_centroids
             from avatarctl.model.pose_refine import PoseRefinement
 
-            self.pose_refine = PoseRefinement(num_frames, template.parents)
+            from avatarctl.model.pose_refine import subtree_share
+
+            self.pose_refine = PoseRefinement(num_frames, template.parents, active=subtree_share(
+                weights, template.parents) >= cfg.pose_refine_min_share)
             # a rough start; the fit replaces it with centres solved from the training poses (set_centres)
             self.pose_refine.set_centres(skin_weighted_centroids(template.vertices.detach().float(), weights))
         if cfg.variant == "slrf":

@@ -81,6 +81,7 @@ class ModelConfig:
     # per-frame body-pose refinement (deviation when on, see model/pose_refine.py; issue 13)
     pose_refine: bool = False  # optimise per-training-frame joint rotations / root translation with the avatar
     lambda_pose: float = 10.0  # weight of the refinement penalty (sum over joints of |delta|^2 + |tau / 0.1 m|^2)
+    pose_refine_min_share: float = 0.04  # refine joints whose subtree carries >= this share of the skinning weight
     # pose condition (Eq. 8)
     pose_attention_hops: int = 2
     # ablations
@@ -127,6 +128,8 @@ class ModelConfig:
         need(self.latent in LATENTS, f"latent must be one of {LATENTS}, got {self.latent!r}")
         need(self.variant in VARIANTS, f"variant must be one of {VARIANTS}, got {self.variant!r}")
         need(self.density_scale > 0, f"density_scale must be > 0, got {self.density_scale}")
+        need(0.0 <= self.pose_refine_min_share < 1.0,
+             f"pose_refine_min_share must be in [0, 1), got {self.pose_refine_min_share}")
         need(self.occ_threshold >= 0, f"occ_threshold must be >= 0 (density, 1/metre), got {self.occ_threshold}")
         need(0.0 <= self.occ_decay <= 1.0, f"occ_decay must be in [0, 1], got {self.occ_decay}")
         need(0.0 <= self.occ_explore <= 1.0, f"occ_explore must be in [0, 1], got {self.occ_explore}")

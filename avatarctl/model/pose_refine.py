@@ -12,7 +12,9 @@ M_j(theta) (Eq. 1) of the training frames, so any body model works:
 so rotating a joint moves everything below it, like a change of that joint's angle. delta [T, J, 3] (axis-angle,
 radians) and tau [T, 3] (metres) start at zero for each of the T training frames and are pulled towards zero by
 L_pose = lambda_pose * (sum_j |delta_j|^2 + |tau / 0.1 m|^2), averaged over the batch's frames,. Frames the avatar was not trained on (frame id -1)
-are left as they are. The corrections live in the model's state, so `render` / `eval` of training frames use the
+are left as they are. Only joints whose subtree (the joint and its descendants) carries at least
+`ModelConfig.pose_refine_min_share` of the template's skinning weight are refined (anny's fingers, toes and face bones are too small in the images to correct and only
+drift); the others keep delta = 0. The corrections live in the model's state, so `render` / `eval` of training frames use the
 refined poses.
 """
 
@@ -39,7 +41,7 @@ def _rodrigues(aa: torch.Tensor) -> torch.Tensor:
 class PoseRefinement(nn.Module):
     """Per-training-frame joint rotation and root translation corrections (see the module docstring)."""
 
-    def __init__(self, num_frames: int, parents: tuple[int, ...]):
+    def __init__(self, num_frames: int, parents: tuple[int, ...], active: torch.Tensor | None = None):
         super().__init__()
         J = len(parents)
         self.parents = tuple(int(p) for p in parents)
@@ -49,6 +51,8 @@ class PoseRefinement(nn.Module):
         self.delta = nn.Parameter(torch.zeros(num_frames, J, 3))  # [T, J, 3] axis-angle, radians
         self.tau = nn.Parameter(torch.zeros(num_frames, 3))  # [T, 3] root translation, metres
         self.register_buffer("centres", torch.zeros(J, 3))  # [J, 3] canonical joint centres c_j
+        # [J] joints whose rotation is refined (the others keep delta = 0: too few pixels to correct them)
+        self.register_buffer("active", torch.ones(J, dtype=torch.bool) if active is None else active.bool().clone())
 
     def set_centres(self, centres: torch.Tensor) -> None:
         """Store the canonical joint centres (`body.joints.joint_centres` of the training poses)."""
@@ -62,7 +66,7 @@ class PoseRefinement(nn.Module):
         M = joint_transforms
         ids = frame_ids.clamp_min(0)
         dt = M.dtype
-        R = _rodrigues(self.delta[ids].to(dt))  # [B, J, 3, 3]
+        R = _rodrigues((self.delta[ids] * self.active[:, None]).to(dt))  # [B, J, 3, 3]
         x = (M[..., :3, :3] @ self.centres.to(dt)[None, :, :, None])[..., 0] + M[..., :3, 3]  # [B, J, 3] x_j
         t = x - (R @ x[..., None])[..., 0]  # [B, J, 3]: rotation about x_j
         t = t + (torch.tensor([p < 0 for p in self.parents], device=M.device)[None, :, None]
@@ -85,7 +89,17 @@ class PoseRefinement(nn.Module):
         ids = frame_ids[frame_ids >= 0]
         if not len(ids):
             return self.delta.new_zeros(())
-        return ((self.delta[ids] ** 2).sum((-1, -2)) + ((self.tau[ids] / 0.1) ** 2).sum(-1)).mean()
+        return (((self.delta[ids] * self.active[:, None]) ** 2).sum((-1, -2)) + ((self.tau[ids] / 0.1) ** 2).sum(-1)).mean()
+
+
+def subtree_share(skin_weights: torch.Tensor, parents: tuple[int, ...]) -> torch.Tensor:
+    """[V, J] template skinning weights -> [J] share of the total weight carried by each joint and its descendants
+    (what a rotation of that joint moves)."""
+    sub = skin_weights.double().sum(0)
+    for j in sorted(range(len(parents)), key=lambda j: -_depth(parents, j)):  # children before parents
+        if parents[j] >= 0:
+            sub[parents[j]] += sub[j]
+    return (sub / skin_weights.double().sum()).to(skin_weights.dtype)
 
 
 def _depth(parents: tuple[int, ...], j: int) -> int:
