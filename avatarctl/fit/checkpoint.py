@@ -86,8 +86,9 @@ def read_checkpoint(path: Path, device: str | torch.device = "cpu") -> dict[str,
                            fix="run `avatarctl fit PROJECT` (or pass an existing checkpoint file)")
     try:
         ckpt = torch.load(path, map_location=device, weights_only=True)
-    except Exception as e:  # corrupt file, foreign pickle, truncated download
-        raise ProjectError(f"cannot read fit checkpoint ({type(e).__name__}: {str(e).splitlines()[0][:120]})",
+    except Exception as e:  # corrupt file, foreign pickle, truncated download, empty file
+        detail = " ".join(str(e).split())[:120] or "empty or cut-off file"
+        raise ProjectError(f"cannot read fit checkpoint ({type(e).__name__}: {detail})",
                            where=str(path), fix="use another checkpoint or re-run `avatarctl fit`") from None
     if not isinstance(ckpt, dict) or ckpt.get("format") != FORMAT:
         raise ProjectError("not an avatarctl fit checkpoint", where=str(path), fix="pass a file from fit/checkpoints/")

@@ -31,6 +31,8 @@ from avatarctl.errors import InputError
 # body-model family a motion file drives; SMPL+H (AMASS "G") drives an SMPL avatar (same body skeleton).
 MOTION_KINDS = ("anny", "smpl", "smplh", "smplx")
 _FAMILY = {"anny": "anny", "smpl": "smpl", "smplh": "smpl", "smplx": "smplx"}
+_MOTION_FOR = {"anny": "(an anny motion.npz as written by `avatarctl synth`)", "smpl": "(an AMASS npz for SMPL/SMPL+H)",
+               "smplx": "(an AMASS npz for SMPL-X)", "toy": "(a BodyMotion npz of the toy body, e.g. ingest/body.npz)"}
 
 
 def detect_motion_kind(keys: set[str], arrays: dict[str, np.ndarray], where: str) -> str:
@@ -88,9 +90,7 @@ def read_motion_file(path: str | Path, body_model: str) -> BodyMotion:
     family = _FAMILY[kind]
     if family != body_model:
         raise InputError(f"motion file is for the {_describe(kind)} body model but the avatar uses {body_model}",
-                         where=where, fix=f"pass a {body_model} motion "
-                         + ("(an anny motion.npz as written by `avatarctl synth`)" if body_model == "anny"
-                            else "(an AMASS npz for " + ("SMPL/SMPL+H" if body_model == "smpl" else "SMPL-X") + ")"))
+                         where=where, fix=f"pass a {body_model} motion " + _MOTION_FOR[body_model])
     try:
         if "body_model" in arrays or kind == "anny":
             motion = _read_body_motion(arrays)
