@@ -59,6 +59,21 @@ def _json_default(o: Any) -> Any:
     raise TypeError(f"not JSON serialisable: {type(o).__name__}")
 
 
+def remove_stale_temps(folder: str | os.PathLike) -> list[Path]:
+    """Delete the temporary files / folders `atomic_path` and `atomic_dir` leave in `folder` when the process is
+    killed before the rename (`.<name>.tmp-*`). Only for a folder that a single process writes (a project's
+    checkpoints while it is being fitted): another writer's in-flight temporary would be deleted too."""
+    removed = []
+    for p in Path(folder).glob(".*.tmp-*"):
+        if p.is_dir():
+            shutil.rmtree(p, ignore_errors=True)
+        else:
+            with contextlib.suppress(FileNotFoundError):
+                p.unlink()
+        removed.append(p)
+    return removed
+
+
 @contextlib.contextmanager
 def atomic_dir(dest: str | os.PathLike) -> Iterator[Path]:
     """Build a whole directory in a temporary sibling and rename it onto `dest` at the end.

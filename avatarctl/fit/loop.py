@@ -31,7 +31,7 @@ from typing import TYPE_CHECKING, Any, Callable, Iterator
 
 import torch
 
-from avatarctl.atomic import write_json, write_text
+from avatarctl.atomic import remove_stale_temps, write_json, write_text
 from avatarctl.device import resolve_device
 from avatarctl.errors import AvatarError, InputError, ProjectError
 from avatarctl.fit.config import FitConfig, config_summary
@@ -214,6 +214,7 @@ def fit(project: Project, cfg: FitConfig | None = None, *, device: str = "auto",
             for p in list(paths.checkpoints.glob("*.pt")) + [paths.fit_log]:
                 p.unlink(missing_ok=True)
     assert cfg is not None
+    remove_stale_temps(paths.checkpoints)  # torn writes of a killed run (never `latest.pt` itself: renames are atomic)
     start_step = int(ckpt["step"]) if ckpt is not None else 0
     write_json(paths.fit_config, cfg.to_json())
 

@@ -1,0 +1,258 @@
+"""Issue 15: crashes are survivable and nothing is lost.
+
+- `kill -9` of `avatarctl fit` at random moments and in the middle of checkpoint writes: every checkpoint left on
+  disk reads back (none is torn, `latest.pt` is never a partial file), and `fit --resume` (or a plain `fit` when no
+  checkpoint was written yet) ends with parameters bitwise equal to an uninterrupted run of the same steps. The fit
+  loop checkpoints the model, Adam, the scheduler and all three RNG streams, and the toy run uses one CPU thread, so
+  bitwise equality is what it promises (docs/reliability.md).
+- `kill -9` of `ingest`, `render`, `eval`: the output is either absent or complete (they build it in a temporary
+  sibling and rename it at the end), and running the command again succeeds.
+- a full disk during a checkpoint write: a one-line error (exit 74), the previous checkpoint intact, resumable.
+
+The fast suite runs 2 fit kills and the disk-full test; `python -m benchmarks.kill_trials` (AVATARCTL_SOAK=1) adds
+20 fit kills and 3 kills of each other stage (subprocesses with the toy body: ~10 s a trial, kill + resume, most
+of it Python start-up and imports).
+"""
+
+from __future__ import annotations
+
+import errno
+import hashlib
+import io
+import os
+import random
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import pytest
+import torch
+from fixtures.toy_capture import make_toy_project
+from typer.testing import CliRunner
+
+from avatarctl.cli.app import app
+
+REPO = Path(__file__).resolve().parents[1]
+ITERS = 20
+FIT_ARGS = ["--preset", "micro", "--iters", str(ITERS), "--device", "cpu", "--set", "checkpoint_every=1",
+            "--set", "val_every=0", "--set", "log_every=1", "--set", "keep_checkpoints=2"]
+
+
+# ~6 min on 2 shared cores: run with `python -m benchmarks.kill_trials` (sets the variable) or AVATARCTL_SOAK=1
+SOAK = pytest.mark.skipif(os.environ.get("AVATARCTL_SOAK") != "1", reason="kill trials: python -m benchmarks.kill_trials")
+
+
+def _cmd(*args: str) -> list[str]:
+    return [sys.executable, "-m", "avatarctl.cli.app", *args]
+
+
+def _env() -> dict[str, str]:
+    return {**os.environ, "PYTHONPATH": str(REPO), "OMP_NUM_THREADS": "1", "AVATARCTL_DEBUG": "0"}
+
+
+def _run(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run(_cmd(*args), env=_env(), capture_output=True, text=True, timeout=300)
+
+
+def _kill(args: list[str], at: float | None = None, watch: Path | None = None, nth: int = 1) -> bool:
+    """Run `avatarctl *args` and SIGKILL it `at` seconds after the start, or as soon as the `nth` distinct temporary
+    file (`.*.tmp-*`) is seen in `watch`. Returns False when it finished before that."""
+    proc = subprocess.Popen(_cmd(*args), env=_env(), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    t0, seen = time.perf_counter(), set()
+    while proc.poll() is None:
+        if at is not None and time.perf_counter() - t0 >= at:
+            break
+        if watch is not None and watch.is_dir():
+            seen.update(p.name for p in watch.glob(".*.tmp-*"))
+            if len(seen) >= nth:
+                break
+        time.sleep(0.001)
+    if proc.poll() is not None:
+        return False
+    os.kill(proc.pid, signal.SIGKILL)
+    proc.wait()
+    return True
+
+
+def _sha(path: Path) -> str:
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+@pytest.fixture(scope="module")
+def toy(tmp_path_factory) -> dict[str, Path]:
+    root = tmp_path_factory.mktemp("crash")
+    cap, proj = make_toy_project(root)
+    return {"root": root, "capture": cap, "project": proj}
+
+
+@dataclass
+class Reference:
+    model: dict[str, torch.Tensor]
+    seconds: float  # wall time of the uninterrupted run (start-up included)
+
+
+@pytest.fixture(scope="module")
+def reference(toy) -> Reference:
+    from avatarctl.fit.checkpoint import read_checkpoint
+
+    proj = toy["root"] / "reference"
+    shutil.copytree(toy["project"], proj)
+    t0 = time.perf_counter()
+    res = _run("fit", str(proj), *FIT_ARGS)
+    assert res.returncode == 0, res.stderr
+    ckpt = read_checkpoint(proj / "fit" / "checkpoints" / "latest.pt")
+    assert ckpt["step"] == ITERS
+    return Reference(model=ckpt["model"], seconds=time.perf_counter() - t0)
+
+
+def _fit_trial(toy, ref: Reference, tmp: Path, kind: str, rng: random.Random) -> dict:
+    """One kill + resume; asserts the invariants, returns what happened."""
+    from avatarctl.fit.checkpoint import read_checkpoint
+
+    proj = tmp / "proj"
+    shutil.copytree(toy["project"], proj)
+    ckdir = proj / "fit" / "checkpoints"
+    if kind == "write":  # during (or right after) the write of a random checkpoint
+        # two temporary files a step (step_<n>.pt, then latest.pt); from the 3rd on, step 1 is complete on disk
+        killed = _kill(["fit", str(proj), *FIT_ARGS], watch=ckdir, nth=rng.randint(3, 2 * ITERS - 1))
+    else:  # a random moment between start-up and the end of the uninterrupted run
+        killed = _kill(["fit", str(proj), *FIT_ARGS], at=rng.uniform(0.3, 1.0) * ref.seconds)
+    torn = sorted(p.name for p in ckdir.glob(".*.tmp-*")) if ckdir.is_dir() else []
+    # no checkpoint on disk is torn: every step file and latest.pt read back
+    steps = [read_checkpoint(p)["step"] for p in sorted(ckdir.glob("[!.]*.pt"))] if ckdir.is_dir() else []
+    latest = ckdir / "latest.pt"
+    at_step = read_checkpoint(latest)["step"] if latest.exists() else None
+    res = _run("fit", str(proj), "--resume", "--device", "cpu") if latest.exists() else \
+        _run("fit", str(proj), *FIT_ARGS)
+    assert res.returncode == 0, res.stderr
+    final = read_checkpoint(latest)
+    assert final["step"] == ITERS
+    diff = [k for k, v in ref.model.items() if not torch.equal(v, final["model"][k])]
+    assert not diff, f"resumed from step {at_step}: parameters differ from the uninterrupted run: {diff[:5]}"
+    assert not list(ckdir.glob(".*.tmp-*")), "a stale temporary checkpoint survived the resumed run"
+    return {"kind": kind, "killed": killed, "mid_write": bool(torn), "resumed_from": at_step, "files": len(steps)}
+
+
+def _fit_trials(toy, ref, tmp_path, kinds: list[str], seed: int, max_runs: int | None = None) -> list[dict]:
+    """Trials of `kinds` in turn until len(kinds) runs were killed (a random-time kill may come after a run ended
+    under a lighter load than the reference had; that run counts, but not as a kill) or `max_runs` runs were made."""
+    rng = random.Random(seed)
+    trials: list[dict] = []
+    while sum(t["killed"] for t in trials) < len(kinds) and len(trials) < (max_runs or len(kinds)):
+        kind = kinds[len(trials) % len(kinds)]
+        trials.append(_fit_trial(toy, ref, tmp_path / f"t{len(trials)}", kind, rng))
+    return trials
+
+
+def test_killed_fit_resumes_bitwise(toy, reference, tmp_path):
+    trials = _fit_trials(toy, reference, tmp_path, ["write", "time"], seed=15)
+    assert trials[0]["killed"] and trials[0]["resumed_from"], trials
+
+
+@SOAK
+def test_twenty_killed_fits_resume_bitwise(toy, reference, tmp_path):
+    t0 = time.perf_counter()
+    trials = _fit_trials(toy, reference, tmp_path, ["write", "time"] * 10, seed=2015, max_runs=30)
+    killed = sum(t["killed"] for t in trials)
+    mid_write = sum(t["mid_write"] for t in trials)
+    print(f"\nfit kill trials: {len(trials)} runs, {killed} killed (the rest finished before a late random kill), "
+          f"{mid_write} with a torn temporary checkpoint on disk, resumed from steps "
+          f"{[t['resumed_from'] for t in trials]}; all ended bitwise equal to the uninterrupted run; "
+          f"{time.perf_counter() - t0:.0f} s (reference run {reference.seconds:.1f} s)")
+    assert killed >= 20, trials
+    assert mid_write >= 1, "no kill landed inside a checkpoint write"
+
+
+# ---- ingest / render / eval: a killed run leaves nothing that looks complete --------------------------------------
+def _assert_ingest_state(proj: Path) -> None:
+    from avatarctl.io.project_io import load_project_capture
+    from avatarctl.project import Project
+
+    if proj.exists():  # the rename happened: the project must be whole
+        load_project_capture(Project.open(proj))
+
+
+def _assert_output_state(out: Path, marker: str) -> None:
+    """A render / eval folder is either absent or has its final file (written last, inside the temporary dir)."""
+    import json
+
+    if out.exists():
+        json.loads((out / marker).read_text())
+
+
+def _stage_trial(toy, fitted: Path, tmp: Path, stage: str, at: float) -> bool:
+    if stage == "ingest":
+        out = tmp / "p"
+        args = ["ingest", str(toy["capture"]), str(out), "--no-contact-sheet"]
+        killed = _kill(args, at=at)
+        _assert_ingest_state(out)
+        if not out.exists():
+            assert _run(*args).returncode == 0
+        _assert_ingest_state(out)
+        assert out.exists()
+        return killed
+    proj = tmp / "proj"
+    shutil.copytree(fitted, proj)
+    if stage == "render":
+        args, out, marker = ["render", str(proj), "--device", "cpu", "--frames", "0:4:3"], proj / "render" / \
+            "default", "config.json"
+    else:
+        args, out, marker = ["eval", str(proj), "--device", "cpu", "--name", "k", "--sheet", "1"], \
+            proj / "eval" / "k", "metrics.json"
+    killed = _kill(args, at=at)
+    _assert_output_state(out, marker)
+    res = _run(*args)
+    assert res.returncode == 0, res.stderr
+    _assert_output_state(out, marker)
+    assert out.exists()
+    return killed
+
+
+@SOAK
+@pytest.mark.parametrize("stage", ["ingest", "render", "eval"])
+def test_killed_ingest_render_eval_leave_nothing_mistaken_for_complete(toy, tmp_path, stage):
+    fitted = tmp_path / "fitted"
+    shutil.copytree(toy["project"], fitted)
+    assert _run("fit", str(fitted), "--preset", "micro", "--iters", "2", "--device", "cpu").returncode == 0
+    rng = random.Random({"ingest": 1, "render": 2, "eval": 3}[stage])
+    window = (0.5, 3.0) if stage == "ingest" else (1.5, 5.0)  # ingest of the toy capture ends after ~3.5 s
+    killed = [_stage_trial(toy, fitted, tmp_path / f"t{i}", stage, rng.uniform(*window)) for i in range(3)]
+    print(f"\n{stage}: {sum(killed)} of 3 runs killed before the end, every one left nothing half-written")
+
+
+# ---- a full disk during a checkpoint write ---------------------------------------------------------------------
+def test_disk_full_during_a_checkpoint_keeps_the_previous_one(toy, tmp_path, monkeypatch):
+    from avatarctl.fit.checkpoint import read_checkpoint
+    from avatarctl.stages import fit
+    from avatarctl.stages.fit import FitRequest
+
+    proj = tmp_path / "proj"
+    shutil.copytree(toy["project"], proj)
+    fit.run(proj, FitRequest(preset="micro", iters=2, overrides=("val_every=0", "checkpoint_every=1"),
+                             device="cpu"), handle_sigint=False)
+    latest = proj / "fit" / "checkpoints" / "latest.pt"
+    before = _sha(latest)
+    real_save = torch.save
+
+    def full_disk(obj, f, *a, **k):
+        """Write half of the checkpoint, then fail like a full disk."""
+        buf = io.BytesIO()
+        real_save(obj, buf, *a, **k)
+        Path(f).write_bytes(buf.getvalue()[: len(buf.getvalue()) // 2])
+        raise OSError(errno.ENOSPC, "No space left on device", str(f))
+
+    monkeypatch.delenv("AVATARCTL_DEBUG", raising=False)
+    monkeypatch.setattr(torch, "save", full_disk)
+    res = CliRunner().invoke(app, ["fit", str(proj), "--resume", "--iters", "4", "--device", "cpu"])
+    monkeypatch.undo()
+    err = res.stderr.strip()
+    assert res.exit_code == 74 and len(err.splitlines()) == 1 and "No space left on device" in err, err
+    assert _sha(latest) == before and read_checkpoint(latest)["step"] == 2
+    assert not list(latest.parent.glob(".*.tmp-*")), "a partial temporary checkpoint was left behind"
+    res = CliRunner().invoke(app, ["fit", str(proj), "--resume", "--iters", "4", "--device", "cpu"])
+    assert res.exit_code == 0, res.output
+    assert read_checkpoint(latest)["step"] == 4
