@@ -42,6 +42,19 @@ def write_bytes(dest: str | os.PathLike, data: bytes) -> Path:
     return Path(dest)
 
 
+def write_image(dest: str | os.PathLike, img: Any, params: list[int] | None = None) -> Path:
+    """Write `img` (uint8 BGR / BGRA / gray, OpenCV channel order) as the format of `dest`'s suffix, atomically.
+
+    The file is encoded in memory and written by Python, not by `cv2.imwrite`: cv2 reports a refused write (disk
+    full, read-only) as a bare False, Python as an `OSError` with its errno, which the CLI explains in one line."""
+    import cv2
+
+    ok, buf = cv2.imencode(Path(dest).suffix, img, params or [])
+    if not ok:
+        raise ValueError(f"OpenCV cannot encode a {img.shape} {img.dtype} image as {Path(dest).suffix}")
+    return write_bytes(dest, buf.tobytes())
+
+
 def write_text(dest: str | os.PathLike, text: str) -> Path:
     return write_bytes(dest, text.encode("utf-8"))
 

@@ -7,18 +7,17 @@
   bitwise equality is what it promises (docs/reliability.md).
 - `kill -9` of `ingest`, `render`, `eval`: the output is either absent or complete (they build it in a temporary
   sibling and rename it at the end), and running the command again succeeds.
-- a full disk during a checkpoint write: a one-line error (exit 74), the previous checkpoint intact, resumable.
+- a write the kernel refuses (RLIMIT_FSIZE in the child, so EFBIG exactly as ENOSPC would come) during a
+  checkpoint and during a render: a one-line error (exit 74), the previous checkpoint and render intact, resumable.
 
-The fast suite runs 2 fit kills and the disk-full test; `python -m benchmarks.kill_trials` (AVATARCTL_SOAK=1) adds
+The fast suite runs 2 fit kills and the refused-write test; `python -m benchmarks.kill_trials` (AVATARCTL_SOAK=1) adds
 20 fit kills and 3 kills of each other stage (subprocesses with the toy body: ~10 s a trial, kill + resume, most
 of it Python start-up and imports).
 """
 
 from __future__ import annotations
 
-import errno
 import hashlib
-import io
 import os
 import random
 import shutil
@@ -32,9 +31,6 @@ from pathlib import Path
 import pytest
 import torch
 from fixtures.toy_capture import make_toy_project
-from typer.testing import CliRunner
-
-from avatarctl.cli.app import app
 
 REPO = Path(__file__).resolve().parents[1]
 ITERS = 20
@@ -224,35 +220,44 @@ def test_killed_ingest_render_eval_leave_nothing_mistaken_for_complete(toy, tmp_
     print(f"\n{stage}: {sum(killed)} of 3 runs killed before the end, every one left nothing half-written")
 
 
-# ---- a full disk during a checkpoint write ---------------------------------------------------------------------
-def test_disk_full_during_a_checkpoint_keeps_the_previous_one(toy, tmp_path, monkeypatch):
+# ---- a real write limit (RLIMIT_FSIZE: the kernel refuses writes past N bytes, as a full disk refuses any) ------
+def _file_size_limit(limit: int):
+    def apply() -> None:  # in the child, before exec: SIGXFSZ ignored, so the write fails with EFBIG instead
+        import resource
+
+        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+        resource.setrlimit(resource.RLIMIT_FSIZE, (limit, limit))
+    return apply
+
+
+def _run_limited(limit: int, *args: str) -> subprocess.CompletedProcess:
+    return subprocess.run(_cmd(*args), env=_env(), capture_output=True, text=True, timeout=300,
+                          preexec_fn=_file_size_limit(limit))
+
+
+def test_a_refused_write_is_one_line_and_keeps_the_previous_checkpoint_and_render(toy, tmp_path):
     from avatarctl.fit.checkpoint import read_checkpoint
-    from avatarctl.stages import fit
+    from avatarctl.project import hash_tree
+    from avatarctl.stages import fit, render
     from avatarctl.stages.fit import FitRequest
+    from avatarctl.stages.render import RenderConfig
 
     proj = tmp_path / "proj"
     shutil.copytree(toy["project"], proj)
-    fit.run(proj, FitRequest(preset="micro", iters=2, overrides=("val_every=0", "checkpoint_every=1"),
-                             device="cpu"), handle_sigint=False)
-    latest = proj / "fit" / "checkpoints" / "latest.pt"
-    before = _sha(latest)
-    real_save = torch.save
-
-    def full_disk(obj, f, *a, **k):
-        """Write half of the checkpoint, then fail like a full disk."""
-        buf = io.BytesIO()
-        real_save(obj, buf, *a, **k)
-        Path(f).write_bytes(buf.getvalue()[: len(buf.getvalue()) // 2])
-        raise OSError(errno.ENOSPC, "No space left on device", str(f))
-
-    monkeypatch.delenv("AVATARCTL_DEBUG", raising=False)
-    monkeypatch.setattr(torch, "save", full_disk)
-    res = CliRunner().invoke(app, ["fit", str(proj), "--resume", "--iters", "4", "--device", "cpu"])
-    monkeypatch.undo()
+    fit.run(proj, FitRequest(preset="micro", iters=2, overrides=("val_every=0",), device="cpu"), handle_sigint=False)
+    render.run(proj, RenderConfig(frames="0", views=("cam00",), device="cpu"))
+    latest, out = proj / "fit" / "checkpoints" / "latest.pt", proj / "render" / "default"
+    before = (_sha(latest), hash_tree(out))
+    # the checkpoint is ~4 MB: half of it is written, then the kernel refuses the rest
+    res = _run_limited(latest.stat().st_size // 2, "fit", str(proj), "--resume", "--iters", "4", "--device", "cpu")
     err = res.stderr.strip()
-    assert res.exit_code == 74 and len(err.splitlines()) == 1 and "No space left on device" in err, err
-    assert _sha(latest) == before and read_checkpoint(latest)["step"] == 2
-    assert not list(latest.parent.glob(".*.tmp-*")), "a partial temporary checkpoint was left behind"
-    res = CliRunner().invoke(app, ["fit", str(proj), "--resume", "--iters", "4", "--device", "cpu"])
-    assert res.exit_code == 0, res.output
+    assert res.returncode == 74 and len(err.splitlines()) == 1 and "File too large" in err, err
+    assert read_checkpoint(latest)["step"] == 2 and _sha(latest) == before[0]
+    # the first PNG of the new render is refused: the previous render stays as it was
+    res = _run_limited(64, "render", str(proj), "--frames", "3", "--views", "cam01", "--device", "cpu")
+    err = res.stderr.strip()
+    assert res.returncode == 74 and len(err.splitlines()) == 1 and "File too large" in err, err
+    assert hash_tree(out) == before[1]
+    assert not [p for p in proj.rglob(".*tmp-*")], "a temporary file or folder was left behind"
+    assert _run("fit", str(proj), "--resume", "--iters", "4", "--device", "cpu").returncode == 0
     assert read_checkpoint(latest)["step"] == 4

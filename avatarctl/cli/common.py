@@ -31,6 +31,7 @@ _OS_FIX = {errno.ENOSPC: "free disk space (or write the project elsewhere) and r
            errno.EROFS: "write the project to a writable file system",
            errno.EACCES: "check the permissions of that path",
            errno.EPERM: "check the permissions of that path",
+           errno.EFBIG: "a file-size limit (ulimit -f, or the file system's) stopped the write: raise it",
            errno.EIO: "check the disk (I/O error) and run the command again",
            errno.EMFILE: "raise the open-file limit (ulimit -n)",
            errno.ENAMETOOLONG: "use a shorter path"}

@@ -45,6 +45,19 @@ FORMAT = "avatarctl.fit.checkpoint"
 SCHEMA_VERSION = 1
 
 
+def _torch_save(obj: dict[str, Any], dest: Path) -> None:
+    """`torch.save` through a Python file object, so that a refused write (disk full, quota, file-size limit)
+    surfaces as that `OSError` with its errno: torch's own writer reports it as a RuntimeError ("file write
+    failed" / "unexpected pos") and the CLI could not tell a full disk from a bug."""
+    with open(dest, "wb") as fh:
+        try:
+            torch.save(obj, fh)
+        except RuntimeError as e:
+            if isinstance(e.__context__, OSError):
+                raise e.__context__ from None
+            raise
+
+
 def save_checkpoint(project: Project, payload: dict[str, Any], keep: int = 3) -> Path:
     """Write `payload` (see the module docstring) as `step_<step>.pt` and `latest.pt`, atomically; keep the
     `keep` most recent step files. Returns the step file."""
@@ -53,14 +66,14 @@ def save_checkpoint(project: Project, payload: dict[str, Any], keep: int = 3) ->
     payload = {"format": FORMAT, "schema_version": SCHEMA_VERSION, "avatarctl_version": __version__, **payload}
     dest = paths.checkpoint(step)
     with atomic_path(dest) as tmp:
-        torch.save(payload, tmp)
+        _torch_save(payload, tmp)
     # latest.pt: a hard link to the step file when the file system allows it, else a copy; renamed into place.
     with atomic_path(paths.latest_checkpoint) as tmp:
         tmp.unlink()
         try:
             os.link(dest, tmp)
         except OSError:
-            torch.save(payload, tmp)
+            _torch_save(payload, tmp)
     step_files = sorted(paths.checkpoints.glob("step_*.pt"))
     for old in step_files[:-keep] if keep > 0 else []:
         with contextlib.suppress(FileNotFoundError):
@@ -74,7 +87,7 @@ def save_snapshot(project: Project, payload: dict[str, Any], seconds: float) -> 
     payload = {"format": FORMAT, "schema_version": SCHEMA_VERSION, "avatarctl_version": __version__, **payload}
     dest = project.paths.checkpoints / f"snapshot_{int(round(seconds)):05d}s.pt"
     with atomic_path(dest) as tmp:
-        torch.save(payload, tmp)
+        _torch_save(payload, tmp)
     return dest
 
 

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from avatarctl.atomic import atomic_path, write_json
+from avatarctl.atomic import write_image, write_json
 from avatarctl.body.motion import BodyMotion
 from avatarctl.errors import InputError, ProjectError
 from avatarctl.project import Project
@@ -96,21 +96,14 @@ def write_frame(project: Project, cam: str, frame: int, rgb: np.ndarray) -> Path
     import cv2
 
     dest = project.paths.frame(cam, frame)
-    with atomic_path(dest) as tmp:
-        if not cv2.imwrite(str(tmp), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY]):
-            raise OSError(f"cv2.imwrite failed for {dest}")
-    return dest
+    return write_image(dest, cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY])
 
 
 def write_mask(project: Project, cam: str, frame: int, mask: np.ndarray) -> Path:
     """Write a foreground mask (bool or uint8, [H, W]) as 0/255 PNG atomically."""
     import cv2
 
-    dest = project.paths.mask(cam, frame)
-    with atomic_path(dest) as tmp:
-        if not cv2.imwrite(str(tmp), (np.asarray(mask) > 0).astype(np.uint8) * 255):
-            raise OSError(f"cv2.imwrite failed for {dest}")
-    return dest
+    return write_image(project.paths.mask(cam, frame), (np.asarray(mask) > 0).astype(np.uint8) * 255)
 
 
 def _read_image(path: Path, flag: int, message: str) -> np.ndarray:
