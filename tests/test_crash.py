@@ -261,3 +261,23 @@ def test_a_refused_write_is_one_line_and_keeps_the_previous_checkpoint_and_rende
     assert not [p for p in proj.rglob(".*tmp-*")], "a temporary file or folder was left behind"
     assert _run("fit", str(proj), "--resume", "--iters", "4", "--device", "cpu").returncode == 0
     assert read_checkpoint(latest)["step"] == 4
+
+
+_VIDEO = """
+import numpy as np
+from avatarctl.render.video import write_video
+frames = [np.random.default_rng(k).integers(0, 255, (64, 64, 3), dtype=np.uint8) for k in range(10)]
+try:
+    write_video(iter(frames), {dest!r}, fps=10)
+except OSError as e:
+    print("refused", e.errno, e.filename)
+"""
+
+
+def test_a_video_that_ffmpeg_could_not_finish_is_an_error_not_a_short_file(tmp_path):
+    """imageio-ffmpeg ignores ffmpeg's exit status: a cut-off MP4 used to be taken for complete."""
+    dest = tmp_path / "video.mp4"
+    res = subprocess.run([sys.executable, "-c", _VIDEO.format(dest=str(dest))], env=_env(), capture_output=True,
+                         text=True, timeout=120, preexec_fn=_file_size_limit(4096))  # the video is ~30 kB
+    assert res.stdout.split() == ["refused", "5", str(dest)], res.stdout + res.stderr
+    assert not list(tmp_path.iterdir()), "a partial video was left behind"
