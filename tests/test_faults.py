@@ -316,8 +316,8 @@ FAULTS = [
     Fault("ingest_resize_out_of_range", "capture", None, ingest("--resize", "0"), "out of range"),
     Fault("ingest_unknown_view", "capture", None, ingest("--views", "cam09"), "unknown cameras"),
     # -- untrusted pickles (the payload must never run)
-    Fault("zju_annots_malicious_pickle", "capture", _malicious("annots.npy", npy=True), ingest("--format", "zju"), "not allowed",
-          marker=True),
+    Fault("zju_annots_malicious_pickle", "capture", _malicious("annots.npy", npy=True), ingest("--format", "zju"),
+          "not allowed", marker=True),
     Fault("peoplesnapshot_camera_malicious_pickle", "capture", _malicious("camera.pkl"),
           ingest("--format", "peoplesnapshot"), "not allowed", marker=True),
     # -- other capture formats (calibration read first, so a copy of the toy capture with the marker file will do)

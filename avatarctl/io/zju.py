@@ -24,7 +24,6 @@ import numpy as np
 from avatarctl.errors import InputError
 from avatarctl.io.capture import CaptureSource, FileImages, FileMasks, RhThFits, make_camera, safe_camera_name
 from avatarctl.io.easymocap_fits import rhth_from_records
-from avatarctl.geometry.cameras import Camera
 from avatarctl.safe_pickle import load_npy
 
 
