@@ -55,9 +55,11 @@ def _run(*args: str) -> subprocess.CompletedProcess:
     return subprocess.run(_cmd(*args), env=_env(), capture_output=True, text=True, timeout=300)
 
 
-def _kill(args: list[str], at: float | None = None, watch: Path | None = None, nth: int = 1) -> bool:
-    """Run `avatarctl *args` and SIGKILL it `at` seconds after the start, or as soon as the `nth` distinct temporary
-    file (`.*.tmp-*`) is seen in `watch`. Returns False when it finished before that."""
+def _kill(args: list[str], at: float | None = None, watch: Path | None = None, nth: int = 1,
+          log: Path | None = None, lines: int = 0, delay: float = 0.0) -> bool:
+    """Run `avatarctl *args` and SIGKILL it: `at` seconds after the start; or as soon as the `nth` distinct
+    temporary file (`.*.tmp-*`) is seen in `watch`; or `delay` seconds after `log` has `lines` lines (one a step).
+    Returns False when it finished before that."""
     proc = subprocess.Popen(_cmd(*args), env=_env(), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     t0, seen = time.perf_counter(), set()
     while proc.poll() is None:
@@ -67,6 +69,9 @@ def _kill(args: list[str], at: float | None = None, watch: Path | None = None, n
             seen.update(p.name for p in watch.glob(".*.tmp-*"))
             if len(seen) >= nth:
                 break
+        if log is not None and log.is_file() and log.read_bytes().count(b"\n") >= lines:
+            time.sleep(delay)
+            break
         time.sleep(0.001)
     if proc.poll() is not None:
         return False
@@ -113,11 +118,15 @@ def _fit_trial(toy, ref: Reference, tmp: Path, kind: str, rng: random.Random) ->
     proj = tmp / "proj"
     shutil.copytree(toy["project"], proj)
     ckdir = proj / "fit" / "checkpoints"
+    args = ["fit", str(proj), *FIT_ARGS]
     if kind == "write":  # during (or right after) the write of a random checkpoint
-        # two temporary files a step (step_<n>.pt, then latest.pt); from the 3rd on, step 1 is complete on disk
-        killed = _kill(["fit", str(proj), *FIT_ARGS], watch=ckdir, nth=rng.randint(3, 2 * ITERS - 1))
-    else:  # a random moment between start-up and the end of the uninterrupted run
-        killed = _kill(["fit", str(proj), *FIT_ARGS], at=rng.uniform(0.3, 1.0) * ref.seconds)
+        # two temporary files a step (step_<n>.pt, then latest.pt), but a 1 ms poll sees only some of them: from
+        # the 3rd sighting on step 1 is complete on disk; up to ITERS keeps the kill before the end of the run
+        killed = _kill(args, watch=ckdir, nth=rng.randint(3, ITERS))
+    else:  # a random moment: during start-up (1 in 5), else within a random step (log.jsonl has a line a step)
+        step = rng.randint(0, ITERS - 1) if rng.random() < 0.8 else None
+        killed = _kill(args, at=rng.uniform(0.2, 0.9) * ref.seconds / 3) if step is None else \
+            _kill(args, log=proj / "fit" / "log.jsonl", lines=step + 1, delay=rng.uniform(0.0, 0.06))
     torn = sorted(p.name for p in ckdir.glob(".*.tmp-*")) if ckdir.is_dir() else []
     # no checkpoint on disk is torn: every step file and latest.pt read back
     steps = [read_checkpoint(p)["step"] for p in sorted(ckdir.glob("[!.]*.pt"))] if ckdir.is_dir() else []
