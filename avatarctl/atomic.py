@@ -30,9 +30,11 @@ def atomic_path(dest: str | os.PathLike, suffix: str | None = None) -> Iterator[
     try:
         yield tmp_path
         os.replace(tmp_path, dest)
-    except BaseException:
+    except BaseException as e:
         with contextlib.suppress(FileNotFoundError):
             tmp_path.unlink()
+        if isinstance(e, OSError) and e.filename is None and e.errno is not None:  # a failed write names no file
+            raise OSError(e.errno, e.strerror, str(dest)) from e
         raise
 
 
@@ -40,6 +42,19 @@ def write_bytes(dest: str | os.PathLike, data: bytes) -> Path:
     with atomic_path(dest) as tmp:
         tmp.write_bytes(data)
     return Path(dest)
+
+
+def write_image(dest: str | os.PathLike, img: Any, params: list[int] | None = None) -> Path:
+    """Write `img` (uint8 BGR / BGRA / gray, OpenCV channel order) as the format of `dest`'s suffix, atomically.
+
+    The file is encoded in memory and written by Python, not by `cv2.imwrite`: cv2 reports a refused write (disk
+    full, read-only) as a bare False, Python as an `OSError` with its errno, which the CLI explains in one line."""
+    import cv2
+
+    ok, buf = cv2.imencode(Path(dest).suffix, img, params or [])
+    if not ok:
+        raise ValueError(f"OpenCV cannot encode a {img.shape} {img.dtype} image as {Path(dest).suffix}")
+    return write_bytes(dest, buf.tobytes())
 
 
 def write_text(dest: str | os.PathLike, text: str) -> Path:
@@ -57,6 +72,21 @@ def _json_default(o: Any) -> Any:
     if isinstance(o, os.PathLike):
         return os.fspath(o)
     raise TypeError(f"not JSON serialisable: {type(o).__name__}")
+
+
+def remove_stale_temps(folder: str | os.PathLike) -> list[Path]:
+    """Delete the temporary files / folders `atomic_path` and `atomic_dir` leave in `folder` when the process is
+    killed before the rename (`.<name>.tmp-*`). Only for a folder that a single process writes (a project's
+    checkpoints while it is being fitted): another writer's in-flight temporary would be deleted too."""
+    removed = []
+    for p in Path(folder).glob(".*.tmp-*"):
+        if p.is_dir():
+            shutil.rmtree(p, ignore_errors=True)
+        else:
+            with contextlib.suppress(FileNotFoundError):
+                p.unlink()
+        removed.append(p)
+    return removed
 
 
 @contextlib.contextmanager

@@ -130,7 +130,7 @@ def test_aist_pickle_reads_with_the_restricted_unpickler(tmp_path):
 
     with open(tmp_path / "evil.pkl", "wb") as fh:
         pickle.dump({"smpl_poses": Evil()}, fh)
-    with pytest.raises(InputError, match="not allowed in an AIST"):
+    with pytest.raises(InputError, match="is not allowed in a data file"):
         read_motion(tmp_path / "evil.pkl")
 
 

@@ -18,6 +18,8 @@ from pathlib import Path
 
 import numpy as np
 
+from avatarctl.errors import InputError
+
 BODY_MODELS = ("anny", "smpl", "smplx", "toy")
 _BODY_POSE_DIM = {"smpl": 69, "smplx": 63, "toy": 3}  # toy: joint 1 of the sphere body (avatarctl.body.toy)
 _PER_FRAME = ("pose_parameters", "global_orient", "body_pose", "transl", "jaw_pose", "leye_pose", "reye_pose",
@@ -118,11 +120,21 @@ class BodyMotion:
 
     @classmethod
     def load(cls, path: str | Path) -> "BodyMotion":
-        with np.load(path, allow_pickle=False) as z:
-            kw = {k: z[k] for k in z.files}
-        kw["body_model"] = str(kw["body_model"])
-        kw["fps"] = float(kw.get("fps", 30.0))
-        if "phenotype_labels" in kw:
-            kw["phenotype_labels"] = tuple(str(s) for s in kw["phenotype_labels"])
-        names = {f.name for f in fields(cls)}
-        return cls(**{k: v for k, v in kw.items() if k in names})
+        """Read a `save`d npz (never pickles); a one-line `InputError` naming the file when it is unreadable, cut
+        off, or fails the checks of `__post_init__` (non-finite values, wrong shapes, unknown body model)."""
+        import zipfile
+
+        try:
+            with np.load(path, allow_pickle=False) as z:
+                kw = {k: z[k] for k in z.files}
+            kw["body_model"] = str(kw["body_model"])
+            kw["fps"] = float(kw.get("fps", 30.0))
+            if "phenotype_labels" in kw:
+                kw["phenotype_labels"] = tuple(str(s) for s in kw["phenotype_labels"])
+            names = {f.name for f in fields(cls)}
+            return cls(**{k: v for k, v in kw.items() if k in names})
+        except (ValueError, KeyError, OSError, EOFError, TypeError, zipfile.BadZipFile) as e:
+            msg = " ".join(str(e).split())[:200] or type(e).__name__
+            raise InputError(f"bad body fits: {msg}", where=str(path),
+                             fix="write it with avatarctl.body.motion.BodyMotion.save (finite values, one row per "
+                                 "frame, anny pose_parameters [frames, 104, 4, 4] or SMPL arrays)") from None

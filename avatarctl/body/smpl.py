@@ -28,7 +28,6 @@ dict key `x`), so chumpy is not needed, and refuses any other Python object a mo
 
 from __future__ import annotations
 
-import pickle
 import zipfile
 from dataclasses import dataclass
 from pathlib import Path
@@ -41,7 +40,7 @@ from avatarctl.body.base import BodyTemplate, PosedBody
 from avatarctl.body.lbs import axis_angle_to_matrix, forward_kinematics, lbs, matrix_to_axis_angle, transform_points
 from avatarctl.body.motion import BodyMotion
 from avatarctl.errors import InputError
-from avatarctl.safe_pickle import ArrayUnpickler
+from avatarctl.safe_pickle import SafeUnpickler, load_pickle
 
 SMPL_JOINT_NAMES: tuple[str, ...] = (
     "pelvis", "left_hip", "right_hip", "spine1", "left_knee", "right_knee", "spine2", "left_ankle", "right_ankle",
@@ -73,23 +72,11 @@ class _ChumpyStandIn:
         self.x = state.get("x") if isinstance(state, dict) else None
 
 
-_SPARSE_CLASSES = {"csc_matrix", "csr_matrix", "coo_matrix", "lil_matrix", "dok_matrix", "bsr_matrix", "dia_matrix",
-                   "csc_array", "csr_array", "coo_array", "lil_array", "dok_array", "bsr_array", "dia_array"}
+class _ModelUnpickler(SafeUnpickler):
+    """`SafeUnpickler` (numpy, scipy.sparse, builtins) plus chumpy: what SMPL model files contain."""
 
-
-class _ModelUnpickler(ArrayUnpickler):
-    """Unpickler that allows only what SMPL model files contain: numpy arrays, scipy sparse, chumpy, builtins."""
-
-    what = "a body model file"
-
-    def find_class(self, module: str, name: str) -> Any:
-        if module == "chumpy" or module.startswith("chumpy."):
-            return _ChumpyStandIn
-        if module.startswith("scipy.sparse") and name in _SPARSE_CLASSES:
-            import scipy.sparse  # old pickles name private modules (scipy.sparse.csc); the class is public
-
-            return getattr(scipy.sparse, name)
-        return super().find_class(module, name)
+    def find_extra(self, module: str, name: str) -> Any | None:
+        return _ChumpyStandIn if module == "chumpy" or module.startswith("chumpy.") else None
 
 
 def _as_array(value: Any, key: str, path: Path) -> np.ndarray:
@@ -118,15 +105,11 @@ def _read_raw(path: Path) -> dict[str, Any]:
                     except ValueError:  # a pickled object entry (e.g. part2num dicts): never needed
                         continue
                 return out
-        with open(path, "rb") as fh:
-            data = _ModelUnpickler(fh, encoding="latin1").load()
-    except InputError:
-        raise
-    except (OSError, EOFError, ValueError, pickle.UnpicklingError, zipfile.BadZipFile, AttributeError,
-            ImportError, TypeError, IndexError, KeyError) as e:
+    except (OSError, EOFError, ValueError, zipfile.BadZipFile) as e:
         detail = " ".join(str(e).split())[:200]  # one line
         raise InputError(f"cannot read body model file: {type(e).__name__}: {detail}", where=str(path),
                          fix=_FIX_FILE) from None
+    data = load_pickle(path, "body model file", _ModelUnpickler)
     if not isinstance(data, dict):
         raise InputError(f"body model file holds a {type(data).__name__}, not a dict of arrays", where=str(path),
                          fix=_FIX_FILE)

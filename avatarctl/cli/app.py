@@ -23,9 +23,27 @@ def _version(value: bool) -> None:
 
 
 @app.callback()
-def _root(version: bool = typer.Option(False, "--version", callback=_version, is_eager=True,
-                                       help="Print the version and exit.")) -> None:
+def _root(ctx: typer.Context,
+          version: bool = typer.Option(False, "--version", callback=_version, is_eager=True,
+                                       help="Print the version and exit."),
+          debug: bool = typer.Option(False, "--debug", help="Show Python tracebacks instead of one-line errors "
+                                                            "(same as AVATARCTL_DEBUG=1).")) -> None:
     """Animatable clothed human avatars from calibrated RGB video."""
+    if debug:
+        import os
+
+        from avatarctl.cli.common import DEBUG_ENV
+
+        previous = os.environ.get(DEBUG_ENV)
+        os.environ[DEBUG_ENV] = "1"  # read by cli.common.user_errors in the command that follows
+
+        def restore() -> None:  # only for this invocation (matters when the app is called in-process)
+            if previous is None:
+                os.environ.pop(DEBUG_ENV, None)
+            else:
+                os.environ[DEBUG_ENV] = previous
+
+        ctx.call_on_close(restore)
 
 
 def _register() -> None:

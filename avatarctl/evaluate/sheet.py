@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from avatarctl.atomic import atomic_path
+from avatarctl.atomic import write_image
 
 
 @dataclass(frozen=True)
@@ -78,10 +78,7 @@ def comparison_sheet(rows: list[SheetRow], dest: str | Path, title: str, max_err
         blocks.append(body)
     sheet = np.concatenate(blocks, axis=0)
     dest = Path(dest)
-    with atomic_path(dest) as tmp:
-        if not cv2.imwrite(str(tmp), cv2.cvtColor(sheet, cv2.COLOR_RGB2BGR)):
-            raise OSError(f"cv2.imwrite failed for {dest}")
-    return dest
+    return write_image(dest, cv2.cvtColor(sheet, cv2.COLOR_RGB2BGR))
 
 
 _FONT_SCALE = 0.42

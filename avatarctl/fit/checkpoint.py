@@ -47,6 +47,19 @@ FORMAT = "avatarctl.fit.checkpoint"
 SCHEMA_VERSION = 1
 
 
+def _torch_save(obj: dict[str, Any], dest: Path) -> None:
+    """`torch.save` through a Python file object, so that a refused write (disk full, quota, file-size limit)
+    surfaces as that `OSError` with its errno: torch's own writer reports it as a RuntimeError ("file write
+    failed" / "unexpected pos") and the CLI could not tell a full disk from a bug."""
+    with open(dest, "wb") as fh:
+        try:
+            torch.save(obj, fh)
+        except RuntimeError as e:
+            if isinstance(e.__context__, OSError):
+                raise e.__context__ from None
+            raise
+
+
 def save_checkpoint(project: Project, payload: dict[str, Any], keep: int = 3) -> Path:
     """Write `payload` (see the module docstring) as `step_<step>.pt` and `latest.pt`, atomically; keep the
     `keep` most recent step files. Returns the step file."""
@@ -55,14 +68,14 @@ def save_checkpoint(project: Project, payload: dict[str, Any], keep: int = 3) ->
     payload = {"format": FORMAT, "schema_version": SCHEMA_VERSION, "avatarctl_version": __version__, **payload}
     dest = paths.checkpoint(step)
     with atomic_path(dest) as tmp:
-        torch.save(payload, tmp)
+        _torch_save(payload, tmp)
     # latest.pt: a hard link to the step file when the file system allows it, else a copy; renamed into place.
     with atomic_path(paths.latest_checkpoint) as tmp:
         tmp.unlink()
         try:
             os.link(dest, tmp)
         except OSError:
-            torch.save(payload, tmp)
+            _torch_save(payload, tmp)
     step_files = sorted(paths.checkpoints.glob("step_*.pt"))
     for old in step_files[:-keep] if keep > 0 else []:
         with contextlib.suppress(FileNotFoundError):
@@ -76,7 +89,7 @@ def save_snapshot(project: Project, payload: dict[str, Any], seconds: float) -> 
     payload = {"format": FORMAT, "schema_version": SCHEMA_VERSION, "avatarctl_version": __version__, **payload}
     dest = project.paths.checkpoints / f"snapshot_{int(round(seconds)):05d}s.pt"
     with atomic_path(dest) as tmp:
-        torch.save(payload, tmp)
+        _torch_save(payload, tmp)
     return dest
 
 
@@ -88,8 +101,9 @@ def read_checkpoint(path: Path, device: str | torch.device = "cpu") -> dict[str,
                            fix="run `avatarctl fit PROJECT` (or pass an existing checkpoint file)")
     try:
         ckpt = torch.load(path, map_location=device, weights_only=True)
-    except Exception as e:  # corrupt file, foreign pickle, truncated download
-        raise ProjectError(f"cannot read fit checkpoint ({type(e).__name__}: {str(e).splitlines()[0][:120]})",
+    except Exception as e:  # corrupt file, foreign pickle, truncated download, empty file
+        detail = " ".join(str(e).split())[:120] or "empty or cut-off file"
+        raise ProjectError(f"cannot read fit checkpoint ({type(e).__name__}: {detail})",
                            where=str(path), fix="use another checkpoint or re-run `avatarctl fit`") from None
     if not isinstance(ckpt, dict) or ckpt.get("format") != FORMAT:
         raise ProjectError("not an avatarctl fit checkpoint", where=str(path), fix="pass a file from fit/checkpoints/")

@@ -35,7 +35,7 @@ from typing import TYPE_CHECKING, Any, Callable, Iterator
 
 import torch
 
-from avatarctl.atomic import write_json, write_text
+from avatarctl.atomic import remove_stale_temps, write_json, write_text
 from avatarctl.device import resolve_device
 from avatarctl.dist import rank_device
 from avatarctl.errors import AvatarError, InputError, ProjectError
@@ -223,6 +223,7 @@ def fit(project: Project, cfg: FitConfig | None = None, *, device: str = "auto",
             for p in list(paths.checkpoints.glob("*.pt")) + [paths.fit_log]:
                 p.unlink(missing_ok=True)
     assert cfg is not None
+    remove_stale_temps(paths.checkpoints)  # torn writes of a killed run (never `latest.pt` itself: renames are atomic)
     start_step = int(ckpt["step"]) if ckpt is not None else 0
     world = env.world_size if env is not None else 1
     if shards is None:

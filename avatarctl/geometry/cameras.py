@@ -11,6 +11,8 @@ from typing import Any
 
 import numpy as np
 
+ROTATION_TOL = 1e-3  # max |R R^T - I|: calibration files store R to 6+ digits; a scaled or sheared R is far off
+
 
 @dataclass(frozen=True)
 class Camera:
@@ -30,10 +32,21 @@ class Camera:
         object.__setattr__(self, "T", np.asarray(self.T, dtype=np.float64).reshape(3))
         d = np.zeros(5)
         dd = np.asarray(self.dist, dtype=np.float64).ravel()
+        if dd.size not in (0, 4, 5) and (dd.size < 5 or np.any(dd[5:])):
+            raise ValueError(f"camera {self.name}: distortion has {dd.size} coefficients; expected 4 or 5 "
+                             "(k1 k2 p1 p2 [k3], OpenCV order)")
         d[: min(5, dd.size)] = dd[:5]
         object.__setattr__(self, "dist", d)
-        if not (np.isfinite(self.K).all() and np.isfinite(self.R).all() and np.isfinite(self.T).all()):
-            raise ValueError(f"camera {self.name}: non-finite calibration")
+        if not (np.isfinite(self.K).all() and np.isfinite(self.R).all() and np.isfinite(self.T).all()
+                and np.isfinite(d).all()):
+            raise ValueError(f"camera {self.name}: non-finite calibration (NaN or inf in K, R, T or dist)")
+        err = np.abs(self.R @ self.R.T - np.eye(3)).max()
+        if err > ROTATION_TOL or np.linalg.det(self.R) < 0:
+            raise ValueError(f"camera {self.name}: R is not a rotation (|R R^T - I| = {err:.3g}, det "
+                             f"{np.linalg.det(self.R):.3g}; expected orthonormal with det +1)")
+        if not (self.K[0, 0] > 0 and self.K[1, 1] > 0 and self.width > 0 and self.height > 0):
+            raise ValueError(f"camera {self.name}: focal lengths and image size must be positive (fx "
+                             f"{self.K[0, 0]:g}, fy {self.K[1, 1]:g}, {self.width}x{self.height})")
 
     @property
     def center(self) -> np.ndarray:

@@ -10,7 +10,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from avatarctl.atomic import atomic_path
+from avatarctl.atomic import write_image
 
 
 @dataclass(frozen=True)
@@ -57,6 +57,4 @@ def write_contact_sheet(path, tiles: list[Tile], cams: list[str], frames: list[i
             im = by.get((cam, f))
             if im is not None:
                 sheet[r * h:r * h + im.shape[0], c * width:(c + 1) * width] = im
-    with atomic_path(path) as tmp:
-        if not cv2.imwrite(str(tmp), cv2.cvtColor(sheet, cv2.COLOR_RGB2BGR)):
-            raise OSError(f"cv2.imwrite failed for {path}")
+    write_image(path, cv2.cvtColor(sheet, cv2.COLOR_RGB2BGR))

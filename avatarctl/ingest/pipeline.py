@@ -30,6 +30,7 @@ from avatarctl.io.capture import CaptureSource, check_complete, fmt_list
 ProgressFn = Callable[[int, int], None]  # (frames done, frames total)
 MIN_INSIDE = 0.90  # warn when fewer of the posed vertices than this project inside the masks
 POSE_CHUNK = 64  # frames posed at once
+MAX_FOREGROUND = 0.99  # a mask with more foreground than this is inverted or blank, not a person in the frame
 
 
 @dataclass
@@ -267,6 +268,9 @@ def _process_view(plan: IngestPlan, u, plate: np.ndarray | None, cam: str, frame
         fix = "check the background plate, or provide mask files"
     if not mask.any():
         raise InputError(f"empty mask: camera {cam}, frame {frame}", where=where, fix=fix)
+    if mask.mean() > MAX_FOREGROUND:
+        raise InputError(f"mask covers the whole image ({100 * mask.mean():.1f}% foreground; inverted?): camera "
+                         f"{cam}, frame {frame}", where=where, fix=fix)
     return rgb, mask, sil
 
 

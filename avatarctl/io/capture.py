@@ -79,6 +79,17 @@ class MaskReader(Protocol):
         ...
 
 
+def make_camera(where: str | Path, **kw) -> Camera:
+    """`Camera(**kw)` for a reader: the camera's own checks (finite values, R a rotation, 4-5 distortion
+    coefficients, positive focal lengths and size) become a one-line `InputError` naming the calibration file."""
+    try:
+        return Camera(**kw)
+    except ValueError as e:
+        raise InputError(f"bad calibration: {e}", where=str(where),
+                         fix="fix or re-export the calibration (OpenCV convention: world->camera R, T in metres, "
+                             "dist k1 k2 p1 p2 k3)") from None
+
+
 def read_image_file(path: Path, cam: str, frame: int) -> np.ndarray:
     """RGB uint8 [H, W, 3] from an image file, with a one-line error for missing / corrupt files."""
     import cv2

@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from avatarctl.errors import InputError
-from avatarctl.io.capture import CaptureSource, FileImages, FileMasks, safe_camera_name, scan_numbered
+from avatarctl.io.capture import CaptureSource, FileImages, FileMasks, make_camera, safe_camera_name, scan_numbered
 from avatarctl.io.easymocap_fits import read_capture_fits
 from avatarctl.geometry.cameras import Camera
 
@@ -65,9 +65,9 @@ def read_colmap_cameras(model_dir: Path) -> list[Camera]:
         fx, fy, cx, cy, dist = _MODELS[model](np.asarray(c.params, dtype=np.float64))
         pose = img.cam_from_world() if callable(img.cam_from_world) else img.cam_from_world
         K = np.array([[fx, 0, cx - 0.5], [0, fy, cy - 0.5], [0, 0, 1.0]])
-        by_name[cam_name] = Camera(name=cam_name, K=K, R=np.asarray(pose.rotation.matrix()),
-                                   T=np.asarray(pose.translation), width=int(c.width), height=int(c.height),
-                                   dist=np.asarray(dist, dtype=np.float64))
+        by_name[cam_name] = make_camera(model_dir, name=cam_name, K=K, R=np.asarray(pose.rotation.matrix()),
+                                        T=np.asarray(pose.translation), width=int(c.width), height=int(c.height),
+                                        dist=np.asarray(dist, dtype=np.float64))
     if not by_name:
         raise InputError("the COLMAP model has no registered images", where=str(model_dir),
                          fix="register one image per camera (name '<cam>/<file>')")

@@ -14,6 +14,37 @@ import numpy as np
 from avatarctl.atomic import atomic_path
 from avatarctl.errors import InputError
 from avatarctl.geometry.cameras import Camera
+from avatarctl.io.capture import make_camera
+
+
+_FIX_YAML = "re-export it with cv2.FileStorage (EasyMocap format, starting with %YAML:1.0); a cut-off copy needs a " \
+            "fresh copy"
+
+
+def _cv_reason(e: Exception) -> str:
+    """The first line OpenCV gives for a parse error, without its source-file prefix."""
+    cause = e.__cause__ or e.__context__ or e
+    text = " ".join(str(cause).split())
+    return text.split("error: ")[-1][:160] or type(e).__name__
+
+
+def _open_storage(path: Path):
+    """`cv2.FileStorage` opened for reading, or a one-line `InputError` naming the file (empty, cut off, not UTF-8,
+    not YAML). OpenCV parses the whole file on open and raises `cv2.error` (wrapped in a SystemError by the Python
+    binding) on a syntax error."""
+    import cv2
+
+    if path.stat().st_size == 0:
+        raise InputError(f"calibration file {path.name} is empty", where=str(path), fix=_FIX_YAML)
+    try:
+        fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
+    except (cv2.error, SystemError) as e:
+        raise InputError(f"cannot parse calibration file {path.name} ({_cv_reason(e)})", where=str(path),
+                         fix=_FIX_YAML) from None
+    if not fs.isOpened() or not fs.root().isMap():
+        raise InputError(f"cannot parse calibration file {path.name} (not OpenCV FileStorage YAML)", where=str(path),
+                         fix=_FIX_YAML)
+    return fs
 
 
 def _read_names(fs, path: Path) -> list[str]:
@@ -33,10 +64,10 @@ def _mat(fs, key: str, path: Path, required: bool = True) -> np.ndarray | None:
         return None
     if node.isInt() or node.isReal():
         return np.array([[node.real()]])
-    m = node.mat()
+    m = node.mat() if node.isMap() else None  # a cut-off file leaves an empty `!!opencv-matrix` (not a map)
     if m is None:
-        raise InputError(f"calibration entry {key} is not a matrix", where=str(path),
-                         fix="write it as an opencv-matrix")
+        raise InputError(f"calibration entry {key} is not a matrix (is the file cut off?)", where=str(path),
+                         fix="write it as an opencv-matrix; " + _FIX_YAML)
     return np.asarray(m, dtype=np.float64)
 
 
@@ -53,11 +84,12 @@ def read_easymocap_cameras(capture_dir: Path, image_size: dict[str, tuple[int, i
         if not p.is_file():
             raise InputError(f"missing calibration file {p.name}", where=str(capture_dir),
                              fix="EasyMocap captures need intri.yml and extri.yml beside images/")
-    fi = cv2.FileStorage(str(ipath), cv2.FILE_STORAGE_READ)
-    fe = cv2.FileStorage(str(epath), cv2.FILE_STORAGE_READ)
-    if not fi.isOpened() or not fe.isOpened():
-        raise InputError("cannot parse calibration (not OpenCV FileStorage YAML)", where=str(capture_dir),
-                         fix="files must start with %YAML:1.0 as written by cv2.FileStorage")
+    fi = _open_storage(ipath)
+    try:
+        fe = _open_storage(epath)
+    except InputError:
+        fi.release()
+        raise
     try:
         names = _read_names(fi, ipath)
         enames = set(_read_names(fe, epath))
@@ -85,11 +117,8 @@ def read_easymocap_cameras(capture_dir: Path, image_size: dict[str, tuple[int, i
             if K.shape != (3, 3) or Rot.shape != (3, 3) or T.size != 3:
                 raise InputError(f"camera {n} has malformed K/R/T shapes {K.shape}/{Rot.shape}/{T.shape}",
                                  where=str(capture_dir), fix="K must be 3x3, Rot 3x3 (or R 3x1 Rodrigues), T 3x1")
-            try:
-                cams.append(Camera(name=n, K=K, R=Rot, T=T.ravel(), width=w, height=h,
-                                   dist=np.zeros(5) if dist is None else dist.ravel()))
-            except ValueError as e:
-                raise InputError(str(e), where=str(capture_dir), fix="fix the calibration values") from None
+            cams.append(make_camera(f"{ipath} + {epath.name}", name=n, K=K, R=Rot, T=T.ravel(), width=w, height=h,
+                                    dist=np.zeros(5) if dist is None else dist.ravel()))
         return cams
     finally:
         fi.release()

@@ -86,23 +86,11 @@ def read_easymocap_smpl_dir(folder: Path) -> RhThFits:
     return rhth_from_records(records, str(folder))
 
 
-def read_motion_npz(path: Path) -> BodyMotion:
-    """A `BodyMotion` npz (what `avatarctl synth` and `BodyMotion.save` write), with one-line errors."""
-    path = Path(path)
-    try:
-        return BodyMotion.load(path)
-    except (ValueError, KeyError, OSError) as e:
-        msg = str(e).splitlines()[0] if str(e) else type(e).__name__
-        raise InputError(f"bad body fits: {msg}", where=str(path),
-                         fix="write it with avatarctl.body.motion.BodyMotion.save (finite values, one row per "
-                             "frame, anny pose_parameters [frames, 104, 4, 4] or SMPL arrays)") from None
-
-
 def read_capture_fits(root: Path) -> tuple[BodyMotion | RhThFits, str]:
     """(fits, where) beside a capture: ``motion.npz`` (preferred) or EasyMocap ``smpl/*.json``."""
     root = Path(root)
     if (root / "motion.npz").is_file():
-        return read_motion_npz(root / "motion.npz"), str(root / "motion.npz")
+        return BodyMotion.load(root / "motion.npz"), str(root / "motion.npz")
     if (root / "smpl").is_dir():
         return read_easymocap_smpl_dir(root / "smpl"), str(root / "smpl")
     raise InputError("no body fits (motion.npz or smpl/*.json)", where=str(root),

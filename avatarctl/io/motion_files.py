@@ -45,6 +45,8 @@ MOTION_KINDS = ("anny", "smpl", "smplh", "smplx")
 MOTION_FORMATS = MOTION_KINDS + ("aist", "bvh")
 # (a BodyMotion file of the toy sphere body, the tests' body model, drives a toy avatar)
 _FAMILY = {"anny": "anny", "smpl": "smpl", "smplh": "smpl", "smplx": "smplx", "aist": "smpl", "toy": "toy"}
+_MOTION_FOR = {"anny": "(an anny motion.npz as written by `avatarctl synth`)", "smpl": "(an AMASS npz for SMPL/SMPL+H)",
+               "smplx": "(an AMASS npz for SMPL-X)", "toy": "(a BodyMotion npz of the toy body, e.g. ingest/body.npz)"}
 
 
 def detect_motion_kind(keys: set[str], arrays: dict[str, np.ndarray], where: str) -> str:
@@ -164,9 +166,7 @@ def read_motion_file(path: str | Path, body_model: str) -> BodyMotion:
     inp = read_motion(path)
     if inp.family != body_model or inp.body is None:
         raise InputError(f"motion file is for the {_describe(inp.kind)} body model but the avatar uses {body_model}",
-                         where=inp.path, fix=f"pass a {body_model} motion "
-                         + ("(an anny motion.npz as written by `avatarctl synth`)" if body_model == "anny"
-                            else "(an AMASS npz for " + ("SMPL/SMPL+H" if body_model == "smpl" else "SMPL-X") + ")"))
+                         where=inp.path, fix=f"pass a {body_model} motion {_MOTION_FOR.get(body_model, '')}".strip())
     return inp.body
 
 
@@ -174,21 +174,10 @@ def _read_aist(p: Path) -> tuple[BodyMotion, tuple[str, ...]]:
     """An AIST++ motion pickle: dict of numpy arrays `smpl_poses` [frames, 72], `smpl_trans` [frames, 3],
     `smpl_scaling` [1]. Read with a restricted unpickler (numpy arrays and builtin containers only). The
     translation is `smpl_trans / smpl_scaling` (the AIST++ API's convention; the body is in metres); 60 fps."""
-    import pickle
-
-    from avatarctl.safe_pickle import ArrayUnpickler
-
-    class _Aist(ArrayUnpickler):
-        what = "an AIST++ motion file"
+    from avatarctl.safe_pickle import load_pickle
 
     where = str(p)
-    try:
-        with open(p, "rb") as fh:
-            data = _Aist(fh, encoding="latin1").load()
-    except (pickle.UnpicklingError, EOFError, ValueError, TypeError, AttributeError, ImportError, IndexError) as e:
-        raise InputError(f"cannot read AIST++ pickle: {' '.join(str(e).split())[:160]}", where=where,
-                         fix="pass an AIST++ motions/*.pkl (a dict of numpy arrays); other pickles are refused") \
-            from None
+    data = load_pickle(p, "AIST++ motion pickle")
     if not isinstance(data, dict):
         raise InputError(f"AIST++ pickle holds a {type(data).__name__}, not a dict", where=where,
                          fix="pass an AIST++ motions/*.pkl")

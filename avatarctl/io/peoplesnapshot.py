@@ -9,13 +9,12 @@ Layout::
                                  the last N rows belong to the N masked frames)
     <name>.mp4 or images/%06d.(jpg|png)   the N video frames
 
-The single camera is named ``cam0``; frame numbers are 0..N-1. Reading camera.pkl unpickles it: only ingest
-captures you trust.
+The single camera is named ``cam0``; frame numbers are 0..N-1. camera.pkl is read with
+`avatarctl.safe_pickle` (numpy arrays and plain containers only; anything else is refused before it runs).
 """
 
 from __future__ import annotations
 
-import pickle
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -23,8 +22,9 @@ import numpy as np
 
 from avatarctl.body.motion import BodyMotion
 from avatarctl.errors import InputError
-from avatarctl.io.capture import CaptureSource, FileImages, scan_numbered
+from avatarctl.io.capture import CaptureSource, FileImages, make_camera, scan_numbered
 from avatarctl.geometry.cameras import Camera
+from avatarctl.safe_pickle import load_pickle
 
 CAM = "cam0"
 
@@ -33,16 +33,15 @@ def read_peoplesnapshot_camera(path: Path) -> Camera:
     import cv2
 
     try:
-        with open(path, "rb") as fh:
-            d = pickle.load(fh, encoding="latin1")
+        d = load_pickle(path, "camera.pkl")
         f = np.asarray(d["camera_f"], dtype=np.float64).ravel()
         c = np.asarray(d["camera_c"], dtype=np.float64).ravel()
         k = np.asarray(d.get("camera_k", np.zeros(5)), dtype=np.float64).ravel()
         rt = np.asarray(d["camera_rt"], dtype=np.float64).reshape(3, 1)
         t = np.asarray(d["camera_t"], dtype=np.float64).ravel()
         w, h = int(d["width"]), int(d["height"])
-    except FileNotFoundError:
-        raise InputError("camera.pkl missing", where=str(path), fix="PeopleSnapshot captures need camera.pkl") from None
+    except InputError:
+        raise
     except Exception as e:  # noqa: BLE001 - any unpickling / key problem is the same user error
         raise InputError(f"cannot read camera.pkl ({type(e).__name__}: {e})", where=str(path),
                          fix="expected camera_f, camera_c, camera_k, camera_rt, camera_t, width, height") from None
@@ -50,10 +49,7 @@ def read_peoplesnapshot_camera(path: Path) -> Camera:
         raise InputError("camera.pkl entries have wrong sizes", where=str(path),
                          fix="camera_f and camera_c need 2 values, camera_t 3")
     K = np.array([[f[0], 0, c[0]], [0, f[1], c[1]], [0, 0, 1.0]])
-    try:
-        return Camera(name=CAM, K=K, R=cv2.Rodrigues(rt)[0], T=t, width=w, height=h, dist=k)
-    except ValueError as e:
-        raise InputError(str(e), where=str(path), fix="fix the calibration values") from None
+    return make_camera(path, name=CAM, K=K, R=cv2.Rodrigues(rt)[0], T=t, width=w, height=h, dist=k)
 
 
 @dataclass

@@ -12,9 +12,9 @@ from pathlib import Path
 
 import numpy as np
 
-from avatarctl.atomic import atomic_path, write_json
+from avatarctl.atomic import write_image, write_json
 from avatarctl.body.motion import BodyMotion
-from avatarctl.errors import ProjectError
+from avatarctl.errors import InputError, ProjectError
 from avatarctl.project import Project
 from avatarctl.geometry.cameras import Camera
 
@@ -65,11 +65,22 @@ def save_cameras(path: Path, cameras: list[Camera]) -> None:
     write_json(path, {"cameras": [c.to_json() for c in cameras]})
 
 
+def _read_ingest_json(path: Path, what: str, build):
+    """`build(json.loads(path))` for an ingest output, with a one-line `ProjectError` when it is missing, cut off,
+    not UTF-8 or has the wrong content."""
+    path = Path(path)
+    if not path.is_file():
+        raise ProjectError(f"{what} file missing", where=str(path), fix="re-run `avatarctl ingest`")
+    try:
+        return build(json.loads(path.read_bytes().decode("utf-8")))
+    except (UnicodeDecodeError, json.JSONDecodeError, KeyError, TypeError, ValueError) as e:
+        detail = " ".join(str(e).split())[:160]
+        raise ProjectError(f"{what} file is damaged ({type(e).__name__}: {detail})", where=str(path),
+                           fix="re-run `avatarctl ingest` into a new project") from None
+
+
 def load_cameras(path: Path) -> dict[str, Camera]:
-    if not Path(path).is_file():
-        raise ProjectError("cameras file missing", where=str(path), fix="re-run `avatarctl ingest`")
-    d = json.loads(Path(path).read_text())
-    return {c["name"]: Camera.from_json(c) for c in d["cameras"]}
+    return _read_ingest_json(path, "cameras", lambda d: {c["name"]: Camera.from_json(c) for c in d["cameras"]})
 
 
 def save_split(path: Path, split: Split) -> None:
@@ -77,9 +88,7 @@ def save_split(path: Path, split: Split) -> None:
 
 
 def load_split(path: Path) -> Split:
-    if not Path(path).is_file():
-        raise ProjectError("split file missing", where=str(path), fix="re-run `avatarctl ingest`")
-    return Split.from_json(json.loads(Path(path).read_text()))
+    return _read_ingest_json(path, "split", Split.from_json)
 
 
 def write_frame(project: Project, cam: str, frame: int, rgb: np.ndarray) -> Path:
@@ -87,21 +96,14 @@ def write_frame(project: Project, cam: str, frame: int, rgb: np.ndarray) -> Path
     import cv2
 
     dest = project.paths.frame(cam, frame)
-    with atomic_path(dest) as tmp:
-        if not cv2.imwrite(str(tmp), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY]):
-            raise OSError(f"cv2.imwrite failed for {dest}")
-    return dest
+    return write_image(dest, cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY])
 
 
 def write_mask(project: Project, cam: str, frame: int, mask: np.ndarray) -> Path:
     """Write a foreground mask (bool or uint8, [H, W]) as 0/255 PNG atomically."""
     import cv2
 
-    dest = project.paths.mask(cam, frame)
-    with atomic_path(dest) as tmp:
-        if not cv2.imwrite(str(tmp), (np.asarray(mask) > 0).astype(np.uint8) * 255):
-            raise OSError(f"cv2.imwrite failed for {dest}")
-    return dest
+    return write_image(project.paths.mask(cam, frame), (np.asarray(mask) > 0).astype(np.uint8) * 255)
 
 
 def _read_image(path: Path, flag: int, message: str) -> np.ndarray:
@@ -138,7 +140,24 @@ def load_project_capture(project: Project) -> ProjectCapture:
     p = project.paths
     if not p.body.is_file():
         raise ProjectError("body fits missing", where=str(p.body), fix="re-run `avatarctl ingest`")
-    motion = BodyMotion.load(p.body)
+    try:
+        motion = BodyMotion.load(p.body)
+    except InputError as e:
+        raise ProjectError(e.what, where=e.where, fix="re-run `avatarctl ingest` into a new project") from None
     bm = project.manifest.body_model
-    return ProjectCapture(project=project, cameras=load_cameras(p.cameras), split=load_split(p.split), motion=motion,
-                          body_model=bm.name, body_model_path=bm.path)
+    cameras, split = load_cameras(p.cameras), load_split(p.split)
+    _check_images_present(project, list(cameras), [int(f) for f in motion.frame_index])
+    return ProjectCapture(project=project, cameras=cameras, split=split, motion=motion, body_model=bm.name,
+                          body_model_path=bm.path)
+
+
+def _check_images_present(project: Project, cams: list[str], frames: list[int]) -> None:
+    """Every (camera, frame) ingest wrote still has its frame and mask file (a stat each; pixels stay lazy), so a
+    stage fails before its first step, not when the sampler happens to reach a deleted file."""
+    p = project.paths
+    for cam in cams:
+        for f in frames:
+            for path in (p.frame(cam, f), p.mask(cam, f)):
+                if not path.is_file() or path.stat().st_size == 0:
+                    raise ProjectError(f"ingest output missing or empty: camera {cam}, frame {f}", where=str(path),
+                                       fix="restore the file, or re-run `avatarctl ingest` into a new project")

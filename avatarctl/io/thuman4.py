@@ -23,7 +23,7 @@ import numpy as np
 
 from avatarctl.body.motion import BodyMotion
 from avatarctl.errors import InputError
-from avatarctl.io.capture import CaptureSource, FileImages, FileMasks, safe_camera_name, scan_numbered
+from avatarctl.io.capture import CaptureSource, FileImages, FileMasks, make_camera, safe_camera_name, scan_numbered
 from avatarctl.geometry.cameras import Camera
 
 
@@ -55,10 +55,7 @@ def read_thuman4_cameras(path: Path) -> list[Camera]:
         T = _vec(d, "T", 3, name, path)
         W, H = (int(v) for v in _vec(d, "imgSize", 2, name, path))
         dist = np.asarray(d.get("D", d.get("dist", np.zeros(5))), dtype=np.float64).ravel()
-        try:
-            cams.append(Camera(name=safe_camera_name(name), K=K, R=R, T=T, width=W, height=H, dist=dist))
-        except ValueError as e:
-            raise InputError(str(e), where=str(path), fix="fix the calibration values") from None
+        cams.append(make_camera(path, name=safe_camera_name(name), K=K, R=R, T=T, width=W, height=H, dist=dist))
     return cams
 
 

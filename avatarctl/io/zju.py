@@ -11,7 +11,8 @@ Layout::
     params/<frame>.npy             'new_params' (refit with pose blend shapes) is preferred when present
 
 Camera translations are converted from millimetres to metres. Frame number = the image file's number (0-based).
-Reading annots.npy and the params unpickles them (numpy ``allow_pickle``): only ingest captures you trust.
+annots.npy and the params are pickles: they are read with `avatarctl.safe_pickle` (numpy arrays and plain
+containers only; anything else, e.g. a payload calling os.system, is refused before it runs).
 """
 
 from __future__ import annotations
@@ -21,9 +22,9 @@ from pathlib import Path
 import numpy as np
 
 from avatarctl.errors import InputError
-from avatarctl.io.capture import CaptureSource, FileImages, FileMasks, RhThFits, safe_camera_name
+from avatarctl.io.capture import CaptureSource, FileImages, FileMasks, RhThFits, make_camera, safe_camera_name
 from avatarctl.io.easymocap_fits import rhth_from_records
-from avatarctl.geometry.cameras import Camera
+from avatarctl.safe_pickle import load_npy
 
 
 def zju_frame_number(rel: str) -> int:
@@ -38,19 +39,10 @@ def zju_frame_number(rel: str) -> int:
                      fix="name images <frame>.jpg (or the CoreView_313/315 pattern)")
 
 
-def _load_pickled_npy(path: Path) -> object:
-    try:
-        obj = np.load(path, allow_pickle=True)
-    except Exception as e:  # noqa: BLE001 - any unpickling failure is the same user error
-        raise InputError(f"cannot read {path.name} ({type(e).__name__})", where=str(path),
-                         fix="re-download or re-export this file") from None
-    return obj.item() if isinstance(obj, np.ndarray) and obj.dtype == object and obj.shape == () else obj
-
-
 def read_zju(root: Path) -> CaptureSource:
     root = Path(root)
     apath = root / "annots.npy"
-    annots = _load_pickled_npy(apath)
+    annots = load_npy(apath, "annots.npy")
     if not isinstance(annots, dict) or "cams" not in annots or "ims" not in annots:
         raise InputError("annots.npy has no 'cams'/'ims' entries", where=str(apath),
                          fix="expected Neural Body's annots.npy: {'cams': {K, D, R, T}, 'ims': [{'ims': [...]}]}")
@@ -105,8 +97,8 @@ def read_zju(root: Path) -> CaptureSource:
         K = np.asarray(Ks[i], dtype=np.float64)
         T_mm = np.asarray(Ts[i], dtype=np.float64).reshape(3)
         size = _image_size(images, n)
-        cameras.append(Camera(name=n, K=K, R=np.asarray(Rs[i], dtype=np.float64), T=T_mm / 1000.0,
-                              width=size[0], height=size[1], dist=np.asarray(Ds[i], dtype=np.float64).ravel()))
+        cameras.append(make_camera(apath, name=n, K=K, R=np.asarray(Rs[i], dtype=np.float64), T=T_mm / 1000.0,
+                                   width=size[0], height=size[1], dist=np.asarray(Ds[i], dtype=np.float64).ravel()))
 
     fits = read_zju_params(root)
     has_masks = any(mask_frames.values())
@@ -145,7 +137,7 @@ def read_zju_params(root: Path) -> RhThFits:
     for p in sorted(folder.glob("*.npy")):
         if not p.stem.isdigit():
             continue
-        d = _load_pickled_npy(p)
+        d = load_npy(p, "fit file")
         if not isinstance(d, dict):
             raise InputError("fit file is not a dict {Rh, Th, poses, shapes}", where=str(p), fix="re-export it")
         records.append((int(p.stem), d, str(p)))

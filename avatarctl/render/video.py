@@ -6,6 +6,7 @@ Frames with odd width/height are padded (bottom/right) with `pad_color`, never r
 
 from __future__ import annotations
 
+import errno
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -93,8 +94,23 @@ def write_video(frames: Iterable[np.ndarray], dest: str | Path, fps: float,
         finally:
             if writer is not None:
                 writer.close()
+        _check_written(tmp, n, dest)
     assert size is not None
     return VideoInfo(path=dest, frames=n, width=size[0], height=size[1], fps=float(fps))
+
+
+def _check_written(path: Path, frames: int, dest: Path) -> None:
+    """imageio-ffmpeg does not look at ffmpeg's exit status: when ffmpeg cannot write (disk full, file-size limit)
+    the video is cut short and nothing says so. Count the frames ffmpeg can read back (a decode of the file)."""
+    import imageio_ffmpeg
+
+    try:
+        got, _ = imageio_ffmpeg.count_frames_and_secs(str(path))
+    except Exception:  # noqa: BLE001 - an unreadable file is the same failure as a short one
+        got = 0
+    if got != frames:
+        raise OSError(errno.EIO, f"ffmpeg wrote {got} of {frames} video frames (disk full or a file-size limit?)",
+                      str(dest))
 
 
 def probe_video(path: str | Path) -> dict:

@@ -30,6 +30,7 @@ from typing import Callable
 
 import numpy as np
 
+from avatarctl.atomic import write_image
 from avatarctl.errors import InputError
 from avatarctl.geometry.cameras import Camera, look_at
 from avatarctl.io.gt_geometry import GT_GEOMETRY, GT_MOTION
@@ -360,7 +361,7 @@ def synthesize(out: Path, config: SynthConfig, progress: Progress | None = None)
         jpeg = [int(cv2.IMWRITE_JPEG_QUALITY), config.jpeg_quality]
         (tmp / "background").mkdir()
         for c, cam in enumerate(cameras):
-            cv2.imwrite(str(tmp / "background" / f"{cam.name}.jpg"), _to_u8(renderer.plate(c))[..., ::-1], jpeg)
+            write_image(tmp / "background" / f"{cam.name}.jpg", _to_u8(renderer.plate(c))[..., ::-1], jpeg)
             (tmp / "images" / cam.name).mkdir(parents=True)
             (tmp / "masks" / cam.name).mkdir(parents=True)
         sheet_frames = _sheet_frames(config, hem_radius, hem_pair)
@@ -369,9 +370,8 @@ def synthesize(out: Path, config: SynthConfig, progress: Progress | None = None)
             views = renderer.render_frame(k)
             for c, (img, cov) in enumerate(views):
                 u8 = _to_u8(img)
-                cv2.imwrite(str(tmp / "images" / names[c] / f"{k:06d}.jpg"), u8[..., ::-1], jpeg)
-                cv2.imwrite(str(tmp / "masks" / names[c] / f"{k:06d}.png"),
-                            np.where(cov >= 0.5, 255, 0).astype(np.uint8))
+                write_image(tmp / "images" / names[c] / f"{k:06d}.jpg", u8[..., ::-1], jpeg)
+                write_image(tmp / "masks" / names[c] / f"{k:06d}.png", np.where(cov >= 0.5, 255, 0).astype(np.uint8))
                 if k in sheet_frames:
                     sheet_tiles[(k, c)] = u8
             if progress:

@@ -6,6 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
+from avatarctl.atomic import write_image
 from avatarctl.synth.config import SynthConfig
 
 MAX_VIEWS = 4
@@ -39,4 +40,4 @@ def contact_sheet(path: Path, tiles: dict[tuple[int, int], np.ndarray], frames: 
         rows.append(np.concatenate(cells[:-1], axis=1))
         rows.append(np.full((2, rows[-1].shape[1], 3), 255, np.uint8))
     sheet = np.concatenate(rows[:-1], axis=0)
-    cv2.imwrite(str(path), sheet[..., ::-1])
+    write_image(path, np.ascontiguousarray(sheet[..., ::-1]))
