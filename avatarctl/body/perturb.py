@@ -18,14 +18,13 @@ _ANNY_ROOT = 0  # anny's bone 0 is `root`; its delta is the root's world pose (s
 
 
 def _random_rotations(rng: np.random.Generator, shape: tuple[int, ...], sigma_rad: float) -> np.ndarray:
-    """[*shape, 3, 3] rotations about random axes by N(0, sigma^2) angles (Rodrigues)."""
+    """[*shape, 3, 3] rotations about random axes by N(0, sigma^2) angles."""
+    from scipy.spatial.transform import Rotation
+
     axis = rng.normal(size=shape + (3,))
     axis /= np.linalg.norm(axis, axis=-1, keepdims=True)
-    angle = rng.normal(scale=sigma_rad, size=shape)[..., None, None]
-    K = np.zeros(shape + (3, 3))
-    K[..., 0, 1], K[..., 0, 2], K[..., 1, 2] = -axis[..., 2], axis[..., 1], -axis[..., 0]
-    K = K - np.swapaxes(K, -1, -2)
-    return np.eye(3) + np.sin(angle) * K + (1 - np.cos(angle)) * (K @ K)
+    angle = rng.normal(scale=sigma_rad, size=shape)[..., None]
+    return Rotation.from_rotvec((axis * angle).reshape(-1, 3)).as_matrix().reshape(shape + (3, 3))
 
 
 def _perturb_axis_angle(aa: np.ndarray, noise: np.ndarray) -> np.ndarray:

@@ -12,8 +12,6 @@ from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 SCHEMA_VERSION = 1
 PSNR_CAP = 100.0  # dB; an exact reconstruction (MSE 0, PSNR inf) is reported as this so JSON stays valid
 
@@ -124,7 +122,7 @@ class RegionScore:
 
 def region_scores(scores: list[ImageScore]) -> dict[str, RegionScore] | None:
     """Per-region summary of the images' `region_mse` / `region_pixels` (None without ground-truth geometry)."""
-    import math
+    from avatarctl.evaluate.metrics import psnr_from_mse
 
     if not scores or scores[0].region_mse is None:
         return None
@@ -133,13 +131,13 @@ def region_scores(scores: list[ImageScore]) -> dict[str, RegionScore] | None:
     out = {}
     for name in scores[0].region_pixels:
         got = [(s.region_mse[name], s.region_pixels[name]) for s in scores if s.region_pixels[name] > 0]
-        flat = [min(PSNR_CAP, -10 * math.log10(s.region_mse[f"{name}_flat"])) if s.region_mse[f"{name}_flat"] > 0
-                else PSNR_CAP for s in scores if s.region_pixels[name] > 0]
+        flat = [min(PSNR_CAP, psnr_from_mse(s.region_mse[f"{name}_flat"])) for s in scores
+                if s.region_pixels[name] > 0]
         err = sum(m * n for m, n in got)
         px = sum(n for _, n in got)
-        db = [min(PSNR_CAP, -10 * math.log10(m)) if m > 0 else PSNR_CAP for m, _ in got]
+        db = [min(PSNR_CAP, psnr_from_mse(m)) for m, _ in got]
         out[name] = RegionScore(psnr=sum(db) / len(db) if db else None,
-                                pooled_psnr=min(PSNR_CAP, -10 * math.log10(err / px)) if px and err > 0 else None,
+                                pooled_psnr=min(PSNR_CAP, psnr_from_mse(err / px)) if px and err > 0 else None,
                                 images=len(got), pixels=px, share_of_pixels=px / max(total_px, 1),
                                 share_of_error=err / total_err if total_err > 0 else 0.0,
                                 flat_colour_psnr=sum(flat) / len(flat) if flat else None)
@@ -149,6 +147,8 @@ def region_scores(scores: list[ImageScore]) -> dict[str, RegionScore] | None:
 def per_frame_csv(scores: list[ImageScore]) -> str:
     buf = io.StringIO()
     w = csv.writer(buf, lineterminator="\n")
+    from avatarctl.evaluate.metrics import psnr_from_mse
+
     names = list(scores[0].region_pixels) if scores and scores[0].region_pixels is not None else []
     w.writerow(["frame", "view", "psnr", "ssim", "mse", "pixels", "latent", "render_seconds"]
                + [f"{n}_{k}" for n in names for k in ("psnr", "pixels")])
@@ -156,8 +156,7 @@ def per_frame_csv(scores: list[ImageScore]) -> str:
         extra = []
         for n in names:
             m = s.region_mse[n]
-            extra += [f"{min(PSNR_CAP, -10 * np.log10(m)) if m > 0 else PSNR_CAP:.4f}" if s.region_pixels[n] else "",
-                      s.region_pixels[n]]
+            extra += [f"{min(PSNR_CAP, psnr_from_mse(m)):.4f}" if s.region_pixels[n] else "", s.region_pixels[n]]
         w.writerow([s.frame, s.view, f"{min(s.psnr, PSNR_CAP):.4f}", f"{s.ssim:.6f}", f"{s.mse:.8f}", s.pixels,
                     s.latent, f"{s.seconds:.3f}"] + extra)
     return buf.getvalue()

@@ -23,19 +23,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-
-def _rodrigues(aa: torch.Tensor) -> torch.Tensor:
-    """[..., 3] axis-angle -> [..., 3, 3] rotation (exact at zero: first-order series below 1e-8 rad^2)."""
-    theta2 = (aa * aa).sum(-1, keepdim=True)[..., None]  # [..., 1, 1]
-    small = theta2 < 1e-8
-    theta = torch.sqrt(theta2.clamp_min(1e-8))
-    a = torch.where(small, 1 - theta2 / 6, torch.sin(theta) / theta)
-    b = torch.where(small, 0.5 - theta2 / 24, (1 - torch.cos(theta)) / theta2.clamp_min(1e-8))
-    x, y, z = aa.unbind(-1)
-    zero = torch.zeros_like(x)
-    K = torch.stack([zero, -z, y, z, zero, -x, -y, x, zero], -1).reshape(aa.shape[:-1] + (3, 3))
-    eye = torch.eye(3, dtype=aa.dtype, device=aa.device).expand(K.shape)
-    return eye + a * K + b * (K @ K)
+from avatarctl.body.lbs import axis_angle_to_matrix
 
 
 class PoseRefinement(nn.Module):
@@ -46,8 +34,11 @@ class PoseRefinement(nn.Module):
         J = len(parents)
         self.parents = tuple(int(p) for p in parents)
         depth = [_depth(self.parents, j) for j in range(J)]
-        # joints grouped by tree depth, so the composition down the tree is one batched product per level
-        self.levels = [torch.tensor([j for j in range(J) if depth[j] == d]) for d in range(max(depth) + 1)]
+        # joints grouped by tree depth, so the composition down the tree is one batched product per level:
+        # (joints of the level, their parents) below the roots, built once
+        levels = [[j for j in range(J) if depth[j] == d] for d in range(1, max(depth) + 1)]
+        self.levels = [(torch.tensor(lv), torch.tensor([self.parents[j] for j in lv])) for lv in levels]
+        self.register_buffer("is_root", torch.tensor([p < 0 for p in self.parents]), persistent=False)  # [J]
         self.delta = nn.Parameter(torch.zeros(num_frames, J, 3))  # [T, J, 3] axis-angle, radians
         self.tau = nn.Parameter(torch.zeros(num_frames, 3))  # [T, 3] root translation, metres
         self.register_buffer("centres", torch.zeros(J, 3))  # [J, 3] canonical joint centres c_j
@@ -66,15 +57,13 @@ class PoseRefinement(nn.Module):
         M = joint_transforms
         ids = frame_ids.clamp_min(0)
         dt = M.dtype
-        R = _rodrigues((self.delta[ids] * self.active[:, None]).to(dt))  # [B, J, 3, 3]
+        R = axis_angle_to_matrix((self.delta[ids] * self.active[:, None]).to(dt))  # [B, J, 3, 3]
         x = (M[..., :3, :3] @ self.centres.to(dt)[None, :, :, None])[..., 0] + M[..., :3, 3]  # [B, J, 3] x_j
         t = x - (R @ x[..., None])[..., 0]  # [B, J, 3]: rotation about x_j
-        t = t + (torch.tensor([p < 0 for p in self.parents], device=M.device)[None, :, None]
-                 * self.tau[ids].to(dt)[:, None, :])  # the root's correction also translates by tau
+        t = t + self.is_root[None, :, None] * self.tau[ids].to(dt)[:, None, :]  # the root also translates by tau
         Dr, Dtt = R, t  # [B, J, 3, 3], [B, J, 3]: D_j for the joints composed so far (the roots: L_root)
-        for level in self.levels[1:]:
-            lv = level.to(M.device)
-            par = torch.tensor([self.parents[j] for j in level.tolist()], device=M.device)
+        for lv, par in self.levels:
+            lv, par = lv.to(M.device), par.to(M.device)
             Rp, tp = Dr[:, par], Dtt[:, par]  # parents are one level up: already composed
             Dr = Dr.index_copy(1, lv, Rp @ R[:, lv])
             Dtt = Dtt.index_copy(1, lv, (Rp @ t[:, lv, :, None])[..., 0] + tp)
