@@ -269,8 +269,9 @@ def _run(env: Any, progress: ProgressFn | None, project_dir: str, cfg: EvalConfi
         write_text(tmp / "per_frame.csv", per_frame_csv(scores))
         if sheet_rows:
             comparison_sheet(sheet_rows, tmp / "sheet.png",
-                             title=f"{cfg.split} / {cfg.protocol}  step {avatar.step}  "
-                                   f"PSNR {metrics.psnr:.2f} dB  SSIM {metrics.ssim:.4f}")
+                             title=f"{cfg.split} / {cfg.protocol}  step {avatar.step}  PSNR"
+                                   + ("" if cfg.region == "all" else f" ({cfg.region})")
+                                   + f" {metrics.psnr:.2f} dB  SSIM {metrics.ssim:.4f}")
     seconds = round(time.perf_counter() - t_start, 3)
     project.record("eval", config=cfg.to_json(), outputs=[out_dir], started=started,
                    summary={"name": cfg.out_name, "split": cfg.split, "protocol": cfg.protocol,
