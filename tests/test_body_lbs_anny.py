@@ -203,3 +203,24 @@ def test_anny_identity_pose_is_the_reference_pose(anny_body):
     # the reference (A-)pose differs from the rest mesh by centimetres (FACTS.md: up to ~5.5 cm)
     gap = (posed.vertices[0] - tpl.vertices).norm(dim=-1).max().item()
     assert 0.01 < gap < 0.1, gap
+
+
+@pytest.mark.anny
+def test_anny_pose_parameters_from_joint_transforms(anny_body):
+    """`motion_from_joint_transforms` inverts `pose` (round trip), and a rigid correction of one bone's subtree
+    (what pose refinement applies) comes back as pose parameters whose forward kinematics give it."""
+    motion = random_anny_motion(seed=2)
+    posed = anny_body.pose(motion)
+    back = anny_body.motion_from_joint_transforms(motion, posed.joint_transforms)
+    assert np.abs(back.pose_parameters - motion.pose_parameters).max() <= 1e-5
+    assert np.array_equal(back.phenotype, motion.phenotype) and np.array_equal(back.frame_index, motion.frame_index)
+    D = make_transform(axis_angle_to_matrix(torch.tensor([0.1, 0.2, -0.1], dtype=F64)),
+                       torch.tensor([0.01, 0.02, 0.0], dtype=F64))
+    M = posed.joint_transforms.double().clone()
+    M[1] = D @ M[1]  # every bone of frame 1 moved rigidly
+    again = anny_body.pose(anny_body.motion_from_joint_transforms(motion, M))
+    assert (again.joint_transforms.double() - M).abs().max() <= 1e-4
+    assert (again.vertices[1] - posed.vertices[1]).norm(dim=-1).max() > 0.05  # really moved
+    assert (again.vertices[0] - posed.vertices[0]).abs().max() <= 1e-4  # other frames untouched
+    with pytest.raises(ValueError, match="joint_transforms must be"):
+        anny_body.motion_from_joint_transforms(motion, M[:2])

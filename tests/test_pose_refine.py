@@ -108,6 +108,9 @@ def test_fit_with_pose_refinement_on_the_toy_chain(tmp_path):
                                    overrides=("model.pose_refine=true", "lr_pose=0.01", "val_every=0", "log_every=2")),
                   handle_sigint=False)
     assert "pose" in res.losses
+    r = res.refinement  # the toy body cannot invert its transforms: a summary, no motion file
+    assert r is not None and r.frames == 3 and r.mean_rotation_deg > 0 and r.path is None  # 3 training frames
+    assert not (proj / "fit" / "refined_fits.npz").exists()
     av = load_avatar(Project.open(proj), device="cpu")
     ref = av.model.pose_refine
     assert ref is not None and ref.delta.abs().max() > 0, "the corrections were trained and saved"

@@ -11,6 +11,7 @@ The first `anny.Anny()` on a machine builds a ~790 MB cache (`ANNY_CACHE_DIR`, d
 from __future__ import annotations
 
 import functools
+from dataclasses import replace
 
 import numpy as np
 import torch
@@ -109,6 +110,22 @@ class AnnyBody:
         feats = matrix_to_axis_angle(rot)
         feats[:, 0] = 0.0  # root: global heading carries no pose-dependent deformation
         return PosedBody(joint_transforms=M.float(), vertices=o["vertices"].float(), pose_features=feats.float())
+
+
+    def motion_from_joint_transforms(self, motion: BodyMotion, joint_transforms: torch.Tensor) -> BodyMotion:
+        """The inverse of `pose` for the pose: [frames, 104, 4, 4] joint transforms M'_j (canonical -> world, Eq. 1;
+        e.g. refined by model/pose_refine.py) -> `motion` with the anny "local-ref" pose parameters whose forward
+        kinematics give them (bone_pose'_j = M'_j rest_bone_pose_j, then anny's own inversion), its phenotype and
+        frame index kept. Exact for rigid M'_j: anny's local deltas carry a translation, so any rigid per-bone
+        motion is representable."""
+        M = torch.as_tensor(joint_transforms, dtype=torch.float64, device=self.device)
+        if M.ndim != 4 or M.shape[0] != motion.num_frames or M.shape[1:] != (104, 4, 4):
+            raise ValueError(f"joint_transforms must be [{motion.num_frames}, 104, 4, 4], got {tuple(M.shape)}")
+        rest = self._reference(motion)["rest_bone_poses"]  # [1, 104, 4, 4]
+        with torch.no_grad():
+            pp = self.model.get_pose_parameterization(
+                {"rest_bone_poses": rest.expand(M.shape[0], -1, -1, -1), "bone_poses": M @ rest}, "local-ref")
+        return replace(motion, pose_parameters=pp.float().cpu().numpy())
 
 
 def identity_pose(frames: int) -> np.ndarray:

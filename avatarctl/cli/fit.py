@@ -87,6 +87,11 @@ def _run(project_dir: Path, iters, preset, resume, fresh, seed, device, override
     if result.val is not None and result.val.psnr is not None:
         pairs = ", ".join(f"{p.view}@{p.frame} {p.psnr:.2f}" for p in result.val.pairs)
         table.add_row("held-out PSNR (bbox)", f"{result.val.psnr:.2f} dB  ({pairs})")
+    if result.refinement is not None:
+        r = result.refinement
+        table.add_row("pose refinement", f"{r.frames} frames x {r.joints} joints: mean {r.mean_rotation_deg:.2f} deg "
+                                         f"(max {r.max_rotation_deg:.2f}), root {r.mean_root_shift_cm:.2f} cm"
+                      + (f" -> {r.path}" if r.path else " (kept in the checkpoint: no motion file for this body model)"))
     table.add_row("checkpoint", str(result.checkpoint))
     table.add_row("log / config", f"{project.paths.fit_log} / {project.paths.fit_config}")
     console.print(table)

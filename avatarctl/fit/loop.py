@@ -45,6 +45,7 @@ from avatarctl.project import Project, now_iso
 if TYPE_CHECKING:
     from avatarctl.dist import DistEnv
     from avatarctl.fit.distributed import Replicas
+    from avatarctl.fit.refined import RefinementSummary
     from avatarctl.fit.validate import ValidationResult
 
 
@@ -88,6 +89,7 @@ class FitResult:
     rays_per_s: float
     device: str
     config: FitConfig
+    refinement: "RefinementSummary | None" = None  # pose refinement on: how far it moved the fits (fit/refined.py)
 
 
 @contextlib.contextmanager
@@ -358,18 +360,24 @@ def fit(project: Project, cfg: FitConfig | None = None, *, device: str = "auto",
         assert log is not None
         log.append({"step": step, "time": round(time.perf_counter() - t_run, 3), "val": _val_record(val)})
     assert last_ckpt is not None
+    refinement = None
+    if main and model.pose_refine is not None:  # the refined fits as a motion file (fit/refined.py)
+        from avatarctl.fit.refined import write_refined_fits
+
+        refinement = write_refined_fits(paths.fit, body, capture.motion, poses, model.pose_refine)
     summary = {"step": step, "iters": cfg.iters, "start_step": start_step, "interrupted": interrupted,
                "stop_reason": stop_reason,
                "seconds": round(seconds, 2), "setup_seconds": round(setup_seconds, 2), "losses": losses,
                "rays_per_s": round(rays_per_s, 1), "device": str(dev),
                "val_psnr_bbox": None if val is None else val.psnr,
                "val_pairs": None if val is None else val.to_json()["pairs"], "ranks": world, "ray_shards": shards,
-               **config_summary(cfg)}
+               "pose_refinement": None if refinement is None else refinement.to_json(), **config_summary(cfg)}
     if main:
         project.record("fit", {"fit": cfg.to_json(), "device": str(dev), "resume": resume, "ranks": world,
                                "ray_shards": shards},
-                       [paths.fit_config, paths.fit_log, paths.latest_checkpoint], started, summary)
+                       [paths.fit_config, paths.fit_log, paths.latest_checkpoint]
+                       + ([refinement.path] if refinement is not None and refinement.path else []), started, summary)
     return FitResult(step=step, iters=cfg.iters, interrupted=interrupted, stop_reason=stop_reason,
                      checkpoint=last_ckpt, seconds=seconds,
                      setup_seconds=setup_seconds, losses=losses, val=val, rays_per_s=rays_per_s, device=str(dev),
-                     config=cfg)
+                     config=cfg, refinement=refinement)
