@@ -244,9 +244,22 @@ def fit(project: Project, cfg: FitConfig | None = None, *, device: str = "auto",
     pairs = choose_val_pairs(split.test_views, train_frames, cfg.val_pairs) if main else []
     validator = Validator(capture, body, pairs, train_frames, cfg.background, cfg.val_scale) if pairs else None
 
+    hull = None
+    if cfg.model.hull_nodes and ckpt is None:  # K nodes off the body, from the masks (fit/hull_nodes.py)
+        from avatarctl.fit.hull_nodes import place_hull_nodes
+        from avatarctl.model.deformer import farthest_point_sampling
+
+        surface = farthest_point_sampling(template.vertices, cfg.model.num_nodes - cfg.model.hull_nodes, cfg.seed)
+        try:
+            hull = place_hull_nodes(capture, body, template, train_frames, list(split.train_views),
+                                    template.vertices.detach().float()[surface], surface, cfg.model.hull_nodes,
+                                    cfg.model.hull_min_dist)
+        except ValueError as e:
+            raise ProjectError(str(e), where=str(paths.ingest), fix="--set model.hull_nodes=0") from None
     with torch.random.fork_rng(devices=[]):  # weights initialised from cfg.seed, global RNG left as it was
         torch.manual_seed(cfg.seed)
-        model = SlrfAvatar(cfg.model, template, num_frames=len(train_frames), seed=cfg.seed).to(dev)
+        model = SlrfAvatar(cfg.model, template, num_frames=len(train_frames), seed=cfg.seed,
+                           hull_nodes=None if hull is None else (hull.rest, hull.vertex)).to(dev)
     if model.pose_refine is not None and ckpt is None:  # canonical joint centres from the training poses
         from avatarctl.body.joints import joint_centres, skin_weighted_centroids
 
@@ -262,6 +275,9 @@ def fit(project: Project, cfg: FitConfig | None = None, *, device: str = "auto",
         _set_rng_state(ckpt["rng"])
         same_stream = replicas.load_rng_state(ckpt["rng"], cfg.seed, start_step)
     log = _Log(paths.fit_log, _read_log(paths.fit_log, start_step) if resume else []) if main else None
+    if hull is not None and log is not None:
+        log.append({"step": 0, "note": f"hull nodes: {cfg.model.hull_nodes} of {cfg.model.num_nodes} nodes placed "
+                                       f"from {hull.candidates} off-body hull points of {hull.frames} frames"})
     if ckpt is not None and not same_stream and log is not None:
         log.append({"step": start_step, "note": f"resumed on {world} ranks: {saved_shards(ckpt['rng'])} ray shards "
                                                 f"resharded to {shards}, new sampling streams"})

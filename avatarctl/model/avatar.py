@@ -100,21 +100,35 @@ class RenderOutputs:
 class SlrfAvatar(nn.Module):
     """The SLRF avatar of one subject. See the module docstring for the data flow."""
 
-    def __init__(self, cfg: ModelConfig, template: BodyTemplate, num_frames: int, seed: int = 0):
+    def __init__(self, cfg: ModelConfig, template: BodyTemplate, num_frames: int, seed: int = 0,
+                 hull_nodes: tuple[torch.Tensor, torch.Tensor] | None = None):
+        """`hull_nodes` (with `cfg.hull_nodes` = K > 0, a deviation: fit/hull_nodes.py): the K off-body nodes as
+        (canonical positions [K, 3], nearest template vertex [K]); the other N - K nodes are sampled on the surface.
+        None with K > 0: placeholders (K more surface nodes) that a checkpoint's buffers replace (loading)."""
         super().__init__()
         V, J = template.skin_weights.shape
         if cfg.num_nodes > V:
             raise ValueError(f"num_nodes={cfg.num_nodes} exceeds the template's {V} vertices")
+        K = cfg.hull_nodes
+        if hull_nodes is not None and (K == 0 or hull_nodes[0].shape != (K, 3) or hull_nodes[1].shape != (K,)):
+            raise ValueError(f"hull_nodes must be ([{K}, 3], [{K}]) for model.hull_nodes={K}, got "
+                             f"{tuple(hull_nodes[0].shape)}, {tuple(hull_nodes[1].shape)}")
         if num_frames < 0 or (cfg.latent == "per_frame" and num_frames < 1):
             raise ValueError(f"num_frames must be >= 0 (>= 1 for latent 'per_frame'), got {num_frames}")
         self.cfg = cfg
         self.num_frames = int(num_frames)
         self.num_joints = J
-        idx = farthest_point_sampling(template.vertices, cfg.num_nodes, seed)
         weights = template.skin_weights.detach().float()
+        if hull_nodes is None:
+            idx = farthest_point_sampling(template.vertices, cfg.num_nodes, seed)
+            rest = template.vertices.detach().float()[idx]
+        else:  # Sec. 3.1's surface sampling for N - K nodes, then the K hull nodes (fit/hull_nodes.py)
+            surface = farthest_point_sampling(template.vertices, cfg.num_nodes - K, seed)
+            idx = torch.cat([surface, hull_nodes[1].to(surface)])
+            rest = torch.cat([template.vertices.detach().float()[surface], hull_nodes[0].float().to(surface.device)])
         # buffers: saved in state_dict, follow .to(device)
-        self.register_buffer("node_vertex_index", idx.clone())  # [N] long, template vertex of each node
-        self.register_buffer("node_rest", template.vertices.detach().float()[idx].clone())  # [N, 3] n_bar_i
+        self.register_buffer("node_vertex_index", idx.clone())  # [N] long, template vertex of (nearest to) each node
+        self.register_buffer("node_rest", rest.clone())  # [N, 3] n_bar_i
         self.register_buffer("node_skin_weights", weights[idx].clone())  # [N, J] omega_i
         self.register_buffer("pose_attention", node_pose_attention(  # [N, J] (W . omega_i), Eq. 8
             weights[idx], pose_attention_map(template.parents, cfg.pose_attention_hops)))

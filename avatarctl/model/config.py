@@ -44,6 +44,8 @@ class ModelConfig:
 
     # representation (Eq. 1-6)
     num_nodes: int = 128  # N, nodes by farthest point sampling on the canonical surface
+    hull_nodes: int = 0  # K of the N placed off the body from the masks' visual hull (deviation, fit/hull_nodes.py)
+    hull_min_dist: float = 0.14  # hull points farther than this (metres) from every surface node are off-body
     sigma: float = 0.05  # Eq. 6 Gaussian width, metres
     eps: float = 0.001  # Eq. 6 truncation; support radius sigma*sqrt(-2 ln eps) = 0.186 m
     embed_dim: int = 32  # dim e_i, dynamic detail embedding
@@ -121,6 +123,12 @@ class ModelConfig:
             need(isinstance(v, int) and not isinstance(v, bool) and v >= 0, f"{name} must be an int >= 0, got {v!r}")
         need(isinstance(self.pack_block, int) and self.pack_block >= 0, f"pack_block must be an int >= 0, got "
              f"{self.pack_block!r}")
+        need(isinstance(self.hull_nodes, int) and not isinstance(self.hull_nodes, bool)
+             and 0 <= self.hull_nodes < self.num_nodes,
+             f"hull_nodes must be an int in [0, num_nodes={self.num_nodes}), got {self.hull_nodes!r}")
+        need(self.hull_min_dist > 0, f"hull_min_dist must be > 0 (metres), got {self.hull_min_dist}")
+        need(self.hull_nodes == 0 or self.variant == "slrf", "hull_nodes needs the slrf variant (the pose-only "
+             "baseline has no nodes)")
         need(self.samples_per_ray >= 2, f"samples_per_ray must be >= 2, got {self.samples_per_ray}")
         need(self.head_width >= 2, f"head_width must be >= 2, got {self.head_width}")
         need(self.sigma > 0, f"sigma must be > 0 (metres), got {self.sigma}")

@@ -1,0 +1,101 @@
+"""Hull nodes (fit/hull_nodes.py, `model.hull_nodes`): carving, the persistence filter, placement, the model."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from avatarctl.fit.hull_nodes import carve, farthest_from, off_body_canonical, persistent_cells
+from avatarctl.geometry.cameras import Camera, look_at
+from avatarctl.model import ModelConfig
+
+
+def _ring_cameras(n: int = 6, size: int = 96) -> list[Camera]:
+    cams = []
+    for i in range(n):
+        a = 2 * np.pi * i / n
+        R, T = look_at(np.array([3 * np.cos(a), 3 * np.sin(a), 0.4]), np.zeros(3))
+        K = np.array([[120.0, 0, size / 2], [0, 120.0, size / 2], [0, 0, 1]])
+        cams.append(Camera(f"c{i}", K, R, T, size, size))
+    return cams
+
+
+def _sphere_mask(cam: Camera, centre: np.ndarray, radius: float) -> np.ndarray:
+    """Silhouette of a sphere: pixels whose ray passes within `radius` of `centre`."""
+    v, u = np.mgrid[0:cam.height, 0:cam.width]
+    xy = (np.stack([u, v], -1) - cam.K[:2, 2]) / np.diag(cam.K)[:2]
+    d = np.concatenate([xy, np.ones(xy.shape[:-1] + (1,))], -1) @ cam.R  # world ray directions
+    d /= np.linalg.norm(d, axis=-1, keepdims=True)
+    o = cam.center
+    oc = centre - o
+    t = d @ oc
+    return np.linalg.norm(o + t[..., None] * d - centre, axis=-1) <= radius
+
+
+def test_carving_recovers_a_sphere():
+    cams = _ring_cameras()
+    centre, r = np.array([0.1, -0.05, 0.0]), 0.3
+    pts = carve(cams, [_sphere_mask(c, centre, r) for c in cams], centre - 0.6, centre + 0.6, 0.04)
+    d = np.linalg.norm(pts - centre, axis=-1)
+    assert len(pts) > 100
+    assert d.max() < r + 0.12  # a 6-view hull is a little larger than the sphere, never much
+    assert len(pts) * 0.04 ** 3 == pytest.approx(4 / 3 * np.pi * r ** 3, rel=0.5)
+    inner = np.linalg.norm(np.stack(np.meshgrid(*[np.arange(-0.58, 0.6, 0.04)] * 3, indexing="ij"), -1), axis=-1)
+    assert len(pts) >= (inner < r - 0.05).sum()  # everything well inside is kept
+
+
+def test_persistence_drops_what_one_frame_shows():
+    rng = np.random.default_rng(0)
+    garment = [np.array([0.3, 0.0, -0.4]) + 0.01 * rng.standard_normal((50, 3)) for _ in range(6)]
+    garment[2] = np.concatenate([garment[2], np.array([[2.0, 2.0, 2.0]])])  # a phantom in one frame
+    kept = persistent_cells(garment, cell=0.05, min_frames=2)
+    assert len(kept) >= 1 and np.abs(kept - [0.3, 0.0, -0.4]).max() < 0.06
+    assert not (np.linalg.norm(kept - 2.0, axis=-1) < 0.1).any()
+    assert persistent_cells([], 0.05, 2).shape == (0, 3)
+
+
+def test_farthest_from_starts_where_the_existing_nodes_are_not():
+    existing = torch.zeros(1, 3)
+    pts = torch.tensor([[0.1, 0, 0], [1.0, 0, 0], [0.9, 0, 0], [0, 0.5, 0]])
+    idx = farthest_from(existing, pts, 2)
+    assert idx.tolist() == [1, 3]
+    with pytest.raises(ValueError, match="candidate points"):
+        farthest_from(existing, pts, 5)
+
+
+def test_off_body_points_go_back_through_their_vertex_transform():
+    V = torch.tensor([[0.0, 0.0, 0.0], [0.0, 0.0, 1.0]], dtype=torch.float64)
+    T = torch.eye(4, dtype=torch.float64).repeat(2, 1, 1)
+    T[:, :3, 3] = torch.tensor([0.5, 0.0, 0.0])  # the posed body is the canonical one shifted by +0.5 in x
+    posed = V + torch.tensor([0.5, 0.0, 0.0], dtype=torch.float64)
+    pts = np.array([[0.5, 0.0, 0.05], [1.2, 0.0, 1.0]])  # on the body / 0.7 m off it
+    out = off_body_canonical(pts, posed, T, posed.numpy(), min_dist=0.3)
+    assert out.shape == (1, 3) and np.allclose(out[0], [0.7, 0.0, 1.0])
+
+
+def test_model_takes_hull_nodes_and_a_checkpoint_restores_them():
+    from fixtures.toy_model import small_cfg
+
+    from avatarctl.body.toy import sphere_template
+    from avatarctl.model import SlrfAvatar
+
+    cfg = small_cfg(hull_nodes=4)
+    tpl = sphere_template(300)
+    rest = torch.tensor([[0.6, 0.0, 0.0], [-0.6, 0.0, 0.0], [0.0, 0.6, 0.0], [0.0, -0.6, 0.0]])
+    model = SlrfAvatar(cfg, tpl, num_frames=2, seed=0, hull_nodes=(rest, torch.tensor([0, 1, 2, 3])))
+    assert model.node_rest.shape == (24, 3) and torch.equal(model.node_rest[-4:], rest)
+    assert torch.equal(model.node_skin_weights[-1], tpl.skin_weights[3].float())
+    loaded = SlrfAvatar(cfg, tpl, num_frames=2, seed=0)  # placeholders, as a checkpoint load builds it
+    assert not torch.equal(loaded.node_rest[-4:], rest)
+    loaded.load_state_dict(model.state_dict())
+    assert torch.equal(loaded.node_rest, model.node_rest)
+    with pytest.raises(ValueError, match="hull_nodes must be"):
+        SlrfAvatar(cfg, tpl, num_frames=2, seed=0, hull_nodes=(rest[:3], torch.tensor([0, 1, 2])))
+
+
+def test_config_checks_hull_nodes():
+    with pytest.raises(ValueError, match="hull_nodes"):
+        ModelConfig(num_nodes=16, hull_nodes=16)
+    with pytest.raises(ValueError, match="slrf variant"):
+        ModelConfig(hull_nodes=8, variant="lbs_baseline")
