@@ -144,3 +144,23 @@ def test_pose_refinement_is_on_by_default_unless_the_fits_are_ground_truth(tmp_p
     assert not fit_config(p, FitRequest()).model.pose_refine  # synth with exact fits
     (cap / "capture.json").write_text(json.dumps({"generator": "synth-1", "config": {"fit_noise_deg": 2.0}}))
     assert fit_config(p, FitRequest()).model.pose_refine
+
+
+def test_pose_corrections_wait_for_pose_refine_start():
+    from fixtures.toy_model import make, small_cfg
+
+    from avatarctl.fit.config import FitConfig
+    from avatarctl.fit.schedule import make_optimizer, make_scheduler, param_groups
+
+    model = make(small_cfg(pose_refine=True))
+    cfg = FitConfig(model=small_cfg(pose_refine=True), pose_refine_start=3)
+    opt = make_optimizer(cfg, param_groups(cfg, model))
+    sched = make_scheduler(cfg, opt)
+    pose_lrs, rest_lrs = [], []
+    for _ in range(5):
+        pose_lrs.append(opt.param_groups[-1]["lr"])
+        rest_lrs.append(opt.param_groups[0]["lr"])
+        opt.step()
+        sched.step()
+    assert pose_lrs[:3] == [0.0] * 3 and pose_lrs[3] == pytest.approx(cfg.lr_pose, rel=1e-3)
+    assert all(lr > 0 for lr in rest_lrs)

@@ -71,6 +71,7 @@ class FitConfig:
     lr: float = 5e-4
     lr_grid: float = 1e-2  # learning rate of the feature grids of `model.field = "grid"` (unused by the MLP field)
     lr_pose: float = 1e-3  # learning rate of the pose-refinement corrections (`model.pose_refine`)
+    pose_refine_start: int = 0  # the corrections stay frozen (lr 0) before this step: the avatar takes shape first
     adam_beta1: float = 0.9
     adam_beta2: float = 0.999
     lr_decay_every: int = 20_000  # iterations per decay period
@@ -120,6 +121,8 @@ class FitConfig:
         need(self.lr > 0 and math.isfinite(self.lr), f"lr must be > 0, got {self.lr}")
         need(self.lr_grid > 0 and math.isfinite(self.lr_grid), f"lr_grid must be > 0, got {self.lr_grid}")
         need(self.lr_pose > 0 and math.isfinite(self.lr_pose), f"lr_pose must be > 0, got {self.lr_pose}")
+        need(isinstance(self.pose_refine_start, int) and self.pose_refine_start >= 0,
+             f"pose_refine_start must be an int >= 0, got {self.pose_refine_start!r}")
         need(0.0 <= self.adam_beta1 < 1.0 and 0.0 <= self.adam_beta2 < 1.0, "adam betas must be in [0, 1)")
         need(0.0 < self.lr_decay_factor <= 1.0, f"lr_decay_factor must be in (0, 1], got {self.lr_decay_factor}")
         need(self.grad_clip >= 0.0, f"grad_clip must be >= 0, got {self.grad_clip}")

@@ -38,6 +38,18 @@ def param_groups(cfg: FitConfig, model: torch.nn.Module) -> list[dict]:
 
 
 def make_scheduler(cfg: FitConfig, optimizer: torch.optim.Optimizer) -> torch.optim.lr_scheduler.LambdaLR:
-    """Multiplies the base lr by factor ** (step / every); call `.step()` once per optimisation step."""
-    factor, every = cfg.lr_decay_factor, cfg.lr_decay_every
-    return torch.optim.lr_scheduler.LambdaLR(optimizer, lambda step: factor ** (step / every))
+    """Multiplies the base lr by factor ** (step / every); call `.step()` once per optimisation step. The
+    pose-refinement group (the last of `param_groups`' when the model refines poses) is 0 before
+    `cfg.pose_refine_start`."""
+    factor, every, start = cfg.lr_decay_factor, cfg.lr_decay_every, cfg.pose_refine_start
+
+    def decay(step: int) -> float:
+        return factor ** (step / every)
+
+    def pose(step: int) -> float:
+        return decay(step) if step >= start else 0.0
+
+    groups = len(optimizer.param_groups)
+    if start and cfg.model.pose_refine and groups > 1:
+        return torch.optim.lr_scheduler.LambdaLR(optimizer, [decay] * (groups - 1) + [pose])
+    return torch.optim.lr_scheduler.LambdaLR(optimizer, decay)
