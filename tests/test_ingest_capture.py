@@ -13,21 +13,11 @@ from typer.testing import CliRunner
 
 from avatarctl.cli.app import app
 from fixtures.captures import make_easymocap_capture, ring_cameras
+from fixtures.cli_errors import assert_one_line_error
 
 
 def _cli(*args: str):
     return CliRunner().invoke(app, ["ingest", *args])
-
-
-def _one_line_error(res, proj: Path, *needles: str) -> str:
-    assert res.exit_code == 2, res.output
-    lines = [ln for ln in res.output.strip().splitlines() if ln.startswith("error:")]
-    assert len(lines) == 1, res.output
-    assert "Traceback" not in res.output
-    for n in needles:
-        assert n in lines[0], f"{n!r} not in {lines[0]!r}"
-    assert not proj.exists(), "a failed ingest left the project behind"
-    return lines[0]
 
 
 @pytest.fixture(scope="module")
@@ -124,24 +114,24 @@ def test_missing_mediapipe_is_one_actionable_line(capture, tmp_path, monkeypatch
     cap = tmp_path / "cap"
     shutil.copytree(capture.root, cap)
     (cap / "motion.npz").unlink()
-    line = _one_line_error(_cli(str(cap), str(tmp_path / "proj")), tmp_path / "proj", "no body fits",
+    line = assert_one_line_error(_cli(str(cap), str(tmp_path / "proj")), tmp_path / "proj", "no body fits",
                            "pip install 'avatarctl[capture]'")
     assert "MediaPipe" in line
     shutil.rmtree(cap / "masks")
     shutil.rmtree(cap / "background")
     shutil.copy(capture.root / "motion.npz", cap / "motion.npz")
-    _one_line_error(_cli(str(cap), str(tmp_path / "proj")), tmp_path / "proj", "background plate",
+    assert_one_line_error(_cli(str(cap), str(tmp_path / "proj")), tmp_path / "proj", "background plate",
                     "pip install 'avatarctl[capture]'")
-    _one_line_error(_cli(str(capture.root), str(tmp_path / "proj"), "--fits", "keypoints"), tmp_path / "proj",
+    assert_one_line_error(_cli(str(capture.root), str(tmp_path / "proj"), "--fits", "keypoints"), tmp_path / "proj",
                     "--fits keypoints", "avatarctl[capture]")
-    _one_line_error(_cli(str(capture.root), str(tmp_path / "proj"), "--fits", "nope"), tmp_path / "proj", "--fits")
+    assert_one_line_error(_cli(str(capture.root), str(tmp_path / "proj"), "--fits", "nope"), tmp_path / "proj", "--fits")
 
 
 def test_fits_files_without_fits_names_the_fix(capture, tmp_path):
     cap = tmp_path / "cap"
     shutil.copytree(capture.root, cap)
     (cap / "motion.npz").unlink()
-    _one_line_error(_cli(str(cap), str(tmp_path / "proj"), "--fits", "files"), tmp_path / "proj", "no body fits",
+    assert_one_line_error(_cli(str(cap), str(tmp_path / "proj"), "--fits", "files"), tmp_path / "proj", "no body fits",
                     "--fits keypoints")
 
 
