@@ -8,10 +8,10 @@ Keypoints are anny's `KeypointsRegressor.coco`, a fixed convex combination of ve
 Energy minimised with Adam over all frames at once (in the spirit of SMPLify, Bogo et al. 2016, Eq. 1, with 3D
 instead of 2D data):
 
-    E = Σ_fj w_fj ρ(‖K_fj − X_fj‖) / Σ w                 robust data term, ρ = Geman-McClure with scale σ (metres)
-      + λ_pose   · mean_f Σ_b ‖θ_fb‖²                    pose prior: stay near the reference pose
-      + λ_smooth · mean_f Σ_b ‖θ_f+1,b − θ_fb‖²          temporal smoothness (and λ_trans for root translation)
-      + λ_shape  · ‖φ − ½‖²                              phenotype prior: stay near anny's average subject
+    E = Σ_fj w_fj ρ(‖K_fj − X_fj‖) / Σ w          robust data term, ρ = Geman-McClure with scale σ (metres)
+      + λ_pose   · mean_f Σ_b ‖θ_fb‖²             pose prior: stay near the reference pose
+      + λ_smooth · mean_f Σ_b ‖θ_f+1,b − θ_fb‖²   temporal smoothness (and λ_trans for root translation)
+      + λ_shape  · ‖φ − ½‖²                       phenotype prior: stay near anny's average subject
 
 ρ(r) = σ² r² / (r² + σ²) (Geman & McClure 1987): quadratic for r ≪ σ, bounded for outliers.
 Initialisation: θ = 0, φ = ½, and the root by a weighted Kabsch / Umeyama (1991) alignment of the reference

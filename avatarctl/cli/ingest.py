@@ -65,19 +65,8 @@ def register(app: typer.Typer) -> None:
             t.add_row("masks", res.masks_source)
             t.add_row("body fits", res.fits_source)
             if res.estimate is not None:
-                e = res.estimate
-                t.add_row("person detected", f"{e.frames_detected}/{e.frames_total} frames (2+ views), "
-                                             f"{100 * e.views_with_person:.1f}% of views")
-                if e.frames_skipped:
-                    t.add_row("frames skipped", f"{len(e.frames_skipped)} (no person / too few keypoints / no mask): "
-                                                + ", ".join(str(f) for f in e.frames_skipped[:8])
-                                                + (" …" if len(e.frames_skipped) > 8 else ""))
-                if res.fits_source == "keypoints":
-                    t.add_row("triangulation", f"{e.mean_reprojection_px:.2f} px mean reprojection error, "
-                                               f"{100 * e.views_rejected:.1f}% of 2D keypoints rejected as outliers, "
-                                               f"{100 * e.keypoints_triangulated:.1f}% of keypoints triangulated")
-                    t.add_row("anny keypoint fit", f"{e.fit_error_cm:.2f} cm mean keypoint error "
-                                                   f"({e.fit_seconds:.0f} s)")
+                for item, value in res.estimate.rows(fitted=res.fits_source == "keypoints"):
+                    t.add_row(item, value)
             t.add_row("mesh inside masks", f"{100 * res.vertices_inside_masks:.1f}% of vertices")
             t.add_row("time", f"{res.seconds:.1f} s")
             console.print(t)

@@ -96,20 +96,44 @@ class EstimateReport:
     frames_detected: int  # frames with a person in at least two views
     frames_total: int
     views_with_person: float  # fraction of (frame, camera) views with a detection
-    frames_skipped: list[int]  # frames not fitted (no person / too few keypoints) or without a mask in every view
+    frames_skipped: list[int]  # frames left out: not fitted (no person / too few keypoints) or in `frames_no_mask`
     mean_reprojection_px: float  # over triangulated keypoints and their inlier views
     views_rejected: float  # fraction of confident 2D keypoints rejected as outliers by the triangulation
     keypoints_triangulated: float  # fraction of (fitted frame, keypoint) triangulated
     fit_error_cm: float  # mean distance of the fitted anny keypoints to the triangulated ones
     fit_seconds: float
+    frames_no_mask: list[int] = field(default_factory=list)  # frames where a view had no person mask (masks mediapipe)
+
+    def rows(self, fitted: bool) -> list[tuple[str, str]]:
+        """(item, value) lines for the ingest summary; `fitted`: the fits were estimated (else masks only)."""
+        out = [("person detected", f"{self.frames_detected}/{self.frames_total} frames (2+ views), "
+                                   f"{100 * self.views_with_person:.1f}% of views")]
+        if self.frames_skipped:
+            n_fit = len(self.frames_skipped) - len(self.frames_no_mask)
+            why = ([f"{n_fit} without a person or enough keypoints"] if n_fit else []) + \
+                  ([f"{len(self.frames_no_mask)} without a person mask in some view"] if self.frames_no_mask else [])
+            shown = ", ".join(str(f) for f in self.frames_skipped[:8])
+            shown += " …" if len(self.frames_skipped) > 8 else ""
+            out.append(("frames skipped", f"{'; '.join(why)}: {shown}"))
+        if fitted:
+            out.append(("triangulation", f"{self.mean_reprojection_px:.2f} px mean reprojection error, "
+                                         f"{100 * self.views_rejected:.1f}% of 2D keypoints rejected as outliers, "
+                                         f"{100 * self.keypoints_triangulated:.1f}% of keypoints triangulated"))
+            out.append(("anny keypoint fit", f"{self.fit_error_cm:.2f} cm mean keypoint error "
+                                             f"({self.fit_seconds:.0f} s)"))
+        return out
 
     def to_json(self) -> dict:
+        """JSON-ready figures (NaN, for the steps that did not run, becomes null)."""
+        def num(x: float, nd: int):
+            return None if not np.isfinite(x) else round(float(x), nd)
+
         return {"frames_detected": self.frames_detected, "frames_total": self.frames_total,
-                "views_with_person": round(self.views_with_person, 4), "frames_skipped": self.frames_skipped,
-                "mean_reprojection_px": round(self.mean_reprojection_px, 3),
-                "views_rejected": round(self.views_rejected, 4),
-                "keypoints_triangulated": round(self.keypoints_triangulated, 4),
-                "fit_error_cm": round(self.fit_error_cm, 3), "fit_seconds": round(self.fit_seconds, 1)}
+                "views_with_person": num(self.views_with_person, 4), "frames_skipped": self.frames_skipped,
+                "frames_no_mask": self.frames_no_mask, "mean_reprojection_px": num(self.mean_reprojection_px, 3),
+                "views_rejected": num(self.views_rejected, 4),
+                "keypoints_triangulated": num(self.keypoints_triangulated, 4),
+                "fit_error_cm": num(self.fit_error_cm, 3), "fit_seconds": num(self.fit_seconds, 1)}
 
 
 @dataclass(frozen=True)

@@ -311,11 +311,13 @@ def _estimate(cfg: IngestConfig, plan: IngestPlan, und: dict, progress: Progress
     if plan.masks_mode == "mediapipe":
         no_mask = [f for f in kept if not det.mask_found(f)]
         kept = [f for f in kept if f not in set(no_mask)]
-        report = replace(report, frames_skipped=sorted(set(report.frames_skipped) | set(no_mask)))
+        report = replace(report, frames_skipped=sorted(set(report.frames_skipped) | set(no_mask)),
+                         frames_no_mask=no_mask)
     if not kept:
-        raise InputError(f"no person found: none of the {len(frames)} frames has a person detected in enough views",
-                         where=str(src.root), fix="check the images (a whole person in view of several cameras), "
-                                                  "or provide masks and fits")
+        raise InputError(f"no usable frame: a person was found in 2+ views in {report.frames_detected} of "
+                         f"{len(frames)} frames, {len(report.frames_no_mask)} of them lack a person mask in some view",
+                         where=str(src.root), fix="check the images (the whole person, at least ~100 px tall, in view "
+                                                  "of several cameras), or provide masks and fits")
     if len(kept) < len(frames):
         rows = [frames.index(f) for f in kept]
         if plan.fits_mode == "files":
