@@ -14,6 +14,7 @@ from typer.testing import CliRunner
 from avatarctl.cli.app import app
 from avatarctl.project import hash_tree, sha256_file
 from fixtures.captures import RenderedCapture, make_easymocap_capture
+from fixtures.cli_errors import assert_one_line_error
 
 pytestmark = pytest.mark.anny
 
@@ -40,19 +41,6 @@ def copy_capture(capture: RenderedCapture, tmp_path: Path) -> Path:
 
 def ingest_cli(*args: str):
     return CliRunner().invoke(app, ["ingest", *args])
-
-
-def assert_one_line_error(res, proj: Path, *needles: str) -> str:
-    assert res.exit_code == 2, res.output
-    lines = [ln for ln in res.output.strip().splitlines() if ln.startswith("error:")]
-    assert len(lines) == 1, res.output
-    line = lines[0]
-    for n in needles:
-        assert n in line, f"{n!r} not in {line!r}"
-    assert "->" in line  # carries a fix
-    assert not proj.exists(), "a failed ingest left the project behind"
-    assert not [p for p in proj.parent.iterdir() if p.name.startswith(f".{proj.name}.tmp")], "temporary dir left"
-    return line
 
 
 # ---- the happy path -------------------------------------------------------------------------------------------
@@ -281,7 +269,10 @@ def test_error_empty_mask(capture, tmp_path):
                           "empty mask", "camera 02, frame 1")
 
 
-def test_error_no_masks_and_no_background(capture, tmp_path):
+def test_error_no_masks_and_no_background(capture, tmp_path, monkeypatch):
+    import sys
+
+    monkeypatch.setitem(sys.modules, "mediapipe", None)  # without the capture extra: masks cannot be estimated
     cap = copy_capture(capture, tmp_path)
     shutil.rmtree(cap / "masks")
     shutil.rmtree(cap / "background")

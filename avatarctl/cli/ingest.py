@@ -21,7 +21,12 @@ def register(app: typer.Typer) -> None:
         body_model_path: Optional[Path] = typer.Option(None, "--body-model-path",
                                                        help="SMPL / SMPL-X model file (.pkl or .npz)."),
         masks: str = typer.Option("auto", "--masks", help="auto | files | background (matting against "
-                                                          "background/<cam>.jpg seeded by the body mesh)"),
+                                                          "background/<cam>.jpg seeded by the body mesh) | mediapipe "
+                                                          "(person segmentation; pip install 'avatarctl[capture]')"),
+        fits: str = typer.Option("auto", "--fits", help="auto | files (motion.npz / smpl/*.json) | keypoints "
+                                                        "(MediaPipe keypoints -> triangulation -> anny fit)"),
+        keypoint_fit_iters: int = typer.Option(400, "--keypoint-fit-iters",
+                                               help="Adam steps of the anny fit to the keypoints (--fits keypoints)."),
         frames: Optional[str] = typer.Option(None, "--frames",
                                              help="Frame numbers: start:stop[:step] (stop exclusive) or a,b,c."),
         views: Optional[str] = typer.Option(None, "--views", help="Comma-separated camera names (default: all)."),
@@ -36,15 +41,17 @@ def register(app: typer.Typer) -> None:
 
         with user_errors():
             cfg = stage.IngestConfig(capture=capture, project=project, format=format, body_model=body_model,
-                               body_model_path=body_model_path, masks=masks, frames=frames,
+                               body_model_path=body_model_path, masks=masks, fits=fits,
+                               keypoint_fit_iters=keypoint_fit_iters, frames=frames,
                                views=None if views is None else tuple(views.split(",")), resize=resize,
                                contact_sheet=contact_sheet)
             if cfg.format == "auto":
                 fmt, reason = stage.detect(cfg.capture)
                 console.print(f"detected format [bold]{fmt}[/]: {reason}")
-            with progress_bar("ingest frames", out=console) as bar:
-                task = bar.add_task("frames", total=None)
-                res = stage.run(cfg.project, cfg, progress=lambda p: bar.update(task, completed=p.done, total=p.total))
+            with progress_bar("ingest", ("part",), out=console) as bar:
+                task = bar.add_task("frames", total=None, part="")
+                res = stage.run(cfg.project, cfg, progress=lambda p: bar.update(task, completed=p.done, total=p.total,
+                                                                                part=p.part))
 
             t = Table(title=f"ingest -> {res.project}")
             t.add_column("item")
@@ -56,6 +63,10 @@ def register(app: typer.Typer) -> None:
             t.add_row("resolution", f"{res.resolution[0]}x{res.resolution[1]} (undistorted, pinhole)")
             t.add_row("body model", res.body_model)
             t.add_row("masks", res.masks_source)
+            t.add_row("body fits", res.fits_source)
+            if res.estimate is not None:
+                for item, value in res.estimate.rows(fitted=res.fits_source == "keypoints"):
+                    t.add_row(item, value)
             t.add_row("mesh inside masks", f"{100 * res.vertices_inside_masks:.1f}% of vertices")
             t.add_row("time", f"{res.seconds:.1f} s")
             console.print(t)

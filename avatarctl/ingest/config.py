@@ -13,7 +13,8 @@ from avatarctl.frames import parse_frame_spec
 SCHEMA_VERSION = 1
 FORMAT_CHOICES = ("auto", "easymocap", "zju", "thuman4", "peoplesnapshot", "colmap")
 BODY_MODEL_CHOICES = ("anny", "smpl", "smplx", "toy")
-MASK_CHOICES = ("auto", "files", "background")
+MASK_CHOICES = ("auto", "files", "background", "mediapipe")
+FITS_CHOICES = ("auto", "files", "keypoints")
 
 
 @dataclass(frozen=True)
@@ -23,7 +24,10 @@ class IngestConfig:
     format: str = "auto"  # capture layout; "auto" detects it (avatarctl.io.detect)
     body_model: str | None = None  # anny | smpl | smplx | toy; None: the body model the capture's fits are for
     body_model_path: Path | None = None  # SMPL / SMPL-X model file (.pkl / .npz); not needed for anny
-    masks: str = "auto"  # files | background | auto (files if the capture has masks, else background plates)
+    masks: str = "auto"  # files | background | mediapipe | auto (files if the capture has masks, else background
+    # plates if every camera has one, else mediapipe)
+    fits: str = "auto"  # files | keypoints (MediaPipe keypoints -> triangulation -> anny fit) | auto (files if any)
+    keypoint_fit_iters: int = 400  # Adam steps of the anny keypoint fit (--fits keypoints)
     frames: str | None = None  # "start:stop[:step]" or "a,b,c" capture frame numbers (avatarctl.frames); None: all
     views: tuple[str, ...] | None = None  # camera names to ingest; None: every calibrated camera
     resize: float = 1.0  # scale factor applied after undistortion (e.g. 0.5)
@@ -42,6 +46,10 @@ class IngestConfig:
                              fix=f"use one of {', '.join(BODY_MODEL_CHOICES)}")
         if self.masks not in MASK_CHOICES:
             raise InputError(f"unknown --masks {self.masks!r}", fix=f"use one of {', '.join(MASK_CHOICES)}")
+        if self.fits not in FITS_CHOICES:
+            raise InputError(f"unknown --fits {self.fits!r}", fix=f"use one of {', '.join(FITS_CHOICES)}")
+        if self.keypoint_fit_iters < 0:
+            raise InputError(f"--keypoint-fit-iters {self.keypoint_fit_iters} is negative", fix="use e.g. 400")
         if not (math.isfinite(self.resize) and 0.05 <= self.resize <= 4.0):
             raise InputError(f"--resize {self.resize} is out of range", fix="use a scale factor in [0.05, 4], e.g. 0.5")
         if self.views is not None:
@@ -56,5 +64,6 @@ class IngestConfig:
         return {"schema_version": self.schema_version, "capture": str(self.capture.resolve()),
                 "project": str(self.project.resolve()), "format": self.format, "body_model": self.body_model,
                 "body_model_path": None if self.body_model_path is None else str(self.body_model_path.resolve()),
-                "masks": self.masks, "frames": self.frames, "views": None if self.views is None else list(self.views),
+                "masks": self.masks, "fits": self.fits, "keypoint_fit_iters": self.keypoint_fit_iters,
+                "frames": self.frames, "views": None if self.views is None else list(self.views),
                 "resize": self.resize, "contact_sheet": self.contact_sheet}

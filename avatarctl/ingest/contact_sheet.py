@@ -1,7 +1,7 @@
 """``ingest/contact_sheet.png``: undistorted frames with the posed body mesh overlaid, to check alignment by eye.
 
 Each tile: the undistorted frame, the projected body mesh silhouette tinted red (35 %), the mask outline in green,
-labelled ``<camera> f<frame>``. Rows are frames, columns cameras.
+the detected 2D keypoints in yellow (when ingest estimated the fits or masks), labelled ``<camera> f<frame>``. Rows are frames, columns cameras.
 """
 
 from __future__ import annotations
@@ -20,6 +20,7 @@ class Tile:
     rgb: np.ndarray  # [H, W, 3] uint8, undistorted
     mask: np.ndarray  # [H, W] bool
     body: np.ndarray  # [H, W] bool, projected posed mesh
+    points: np.ndarray | None = None  # [joints, 2] detected keypoints (pixels; NaN: not found), or None
 
 
 def pick(items: list, n: int) -> list:
@@ -39,6 +40,10 @@ def render_tile(t: Tile, width: int) -> np.ndarray:
     img = img.clip(0, 255).astype(np.uint8)
     contours, _ = cv2.findContours(t.mask.astype(np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
     cv2.drawContours(img, contours, -1, (40, 255, 40), max(1, t.rgb.shape[1] // 300))
+    if t.points is not None:
+        r = max(1, t.rgb.shape[1] // 150)
+        for x, y in t.points[np.isfinite(t.points).all(axis=1)]:
+            cv2.circle(img, (int(round(x)), int(round(y))), r, (255, 230, 40), -1, cv2.LINE_AA)
     h = int(round(img.shape[0] * width / img.shape[1]))
     img = cv2.resize(img, (width, h), interpolation=cv2.INTER_AREA)
     cv2.putText(img, f"{t.cam} f{t.frame}", (6, 18), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (255, 255, 255), 1, cv2.LINE_AA)

@@ -3,10 +3,13 @@
 Steps:
 1. detect / read the capture (`avatarctl.ingest.readers`), select views and frames, validate: cameras with
    images, complete frame grids for images and masks, fits for every frame, metres not millimetres;
-2. convert the fits to the body model's `BodyMotion` (EasyMocap/ZJU Rh/Th -> SMPL global_orient/transl) and pose
-   the body mesh for every frame;
-3. per frame and camera: undistort (and resize) the frame and mask — masks from the capture's files, or from the
-   background plate matted with the projected body mesh as seed — and write them;
+2. convert the fits to the body model's `BodyMotion` (EasyMocap/ZJU Rh/Th -> SMPL global_orient/transl) — or,
+   for a capture without fits (`--fits keypoints`) and/or without masks or plates (`--masks mediapipe`), detect
+   the person in every view and estimate anny fits / masks (`avatarctl.ingest.estimate`); frames where no person
+   is found are reported and left out — and pose the body mesh for every frame;
+3. per frame and camera: undistort (and resize) the frame and mask — masks from the capture's files, from the
+   background plate matted with the projected body mesh as seed, or MediaPipe's person segmentation — and write
+   them;
 4. write cameras (pinhole, dist = 0), body fits, split, contact sheet, then the manifest.
 
 The whole project is built in a temporary sibling directory and renamed into place at the end
@@ -25,9 +28,10 @@ import numpy as np
 from avatarctl.errors import InputError, ProjectError
 from avatarctl.frames import select_frames
 from avatarctl.ingest.config import IngestConfig
+from avatarctl.ingest.estimate import EstimateReport
 from avatarctl.io.capture import CaptureSource, check_complete, fmt_list
 
-ProgressFn = Callable[[int, int], None]  # (frames done, frames total)
+ProgressFn = Callable[[int, int, str], None]  # (done, total, part): part "detect" | "fit" | "frames"
 MIN_INSIDE = 0.90  # warn when fewer of the posed vertices than this project inside the masks
 POSE_CHUNK = 64  # frames posed at once
 MAX_FOREGROUND = 0.99  # a mask with more foreground than this is inverted or blank, not a person in the frame
@@ -42,9 +46,11 @@ class IngestResult:
     frames: list[int]
     resolution: tuple[int, int]  # (width, height) of the first camera after undistortion / resize
     body_model: str
-    masks_source: str  # "files" | "background"
+    masks_source: str  # "files" | "background" | "mediapipe"
     seconds: float
     vertices_inside_masks: float  # mean fraction of posed mesh vertices projecting inside the masks
+    fits_source: str = "files"  # "files" | "keypoints"
+    estimate: EstimateReport | None = None  # figures of the detection / triangulation / fit steps, if run
     notes: list[str] = field(default_factory=list)
     warnings: list[str] = field(default_factory=list)
 
@@ -89,21 +95,51 @@ def select_views(src: CaptureSource, views: tuple[str, ...] | None) -> list[str]
     return [n for n in names if n in set(views)]
 
 
+NO_FITS = "no body fits (motion.npz or smpl/*.json)"
+
+
+def resolve_fits(cfg: IngestConfig, src: CaptureSource) -> str:
+    """"files" (the capture's fits) or "keypoints" (estimated: MediaPipe keypoints -> anny fit)."""
+    mode = cfg.fits if cfg.fits != "auto" else ("files" if src.fits is not None else "keypoints")
+    if mode == "files" and src.fits is None:
+        raise InputError(NO_FITS, where=str(src.root),
+                         fix="add motion.npz (avatarctl BodyMotion) or EasyMocap smpl/%06d.json fits, or estimate "
+                             "them with --fits keypoints")
+    if mode == "keypoints":
+        if (cfg.body_model or "anny") != "anny":
+            raise InputError(f"--fits keypoints fits the anny body model, not {cfg.body_model}",
+                             fix="drop --body-model (or pass --body-model anny), or provide fits")
+        from avatarctl.ingest.keypoints import require_mediapipe
+
+        require_mediapipe(f"{NO_FITS if src.fits is None else '--fits keypoints'}: estimating them",
+                          "add motion.npz / smpl/%06d.json fits")
+    return mode
+
+
 def resolve_masks(cfg: IngestConfig, src: CaptureSource, cams: list[str], frames: list[int]) -> str:
     mode = cfg.masks
     if mode == "auto":
-        mode = "files" if src.masks is not None else "background"
+        mode = ("files" if src.masks is not None else
+                "background" if all(c in src.backgrounds for c in cams) else "mediapipe")
     if mode == "files":
         if src.masks is None or src.mask_frames is None:
             raise InputError("the capture has no mask files", where=str(src.root),
-                             fix="add masks/<cam>/%06d.png, or use --masks background with background/<cam>.jpg")
+                             fix="add masks/<cam>/%06d.png, or use --masks background with background/<cam>.jpg, "
+                                 "or --masks mediapipe")
         check_complete(src.mask_frames, cams, frames, "masks", src.root)
-    else:
+    elif mode == "background":
         missing = [c for c in cams if c not in src.backgrounds]
         if missing:
             raise InputError(f"no mask files and no background plate for cameras {fmt_list(missing)}",
                              where=str(src.root),
-                             fix="add masks/<cam>/%06d.png or background/<cam>.jpg (an empty frame of each camera)")
+                             fix="add masks/<cam>/%06d.png or background/<cam>.jpg (an empty frame of each camera), "
+                                 "or use --masks mediapipe")
+    else:
+        from avatarctl.ingest.keypoints import require_mediapipe
+
+        why = "--masks mediapipe" if cfg.masks == "mediapipe" else "no mask files and no background plate: " \
+                                                                    "estimating person masks"
+        require_mediapipe(why, "add masks/<cam>/%06d.png or background/<cam>.jpg")
     return mode
 
 
@@ -115,11 +151,13 @@ class IngestPlan:
     format_reason: str
     cams: list[str]  # selected camera names, capture order
     frames: list[int]  # selected capture frame numbers, ascending
-    masks_mode: str  # "files" | "background"
+    masks_mode: str  # "files" | "background" | "mediapipe"
     body_model: str  # "anny" | "smpl" | "smplx" | "toy"
     body: object  # the BodyModel (AnnyBody / SmplBody)
-    motion: object  # BodyMotion, one row per selected frame
+    motion: object  # BodyMotion, one row per selected frame (None until estimated, for fits "keypoints")
     faces: np.ndarray  # [F, 3] body mesh triangles
+    fits_mode: str = "files"  # "files" | "keypoints"
+    detections: object = None  # `Detections` (with masks for masks "mediapipe") once the people are detected
 
 
 def plan_ingest(cfg: IngestConfig) -> IngestPlan:
@@ -138,10 +176,15 @@ def plan_ingest(cfg: IngestConfig) -> IngestPlan:
                          fix="check the capture layout (docs/formats.md)")
     frames = select_frames(cfg.frames, available)
     check_complete(src.image_frames, cams, frames, "images", src.root)
+    fits_mode = resolve_fits(cfg, src)
+    masks_mode = resolve_masks(cfg, src, cams, frames)
+    if fits_mode == "keypoints":
+        body = load_body_model("anny", None)
+        return IngestPlan(src, reason, cams, frames, masks_mode, "anny", body, None,
+                          body.faces().cpu().numpy(), fits_mode)
+
     fits_where = src.fits_where or str(src.root)
     check_fits(src.fits, frames, fits_where)
-    masks_mode = resolve_masks(cfg, src, cams, frames)
-
     bm_name = cfg.body_model or src.fits.body_model
     if src.fits.body_model != bm_name:
         to_body_motion(src.fits, bm_name, None)  # raises the one-line mismatch error
@@ -153,7 +196,7 @@ def plan_ingest(cfg: IngestConfig) -> IngestPlan:
     motion = motion_all.select(motion_all.rows_for(frames))
     check_fits(motion, frames, fits_where)  # converted SMPL transl, anny root translation
     faces = body.template(motion.select([0])).faces.cpu().numpy()
-    return IngestPlan(src, reason, cams, frames, masks_mode, bm_name, body, motion, faces)
+    return IngestPlan(src, reason, cams, frames, masks_mode, bm_name, body, motion, faces, fits_mode)
 
 
 def run_ingest(cfg: IngestConfig, progress: ProgressFn | None = None) -> IngestResult:
@@ -172,10 +215,14 @@ def run_ingest(cfg: IngestConfig, progress: ProgressFn | None = None) -> IngestR
     t0 = time.perf_counter()
     started = now_iso()
     plan = plan_ingest(cfg)
-    src, cams, frames, motion = plan.source, plan.cams, plan.frames, plan.motion
+    src = plan.source
     cam_by_name = {c.name: c for c in src.cameras}
     source_hash, n_files = hash_tree(src.root)
-    und = {c: Undistorter.for_camera(cam_by_name[c], cfg.resize) for c in cams}
+    und = {c: Undistorter.for_camera(cam_by_name[c], cfg.resize) for c in plan.cams}
+    estimate = None
+    if plan.fits_mode == "keypoints" or plan.masks_mode == "mediapipe":
+        plan, estimate = _estimate(cfg, plan, und, progress)
+    cams, frames, motion = plan.cams, plan.frames, plan.motion
     plates = _undistorted_plates(src, und) if plan.masks_mode == "background" else {}
     split = restrict_split(src.split, frames, cams) if src.split is not None else default_split(frames, cams)
     sheet_cams, sheet_frames = pick(cams, 4), pick(frames, 3)
@@ -198,9 +245,9 @@ def run_ingest(cfg: IngestConfig, progress: ProgressFn | None = None) -> IngestR
                     write_frame(proj, c, frame, rgb)
                     write_mask(proj, c, frame, mask)
                     if want_tile:
-                        tiles.append(Tile(c, frame, rgb, mask, sil))
+                        tiles.append(Tile(c, frame, rgb, mask, sil, _detected_points(plan.detections, c, frame)))
                 if progress is not None:
-                    progress(s + k + 1, len(frames))
+                    progress(s + k + 1, len(frames), "frames")
 
         cameras_out = [und[c].target for c in cams]
         save_cameras(proj.paths.cameras, cameras_out)
@@ -220,13 +267,71 @@ def run_ingest(cfg: IngestConfig, progress: ProgressFn | None = None) -> IngestR
         w, h = cameras_out[0].width, cameras_out[0].height
         summary = {"format": src.format, "cameras": len(cams), "frames": len(frames), "resolution": f"{w}x{h}",
                    "body_model": plan.body_model, "masks": plan.masks_mode,
-                   "vertices_inside_masks": round(mean_inside, 4), "seconds": round(seconds, 2)}
+                   "vertices_inside_masks": round(mean_inside, 4), "seconds": round(seconds, 2),
+                   "fits": plan.fits_mode}
+        if estimate is not None:
+            summary["estimate"] = estimate.to_json()
         config = cfg.to_json() | {"resolved": {"format": src.format, "body_model": plan.body_model,
-                                               "masks": plan.masks_mode, "frames": len(frames), "views": cams}}
+                                               "masks": plan.masks_mode, "fits": plan.fits_mode,
+                                               "frames": len(frames), "views": cams}}
         proj.record("ingest", config, outputs, started, summary)
     return IngestResult(project=cfg.project, format=src.format, format_reason=plan.format_reason, cameras=cams,
                         frames=frames, resolution=(w, h), body_model=plan.body_model, masks_source=plan.masks_mode,
-                        seconds=seconds, vertices_inside_masks=mean_inside, notes=list(src.notes), warnings=warnings)
+                        seconds=seconds, vertices_inside_masks=mean_inside, notes=list(src.notes), warnings=warnings,
+                        fits_source=plan.fits_mode, estimate=estimate)
+
+
+def _estimate(cfg: IngestConfig, plan: IngestPlan, und: dict, progress: ProgressFn | None
+              ) -> tuple[IngestPlan, EstimateReport]:
+    """Detect the person in every view; estimate anny fits (fits "keypoints") and keep MediaPipe's masks (masks
+    "mediapipe"). Returns the plan restricted to the frames that could be used, and the figures."""
+    from dataclasses import replace
+
+    from avatarctl.ingest.estimate import EstimateReport, detect_people, estimate_fits
+
+    src, cams, frames = plan.source, plan.cams, plan.frames
+
+    def read_view(c: str, f: int) -> np.ndarray:
+        rgb = src.images.read(c, f)
+        _check_size(rgb, und[c].source, src.images.where(c, f))
+        return und[c].image(rgb)
+
+    det = detect_people(read_view, cams, frames, masks=plan.masks_mode == "mediapipe", progress=progress)
+    motion, kept = plan.motion, list(frames)
+    if plan.fits_mode == "keypoints":
+        est = estimate_fits(det, [und[c].target for c in cams], plan.body, cfg.keypoint_fit_iters, src.fps or 30.0,
+                            progress)
+        report, motion, kept = est.report, est.motion, est.kept
+    else:
+        found = det.found
+        nan = float("nan")
+        report = EstimateReport(frames_detected=int((found.sum(1) >= 2).sum()), frames_total=len(frames),
+                                views_with_person=float(found.mean()), frames_skipped=[], mean_reprojection_px=nan,
+                                views_rejected=nan, keypoints_triangulated=nan, fit_error_cm=nan, fit_seconds=0.0)
+    if plan.masks_mode == "mediapipe":
+        no_mask = [f for f in kept if not det.mask_found(f)]
+        kept = [f for f in kept if f not in set(no_mask)]
+        report = replace(report, frames_skipped=sorted(set(report.frames_skipped) | set(no_mask)),
+                         frames_no_mask=no_mask)
+    if not kept:
+        raise InputError(f"no usable frame: a person was found in 2+ views in {report.frames_detected} of "
+                         f"{len(frames)} frames, {len(report.frames_no_mask)} of them lack a person mask in some view",
+                         where=str(src.root), fix="check the images (the whole person, at least ~100 px tall, in view "
+                                                  "of several cameras), or provide masks and fits")
+    if len(kept) < len(frames):
+        rows = [frames.index(f) for f in kept]
+        if plan.fits_mode == "files":
+            motion = motion.select(rows)
+        elif len(kept) < motion.frame_index.shape[0]:
+            motion = motion.select([i for i, f in enumerate(motion.frame_index) if int(f) in set(kept)])
+    return replace(plan, frames=kept, motion=motion, detections=det), report
+
+
+def _detected_points(det, cam: str, frame: int) -> np.ndarray | None:
+    """[joints, 2] detected keypoints of one view (NaN: not found), or None when nothing was detected."""
+    if det is None:
+        return None
+    return det.keypoints[det.frames.index(frame), det.cams.index(cam)]
 
 
 def _undistorted_plates(src: CaptureSource, und: dict) -> dict[str, np.ndarray]:
@@ -257,7 +362,10 @@ def _process_view(plan: IngestPlan, u, plate: np.ndarray | None, cam: str, frame
     sil = None
     if plan.masks_mode == "background" or want_silhouette:
         sil = rasterize_silhouette(u.target, verts, plan.faces)
-    if plan.masks_mode == "files":
+    if plan.masks_mode == "mediapipe":
+        mask = plan.detections.mask(cam, frame)
+        where, fix = src.images.where(cam, frame), "provide mask files or background plates"
+    elif plan.masks_mode == "files":
         m = src.masks.read(cam, frame)
         _check_size(m, u.source, src.masks.where(cam, frame))
         mask = u.mask(m)

@@ -3,10 +3,12 @@
 EasyMocap layout (also what ``avatarctl synth`` writes)::
 
     intri.yml, extri.yml            cameras (see avatarctl/io/easymocap.py)
-    images/<cam>/%06d.jpg           frames (distorted, as captured)
+    images/<cam>/%06d.jpg           frames (distorted, as captured), or
+    videos/<cam>.mp4                one video per camera (frame number = 0-based frame index; avatarctl/io/video.py)
     masks/<cam>/%06d.png            optional masks (> 127 foreground; 'mask/' also accepted)
     background/<cam>.jpg|png        optional background plates (for --masks background)
-    motion.npz | smpl/%06d.json     body fits: BodyMotion npz, or EasyMocap SMPL Rh/Th json
+    motion.npz | smpl/%06d.json     optional body fits: BodyMotion npz, or EasyMocap SMPL Rh/Th json (without
+                                    them ingest estimates anny fits from keypoints: --fits keypoints)
     split.json                      optional train/test split (avatarctl Split json)
 """
 
@@ -37,22 +39,27 @@ def read_easymocap(root: Path) -> CaptureSource:
     import cv2
 
     from avatarctl.io.easymocap import read_easymocap_cameras
-    from avatarctl.io.easymocap_fits import read_capture_fits
+    from avatarctl.io.easymocap_fits import has_capture_fits, read_capture_fits
 
     root = Path(root)
     img_root = root / "images"
-    if not img_root.is_dir():
-        raise InputError("no images/ folder", where=str(root), fix="EasyMocap captures keep frames in images/<cam>/")
-    per_cam = {d.name: scan_numbered(d) for d in sorted(img_root.iterdir()) if d.is_dir()}
-    sizes = {}
-    for cam, found in per_cam.items():
-        if found:
-            first = found[min(found)]
-            img = cv2.imread(str(first), cv2.IMREAD_UNCHANGED)
-            if img is None:
-                raise InputError(f"image unreadable or corrupt: camera {cam}", where=str(first),
-                                 fix="re-export this image, or leave the frame out with --frames")
-            sizes[cam] = (int(img.shape[1]), int(img.shape[0]))
+    if not img_root.is_dir() and (root / "videos").is_dir():
+        per_cam, sizes, images, fps = _read_videos(root / "videos")
+    elif not img_root.is_dir():
+        raise InputError("no images/ or videos/ folder", where=str(root),
+                         fix="EasyMocap captures keep frames in images/<cam>/%06d.jpg or videos/<cam>.mp4")
+    else:
+        per_cam = {d.name: scan_numbered(d) for d in sorted(img_root.iterdir()) if d.is_dir()}
+        sizes = {}
+        for cam, found in per_cam.items():
+            if found:
+                first = found[min(found)]
+                img = cv2.imread(str(first), cv2.IMREAD_UNCHANGED)
+                if img is None:
+                    raise InputError(f"image unreadable or corrupt: camera {cam}", where=str(first),
+                                     fix="re-export this image, or leave the frame out with --frames")
+                sizes[cam] = (int(img.shape[1]), int(img.shape[0]))
+        images, fps = None, 0.0
     cameras = read_easymocap_cameras(root, image_size=sizes)
     names = [c.name for c in cameras]
     for c in cameras:
@@ -61,7 +68,8 @@ def read_easymocap(root: Path) -> CaptureSource:
                              f"{c.width}x{c.height}", where=str(root / "intri.yml"),
                              fix=f"fix W_{c.name}/H_{c.name} or the images")
     image_frames = {n: set(per_cam.get(n, {})) for n in names}
-    images = FileImages({(n, f): p for n in names for f, p in per_cam.get(n, {}).items()})
+    if images is None:
+        images = FileImages({(n, f): p for n in names for f, p in per_cam.get(n, {}).items()})
     mask_root = next((d for d in (root / "masks", root / "mask") if d.is_dir()), None)
     masks = mask_frames = None
     if mask_root is not None:
@@ -70,10 +78,26 @@ def read_easymocap(root: Path) -> CaptureSource:
         masks = FileMasks({(n, f): p for n, d in mper.items() for f, p in d.items()})
     bgs = {n: p for n in names for p in [root / "background" / f"{n}.jpg", root / "background" / f"{n}.png"]
            if p.is_file()}
-    fits, fits_where = read_capture_fits(root)
+    fits, fits_where = read_capture_fits(root) if has_capture_fits(root) else (None, "")
     return CaptureSource(format="easymocap", root=root, cameras=cameras, image_frames=image_frames, images=images,
                          fits=fits, fits_where=fits_where, masks=masks, mask_frames=mask_frames, backgrounds=bgs,
-                         split=read_capture_split(root), uncalibrated=sorted(set(per_cam) - set(names)))
+                         split=read_capture_split(root), uncalibrated=sorted(set(per_cam) - set(names)),
+                         fps=fps)
+
+
+def _read_videos(folder: Path) -> tuple[dict[str, dict[int, Path]], dict[str, tuple[int, int]], "VideoImages", float]:
+    """videos/<cam>.mp4 -> ({cam: {frame: video}}, {cam: (width, height)}, reader, frame rate)."""
+    from avatarctl.io.video import VideoImages, scan_videos, video_info
+
+    vids = scan_videos(folder)
+    if not vids:
+        raise InputError("videos/ holds no video files", where=str(folder),
+                         fix="add one video per camera named after it, e.g. videos/01.mp4")
+    infos = {c: video_info(p) for c, p in vids.items()}
+    per_cam = {c: {f: p for f in range(infos[c].frames)} for c, p in vids.items()}
+    sizes = {c: (i.width, i.height) for c, i in infos.items()}
+    fps = next(iter(infos.values())).fps
+    return per_cam, sizes, VideoImages(paths=vids, sizes=sizes), fps
 
 
 def reader_for(fmt: str) -> Callable[[Path], CaptureSource]:

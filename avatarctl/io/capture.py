@@ -158,7 +158,7 @@ class CaptureSource:
     cameras: list[Camera]  # as calibrated (distorted), in the capture's order; names are project-safe
     image_frames: dict[str, set[int]]  # camera -> frame numbers that have an image (empty: camera has none)
     images: ImageReader
-    fits: BodyFits
+    fits: BodyFits | None  # None: the capture ships no fits (ingest can estimate them: --fits keypoints)
     fits_where: str = ""  # file or folder the fits came from (for messages)
     masks: MaskReader | None = None  # None: the capture has no mask files
     mask_frames: dict[str, set[int]] | None = None  # camera -> frame numbers that have a mask
@@ -166,6 +166,7 @@ class CaptureSource:
     backgrounds: dict[str, Path] = field(default_factory=dict)  # camera -> background plate (distorted geometry)
     split: Split | None = None  # the capture's own split, if it ships one
     notes: list[str] = field(default_factory=list)  # what the reader decided, shown to the user
+    fps: float = 0.0  # frame rate when the capture states one (videos), else 0
 
     @property
     def camera_names(self) -> list[str]:

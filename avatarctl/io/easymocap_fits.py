@@ -86,6 +86,11 @@ def read_easymocap_smpl_dir(folder: Path) -> RhThFits:
     return rhth_from_records(records, str(folder))
 
 
+def has_capture_fits(root: Path) -> bool:
+    """Whether a capture ships body fits (``motion.npz`` or ``smpl/``)."""
+    return (Path(root) / "motion.npz").is_file() or (Path(root) / "smpl").is_dir()
+
+
 def read_capture_fits(root: Path) -> tuple[BodyMotion | RhThFits, str]:
     """(fits, where) beside a capture: ``motion.npz`` (preferred) or EasyMocap ``smpl/*.json``."""
     root = Path(root)

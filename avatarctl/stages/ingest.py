@@ -1,5 +1,6 @@
 """The ingest stage (`avatarctl ingest CAPTURE PROJECT`): a raw capture -> a project directory, through the ingest
-library (`avatarctl.ingest.pipeline.run_ingest`); every ingested frame is reported as a `StageProgress`."""
+library (`avatarctl.ingest.pipeline.run_ingest`); every ingested frame (and, when fits or masks are estimated, every
+detected view and fit step) is reported as a `StageProgress` whose `part` is "frames", "detect" or "fit"."""
 
 from __future__ import annotations
 
@@ -30,8 +31,9 @@ def run(project_dir: str | Path, cfg: IngestConfig, progress: ProgressFn | None 
 
     t0 = time.perf_counter()
 
-    def on_frame(done: int, total: int) -> None:
+    def on_frame(done: int, total: int, part: str = "frames") -> None:
         if progress is not None:
-            progress(StageProgress(stage="ingest", done=done, total=total, seconds=time.perf_counter() - t0))
+            progress(StageProgress(stage="ingest", done=done, total=total, seconds=time.perf_counter() - t0,
+                                   part=part))
 
     return run_ingest(replace(cfg, project=Path(project_dir)), progress=on_frame)

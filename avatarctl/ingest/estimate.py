@@ -1,0 +1,182 @@
+"""Person masks and anny body fits estimated from the images, for captures that ship neither.
+
+Steps (all in the undistorted, resized geometry of the project's pinhole cameras, so 2D points need no further
+undistortion):
+
+1. `detect_people`: MediaPipe Pose per camera over its frames in order (`avatarctl.ingest.keypoints`) -> 2D
+   keypoints with confidences and, when asked, a person mask per view;
+2. `estimate_fits`: robust multi-view triangulation of every keypoint (`avatarctl.geometry.triangulate`: RANSAC
+   over view pairs, outlier views rejected by reprojection error, weighted DLT on the inliers); frames where fewer
+   than `MIN_JOINTS` keypoints (or fewer than three of the four torso points) triangulate are skipped, never fitted;
+3. the anny fit to the 3D keypoints (`avatarctl.body.fit_keypoints`), one phenotype for the subject.
+
+Each step's figures land in `EstimateReport` (shown in the ingest summary and saved in the manifest).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+
+from avatarctl.body.motion import BodyMotion
+
+MIN_JOINTS = 8  # triangulated keypoints a frame needs to be fitted
+REPROJ_THRESHOLD = 0.02  # inlier threshold of the triangulation, as a fraction of the image's larger side
+MIN_THRESHOLD_PX = 4.0  # ... but at least this many pixels
+MIN_CONFIDENCE = 0.5  # MediaPipe visibility below which a 2D keypoint is not used
+
+PartProgress = Callable[[int, int, str], None]  # (done, total, part)
+ReadView = Callable[[str, int], np.ndarray]  # (camera, frame) -> undistorted RGB uint8 [H, W, 3]
+
+
+@dataclass
+class Detections:
+    """2D detections of every (frame, camera)."""
+
+    cams: list[str]
+    frames: list[int]
+    names: tuple[str, ...]  # keypoint names, [joints]
+    keypoints: np.ndarray  # [frames, cams, joints, 2] pixels (undistorted geometry), NaN where not found
+    confidence: np.ndarray  # [frames, cams, joints] in [0, 1]
+    masks: dict[tuple[str, int], bytes] = field(default_factory=dict)  # (cam, frame) -> PNG of the bool mask
+
+    @property
+    def found(self) -> np.ndarray:
+        """[frames, cams] bool: a person was detected."""
+        return np.isfinite(self.keypoints).all(axis=-1).any(axis=-1)
+
+    def mask(self, cam: str, frame: int) -> np.ndarray:
+        """bool [H, W] person mask of one view (empty when none was found)."""
+        import cv2
+
+        return cv2.imdecode(np.frombuffer(self.masks[(cam, frame)], np.uint8), cv2.IMREAD_GRAYSCALE) > 0
+
+    def mask_found(self, frame: int) -> bool:
+        """Every camera has a non-empty person mask at `frame`."""
+        import cv2
+
+        for c in self.cams:
+            m = cv2.imdecode(np.frombuffer(self.masks[(c, frame)], np.uint8), cv2.IMREAD_GRAYSCALE)
+            if not m.any():
+                return False
+        return True
+
+
+def detect_people(read_view: ReadView, cams: list[str], frames: list[int], masks: bool,
+                  progress: PartProgress | None = None) -> Detections:
+    """Run the detector on every view (camera-major: one tracker per camera stream)."""
+    import cv2
+
+    from avatarctl.ingest.keypoints import KEYPOINT_NAMES, PoseDetector
+
+    J = len(KEYPOINT_NAMES)
+    kp = np.full((len(frames), len(cams), J, 2), np.nan)
+    conf = np.zeros((len(frames), len(cams), J))
+    out = Detections(cams=list(cams), frames=list(frames), names=KEYPOINT_NAMES, keypoints=kp, confidence=conf)
+    done, total = 0, len(frames) * len(cams)
+    for ci, c in enumerate(cams):
+        with PoseDetector(masks=masks) as det:
+            for fi, f in enumerate(frames):
+                d = det(read_view(c, f))
+                kp[fi, ci], conf[fi, ci] = d.keypoints, d.confidence
+                if masks:
+                    out.masks[(c, f)] = cv2.imencode(".png", d.mask.astype(np.uint8) * 255)[1].tobytes()
+                done += 1
+                if progress is not None:
+                    progress(done, total, "detect")
+    return out
+
+
+@dataclass(frozen=True)
+class EstimateReport:
+    """Figures of the estimation steps (what the ingest summary shows)."""
+
+    frames_detected: int  # frames with a person in at least two views
+    frames_total: int
+    views_with_person: float  # fraction of (frame, camera) views with a detection
+    frames_skipped: list[int]  # frames left out: not fitted (no person / too few keypoints) or in `frames_no_mask`
+    mean_reprojection_px: float  # over triangulated keypoints and their inlier views
+    views_rejected: float  # fraction of confident 2D keypoints rejected as outliers by the triangulation
+    keypoints_triangulated: float  # fraction of (fitted frame, keypoint) triangulated
+    fit_error_cm: float  # mean distance of the fitted anny keypoints to the triangulated ones
+    fit_seconds: float
+    frames_no_mask: list[int] = field(default_factory=list)  # frames where a view had no person mask (masks mediapipe)
+
+    def rows(self, fitted: bool) -> list[tuple[str, str]]:
+        """(item, value) lines for the ingest summary; `fitted`: the fits were estimated (else masks only)."""
+        out = [("person detected", f"{self.frames_detected}/{self.frames_total} frames (2+ views), "
+                                   f"{100 * self.views_with_person:.1f}% of views")]
+        if self.frames_skipped:
+            n_fit = len(self.frames_skipped) - len(self.frames_no_mask)
+            why = ([f"{n_fit} without a person or enough keypoints"] if n_fit else []) + \
+                  ([f"{len(self.frames_no_mask)} without a person mask in some view"] if self.frames_no_mask else [])
+            shown = ", ".join(str(f) for f in self.frames_skipped[:8])
+            shown += " …" if len(self.frames_skipped) > 8 else ""
+            out.append(("frames skipped", f"{'; '.join(why)}: {shown}"))
+        if fitted:
+            out.append(("triangulation", f"{self.mean_reprojection_px:.2f} px mean reprojection error, "
+                                         f"{100 * self.views_rejected:.1f}% of 2D keypoints rejected as outliers, "
+                                         f"{100 * self.keypoints_triangulated:.1f}% of keypoints triangulated"))
+            out.append(("anny keypoint fit", f"{self.fit_error_cm:.2f} cm mean keypoint error "
+                                             f"({self.fit_seconds:.0f} s)"))
+        return out
+
+    def to_json(self) -> dict:
+        """JSON-ready figures (NaN, for the steps that did not run, becomes null)."""
+        def num(x: float, nd: int):
+            return None if not np.isfinite(x) else round(float(x), nd)
+
+        return {"frames_detected": self.frames_detected, "frames_total": self.frames_total,
+                "views_with_person": num(self.views_with_person, 4), "frames_skipped": self.frames_skipped,
+                "frames_no_mask": self.frames_no_mask, "mean_reprojection_px": num(self.mean_reprojection_px, 3),
+                "views_rejected": num(self.views_rejected, 4),
+                "keypoints_triangulated": num(self.keypoints_triangulated, 4),
+                "fit_error_cm": num(self.fit_error_cm, 3), "fit_seconds": num(self.fit_seconds, 1)}
+
+
+@dataclass(frozen=True)
+class EstimatedFits:
+    motion: BodyMotion | None  # rows = the kept frames (None when fits were not estimated)
+    kept: list[int]  # frames kept, ascending
+    report: EstimateReport
+
+
+def estimate_fits(det: Detections, cameras, body, fit_iters: int, fps: float,
+                  progress: PartProgress | None = None) -> EstimatedFits:
+    """Triangulate the detections with the pinhole `cameras` (order of `det.cams`) and fit anny (`body`, an
+    `AnnyBody`) to the frames with enough keypoints. See the module docstring."""
+    from avatarctl.body.fit_keypoints import TORSO, KeypointFitConfig, KeypointTargets, fit_anny_keypoints
+    from avatarctl.geometry.triangulate import projection_matrices, triangulate_robust
+    from avatarctl.ingest.keypoints import KEYPOINT_WEIGHTS
+
+    P = projection_matrices(cameras)
+    nf, nc, J, _ = det.keypoints.shape
+    side = max(max(c.width, c.height) for c in cameras)
+    thr = max(MIN_THRESHOLD_PX, REPROJ_THRESHOLD * side)
+    x = det.keypoints.transpose(0, 2, 1, 3).reshape(nf * J, nc, 2)
+    cf = det.confidence.transpose(0, 2, 1).reshape(nf * J, nc)
+    tri = triangulate_robust(P, x, cf, threshold_px=thr, min_conf=MIN_CONFIDENCE)
+    valid = tri.valid.reshape(nf, J)
+    X = tri.X.reshape(nf, J, 3)
+    torso = np.array([n in TORSO for n in det.names])
+    ok = (valid.sum(1) >= MIN_JOINTS) & (valid[:, torso].sum(1) >= 3)
+    kept = [f for f, k in zip(det.frames, ok) if k]
+    n_cand = tri.candidates.sum()
+    report = dict(frames_detected=int((det.found.sum(1) >= 2).sum()), frames_total=nf,
+                  views_with_person=float(det.found.mean()) if det.found.size else 0.0,
+                  frames_skipped=[f for f, k in zip(det.frames, ok) if not k],
+                  mean_reprojection_px=float(np.nanmean(tri.error_px)) if tri.valid.any() else float("nan"),
+                  views_rejected=float(tri.rejected.sum() / n_cand) if n_cand else 0.0,
+                  keypoints_triangulated=float(valid[ok].mean()) if ok.any() else 0.0)
+    if not ok.any():
+        return EstimatedFits(None, [], EstimateReport(**report, fit_error_cm=float("nan"), fit_seconds=0.0))
+    w = np.where(valid[ok], 1.0, 0.0) * KEYPOINT_WEIGHTS[None]
+    targets = KeypointTargets(names=det.names, points=np.nan_to_num(X[ok]), weight=w)
+    fit = fit_anny_keypoints(body, targets, KeypointFitConfig(iters=fit_iters),
+                             progress=None if progress is None else lambda d, t: progress(d, t, "fit"))
+    wsum = (targets.weight > 0).sum(1)
+    err = float((fit.error_m * wsum).sum() / wsum.sum())
+    return EstimatedFits(fit.to_motion(kept, fps=fps), kept,
+                         EstimateReport(**report, fit_error_cm=100 * err, fit_seconds=fit.seconds))

