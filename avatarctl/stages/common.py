@@ -47,6 +47,17 @@ class StageProgress:
 ProgressFn = Callable[[StageProgress], None]
 
 
+def relabel(progress: ProgressFn | None, stage: str) -> ProgressFn | None:
+    """`progress` with `stage` as the label of every report (a chain's "render orbit", "fit skirt-full-s0", ...)."""
+    if progress is None:
+        return None
+    from dataclasses import replace
+
+    def f(p: StageProgress) -> None:
+        progress(replace(p, stage=stage))
+    return f
+
+
 def check_latent_mode(mode: str) -> None:
     if mode not in LATENT_MODES:
         raise InputError(f"unknown latent mode {mode!r}", where="--latent",
