@@ -20,7 +20,7 @@ time in all (split evenly over the fits as `time_budget_s`).
 Resumable: a capture with capture.json, a project whose last fit record finished (`done` / `time_budget`) and an
 eval with metrics.json are reused, a fit that was killed is resumed from its checkpoint; so re-running the same
 command after an interruption only does what is missing. A different budget or scale in the same OUT is refused
-(`reproduce.json` records them).
+(`reproduce.json` records them); `--seeds` may change (more seeds add runs, fewer report the first ones).
 """
 
 from __future__ import annotations
@@ -215,9 +215,9 @@ def _check_out(out: Path, cfg: ReproduceConfig) -> None:
                              fix="choose a new OUT folder (or the OUT of an interrupted `avatarctl reproduce`)")
         old = json.loads(rec.read_text())
         mine = cfg.to_json()
-        changed = sorted(k for k in ("budget_steps", "minutes", "scale") if old.get(k) != mine[k])
-        if changed or old.get("seeds", 0) > cfg.seeds:
-            raise InputError(f"{out} holds a reproduction with other settings ({', '.join(changed) or 'more seeds'})",
+        changed = sorted(k for k in ("budget_steps", "minutes", "scale") if old[k] != mine[k])
+        if changed:  # --seeds may change: more seeds add runs, fewer report the first ones
+            raise InputError(f"{out} holds a reproduction with other settings ({', '.join(changed)})",
                              where=str(rec), fix="re-run with the same options to resume, or choose a new OUT")
 
 
