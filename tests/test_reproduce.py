@@ -37,13 +37,17 @@ def test_report_lists_every_row_and_the_disagreements():
 
     rows = [ReportRow("Tab. 1", "skirt", "full - baseline", "eval novel_pose / bbox, PSNR", PAPER["tab1_diff"],
                       Measurement((-0.4, -0.6)), budget="5 steps", verdict="disagrees"),
-            ReportRow("supp. Sec. C.2", "bench", "speed-up", "bench", PAPER["sparse_speed"], None, note="--no-bench")]
+            ReportRow("supp. Sec. C.2", "bench", "speed-up", "bench", PAPER["sparse_speed"], None, note="--no-bench"),
+            ReportRow("Fig. 6", "mono", "full - baseline", "eval novel_view", PAPER["mono"], Measurement((-2.0, -1.0)),
+                      verdict="no paper number")]
     md = report_markdown(rows, "T", "P")
     assert "| Tab. 1 | skirt | full - baseline |" in md and "-0.50 ± 0.10 dB" in md and "+3.91 / +1.70 dB" in md
     assert "not run: --no-bench" in md
-    assert md.split("## Where our result disagrees")[1].count("Tab. 1, skirt, full - baseline") == 1
+    assert md.split("## Where our result disagrees")[1].split("##")[0].count("Tab. 1, skirt, full - baseline") == 1
+    assert "Fig. 6 (qualitative only (PeopleSnapshot)), mono, full - baseline: ours -1.50 ± 0.50 dB" in \
+        md.split("## No paper number, but the full model scores below")[1]
     parsed = list(csv.DictReader(io.StringIO(report_csv(rows))))
-    assert [r["verdict"] for r in parsed] == ["disagrees", ""]
+    assert [r["verdict"] for r in parsed] == ["disagrees", "", "no paper number"]
     assert parsed[0]["ours_values"] == "-0.4000;-0.6000" and parsed[0]["seeds"] == "2" and parsed[1]["seeds"] == "0"
 
 

@@ -144,6 +144,12 @@ def report_markdown(rows: list[ReportRow], title: str, preamble: str) -> str:
     lines += ["", "## Where our result disagrees with the paper's claim", ""]
     lines += [f"- {r.paper.where}, {r.setting}, {r.quantity}: paper {r.paper.text}, ours {r.ours.text()} "
               f"({r.protocol}). Why: (to be added)." for r in off if r.ours is not None] or ["- none"]
+    against = [r for r in rows if r.verdict == "no paper number" and r.ours is not None
+               and r.ours.mean < -max(r.ours.spread, MIN_EFFECT_DB)]
+    if against:
+        lines += ["", "## No paper number, but the full model scores below the other model here", ""]
+        lines += [f"- {r.paper.where} ({r.paper.text}), {r.setting}, {r.quantity}: ours {r.ours.text()} "
+                  f"({r.protocol}). Why: (to be added)." for r in against if r.ours is not None]
     undecided = [r for r in rows if r.verdict == "inconclusive"]
     if undecided:
         lines += ["", f"## Inconclusive at this budget (within the seed spread, under {MIN_EFFECT_DB} dB, or one seed "

@@ -429,6 +429,8 @@ def _preamble(out: Path, cfg: ReproduceConfig) -> str:
 
     import torch
 
+    from avatarctl.evaluate.reproduction import MIN_EFFECT_DB
+
     return "\n".join([
         f"Budget: **{cfg.budget_text()}** ({cfg.fits} fits: 7 models x {cfg.seeds} fit seeds), scale `{cfg.scale}` "
         f"(captures: {', '.join(f'{k} = synth {v[0]}' for k, v in SIZES[cfg.scale].captures.items())}, synth seed "
@@ -439,5 +441,6 @@ def _preamble(out: Path, cfg: ReproduceConfig) -> str:
         "captures, resolutions and 100k-500k-step budgets are not ours, so compare the *direction* of each "
         "difference (the verdict), not the dB.",
         "Verdict (differences only): agrees / disagrees = every seed has the paper's / the opposite sign and the "
-        "mean exceeds the half range; otherwise inconclusive. Sheets: seed 0's eval comparison sheets.",
+        f"mean exceeds both the half range and {MIN_EFFECT_DB} dB; otherwise inconclusive. Sheets: seed 0's eval "
+        "comparison sheets.",
     ])
