@@ -70,6 +70,9 @@ def test_options_are_checked(tmp_path):
     (tmp_path / "old" / "reproduce.json").write_text(json.dumps(ReproduceConfig(budget_steps=7).to_json()))
     with pytest.raises(InputError, match="other settings"):
         reproduce.run(tmp_path / "old", ReproduceConfig(budget_steps=8))
+    (tmp_path / "old" / "reproduce.json").write_text("{not json")
+    with pytest.raises(InputError, match="unreadable reproduce.json"):
+        reproduce.run(tmp_path / "old", ReproduceConfig(budget_steps=7))
     res = CliRunner().invoke(__import__("avatarctl.cli.app", fromlist=["app"]).app,
                              ["reproduce", str(tmp_path / "x"), "--seeds", "0"])
     assert res.exit_code != 0 and "--seeds" in res.output

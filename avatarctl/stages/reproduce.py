@@ -213,9 +213,13 @@ def _check_out(out: Path, cfg: ReproduceConfig) -> None:
         if not rec.is_file():
             raise InputError("reproduce output folder is not empty and holds no reproduce.json", where=str(out),
                              fix="choose a new OUT folder (or the OUT of an interrupted `avatarctl reproduce`)")
-        old = json.loads(rec.read_text())
         mine = cfg.to_json()
-        changed = sorted(k for k in ("budget_steps", "minutes", "scale") if old[k] != mine[k])
+        try:
+            old = json.loads(rec.read_text())
+            changed = sorted(k for k in ("budget_steps", "minutes", "scale") if old[k] != mine[k])
+        except (ValueError, KeyError, TypeError) as e:
+            raise InputError(f"unreadable reproduce.json ({e})", where=str(rec),
+                             fix="choose a new OUT folder") from None
         if changed:  # --seeds may change: more seeds add runs, fewer report the first ones
             raise InputError(f"{out} holds a reproduction with other settings ({', '.join(changed)})",
                              where=str(rec), fix="re-run with the same options to resume, or choose a new OUT")
