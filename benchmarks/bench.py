@@ -1,4 +1,4 @@
-"""Benchmark: sparse (supplement A.2, packed) vs dense node evaluation, and training throughput.
+"""Benchmark: sparse (supplement Sec. C.2, packed) vs dense node evaluation, and training throughput.
 
     python -m benchmarks.bench [--out bench.json] [--device cpu|cuda] [--rays-paper N] [--rays-cpu N]
 

@@ -47,9 +47,9 @@ def _root(ctx: typer.Context,
 
 
 def _register() -> None:
-    from avatarctl.cli import demo, evaluate, export, fit, info, ingest, motion, render, synth, view
+    from avatarctl.cli import demo, evaluate, export, fit, info, ingest, motion, render, reproduce, synth, view
 
-    for mod in (synth, ingest, fit, render, evaluate, motion, export, view, demo, info):
+    for mod in (synth, ingest, fit, render, evaluate, motion, export, view, demo, reproduce, info):
         mod.register(app)
 
 

@@ -36,7 +36,7 @@ def register(app: typer.Typer) -> None:
                                    "region) | garment | body. garment/body need the capture's ground-truth "
                                    "geometry (synth writes gt/geometry.npz); with it every eval also reports both."),
         knockout: Optional[str] = typer.Option(None, "--knockout", help="Render-time knockout of the trained "
-                                               "model (supp. Tab. A): delta-n and/or embedding, comma-separated: "
+                                               "model (paper Fig. 3 / supp. node-variable table): delta-n and/or embedding, comma-separated: "
                                                "that variable is set to zero when rendering."),
         compare: bool = typer.Option(False, "--compare", help="Do not render: print a side-by-side table of the "
                                      "projects' latest metrics.json (same split/protocol), e.g. "
@@ -54,6 +54,7 @@ def register(app: typer.Typer) -> None:
             if len(projects) > 1:
                 raise InputError(f"{len(projects)} projects given", fix="pass one PROJECT, or add --compare to "
                                  "tabulate several")
+            from avatarctl.stages.common import parse_knockout
             from avatarctl.stages.evaluate import EvalConfig
 
             view_names = tuple(v.strip() for v in views.split(",") if v.strip()) if views else ()
@@ -62,7 +63,7 @@ def register(app: typer.Typer) -> None:
                              max_rays_per_chunk=max_rays, device=device,
                              checkpoint=str(checkpoint) if checkpoint else None, save_images=save_images,
                              region=region,
-                             knockout=tuple(k.strip() for k in knockout.split(",") if k.strip()) if knockout else ())
+                             knockout=parse_knockout(knockout))
             _run(projects[0], cfg, nproc, console)
 
 

@@ -47,12 +47,17 @@ def register(app: typer.Typer) -> None:
         device: str = typer.Option("auto", "--device", help="auto | cpu | cuda."),
         checkpoint: Optional[Path] = typer.Option(None, "--checkpoint", help="Checkpoint file (default: "
                                                   "fit/checkpoints/latest.pt)."),
+        knockout: Optional[str] = typer.Option(None, "--knockout", help="Render-time knockout of the trained "
+                                               "model (paper Fig. 3 / supp. node-variable table): delta-n and/or "
+                                               "embedding, comma-separated: that variable is set to zero when "
+                                               "rendering; recorded in config.json."),
         nproc: int = typer.Option(1, "--nproc", help="Split the video frames over N ranks of this machine (same "
                                   "files as one process). Clusters: torchrun ... -m avatarctl render ..."),
     ) -> None:
         from avatarctl.cli.common import console, user_errors
 
         with user_errors():
+            from avatarctl.stages.common import parse_knockout
             from avatarctl.stages.render import RenderConfig
 
             view_names = tuple(v.strip() for v in views.split(",") if v.strip()) if views else ()
@@ -60,7 +65,8 @@ def register(app: typer.Typer) -> None:
                                orbit=orbit, elevation=elevation, radius=radius, latent=latent, seed=seed,
                                resolution=resolution, background=background, fps=fps, recenter=recenter,
                                max_rays_per_chunk=max_rays, device=device,
-                               checkpoint=str(checkpoint) if checkpoint else None)
+                               checkpoint=str(checkpoint) if checkpoint else None,
+                               knockout=parse_knockout(knockout))
             _run(project, cfg, nproc, console)
 
 
@@ -91,6 +97,8 @@ def _run(project: Path, cfg, nproc: int, console) -> None:
         t.add_row("retarget", res.retarget)
     t.add_row("latent", ", ".join(f"{k}: {v}" for k, v in res.latent_counts.items()))
     t.add_row("background", ",".join(f"{c:.3g}" for c in res.background))
+    if cfg.knockout:
+        t.add_row("knockout", ", ".join(cfg.knockout) + " set to zero")
     t.add_row("checkpoint step", str(res.checkpoint_step))
     t.add_row("time", f"{res.seconds:.1f} s total, {res.seconds_per_image:.2f} s per image")
     console.print(t)

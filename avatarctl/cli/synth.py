@@ -15,7 +15,9 @@ def register(app: typer.Typer) -> None:
         out: Path = typer.Argument(..., help="Output capture directory (must not exist or be empty)."),
         preset: str = typer.Option("tiny", "--preset", help="tiny (~6 views, 24+12 frames, 96px, <1 min), "
                                    "small (12 views, 80+40, 256px), standard (20 views, 300+150, 512px); "
-                                   "micro (4 views, 6+4, 64px) for tests."),
+                                   "micro (4 views, 6+4, 64px) for tests; the paper's other settings at tiny "
+                                   "sizes: monocular (1 training camera + 3 evaluation-only ones, the subject "
+                                   "turning in an A-pose, no skirt; 24+8) and tight (tiny without the skirt)."),
         seed: int = typer.Option(0, "--seed", help="Seed of every random choice; same seed, same files."),
         views: Optional[int] = typer.Option(None, "--views", help="Override the number of cameras.", hidden=True),
         train_frames: Optional[int] = typer.Option(None, "--train-frames", help="Override training frames.",
@@ -60,8 +62,11 @@ def register(app: typer.Typer) -> None:
             console.print(f"[green]wrote[/] {res.out}: {len(res.cameras)} cameras "
                           f"(train {', '.join(res.train_views)}; test {', '.join(res.test_views)}), "
                           f"{len(res.train_frames)} train + {len(res.test_frames)} test frames")
-            console.print(f"  skirt hem radius {res.hem_radius_range[0]:.2f}-{res.hem_radius_range[1]:.2f} m, "
-                          f"max particles inside the body {res.max_penetrating_particles}")
+            if config.garment == "skirt":
+                console.print(f"  skirt hem radius {res.hem_radius_range[0]:.2f}-{res.hem_radius_range[1]:.2f} m, "
+                              f"max particles inside the body {res.max_penetrating_particles}")
+            else:
+                console.print("  no garment (tight clothing)")
             if res.hem_pair:
                 hp = res.hem_pair
                 console.print(f"  same pose, different hem: frames {hp['frames'][0]} and {hp['frames'][1]} "

@@ -1,11 +1,11 @@
 """`SlrfAvatar`: structured local radiance fields (Zheng et al., CVPR 2022) as one `nn.Module`.
 
-Data flow of one training step (paper Fig. 5):
+Data flow of one training step (paper Fig. 4):
 1. `node_state(cond, mode)`: Eq. 1 node transforms T_i from the body pose; Eq. 8 per-node pose condition; the
    per-node cVAE (Eq. 9-10) gives Delta n_i and e_i; Eq. 3 posed nodes n_i.
 2. `render(rays, state, background)`: per ray, near/far from the union of node-influence spheres
    (radius sigma sqrt(-2 ln eps)); 64 uniform samples; for each sample the nodes in range (Eq. 6 weights > 0),
-   local coordinates (Eq. 4), local fields F_i (packed per node, supplement A.2, or dense), fusion (Eq. 5),
+   local coordinates (Eq. 4), local fields F_i (packed per node, supplement Sec. C.2, or dense), fusion (Eq. 5),
    heads (Eq. 7); compositing over the known background (`render/volume.py`).
 3. `losses(out, target, state)`: Eq. 11-15.
 
@@ -208,7 +208,7 @@ class SlrfAvatar(nn.Module):
 
     def knock_out(self, state: NodeState, delta_n: bool = False, embedding: bool = False) -> NodeState:
         """`state` with Delta n_i and/or e_i set to zero at render time (the paper's render-time knockout of a
-        trained model, supp. Tab. A): the nodes move back to their skinned positions (Eq. 3 with Delta n = 0)."""
+        trained model, Fig. 3 / supp. Tab. B): the nodes move back to their skinned positions (Eq. 3 with Delta n = 0)."""
         delta = torch.zeros_like(state.delta_n) if delta_n else state.delta_n
         embed = torch.zeros_like(state.embed) if embedding else state.embed
         with _float32_geometry(state.transforms.device):
@@ -362,7 +362,7 @@ class SlrfAvatar(nn.Module):
 
     def _features_sparse(self, points: torch.Tensor, point_frame: torch.Tensor, state: NodeState,
                          candidates: tuple[torch.Tensor, torch.Tensor] | None = None):
-        """Supplement A.2: evaluate only pairs with w_i > 0, packed per node ([N, max_i S_i, C], or blocks of
+        """Supplement Sec. C.2: evaluate only pairs with w_i > 0, packed per node ([N, max_i S_i, C], or blocks of
         `cfg.pack_block` rows per node, see `ModelConfig.pack_block`).
         -> f [P, F], wsum [P], stats, and with `cfg.occupancy` (point_idx, cells) of the pairs, else None."""
         cfg, N, P = self.cfg, self.cfg.num_nodes, points.shape[0]

@@ -91,7 +91,7 @@ class ModelConfig:
     use_embedding: bool = True  # False: e_i = 0 ("no-embedding")
     latent: str = "cvae"  # "cvae" | "deterministic" | "per_frame"
     variant: str = "slrf"  # "slrf" | "lbs_baseline"
-    sparse: bool = True  # supplement A.2 packed evaluation; False = dense reference path
+    sparse: bool = True  # supplement Sec. C.2 packed evaluation; False = dense reference path
     pack_block: int = 128  # rows per packed block (0 = the supplement's single N x max S_i tensor)
     # losses (Eq. 11)
     lambda_rec: float = 1.0

@@ -1,4 +1,4 @@
-"""Sinusoidal positional encoding of the supplement (Sec. A.1):
+"""Sinusoidal positional encoding of the supplement (Sec. C.1):
 
     gamma(x) = (x, sin(x), cos(x), sin(2x), cos(2x), ..., sin(2^(m-1) x), cos(2^(m-1) x))
 

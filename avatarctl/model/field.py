@@ -1,5 +1,5 @@
 """The local radiance fields F_i, feature fusion (Eq. 5), the colour / density heads (Eq. 7), and the packing of
-supplement A.2 that feeds only the valid node-sample pairs to the per-node MLPs.
+supplement Sec. C.2 that feeds only the valid node-sample pairs to the per-node MLPs.
 
 Layout of a pair set (the sparse representation of the [nodes, samples] blending-weight matrix):
 `point_idx [pairs]`, `node_idx [pairs]`, `frame_idx [pairs]`, `w [pairs]` (Eq. 6, all > 0).
@@ -37,7 +37,7 @@ def fuse_features_dense(features: torch.Tensor, w: torch.Tensor) -> tuple[torch.
     return (w[..., None] * features).sum(0) / wsum.clamp_min(1e-30)[:, None], wsum
 
 
-# ---- supplement A.2 packing --------------------------------------------------------------------------------------
+# ---- supplement C.2 packing --------------------------------------------------------------------------------------
 @dataclass
 class Packing:
     """Where each valid pair sits in the packed [N, S', C] tensor, S' = max_i S_i."""

@@ -23,6 +23,9 @@ if TYPE_CHECKING:
     from avatarctl.project import Project
 
 LATENT_MODES = ("auto", "mean", "zero", "sample")
+KNOCKOUTS = ("delta-n", "embedding")
+"""Render-time knockouts of a trained model (`render` / `eval --knockout`): that variable is set to zero when
+rendering (the paper's Fig. 3 and supp. Tab. B, the node-variable knock-out)."""
 
 
 @dataclass(frozen=True)
@@ -44,10 +47,41 @@ class StageProgress:
 ProgressFn = Callable[[StageProgress], None]
 
 
+def relabel(progress: ProgressFn | None, stage: str) -> ProgressFn | None:
+    """`progress` with `stage` as the label of every report (a chain's "render orbit", "fit skirt-full-s0", ...)."""
+    if progress is None:
+        return None
+    from dataclasses import replace
+
+    def f(p: StageProgress) -> None:
+        progress(replace(p, stage=stage))
+    return f
+
+
 def check_latent_mode(mode: str) -> None:
     if mode not in LATENT_MODES:
         raise InputError(f"unknown latent mode {mode!r}", where="--latent",
                          fix=f"use one of: {', '.join(LATENT_MODES)}")
+
+
+def check_knockout(knockout: tuple[str, ...]) -> tuple[str, ...]:
+    """`knockout` validated (each in KNOCKOUTS, no repeats) in KNOCKOUTS order."""
+    bad = [k for k in knockout if k not in KNOCKOUTS]
+    if bad:
+        raise InputError(f"unknown knockout {bad}", where="--knockout", fix=f"use: {', '.join(KNOCKOUTS)}")
+    return tuple(k for k in KNOCKOUTS if k in knockout)
+
+
+def parse_knockout(spec: str | None) -> tuple[str, ...]:
+    """'delta-n,embedding' (the CLI's comma list) -> ("delta-n", "embedding"); None or '' -> ()."""
+    return tuple(k.strip() for k in spec.split(",") if k.strip()) if spec else ()
+
+
+def knocked_out(avatar: "LoadedAvatar", state: "NodeState", knockout: tuple[str, ...]) -> "NodeState":
+    """`state` with the `knockout` variables zeroed (`SlrfAvatar.knock_out`); `state` itself when none."""
+    if not knockout:
+        return state
+    return avatar.model.knock_out(state, delta_n="delta-n" in knockout, embedding="embedding" in knockout)
 
 
 def latent_for(mode: str, is_training: bool) -> str:

@@ -25,7 +25,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, Callable
 
 from avatarctl.errors import InputError
-from avatarctl.stages.common import StageProgress, ProgressFn
+from avatarctl.stages.common import ProgressFn, relabel
 
 if TYPE_CHECKING:
     from avatarctl.evaluate.report import EvalMetrics
@@ -165,7 +165,7 @@ def run(out: str | Path, cfg: DemoConfig, progress: ProgressFn | None = None,
         ("novel_pose", RenderConfig(name="novel_pose", frames="test", device=cfg.device)),
     ):
         t0 = time.perf_counter()
-        rr = render.run(project_dir, rcfg, progress=_relabel(progress, f"render {name}"))
+        rr = render.run(project_dir, rcfg, progress=relabel(progress, f"render {name}"))
         result.videos[name] = rr.video
         done(f"render {name}", t0, {"video": str(rr.video), "images": len(rr.images),
                                     "size": f"{rr.width}x{rr.height}",
@@ -176,7 +176,7 @@ def run(out: str | Path, cfg: DemoConfig, progress: ProgressFn | None = None,
     for split in ("novel_view", "novel_pose"):
         t0 = time.perf_counter()
         er = evaluate.run(project_dir, EvalConfig(split=split, protocol="bbox", every=sizes.eval_every,
-                                                  device=cfg.device), progress=_relabel(progress, f"eval {split}"))
+                                                  device=cfg.device), progress=relabel(progress, f"eval {split}"))
         result.metrics[split] = er.metrics
         result.metrics_paths[split] = er.out_dir / "metrics.json"
         done(f"eval {split}", t0, {"PSNR (bbox)": round(er.psnr, 2), "SSIM": round(er.ssim, 4),
@@ -184,13 +184,3 @@ def run(out: str | Path, cfg: DemoConfig, progress: ProgressFn | None = None,
                                    "metrics": str(er.out_dir / "metrics.json")})
     result.seconds = time.perf_counter() - t_all
     return result
-
-
-def _relabel(progress: ProgressFn | None, stage: str) -> ProgressFn | None:
-    """`progress` with the demo's label for a stage that runs more than once ("render orbit", ...)."""
-    if progress is None:
-        return None
-
-    def f(p: StageProgress) -> None:
-        progress(replace(p, stage=stage))
-    return f

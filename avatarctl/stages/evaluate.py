@@ -40,11 +40,10 @@ from avatarctl.errors import InputError
 from avatarctl.evaluate.report import PSNR_CAP, SCHEMA_VERSION, EvalMetrics, ImageScore, ScoredModel
 from avatarctl.frames import select_frames
 from avatarctl.project import check_name, now_iso
-from avatarctl.stages.common import StageProgress, ProgressFn, check_latent_mode, frame_node_state, latent_for, \
-    load_fitted, open_fitted, rank_device_name, run_ranked, select_views
+from avatarctl.stages.common import StageProgress, ProgressFn, check_knockout, check_latent_mode, frame_node_state, \
+    knocked_out, latent_for, load_fitted, open_fitted, rank_device_name, run_ranked, select_views
 
 SPLITS = ("novel_view", "novel_pose", "train")
-KNOCKOUTS = ("delta-n", "embedding")  # render-time knockouts (supp. Tab. A): the trained value set to zero
 
 
 @dataclass(frozen=True)
@@ -66,16 +65,13 @@ class EvalConfig:
     checkpoint: str | None = None  # None = fit/checkpoints/latest.pt
     save_images: bool = False  # also write every render to eval/<name>/renders/<frame:06d>_<view>.png
     region: str = "all"  # what the headline PSNR is over: all (the protocol's region) | garment | body
-    knockout: tuple[str, ...] = ()  # render-time knockout of a trained model: delta-n and/or embedding
+    knockout: tuple[str, ...] = ()  # render-time knockout of a trained model: delta-n and/or embedding (Fig. 3)
 
     def __post_init__(self) -> None:
         from avatarctl.evaluate.protocols import PROTOCOLS
 
         object.__setattr__(self, "views", tuple(self.views))
-        object.__setattr__(self, "knockout", tuple(self.knockout))
-        bad = [k for k in self.knockout if k not in KNOCKOUTS]
-        if bad:
-            raise InputError(f"unknown knockout {bad}", where="--knockout", fix=f"use: {', '.join(KNOCKOUTS)}")
+        object.__setattr__(self, "knockout", check_knockout(tuple(self.knockout)))
         if self.split not in SPLITS:
             raise InputError(f"unknown split {self.split!r}", where="--split", fix=f"use one of: {', '.join(SPLITS)}")
         if self.protocol not in PROTOCOLS:
@@ -203,9 +199,7 @@ def _run(env: Any, progress: ProgressFn | None, project_dir: str, cfg: EvalConfi
             frame, one = frames[fi], motion.select([fi])
             verts = avatar.body.pose(one).vertices[0].detach().float().cpu().numpy()  # [V, 3]
             state = frame_node_state(avatar, one, frame, is_train, latent, cfg.seed)
-            if cfg.knockout:
-                state = avatar.model.knock_out(state, delta_n="delta-n" in cfg.knockout,
-                                               embedding="embedding" in cfg.knockout)
+            state = knocked_out(avatar, state, cfg.knockout)
             for vi, view in enumerate(views):
                 k = fi * len(views) + vi
                 mine.append(_score_image(avatar, cfg, project, state, verts, frame, view, cams[view], latent,

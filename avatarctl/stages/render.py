@@ -38,8 +38,8 @@ from avatarctl.errors import InputError
 from avatarctl.frames import select_frames
 from avatarctl.geometry.cameras import Camera
 from avatarctl.project import check_name, now_iso
-from avatarctl.stages.common import StageProgress, ProgressFn, check_latent_mode, frame_node_state, latent_for, \
-    load_fitted, motion_for_avatar, open_fitted, rank_device_name, run_ranked, select_views
+from avatarctl.stages.common import StageProgress, ProgressFn, check_knockout, check_latent_mode, frame_node_state, \
+    knocked_out, latent_for, load_fitted, motion_for_avatar, open_fitted, rank_device_name, run_ranked, select_views
 
 SCHEMA_VERSION = 1
 DEFAULT_MAX_RAYS = 8192
@@ -92,9 +92,11 @@ class RenderConfig:
     max_rays_per_chunk: int = DEFAULT_MAX_RAYS  # rays per model call (memory bound)
     device: str = "auto"  # auto | cpu | cuda
     checkpoint: str | None = None  # None = fit/checkpoints/latest.pt
+    knockout: tuple[str, ...] = ()  # render-time knockout of a trained model: delta-n and/or embedding (Fig. 3)
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "views", tuple(self.views))
+        object.__setattr__(self, "knockout", check_knockout(tuple(self.knockout)))
         check_name(self.name, "render name")
         check_latent_mode(self.latent)
         if self.orbit < 0:
@@ -118,6 +120,7 @@ class RenderConfig:
     def to_json(self) -> dict[str, Any]:
         d = asdict(self)
         d["views"] = list(self.views)
+        d["knockout"] = list(self.knockout)
         return {"schema_version": SCHEMA_VERSION, **d}
 
 
@@ -208,8 +211,9 @@ def _run(env: Any, progress: ProgressFn | None, project_dir: str, cfg: RenderCon
         for n, i in enumerate(mine):
             seq, pos, cam = plan.shots[i]
             if state_cache is None or state_cache[0] != pos:
-                state_cache = (pos, frame_node_state(avatar, plan.motion.select([pos]), plan.frames[pos],
-                                                     plan.training[pos], plan.latents[pos], cfg.seed))
+                state_cache = (pos, knocked_out(avatar, frame_node_state(
+                    avatar, plan.motion.select([pos]), plan.frames[pos], plan.training[pos], plan.latents[pos],
+                    cfg.seed), cfg.knockout))
             image, rgb8 = _render_shot(avatar, state_cache[1], plan, i, background, transparent, cfg, tmp)
             if progress is not None:
                 progress(StageProgress(stage="render", done=min((n + 1) * world, total), total=total,
@@ -264,6 +268,7 @@ def _run(env: Any, progress: ProgressFn | None, project_dir: str, cfg: RenderCon
                       "fps": vinfo.fps, "codec": "h264 (libx264)", "pix_fmt": vinfo.pix_fmt},
             "cameras": [c.to_json() for c in _unique_cameras(plan.shots)],
             "images": [asdict(im) for im in images],
+            "knockout": list(cfg.knockout),
             "model": {"sparse": bool(avatar.model_config.sparse), "variant": avatar.model_config.variant,
                       "num_nodes": avatar.model_config.num_nodes,
                       "samples_per_ray": avatar.model_config.samples_per_ray},
@@ -280,6 +285,7 @@ def _run(env: Any, progress: ProgressFn | None, project_dir: str, cfg: RenderCon
                           motion_source=plan.source, retarget=plan.retarget, latent_counts=latent_counts)
     project.record("render", config=cfg.to_json(), outputs=[out_dir], started=started,
                    summary={"name": cfg.name, "images": len(images), "size": f"{w}x{h}",
+                            "knockout": list(cfg.knockout),
                             "seconds_per_image": round(result.seconds_per_image, 3), "video": "video.mp4",
                             "checkpoint_step": avatar.step, "motion": plan.source})
     return result

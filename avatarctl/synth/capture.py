@@ -14,7 +14,8 @@ Layout written (see docs/formats.md)::
     OUT/motion.npz                      anny fits (loadable by `avatarctl.body.motion.BodyMotion.load`); with
                                         `fit_noise_*` > 0 perturbed like real fits (`body.perturb`)
     OUT/gt/motion.npz                   the true fits, only when motion.npz was perturbed
-    OUT/split.json                      train/test frames and views
+    OUT/split.json                      train/test frames and views (test views are never trained on; with
+                                        `train_views` k > 0 only cam00..k-1 train, e.g. the monocular preset)
     OUT/gt/geometry.npz                 per-frame body and skirt vertices, faces, skirt grid parameters
     OUT/capture.json                    generator version, config, seed, timings, statistics
     OUT/contact_sheet.png               a few frames x views for a person to look at
@@ -108,8 +109,11 @@ def make_cameras(config: SynthConfig, target_z: float) -> list[Camera]:
     return cams
 
 
-def split_views(names: list[str]) -> tuple[list[str], list[str]]:
-    """Every third camera (cam01, cam04, ...) is held out for novel-view testing."""
+def split_views(names: list[str], train_views: int = 0) -> tuple[list[str], list[str]]:
+    """(train, test) cameras: with `train_views` 0 every third camera (cam01, cam04, ...) is held out for novel-view
+    testing; with k > 0 the first k train and all the others are evaluation-only (the monocular preset)."""
+    if train_views > 0:
+        return list(names[:train_views]), list(names[train_views:])
     test = [n for i, n in enumerate(names) if i % 3 == 1]
     return [n for n in names if n not in test], test
 
@@ -178,6 +182,8 @@ def simulate(config: SynthConfig, progress: Progress | None = None) -> tuple[Sce
     trunk = np.array([not labels[d].startswith(arms_head) for d in dominant])
     stats["anny_s"] = time.perf_counter() - t0
 
+    if config.garment == "none":  # tight clothing: the body alone, nothing to simulate
+        return _body_only_scene(config, body, faces, motion, body_model, labels, dominant, stats), motion, stats
     t0 = time.perf_counter()
     skirt = build_skirt(body[0], faces, trunk, config.skirt_rings, config.skirt_segments)
     reach = np.array([not labels[d].startswith(("head", "neck", "eye", "foot", "toe")) for d in dominant])
@@ -204,6 +210,21 @@ def simulate(config: SynthConfig, progress: Progress | None = None) -> tuple[Sce
                   skirt_param=skirt.param.astype(np.float32).astype(np.float64),
                   skirt_hem=skirt.hem, floor_z=float(body[:, :, 2].min()) - 0.002)
     return scene, motion, stats
+
+
+def _body_only_scene(config: SynthConfig, body: np.ndarray, faces: np.ndarray, motion: ProceduralMotion, body_model,
+                     labels: list[str], dominant: np.ndarray, stats: dict) -> Scene:
+    """The `Scene` of a capture without garment: the skirt arrays are empty ([frames, 0, 3], [0, 3], ...)."""
+    from avatarctl.synth.geometry import signed_volume
+    from avatarctl.synth.shade import body_regions
+
+    faces = np.ascontiguousarray(faces if signed_volume(body[0].astype(np.float64), faces) >= 0 else faces[:, ::-1])
+    stats.update(simulate_s=0.0, simulate_s_per_frame=0.0, max_penetrating_particles=0)
+    rest = body_model.run(_first_motion(motion))["rest_vertices"].float().numpy()
+    return Scene(body_vertices=body[motion.written_rows], skirt_vertices=np.zeros((config.frames, 0, 3), np.float32),
+                 body_faces=faces, skirt_faces=np.zeros((0, 3), np.int32), body_rest=rest,
+                 body_region=body_regions(labels, dominant, rest), skirt_param=np.zeros((0, 2)),
+                 skirt_hem=np.zeros(0, np.int64), floor_z=float(body[:, :, 2].min()) - 0.002)
 
 
 def _first_motion(motion: ProceduralMotion):
@@ -346,13 +367,16 @@ def synthesize(out: Path, config: SynthConfig, progress: Progress | None = None)
     scene, motion, stats = simulate(config, progress)
     cameras = make_cameras(config, target_z=-0.06)
     names = [c.name for c in cameras]
-    train_views, test_views = split_views(names)
+    train_views, test_views = split_views(names, config.train_views)
     frames = list(range(config.frames))
     train_frames, test_frames = frames[:config.train_frames], frames[config.train_frames:]
     hem = scene.skirt_vertices[:, scene.skirt_hem]
     centre = scene.body_vertices.mean(1)  # [frames, 3]
-    hem_radius = np.linalg.norm(hem[..., :2] - centre[:, None, :2], axis=-1).mean(1)  # [frames]
-    hem_pair = _hem_pair(scene.body_vertices, hem, train_frames) if len(train_frames) > 1 else None
+    if config.garment == "none":
+        hem_radius, hem_pair = np.zeros(config.frames), None
+    else:
+        hem_radius = np.linalg.norm(hem[..., :2] - centre[:, None, :2], axis=-1).mean(1)  # [frames]
+        hem_pair = _hem_pair(scene.body_vertices, hem, train_frames) if len(train_frames) > 1 else None
 
     with atomic_dir(out) as tmp:
         t0 = time.perf_counter()
@@ -416,7 +440,7 @@ def synthesize(out: Path, config: SynthConfig, progress: Progress | None = None)
             "frames": {"train": len(train_frames), "test": len(test_frames), "fps": motion.fps,
                        "sim_fps": config.sim_fps, "warmup_frames": config.warmup_frames},
             "body": {"model": "anny", "phenotype": dict(zip(PHENOTYPE_LABELS, map(float, motion.phenotype)))},
-            "garment": {"type": "skirt", "particles": int(scene.skirt_vertices.shape[1]),
+            "garment": {"type": config.garment, "particles": int(scene.skirt_vertices.shape[1]),
                         "max_penetrating_particles": int(stats["max_penetrating_particles"]),
                         "hem_radius_m": {"min": float(hem_radius.min()), "max": float(hem_radius.max())}},
             "hem_pair": hem_pair,

@@ -3,6 +3,14 @@
 Sizes: `views` cameras on a ring around the subject; `train_frames` + `test_frames` written frames; square
 images of `size` pixels. The cloth is simulated at `sim_fps` (30 Hz) and every `stride`-th simulated frame is
 written, so a short preset still covers a whole choreography (walk, turn, twirl) in real time.
+
+Settings of the paper's other experiments (`avatarctl reproduce`, docs/reproduce.md):
+- `monocular` (PeopleSnapshot-like, the paper's Fig. 6): one training camera (cam00) and the subject turning in
+  place through 360 degrees with the arms in an A-pose, no skirt; cam01..cam03 (90, 180, 270 degrees around) are
+  evaluation-only cameras (`split.json` test views: ingest/fit never train on them); the test frames turn on with
+  the arms lowered and the elbows and knees bent (held-out poses).
+- `tight` (ZJU-MoCap-like, Tab. 2): the tiny choreography and cameras without the skirt (tight clothing); the
+  every-third rule leaves 4 training views, as the paper's 4-view ZJU-MoCap protocol.
 """
 
 from __future__ import annotations
@@ -26,7 +34,13 @@ _PRESETS: dict[str, dict[str, Any]] = {
     # standard: 1x1 (smaller pixels; 2x2 would take ~4x its 25 min of rendering)
     "small": dict(views=12, train_frames=80, test_frames=40, size=256, stride=2, supersample=2, substeps=12),
     "standard": dict(views=20, train_frames=300, test_frames=150, size=512, stride=1, supersample=1),
+    # the paper's other settings at tiny sizes (CPU minutes)
+    "monocular": dict(views=4, train_views=1, motion="turn", garment="none", train_frames=24, test_frames=8,
+                      size=96, stride=5, supersample=2),
+    "tight": dict(views=6, garment="none", train_frames=24, test_frames=12, size=96, stride=5, supersample=2),
 }
+MOTIONS = ("choreography", "turn")
+GARMENTS = ("skirt", "none")
 PRESETS = tuple(_PRESETS)
 
 
@@ -73,6 +87,15 @@ class SynthConfig:
     The true fits go to gt/motion.npz. 0 (and fit_noise_cm 0): exact fits."""
     fit_noise_cm: float = 0.0
     """Per-frame noise of the written root translation, N(0, this^2) centimetres per axis."""
+    motion: str = "choreography"
+    """choreography: walk, turn, twirl (train) then march, raised arms, opposite twirl (test); turn: turning in
+    place through 360 degrees in an A-pose (train, PeopleSnapshot-like) then on with lowered arms, bent elbows and
+    knees (test)."""
+    garment: str = "skirt"
+    """skirt: the simulated loose skirt; none: tight clothing (body only, no cloth simulation)."""
+    train_views: int = 0
+    """0: every third camera (cam01, cam04, ...) is held out, the rest train; k > 0: cam00 .. cam(k-1) train and
+    every other camera is evaluation-only (split.json test views)."""
 
     def __post_init__(self) -> None:
         checks = [
@@ -90,6 +113,10 @@ class SynthConfig:
             (0 <= self.seed < 2**32, "seed must be in [0, 2^32)"),
             (0 <= self.fit_noise_deg <= 30 and 0 <= self.fit_noise_cm <= 50,
              "fit noise must be in [0, 30] degrees and [0, 50] cm"),
+            (self.motion in MOTIONS, f"motion must be one of {', '.join(MOTIONS)}"),
+            (self.garment in GARMENTS, f"garment must be one of {', '.join(GARMENTS)}"),
+            (0 <= self.train_views < self.views, "train_views must be in [0, views) (0 = every third held out; "
+                                                 "at least one camera must be left for evaluation)"),
         ]
         for ok, msg in checks:
             if not ok:
@@ -97,7 +124,8 @@ class SynthConfig:
 
     @classmethod
     def preset(cls, name: str, seed: int = 0, **overrides: Any) -> "SynthConfig":
-        """The named preset (`micro`, `tiny`, `small`, `standard`) with optional field overrides."""
+        """The named preset (`micro`, `tiny`, `small`, `standard`, `monocular`, `tight`) with optional field
+        overrides."""
         if name not in _PRESETS:
             raise InputError(f"unknown synth preset {name!r}", fix=f"use one of {', '.join(PRESETS)}")
         known = {f.name for f in fields(cls)}

@@ -1,5 +1,7 @@
 """Procedural anny motion: a training choreography (walk, 90 deg turn, twirl) and a novel-pose test choreography
 (high-knee march with raised arms and torso twist, then a twirl the other way), with a warm-up before frame 0.
+`SynthConfig.motion = "turn"` replaces them with a 360 deg turn in place in an A-pose (PeopleSnapshot-like) and
+held-out poses that turn on with lowered arms and bent elbows and knees.
 
 Pose parameters are anny's "local-ref" deltas [frames, 104, 4, 4] (FACTS.md section 4): a delta is a rotation in
 the world-aligned axes of the reference (A-)pose about the bone head, composed down the chain; the root delta is
@@ -183,6 +185,35 @@ def _test_limbs(t: np.ndarray, dur: float, lead: float, rng: np.random.Generator
                  arm_lower=arm_lower, elbow=elbow, twist=twist, lean=lean)
 
 
+def _turn_limbs(t: np.ndarray, dur: float, rng: np.random.Generator) -> Limbs:
+    """Turning in place through 360 deg (left) at a near-constant speed, arms in an A-pose with a little sway, legs
+    straight: PeopleSnapshot's capture motion."""
+    u = t / dur
+    n = t.shape[0]
+    heading = 2 * np.pi * np.clip(u, 0.0, 1.0)  # [frames] one full turn at constant speed
+    sway = math.radians(rng.uniform(2.0, 4.0)) * np.sin(2 * np.pi * 0.5 * t)
+    arm_lower = np.stack([np.full(n, math.radians(3.0)) + sway, np.full(n, math.radians(3.0)) - sway], -1)
+    zeros2 = np.zeros((n, 2))
+    return Limbs(heading=heading, position=np.zeros((n, 3)), hip=zeros2, knee=zeros2, arm_swing=zeros2,
+                 arm_lower=arm_lower, elbow=np.full((n, 2), math.radians(8.0)), twist=np.zeros(n), lean=np.zeros(n))
+
+
+def _turn_test_limbs(t: np.ndarray, dur: float, lead: float, rng: np.random.Generator, start: Limbs) -> Limbs:
+    """Held-out poses after the turn: turning on by half a turn while the arms lower towards the body, the elbows
+    and knees bend and the torso twists; `t` starts at -`lead` s (the unwritten transition)."""
+    n = t.shape[0]
+    blend = _window(t, -lead, 0.3 * dur)[:, None]
+    heading = start.heading[-1] + np.pi * _window(t, -lead, dur)
+    arm_lower = start.arm_lower[-1] * (1 - blend) + math.radians(rng.uniform(18, 24)) * blend
+    elbow = start.elbow[-1] * (1 - blend) + np.array([math.radians(40.0), math.radians(25.0)]) * blend
+    knee = np.array([math.radians(15.0), math.radians(5.0)]) * blend
+    hip = np.array([math.radians(8.0), math.radians(2.0)]) * blend
+    swing = np.array([math.radians(15.0), math.radians(-10.0)]) * blend
+    twist = math.radians(12.0) * np.sin(2 * np.pi * 0.4 * t) * blend[:, 0]
+    return Limbs(heading=heading, position=np.zeros((n, 3)), hip=hip, knee=knee, arm_swing=swing,
+                 arm_lower=arm_lower, elbow=elbow, twist=twist, lean=np.zeros(n))
+
+
 def _concat(a: Limbs, b: Limbs) -> Limbs:
     return Limbs(*(np.concatenate([getattr(a, f), getattr(b, f)]) for f in Limbs.__dataclass_fields__))
 
@@ -201,11 +232,12 @@ def make_motion(config: SynthConfig, elbow_axes: np.ndarray) -> ProceduralMotion
     fps, stride = config.sim_fps, config.stride
     n_train, n_test = config.train_frames * stride, config.test_frames * stride
     t_train = np.arange(n_train) / fps
-    train = _train_limbs(t_train, n_train / fps, rng)
+    train_fn, test_fn = (_turn_limbs, _turn_test_limbs) if config.motion == "turn" else (_train_limbs, _test_limbs)
+    train = train_fn(t_train, n_train / fps, rng)
     # unwritten transition rows between the segments (the cloth keeps simulating through them)
     n_lead = config.transition_frames
     t_test = np.arange(-n_lead, n_test) / fps
-    test = _test_limbs(t_test, n_test / fps, n_lead / fps, rng, train)
+    test = test_fn(t_test, n_test / fps, n_lead / fps, rng, train)
     capture = _concat(train, test)
     # warm-up: a third settles in the reference pose, then the first pose is blended in
     W = config.warmup_frames
