@@ -99,3 +99,31 @@ def test_config_checks_hull_nodes():
         ModelConfig(num_nodes=16, hull_nodes=16)
     with pytest.raises(ValueError, match="slrf variant"):
         ModelConfig(hull_nodes=8, variant="lbs_baseline")
+
+
+@pytest.mark.parametrize("min_dist, off_body", [(0.14, 4), (10.0, 0)])
+def test_fit_with_hull_nodes_on_the_toy_capture(tmp_path, min_dist, off_body):
+    """The loop places the hull nodes (with a 10 m `hull_min_dist` no hull point is off the body: all K fall back
+    to the surface and the log says so), and the checkpoint brings their positions back."""
+    import json
+
+    from fixtures.toy_capture import make_toy_capture
+
+    from avatarctl.fit.checkpoint import load_avatar
+    from avatarctl.project import Project
+    from avatarctl.stages import fit, ingest
+    from avatarctl.stages.fit import FitRequest
+    from avatarctl.stages.ingest import IngestConfig
+
+    cap, proj = make_toy_capture(tmp_path / "cap"), tmp_path / "proj"
+    ingest.run(proj, IngestConfig(capture=cap, project=proj))
+    fit.run(proj, FitRequest(preset="micro", iters=2, device="cpu", overrides=(
+        "model.hull_nodes=4", f"model.hull_min_dist={min_dist}", "val_every=0")), handle_sigint=False)
+    notes = [json.loads(line).get("note", "") for line in (proj / "fit" / "log.jsonl").read_text().splitlines()]
+    note = next(n for n in notes if n.startswith("hull nodes"))
+    assert note.startswith(f"hull nodes: {off_body} of 32 nodes placed off the body"), note
+    assert ("4 more on the surface" in note) == (off_body == 0), note
+    av = load_avatar(Project.open(proj), device="cpu")
+    ckpt = torch.load(proj / "fit" / "checkpoints" / "latest.pt", map_location="cpu", weights_only=False)
+    assert torch.equal(av.model.node_rest, ckpt["model"]["node_rest"])
+    assert av.model.node_rest.shape[0] == av.model.cfg.num_nodes

@@ -14,7 +14,9 @@ the training masks:
    (Eq. 1 inverted); of the pooled points, only the 5 cm cells that points of at least 15 % of the carved frames fall
    in are kept (one frame's phantom hull volume, or a hem mapped through a swinging leg, is not);
 4. K nodes are chosen among them by farthest point sampling, starting from the surface nodes (so they go where the
-   surface nodes are not), each skinned like its nearest canonical body vertex.
+   surface nodes are not), each skinned like its nearest canonical body vertex. When fewer than K points remain
+   (tight clothing; one training view, which carves nothing), the missing nodes go on the surface, farthest from
+   the others: the placement is then the paper's.
 
 The node then moves like that vertex (Eq. 3) plus its learned Delta n, like any other node.
 """
@@ -37,6 +39,7 @@ class HullNodes:
     vertex: torch.Tensor  # [K] long: nearest canonical template vertex (its skinning weights are the node's)
     candidates: int  # pooled off-body hull points they were chosen from
     frames: int  # training frames carved
+    off_body: int  # nodes placed off the body (< K when the hull showed fewer points: the others on the surface)
 
     def __post_init__(self) -> None:
         assert self.rest.ndim == 2 and self.rest.shape[1] == 3, f"rest {tuple(self.rest.shape)}"
@@ -141,11 +144,14 @@ def place_hull_nodes(capture, body, template, frames: list[int], views: list[str
         nodes = V[surface_vertex].numpy()
         pooled.append(off_body_canonical(pts, V, Tv, nodes, min_dist))
     cand = persistent_cells(pooled, cell=2 * voxel, min_frames=max(2, int(np.ceil(min_share * len(use)))))
-    if len(cand) < k:
-        raise ValueError(f"hull nodes: only {len(cand)} off-body hull points in {len(use)} frames for {k} nodes "
-                         "(the subject shows nothing beyond the body: use model.hull_nodes=0)")
-    pick = farthest_from(surface_rest, torch.as_tensor(cand), k)
-    rest = torch.as_tensor(cand[pick.numpy()], dtype=torch.float32)
-    _, vi = cKDTree(template.vertices.detach().double().numpy()).query(rest.double().numpy())
-    return HullNodes(rest=rest, vertex=torch.as_tensor(vi, dtype=torch.long), candidates=int(len(cand)),
-                     frames=len(use))
+    tpl = template.vertices.detach().double()
+    off = min(k, len(cand))
+    rest = torch.zeros(0, 3, dtype=torch.float64)
+    if off:
+        rest = torch.as_tensor(cand, dtype=torch.float64)[farthest_from(surface_rest, torch.as_tensor(cand), off)]
+    _, vi = cKDTree(tpl.numpy()).query(rest.numpy()) if off else (None, np.zeros(0, dtype=np.int64))
+    vi = torch.as_tensor(vi, dtype=torch.long)
+    if off < k:  # the subject shows too little beyond the body (tight clothing, one view): the rest on the surface
+        more = farthest_from(torch.cat([surface_rest.double(), rest]), tpl, k - off)
+        rest, vi = torch.cat([rest, tpl[more]]), torch.cat([vi, more])
+    return HullNodes(rest=rest.float(), vertex=vi, candidates=int(len(cand)), frames=len(use), off_body=off)

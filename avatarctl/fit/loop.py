@@ -250,12 +250,9 @@ def fit(project: Project, cfg: FitConfig | None = None, *, device: str = "auto",
         from avatarctl.model.deformer import farthest_point_sampling
 
         surface = farthest_point_sampling(template.vertices, cfg.model.num_nodes - cfg.model.hull_nodes, cfg.seed)
-        try:
-            hull = place_hull_nodes(capture, body, template, train_frames, list(split.train_views),
-                                    template.vertices.detach().float()[surface], surface, cfg.model.hull_nodes,
-                                    cfg.model.hull_min_dist)
-        except ValueError as e:
-            raise ProjectError(str(e), where=str(paths.ingest), fix="--set model.hull_nodes=0") from None
+        hull = place_hull_nodes(capture, body, template, train_frames, list(split.train_views),
+                                template.vertices.detach().float()[surface], surface, cfg.model.hull_nodes,
+                                cfg.model.hull_min_dist)
     with torch.random.fork_rng(devices=[]):  # weights initialised from cfg.seed, global RNG left as it was
         torch.manual_seed(cfg.seed)
         model = SlrfAvatar(cfg.model, template, num_frames=len(train_frames), seed=cfg.seed,
@@ -276,8 +273,10 @@ def fit(project: Project, cfg: FitConfig | None = None, *, device: str = "auto",
         same_stream = replicas.load_rng_state(ckpt["rng"], cfg.seed, start_step)
     log = _Log(paths.fit_log, _read_log(paths.fit_log, start_step) if resume else []) if main else None
     if hull is not None and log is not None:
-        log.append({"step": 0, "note": f"hull nodes: {cfg.model.hull_nodes} of {cfg.model.num_nodes} nodes placed "
-                                       f"from {hull.candidates} off-body hull points of {hull.frames} frames"})
+        log.append({"step": 0, "note": f"hull nodes: {hull.off_body} of {cfg.model.num_nodes} nodes placed off the "
+                                       f"body from {hull.candidates} hull points of {hull.frames} frames"
+                                       + (f", {cfg.model.hull_nodes - hull.off_body} more on the surface"
+                                          if hull.off_body < cfg.model.hull_nodes else "")})
     if ckpt is not None and not same_stream and log is not None:
         log.append({"step": start_step, "note": f"resumed on {world} ranks: {saved_shards(ckpt['rng'])} ray shards "
                                                 f"resharded to {shards}, new sampling streams"})
