@@ -82,7 +82,7 @@ class ModelConfig:
     posterior_logvar_init: float = 0.0  # 0: the encoder's plain init (sigma ~ 1); e.g. -6 starts sigma ~ 0.05
     # per-frame body-pose refinement (deviation when on, see model/pose_refine.py; issue 13)
     pose_refine: bool = False  # optimise per-training-frame joint rotations / root translation with the avatar
-    lambda_pose: float = 10.0  # weight of the refinement penalty (sum over joints of |delta|^2 + |tau / 0.1 m|^2)
+    lambda_pose: float = 100.0  # weight of the refinement penalty (sum over joints of |delta|^2 + |tau / 0.1 m|^2)
     pose_refine_min_share: float = 0.04  # refine joints whose subtree carries >= this share of the skinning weight
     # pose condition (Eq. 8)
     pose_attention_hops: int = 2
