@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from avatarctl.fit.hull_nodes import carve, farthest_from, off_body_canonical, persistent_cells
+from avatarctl.fit.hull_nodes import carve, off_body_canonical, persistent_cells
 from avatarctl.geometry.cameras import Camera, look_at
 from avatarctl.model import ModelConfig
 
@@ -55,13 +55,15 @@ def test_persistence_drops_what_one_frame_shows():
     assert persistent_cells([], 0.05, 2).shape == (0, 3)
 
 
-def test_farthest_from_starts_where_the_existing_nodes_are_not():
+def test_farthest_point_sampling_starts_where_the_existing_nodes_are_not():
+    from avatarctl.model.deformer import farthest_point_sampling
+
     existing = torch.zeros(1, 3)
     pts = torch.tensor([[0.1, 0, 0], [1.0, 0, 0], [0.9, 0, 0], [0, 0.5, 0]])
-    idx = farthest_from(existing, pts, 2)
+    idx = farthest_point_sampling(pts, 2, existing=existing)
     assert idx.tolist() == [1, 3]
-    with pytest.raises(ValueError, match="candidate points"):
-        farthest_from(existing, pts, 5)
+    with pytest.raises(ValueError, match=r"need 0 < n <= 4 points"):
+        farthest_point_sampling(pts, 5, existing=existing)
 
 
 def test_off_body_points_go_back_through_their_vertex_transform():

@@ -29,6 +29,8 @@ import numpy as np
 import torch
 
 from avatarctl.geometry.cameras import Camera
+from avatarctl.geometry.triangulate import project, projection_matrices
+from avatarctl.model.deformer import farthest_point_sampling
 
 
 @dataclass(frozen=True)
@@ -55,10 +57,10 @@ def carve(cameras: list[Camera], masks: list[np.ndarray], lo: np.ndarray, hi: np
     X = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
     keep = np.ones(len(X), dtype=bool)
     seen = np.zeros(len(X), dtype=np.int32)
-    for cam, m in zip(cameras, masks):
-        uv = cam.project(X, distort=False)
-        z = cam.world_to_camera(X)[:, 2]
-        u, v = np.round(uv[:, 0]).astype(np.int64), np.round(uv[:, 1]).astype(np.int64)
+    px, depth = project(projection_matrices(cameras), X)  # [voxels, cams, 2], [voxels, cams]
+    for c, m in enumerate(masks):
+        z = depth[:, c]
+        u, v = np.round(px[:, c, 0]).astype(np.int64), np.round(px[:, c, 1]).astype(np.int64)
         inside = (z > 0) & (u >= 0) & (v >= 0) & (u < m.shape[1]) & (v < m.shape[0])
         seen += inside
         hit = np.zeros(len(X), dtype=bool)
@@ -106,21 +108,6 @@ def persistent_cells(per_frame: list[np.ndarray], cell: float, min_frames: int) 
     return mean[frames_in >= min_frames]
 
 
-def farthest_from(existing: torch.Tensor, points: torch.Tensor, k: int) -> torch.Tensor:
-    """Indices [k] of `points` [M, 3] chosen by farthest point sampling, the distances starting from the `existing`
-    points [N, 3] (so the first pick is the point farthest from them)."""
-    if not 0 < k <= points.shape[0]:
-        raise ValueError(f"need 0 < k <= {points.shape[0]} candidate points, got k={k}")
-    pts = points.double()
-    dist = torch.cdist(pts, existing.double()).min(1).values ** 2
-    idx = torch.empty(k, dtype=torch.long)
-    for i in range(k):
-        nxt = int(torch.argmax(dist))
-        idx[i] = nxt
-        dist = torch.minimum(dist, ((pts - pts[nxt]) ** 2).sum(-1))
-    return idx
-
-
 def place_hull_nodes(capture, body, template, frames: list[int], views: list[str], surface_rest: torch.Tensor,
                      surface_vertex: torch.Tensor, k: int, min_dist: float, *, voxel: float = 0.025,
                      margin: float = 0.35, max_frames: int = 24, min_share: float = 0.15) -> HullNodes:
@@ -148,10 +135,11 @@ def place_hull_nodes(capture, body, template, frames: list[int], views: list[str
     off = min(k, len(cand))
     rest = torch.zeros(0, 3, dtype=torch.float64)
     if off:
-        rest = torch.as_tensor(cand, dtype=torch.float64)[farthest_from(surface_rest, torch.as_tensor(cand), off)]
+        cand_t = torch.as_tensor(cand, dtype=torch.float64)
+        rest = cand_t[farthest_point_sampling(cand_t, off, existing=surface_rest)]
     _, vi = cKDTree(tpl.numpy()).query(rest.numpy()) if off else (None, np.zeros(0, dtype=np.int64))
     vi = torch.as_tensor(vi, dtype=torch.long)
     if off < k:  # the subject shows too little beyond the body (tight clothing, one view): the rest on the surface
-        more = farthest_from(torch.cat([surface_rest.double(), rest]), tpl, k - off)
+        more = farthest_point_sampling(tpl, k - off, existing=torch.cat([surface_rest.double(), rest]))
         rest, vi = torch.cat([rest, tpl[more]]), torch.cat([vi, more])
     return HullNodes(rest=rest.float(), vertex=vi, candidates=int(len(cand)), frames=len(use), off_body=off)

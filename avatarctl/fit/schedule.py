@@ -34,13 +34,12 @@ def param_groups(cfg: FitConfig, model: torch.nn.Module) -> list[dict]:
     special = {id(p) for p in grid + pose}
     rest = [p for p in model.parameters() if id(p) not in special]
     return [{"params": rest}] + ([{"params": grid, "lr": cfg.lr_grid}] if grid else []) \
-        + ([{"params": pose, "lr": cfg.lr_pose}] if pose else [])
+        + ([{"params": pose, "lr": cfg.lr_pose, "name": "pose"}] if pose else [])
 
 
 def make_scheduler(cfg: FitConfig, optimizer: torch.optim.Optimizer) -> torch.optim.lr_scheduler.LambdaLR:
     """Multiplies the base lr by factor ** (step / every); call `.step()` once per optimisation step. The
-    pose-refinement group (the last of `param_groups`' when the model refines poses) is 0 before
-    `cfg.pose_refine_start`."""
+    pose-refinement group (named "pose" by `param_groups`) is 0 before `cfg.pose_refine_start`."""
     factor, every, start = cfg.lr_decay_factor, cfg.lr_decay_every, cfg.pose_refine_start
 
     def decay(step: int) -> float:
@@ -49,7 +48,7 @@ def make_scheduler(cfg: FitConfig, optimizer: torch.optim.Optimizer) -> torch.op
     def pose(step: int) -> float:
         return decay(step) if step >= start else 0.0
 
-    groups = len(optimizer.param_groups)
-    if start and cfg.model.pose_refine and groups > 1:
-        return torch.optim.lr_scheduler.LambdaLR(optimizer, [decay] * (groups - 1) + [pose])
+    if start:
+        return torch.optim.lr_scheduler.LambdaLR(
+            optimizer, [pose if g.get("name") == "pose" else decay for g in optimizer.param_groups])
     return torch.optim.lr_scheduler.LambdaLR(optimizer, decay)

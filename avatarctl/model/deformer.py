@@ -18,22 +18,30 @@ from avatarctl.body.lbs import blend_transforms, transform_points
 
 
 # ---- node placement ---------------------------------------------------------------------------------------------
-def farthest_point_sampling(points: torch.Tensor, n: int, seed: int = 0) -> torch.Tensor:
+def farthest_point_sampling(points: torch.Tensor, n: int, seed: int = 0,
+                            existing: torch.Tensor | None = None) -> torch.Tensor:
     """Indices [n] of `n` points of `points` [V, 3] chosen by farthest point sampling (Euclidean).
 
     The first index is drawn from a generator seeded with `seed` (deterministic on every device); each next point
     is the one farthest from all chosen so far (ties: the lowest index), so the nodes cover the surface evenly.
+    With `existing` [M, 3] points already chosen (e.g. the surface nodes, for fit/hull_nodes.py), the distances
+    start from them and the first pick is the point farthest from them (`seed` unused).
     """
     V = points.shape[0]
     if not 0 < n <= V:
         raise ValueError(f"farthest_point_sampling: need 0 < n <= {V} points, got n={n}")
     pts = points.detach().to(torch.float64)
-    g = torch.Generator().manual_seed(int(seed))
-    first = int(torch.randint(V, (1,), generator=g))
     idx = torch.empty(n, dtype=torch.long)
-    idx[0] = first
-    dist = ((pts - pts[first]) ** 2).sum(-1)  # [V] squared distance to the chosen set
-    for k in range(1, n):
+    if existing is None:
+        g = torch.Generator().manual_seed(int(seed))
+        first = int(torch.randint(V, (1,), generator=g))
+        idx[0] = first
+        dist = ((pts - pts[first]) ** 2).sum(-1)  # [V] squared distance to the chosen set
+        start = 1
+    else:
+        dist = torch.cdist(pts, existing.detach().to(pts)).min(1).values ** 2
+        start = 0
+    for k in range(start, n):
         nxt = int(torch.argmax(dist))
         idx[k] = nxt
         dist = torch.minimum(dist, ((pts - pts[nxt]) ** 2).sum(-1))
