@@ -30,7 +30,8 @@ Synchronisation per step (after the backward pass), all in one flat SUM all-redu
 - per-frame parameters (the pose-refinement corrections delta / tau of model/pose_refine.py, the per-frame latent
   codes) are parameters like any other: a frame's correction gets gradients only on the rank whose rays saw it,
   and the average makes every rank apply the same update. The pose penalty is a mean over a rank's frames, so it is
-  averaged like the other regularisers;
+  averaged like the other regularisers; the poses' acceleration term covers all training frames, computed once per
+  rank and step (in `losses`), so its average is the single-process term;
 - the occupancy grids (`model.occupancy`, updated in the forward pass from each rank's own densities): see
   `merge_occupancy`; all ranks end the step with the grid one process would have.
 """
@@ -52,7 +53,6 @@ if TYPE_CHECKING:
 
 SHARD_SEED_STRIDE = 1_000_003
 _UNCHANGED = -2.0  # below every occupancy value (UNSEEN = -1, densities >= 0)
-_LOSS_KEYS = ("total", "rec", "trans", "ebd", "kl", "mse")
 
 
 def shard_seed(seed: int, shard: int) -> int:
@@ -194,7 +194,7 @@ class Replicas:
                  for p in params]
         had = torch.tensor([p.grad is not None for p in params], dtype=torch.float32, device=dev)
         flags = torch.tensor([stop, budget, snapshot], dtype=torch.float32, device=dev)
-        keys = _LOSS_KEYS + (("pose",) if terms.pose is not None else ())  # the same on every rank (the config)
+        keys = terms.keys()  # the same on every rank (the config)
         losses = torch.stack([getattr(terms, k).detach().float().reshape(()) for k in keys]).to(dev)
         flat = torch.cat(grads + [had, flags, losses])
         dist.all_reduce(flat)

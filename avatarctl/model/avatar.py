@@ -448,9 +448,12 @@ class SlrfAvatar(nn.Module):
         mse = rec if c.rec_reduction == "mean" else reconstruction_loss(out.rgb.detach(), target, "mean")
         zero = rec.new_zeros(())
         kl = kl_loss(state.mu, state.logvar) if state.mu is not None and state.logvar is not None else zero
+        # over all training frames, once per step (not per frame of the batch): the same on every rank
+        accel = self.pose_refine.acceleration() if self.pose_refine is not None and c.lambda_pose_accel > 0 else None
         return total_loss(rec, translation_loss(state.delta_n), embedding_loss(state.embed), kl,
                           c.lambda_rec, c.lambda_trans, c.lambda_ebd, c.lambda_kl, mse=mse,
-                          pose=state.pose_penalty, lambda_pose=c.lambda_pose)
+                          pose=state.pose_penalty, lambda_pose=c.lambda_pose, pose_accel=accel,
+                          lambda_pose_accel=c.lambda_pose_accel)
 
 
 def _float32_geometry(device: torch.device):

@@ -84,6 +84,7 @@ class ModelConfig:
     pose_refine: bool = False  # optimise per-training-frame joint rotations / root translation with the avatar
     lambda_pose: float = 100.0  # weight of the refinement penalty (sum over joints of |delta|^2 + |tau / 0.1 m|^2)
     pose_refine_min_share: float = 0.04  # refine joints whose subtree carries >= this share of the skinning weight
+    lambda_pose_accel: float = 0.0  # temporal smoothness of the refined poses (0: off; model/pose_refine.py)
     # pose condition (Eq. 8)
     pose_attention_hops: int = 2
     # ablations
@@ -144,7 +145,7 @@ class ModelConfig:
         need(0.0 <= self.occ_stop_eps < 1.0, f"occ_stop_eps must be in [0, 1), got {self.occ_stop_eps}")
         for name in ("use_delta_n", "use_embedding", "sparse", "local_coords_in_sigma", "occupancy", "pose_refine"):
             need(isinstance(getattr(self, name), bool), f"{name} must be a bool, got {getattr(self, name)!r}")
-        for name in ("lambda_rec", "lambda_trans", "lambda_ebd", "lambda_kl", "lambda_pose"):
+        for name in ("lambda_rec", "lambda_trans", "lambda_ebd", "lambda_kl", "lambda_pose", "lambda_pose_accel"):
             need(getattr(self, name) >= 0, f"{name} must be >= 0, got {getattr(self, name)}")
         need(self.rec_reduction in REC_REDUCTIONS,
              f"rec_reduction must be one of {REC_REDUCTIONS}, got {self.rec_reduction!r}")

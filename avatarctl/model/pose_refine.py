@@ -16,6 +16,16 @@ are left as they are. Only joints whose subtree (the joint and its descendants) 
 `ModelConfig.pose_refine_min_share` of the template's skinning weight are refined (anny's fingers, toes and face bones are too small in the images to correct and only
 drift); the others keep delta = 0. The corrections live in the model's state, so `render` / `eval` of training frames use the
 refined poses.
+
+Temporal smoothness (`ModelConfig.lambda_pose_accel` > 0, off by default): fits from per-frame estimates jitter from
+frame to frame, and the prior above pulls each frame towards its own jittered fit. With the unrefined M_j of every
+training frame (`set_sequence`), the acceleration of the refined joint centres x'_j = M'_j c_j over each triple of
+training frames equally spaced in time,
+
+    L_accel = mean over triples (t-1, t, t+1) of sum_j |x'_j(t-1) - 2 x'_j(t) + x'_j(t+1)|^2    (metres^2, refined j)
+
+is added once per step with weight lambda_pose_accel, so every frame's correction gets a gradient every step. The
+images decide where the motion really is fast; a triple across a gap in the training frames is not penalised.
 """
 
 from __future__ import annotations
@@ -44,10 +54,33 @@ class PoseRefinement(nn.Module):
         self.register_buffer("centres", torch.zeros(J, 3))  # [J, 3] canonical joint centres c_j
         # [J] joints whose rotation is refined (the others keep delta = 0: too few pixels to correct them)
         self.register_buffer("active", torch.ones(J, dtype=torch.bool) if active is None else active.bool().clone())
+        # the whole sequence for the smoothness term (`set_sequence`; rebuilt from the capture, not checkpointed)
+        self.register_buffer("base", torch.zeros(0, J, 4, 4), persistent=False)  # [T, J, 4, 4] unrefined M_j
+        self.register_buffer("triples", torch.zeros(0, 3, dtype=torch.long), persistent=False)  # [K, 3] frame slots
 
     def set_centres(self, centres: torch.Tensor) -> None:
         """Store the canonical joint centres (`body.joints.joint_centres` of the training poses)."""
         self.centres.copy_(centres.to(self.centres))
+
+    def set_sequence(self, joint_transforms: torch.Tensor, frames: list[int]) -> None:
+        """[T, J, 4, 4] unrefined M_j of the T training frames (slot order) and their frame numbers [T]: the
+        sequence `acceleration` smooths; triples are consecutive slots whose frame numbers are equally spaced."""
+        if joint_transforms.shape[0] != self.delta.shape[0] or len(frames) != self.delta.shape[0]:
+            raise ValueError(f"set_sequence needs the {self.delta.shape[0]} training frames, got "
+                             f"{joint_transforms.shape[0]} transforms and {len(frames)} frame numbers")
+        f = [int(x) for x in frames]
+        triples = [(t - 1, t, t + 1) for t in range(1, len(f) - 1) if f[t] - f[t - 1] == f[t + 1] - f[t] > 0]
+        self.base = joint_transforms.detach().to(self.delta.device, torch.float32).clone()
+        self.triples = torch.tensor(triples, dtype=torch.long, device=self.delta.device).reshape(-1, 3)
+
+    def acceleration(self) -> torch.Tensor:
+        """L_accel of the module docstring (metres^2); zero when `set_sequence` found no equally spaced triple."""
+        if not len(self.triples):
+            return self.delta.new_zeros(())
+        M = self(self.base, torch.arange(self.base.shape[0], device=self.base.device))  # [T, J, 4, 4] M'_j
+        x = (M[..., :3, :3] @ self.centres[None, :, :, None])[..., 0] + M[..., :3, 3]  # [T, J, 3] x'_j
+        a = x[self.triples[:, 0]] - 2 * x[self.triples[:, 1]] + x[self.triples[:, 2]]  # [K, J, 3]
+        return (a[:, self.active] ** 2).sum((-1, -2)).mean()
 
     def forward(self, joint_transforms: torch.Tensor, frame_ids: torch.Tensor) -> torch.Tensor:
         """[B, J, 4, 4] M_j and [B] training-frame ids (-1: not a training frame) -> [B, J, 4, 4] M'_j."""
