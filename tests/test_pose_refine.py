@@ -93,6 +93,25 @@ def test_perturb_motion_adds_the_stated_noise_and_keeps_the_input(body_model):
     assert np.array_equal(perturb_motion(m, 2.0, 1.0, seed=0).body_pose, p.body_pose)
 
 
+def test_drifting_fit_noise_has_the_stated_size_and_neighbouring_frames_agree():
+    from avatarctl.body.motion import BodyMotion
+    from avatarctl.body.perturb import perturb_motion
+
+    F, J = 2000, 23
+    m = BodyMotion(body_model="smpl", frame_index=np.arange(F), global_orient=np.zeros((F, 3)),
+                   body_pose=np.zeros((F, 3 * J)), transl=np.zeros((F, 3)))
+    for corr in (0.0, 5.0):
+        p = perturb_motion(m, rot_deg=2.0, transl_cm=1.0, seed=1, corr_frames=corr)
+        aa = p.body_pose.reshape(F, J, 3)
+        assert np.rad2deg(np.sqrt((np.linalg.norm(aa, axis=-1) ** 2).mean())) == pytest.approx(2.0, rel=0.1)
+        assert 100 * np.sqrt((p.transl ** 2).mean()) == pytest.approx(1.0, rel=0.15)
+        # frame-to-frame change relative to the noise itself: ~sqrt(2) for white noise, small when it drifts
+        step = np.sqrt(((aa[1:] - aa[:-1]) ** 2).mean() / (aa ** 2).mean())
+        assert (step > 1.3) if corr == 0 else (step < 0.25)
+    with pytest.raises(ValueError):
+        perturb_motion(m, 2.0, 1.0, corr_frames=-1.0)
+
+
 def test_fit_with_pose_refinement_on_the_toy_chain(tmp_path):
     from fixtures.toy_capture import make_toy_capture
 

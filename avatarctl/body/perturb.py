@@ -4,6 +4,11 @@ from frame to frame). Used by `avatarctl synth --fit-noise` to measure pose refi
 
 Each rotated joint gets, independently per frame, a rotation about a uniformly random axis by an angle drawn from
 N(0, rot_deg^2) (composed in the joint's own frame); the root translation gets N(0, (transl_cm / 100)^2) per axis.
+
+With `corr_frames` > 0 the errors drift instead of jittering: every component of the noise (axis-angle vector,
+translation) is white noise smoothed over time by a Gaussian of `corr_frames` frames and rescaled to the same RMS
+(rot_deg for the rotation angle, transl_cm per translation axis), so neighbouring frames are off in the same way, as
+fits that lose track of a limb for a while are. Temporal smoothing cannot remove such errors; only the images can.
 """
 
 from __future__ import annotations
@@ -36,20 +41,52 @@ def _perturb_axis_angle(aa: np.ndarray, noise: np.ndarray) -> np.ndarray:
     return out.reshape(aa.shape).astype(np.float32)
 
 
-def perturb_motion(motion: BodyMotion, rot_deg: float, transl_cm: float, seed: int = 0) -> BodyMotion:
-    """A copy of `motion` with per-frame noise on every joint rotation and on the root translation."""
-    if rot_deg < 0 or transl_cm < 0:
-        raise ValueError(f"noise must be >= 0, got {rot_deg} deg / {transl_cm} cm")
+def _drifting(rng: np.random.Generator, shape: tuple[int, ...], scale: float, corr_frames: float) -> np.ndarray:
+    """[F, ...] Gaussian noise smoothed along axis 0 (frames) by a Gaussian of `corr_frames`, RMS `scale` per
+    component."""
+    from scipy.ndimage import gaussian_filter1d
+
+    radius = int(4.0 * corr_frames + 0.5)  # scipy's truncation at 4 sigma
+    kernel = np.exp(-0.5 * (np.arange(-radius, radius + 1) / corr_frames) ** 2)
+    kernel /= kernel.sum()  # the filter: white noise of RMS 1 comes out with RMS |kernel|
+    smooth = gaussian_filter1d(rng.normal(size=shape), corr_frames, axis=0, mode="wrap")
+    return smooth * (scale / np.sqrt((kernel ** 2).sum()))
+
+
+def _drifting_rotations(rng: np.random.Generator, shape: tuple[int, ...], sigma_rad: float,
+                        corr_frames: float) -> np.ndarray:
+    """[*shape, 3, 3] rotations whose axis-angle vectors drift over axis 0; RMS angle sigma_rad."""
+    from scipy.spatial.transform import Rotation
+
+    rotvec = _drifting(rng, shape + (3,), sigma_rad / np.sqrt(3.0), corr_frames)
+    return Rotation.from_rotvec(rotvec.reshape(-1, 3)).as_matrix().reshape(shape + (3, 3))
+
+
+def perturb_motion(motion: BodyMotion, rot_deg: float, transl_cm: float, seed: int = 0,
+                   corr_frames: float = 0.0) -> BodyMotion:
+    """A copy of `motion` with noise on every joint rotation and on the root translation: independent per frame
+    (corr_frames = 0), or drifting over about `corr_frames` frames (module docstring)."""
+    if rot_deg < 0 or transl_cm < 0 or corr_frames < 0:
+        raise ValueError(f"noise must be >= 0, got {rot_deg} deg / {transl_cm} cm / {corr_frames} frames")
     rng = np.random.default_rng(seed)
     sigma, t_sigma = np.deg2rad(rot_deg), transl_cm / 100.0
     F = motion.num_frames
+
+    def rotations(shape: tuple[int, ...]) -> np.ndarray:
+        return (_drifting_rotations(rng, shape, sigma, corr_frames) if corr_frames > 0
+                else _random_rotations(rng, shape, sigma))
+
+    def translations() -> np.ndarray:
+        return _drifting(rng, (F, 3), t_sigma, corr_frames) if corr_frames > 0 else rng.normal(scale=t_sigma,
+                                                                                                 size=(F, 3))
+
     if motion.body_model == "anny":
         P = motion.pose_parameters.astype(np.float64).copy()  # [F, J, 4, 4] local deltas; root: world pose
-        P[:, :, :3, :3] = P[:, :, :3, :3] @ _random_rotations(rng, P.shape[:2], sigma)
-        P[:, _ANNY_ROOT, :3, 3] += rng.normal(scale=t_sigma, size=(F, 3))
+        P[:, :, :3, :3] = P[:, :, :3, :3] @ rotations(P.shape[:2])
+        P[:, _ANNY_ROOT, :3, 3] += translations()
         return replace(motion, pose_parameters=P.astype(np.float32))
     J = motion.body_pose.shape[1] // 3
-    body = _perturb_axis_angle(motion.body_pose.reshape(F, J, 3), _random_rotations(rng, (F, J), sigma))
-    orient = _perturb_axis_angle(motion.global_orient, _random_rotations(rng, (F,), sigma))
-    transl = motion.transl + rng.normal(scale=t_sigma, size=(F, 3)).astype(np.float32)
+    body = _perturb_axis_angle(motion.body_pose.reshape(F, J, 3), rotations((F, J)))
+    orient = _perturb_axis_angle(motion.global_orient, rotations((F,)))
+    transl = motion.transl + translations().astype(np.float32)
     return replace(motion, body_pose=body.reshape(F, J * 3), global_orient=orient, transl=transl)

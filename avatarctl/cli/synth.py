@@ -27,10 +27,10 @@ def register(app: typer.Typer) -> None:
         supersample: Optional[int] = typer.Option(None, "--supersample", help="Rays per pixel along each axis, "
                                                   "1-4 (box-filtered: the pixel integrates its area, as a camera "
                                                   "sensor does); default: the preset's."),
-        fit_noise: Optional[str] = typer.Option(None, "--fit-noise", help="DEG,CM: write body fits that are off "
-                                                "like real ones (each joint rotation N(0, DEG^2) degrees, root "
-                                                "N(0, CM^2) cm, per frame); the true fits go to gt/motion.npz. "
-                                                "E.g. 2,1."),
+        fit_noise: Optional[str] = typer.Option(None, "--fit-noise", help="DEG,CM[,FRAMES]: write body fits that "
+                                                "are off like real ones (each joint rotation N(0, DEG^2) degrees, "
+                                                "root N(0, CM^2) cm; per frame, or drifting over about FRAMES "
+                                                "frames); the true fits go to gt/motion.npz. E.g. 2,1 or 2,1,5."),
     ) -> None:
         from avatarctl.cli.common import console, user_errors
 
@@ -80,8 +80,10 @@ def _fit_noise(spec: str) -> dict[str, float]:
     from avatarctl.errors import InputError
 
     try:
-        deg, cm = (float(x) for x in spec.split(","))
+        parts = [float(x) for x in spec.split(",")]
+        if len(parts) not in (2, 3):
+            raise ValueError
     except ValueError:
         raise InputError(f"cannot read --fit-noise {spec!r}", where="--fit-noise",
-                         fix="give DEG,CM, e.g. --fit-noise 2,1") from None
-    return {"fit_noise_deg": deg, "fit_noise_cm": cm}
+                         fix="give DEG,CM or DEG,CM,FRAMES, e.g. --fit-noise 2,1 or 2,1,5") from None
+    return {"fit_noise_deg": parts[0], "fit_noise_cm": parts[1], "fit_noise_corr_frames": (parts + [0.0])[2]}

@@ -414,7 +414,8 @@ def synthesize(out: Path, config: SynthConfig, progress: Progress | None = None)
         if config.fit_noise_deg or config.fit_noise_cm:  # realistic fit errors; the truth goes to gt/
             from avatarctl.body.perturb import perturb_motion
 
-            written = perturb_motion(bm, config.fit_noise_deg, config.fit_noise_cm, seed=config.seed)
+            written = perturb_motion(bm, config.fit_noise_deg, config.fit_noise_cm, seed=config.seed,
+                                     corr_frames=config.fit_noise_corr_frames)
             with open(tmp / GT_MOTION, "wb") as fh:
                 np.savez(fh, **bm.to_npz_dict(), bone_labels=bone_labels)
         with open(tmp / "motion.npz", "wb") as fh:

@@ -87,6 +87,9 @@ class SynthConfig:
     The true fits go to gt/motion.npz. 0 (and fit_noise_cm 0): exact fits."""
     fit_noise_cm: float = 0.0
     """Per-frame noise of the written root translation, N(0, this^2) centimetres per axis."""
+    fit_noise_corr_frames: float = 0.0
+    """0: the fit noise is independent per frame (jitter); > 0: it drifts over about this many frames, same RMS
+    (`body.perturb`)."""
     motion: str = "choreography"
     """choreography: walk, turn, twirl (train) then march, raised arms, opposite twirl (test); turn: turning in
     place through 360 degrees in an A-pose (train, PeopleSnapshot-like) then on with lowered arms, bent elbows and
@@ -111,8 +114,8 @@ class SynthConfig:
             (self.substeps >= 1 and self.iterations >= 1, "substeps and iterations must be >= 1"),
             (1 <= self.jpeg_quality <= 100, "jpeg_quality must be in [1, 100]"),
             (0 <= self.seed < 2**32, "seed must be in [0, 2^32)"),
-            (0 <= self.fit_noise_deg <= 30 and 0 <= self.fit_noise_cm <= 50,
-             "fit noise must be in [0, 30] degrees and [0, 50] cm"),
+            (0 <= self.fit_noise_deg <= 30 and 0 <= self.fit_noise_cm <= 50 and 0 <= self.fit_noise_corr_frames <= 1000,
+             "fit noise must be in [0, 30] degrees, [0, 50] cm and [0, 1000] frames"),
             (self.motion in MOTIONS, f"motion must be one of {', '.join(MOTIONS)}"),
             (self.garment in GARMENTS, f"garment must be one of {', '.join(GARMENTS)}"),
             (0 <= self.train_views < self.views, "train_views must be in [0, views) (0 = every third held out; "

@@ -5,7 +5,7 @@
 the noise. This script does the same to an existing capture: a hard-linked copy (the source is not modified) whose
 motion.npz is replaced, the truth kept in gt/motion.npz.
 
-    python perturb_capture.py SRC DST DEG CM [SEED]
+    python perturb_capture.py SRC DST DEG CM [SEED [CORR_FRAMES]]
 """
 
 from __future__ import annotations
@@ -22,16 +22,18 @@ from avatarctl.body.perturb import perturb_motion
 from avatarctl.io.gt_geometry import GT_MOTION
 
 
-def main(src: Path, dst: Path, deg: float, cm: float, seed: int = 0) -> None:
+def main(src: Path, dst: Path, deg: float, cm: float, seed: int = 0, corr_frames: float = 0.0) -> None:
     shutil.copytree(src, dst, copy_function=os.link)
     true = BodyMotion.load(src / "motion.npz")
     extra = {k: v for k, v in np.load(src / "motion.npz").items() if k == "bone_labels"}
     (dst / "motion.npz").unlink()  # a hard link to the source: never write through it
     np.savez(dst / GT_MOTION, **true.to_npz_dict(), **extra)
-    np.savez(dst / "motion.npz", **perturb_motion(true, deg, cm, seed=seed).to_npz_dict(), **extra)
-    print(f"{dst}: motion.npz perturbed by {deg} deg / {cm} cm (seed {seed}); truth in {GT_MOTION}")
+    noisy = perturb_motion(true, deg, cm, seed=seed, corr_frames=corr_frames)
+    np.savez(dst / "motion.npz", **noisy.to_npz_dict(), **extra)
+    print(f"{dst}: motion.npz perturbed by {deg} deg / {cm} cm (seed {seed}, drift {corr_frames} frames); truth in {GT_MOTION}")
 
 
 if __name__ == "__main__":
     a = sys.argv[1:]
-    main(Path(a[0]), Path(a[1]), float(a[2]), float(a[3]), *(int(x) for x in a[4:]))
+    main(Path(a[0]), Path(a[1]), float(a[2]), float(a[3]), int(a[4]) if len(a) > 4 else 0,
+         float(a[5]) if len(a) > 5 else 0.0)
