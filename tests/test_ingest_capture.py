@@ -159,6 +159,8 @@ def test_missing_mediapipe_is_one_actionable_line(capture, tmp_path, monkeypatch
     assert_one_line_error(_cli(str(capture.root), str(tmp_path / "proj"), "--fits", "keypoints"), tmp_path / "proj",
                     "--fits keypoints", "avatarctl[capture]")
     assert_one_line_error(_cli(str(capture.root), str(tmp_path / "proj"), "--fits", "nope"), tmp_path / "proj", "--fits")
+    assert_one_line_error(_cli(str(capture.root), str(tmp_path / "proj"), "--keypoint-silhouette", "-1"),
+                          tmp_path / "proj", "--keypoint-silhouette", "0 to switch")
 
 
 def test_fits_files_without_fits_names_the_fix(capture, tmp_path):

@@ -8,6 +8,7 @@ MediaPipe runs once (its keypoints, confidences and masks are cached in DET.npz,
 fit); then `estimate_fits` (triangulation + anny fit, 400 steps) runs once per silhouette weight, with MediaPipe's
 masks as the silhouettes (what `avatarctl ingest CAP P` uses when a capture has no masks), and each fit is compared
 with the true fits: anny's `KeypointsRegressor.coco` points (23) per joint group, and the posed meshes (vertex error).
+Each fit is saved beside OUT as OUT.w<weight>.npz (a BodyMotion).
 """
 
 from __future__ import annotations
@@ -104,6 +105,7 @@ def main() -> None:
                "inside_before": est.report.silhouette_inside_before,
                "inside_after": est.report.silhouette_inside_after}
         print(json.dumps(row), flush=True)
+        est.motion.save(a.out.with_suffix(f".w{w:g}.npz"))
         rows.append(row)
     a.out.write_text(json.dumps(rows, indent=1) + "\n")
 
