@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 import torch
 
-from avatarctl.body.lbs import inverse_lbs, lbs, transform_points
+from avatarctl.body.lbs import axis_angle_to_matrix, inverse_lbs, lbs, transform_points
 from avatarctl.body.motion import BodyMotion
 from avatarctl.body.registry import load_body_model
 from avatarctl.body.smpl import SMPL_JOINT_NAMES, SMPLX_JOINT_NAMES, SmplBody
@@ -236,6 +236,64 @@ def test_missing_optional_smplx_parts_default_to_zero(smplx_body):
     explicit = BodyMotion(body_model="smplx", frame_index=full.frame_index, global_orient=full.global_orient,
                           body_pose=full.body_pose, transl=full.transl, betas=full.betas, **zeros)
     assert torch.equal(smplx_body.pose(minimal).vertices, smplx_body.pose(explicit).vertices)
+
+
+# ---- joint transforms -> parameters (the refined fits of pose refinement, fit/refined.py) ---------------------
+@pytest.mark.parametrize("kind,hand_mean", [("smpl", False), ("smplx", False), ("smplx", True)])
+def test_parameters_from_joint_transforms_round_trip(kind, hand_mean, smpl_body, smplx_body):
+    """pose -> transforms -> parameters -> transforms within 1e-5 (float32 parameters, as stored)."""
+    body = smpl_body if kind == "smpl" else SmplBody(smplx_body.data, add_hand_mean=hand_mean)
+    motion = random_motion(kind, seed=13)
+    M = body.evaluate(motion, with_vertices=False).joint_transforms  # [F, J, 4, 4] float64
+    back = body.motion_from_joint_transforms(motion, M)
+    again = body.evaluate(back, with_vertices=False).joint_transforms
+    assert (again - M).abs().max() <= 1e-5
+    # the parameters themselves: same rotations (axis-angle may differ by 2 pi), same transl, the rest kept
+    for name in ("global_orient", "body_pose") + (("jaw_pose", "left_hand_pose", "right_hand_pose") if kind == "smplx" else ()):
+        a = torch.as_tensor(getattr(motion, name), dtype=torch.float64).reshape(FRAMES, -1, 3)
+        b = torch.as_tensor(getattr(back, name), dtype=torch.float64).reshape(FRAMES, -1, 3)
+        assert (axis_angle_to_matrix(a) - axis_angle_to_matrix(b)).abs().max() <= 1e-5, name
+    assert np.abs(back.transl - motion.transl).max() <= 1e-5
+    assert np.array_equal(back.betas, motion.betas) and np.array_equal(back.frame_index, motion.frame_index)
+    if kind == "smplx":
+        assert np.array_equal(back.expression, motion.expression)
+    with pytest.raises(ValueError, match="joint_transforms must be"):
+        body.motion_from_joint_transforms(motion, M[:, :10])
+
+
+@pytest.mark.parametrize("kind", ["smpl", "smplx"])
+def test_refined_fits_file_for_smpl(kind, smpl_body, smplx_body, tmp_path):
+    """A fit's pose corrections (model/pose_refine.py, centres estimated as fit/loop.py does) come back as an
+    SMPL / SMPL-X motion file whose transforms are the refined ones, and which differs from the input."""
+    from avatarctl.body.joints import joint_centres, skin_weighted_centroids
+    from avatarctl.fit.conditioning import build_pose_table
+    from avatarctl.fit.refined import FILE_NAME, write_refined_fits
+    from avatarctl.model.pose_refine import PoseRefinement
+
+    body = smpl_body if kind == "smpl" else smplx_body
+    motion = replace(random_motion(kind, seed=14, frames=6), frame_index=np.arange(10, 16))
+    if kind == "smplx":  # random expression directions move every joint's rest position: no fixed centres
+        motion = replace(motion, expression=np.zeros_like(motion.expression))
+    frames = [11, 13, 14]
+    poses = build_pose_table(body, motion, frames)
+    tpl = body.template(motion)
+    refine = PoseRefinement(num_frames=len(frames), parents=body.parents)
+    refine.set_centres(joint_centres(poses.joint_transforms, body.parents,
+                                     skin_weighted_centroids(tpl.vertices, tpl.skin_weights)))
+    with torch.no_grad():
+        refine.delta.normal_(0.0, 0.1, generator=torch.Generator().manual_seed(0))
+        refine.tau.normal_(0.0, 0.02, generator=torch.Generator().manual_seed(1))
+        want = refine(poses.joint_transforms.double(), torch.arange(len(frames)))
+    summary = write_refined_fits(tmp_path, body, motion, poses, refine)
+    assert summary.path == tmp_path / FILE_NAME
+    got = BodyMotion.load(summary.path)
+    assert got.body_model == kind and list(got.frame_index) == frames
+    M = body.evaluate(got, with_vertices=False).joint_transforms
+    # rotations exact; positions within the estimated centres' distance from the model's joints (sub-mm here)
+    assert (M[..., :3, :3] - want[..., :3, :3]).abs().max() <= 1e-5
+    assert (M[..., :3, 3] - want[..., :3, 3]).abs().max() <= 1e-3  # measured 0.3 / 0.4 mm (ridge pull)
+    before = body.evaluate(motion.select(motion.rows_for(frames)), with_vertices=False).joint_transforms
+    assert (before - want).abs().max() > 0.05  # the corrections were real
 
 
 @pytest.mark.gpu

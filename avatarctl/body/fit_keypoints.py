@@ -12,8 +12,18 @@ instead of 2D data):
       + λ_pose   · mean_f Σ_b ‖θ_fb‖²             pose prior: stay near the reference pose
       + λ_smooth · mean_f Σ_b ‖θ_f+1,b − θ_fb‖²   temporal smoothness (and λ_trans for root translation)
       + λ_shape  · ‖φ − ½‖²                       phenotype prior: stay near anny's average subject
+      + λ_sil    · mean_fcv ρ_s(D_fc(π_c(v)) z_fcv / f_c)    silhouette term (optional, from step s_0 on)
 
 ρ(r) = σ² r² / (r² + σ²) (Geman & McClure 1987): quadratic for r ≪ σ, bounded for outliers.
+
+Silhouette term (one-sided): a subset of the posed vertices v is projected into every view c (π_c, pinhole, the
+undistorted geometry); D_fc is the Euclidean distance transform of the *outside* of the person mask (OpenCV,
+pixels to the nearest mask pixel, 0 inside), sampled bilinearly (`grid_sample`) so it is differentiable in the
+vertex positions; times the vertex depth z over the focal length f it is a distance in metres at the subject, so the
+weight does not depend on the resolution. It pushes the body *into* the masks and never pulls it out to fill them:
+loose clothing makes a mask larger than the body. ρ_s is Geman-McClure with its own scale (a mask that misses a
+hand must not drag the arm). It starts at step s_0 (a fraction of the steps), once the keypoints have placed the
+body, and the share of projected vertices inside the masks (1 px tolerance) is reported at s_0 and at the end.
 Initialisation: θ = 0, φ = ½, and the root by a weighted Kabsch / Umeyama (1991) alignment of the reference
 pose's hips and shoulders to the targets of each frame.
 
@@ -35,6 +45,8 @@ FIT_BONES = ("spine05", "spine04", "spine03", "spine02", "spine01", "neck01", "n
              "clavicle.L", "clavicle.R", "upperarm01.L", "upperarm01.R", "lowerarm01.L", "lowerarm01.R",
              "upperleg01.L", "upperleg01.R", "lowerleg01.L", "lowerleg01.R", "foot.L", "foot.R")
 TORSO = ("left_shoulder", "right_shoulder", "left_hip", "right_hip")
+SILHOUETTE_WEIGHT = 0.0  # the default λ_sil: off (measured: docs/experiments/silhouette_2026-11-26; 10 is the tried setting)
+MAX_FIELD_SIDE = 128  # px: the larger side of the silhouette distance fields (64 KB per view at most)
 
 
 @dataclass(frozen=True)
@@ -47,10 +59,19 @@ class KeypointFitConfig:
     w_trans: float = 1e-3  # λ_trans (root translation between consecutive fitted frames)
     w_shape: float = 1e-4  # λ_shape
     fit_phenotype: bool = True  # optimise the subject's phenotype (else anny's average, ½)
+    w_silhouette: float = SILHOUETTE_WEIGHT  # λ_sil (0: off; used only when silhouettes are given)
+    silhouette_scale_m: float = 0.05  # σ of the silhouette term's Geman-McClure (metres at the subject)
+    silhouette_start: float = 0.5  # the silhouette term is on from this fraction of `iters` on
+    silhouette_vertices: int = 2000  # posed vertices projected per frame (an even spread of anny's 13,718)
 
     def __post_init__(self) -> None:
         if self.iters < 0 or self.lr <= 0 or self.robust_scale_m <= 0:
             raise ValueError(f"bad keypoint-fit settings {self}")
+        if not (self.w_silhouette >= 0 and self.silhouette_scale_m > 0 and 0 <= self.silhouette_start < 1
+                and self.silhouette_vertices > 0):
+            raise ValueError(f"bad silhouette settings: weight {self.w_silhouette} (>= 0), scale "
+                             f"{self.silhouette_scale_m} (> 0), start {self.silhouette_start} (in [0, 1)), "
+                             f"vertices {self.silhouette_vertices} (> 0)")
 
 
 @dataclass(frozen=True)
@@ -69,12 +90,68 @@ class KeypointTargets:
 
 
 @dataclass(frozen=True)
+class SilhouetteTargets:
+    """Person masks of the fitted frames as distance fields, for the silhouette term (see the module docstring).
+    Every camera's field is stored on one common grid [H, W] (at most `MAX_FIELD_SIDE` px, resized from the
+    camera's own image; sampling uses coordinates normalised by each camera's own image size)."""
+
+    P: np.ndarray  # [cams, 3, 4] pinhole projection matrices K [R | T] of the undistorted cameras, world metres
+    image_size: np.ndarray  # [cams, 2] (width, height) of each camera's image, pixels
+    focal_px: np.ndarray  # [cams] mean focal length, pixels
+    distance: np.ndarray  # [frames, cams, H, W] float32 distance (camera pixels) to the mask; 0 inside
+    weight: np.ndarray  # [frames, cams] 1 where the view has a mask, 0 where it has none (left out)
+
+    def __post_init__(self) -> None:
+        f, c = self.weight.shape
+        if (self.P.shape != (c, 3, 4) or self.image_size.shape != (c, 2) or self.focal_px.shape != (c,)
+                or self.distance.ndim != 4 or self.distance.shape[:2] != (f, c)):
+            raise ValueError(f"silhouettes: P {self.P.shape}, image_size {self.image_size.shape}, focal_px "
+                             f"{self.focal_px.shape}, distance {self.distance.shape}, weight {self.weight.shape} "
+                             "disagree")
+
+
+def mask_distance(mask: np.ndarray, grid: tuple[int, int]) -> np.ndarray:
+    """bool [height, width] person mask -> float32 [H, W] = `grid`: Euclidean distance (in the mask's pixels) of
+    each pixel to the nearest mask pixel, 0 inside (OpenCV `distanceTransform`, exact L2), area-resized to the
+    grid. An empty mask is an error (leave the view out instead)."""
+    import cv2
+
+    m = np.asarray(mask, dtype=bool)
+    if not m.any():
+        raise ValueError("mask_distance: empty mask")
+    d = cv2.distanceTransform((~m).astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+    if d.shape != grid:
+        d = cv2.resize(d, (grid[1], grid[0]), interpolation=cv2.INTER_AREA)
+    return d.astype(np.float32)
+
+
+def field_grid(width: int, height: int) -> tuple[int, int]:
+    """(H, W) of the distance-field grid for a camera of `width` x `height` px: its size, shrunk so the larger
+    side is at most `MAX_FIELD_SIDE`."""
+    s = min(1.0, MAX_FIELD_SIDE / max(width, height))
+    return max(1, round(height * s)), max(1, round(width * s))
+
+
+@dataclass(frozen=True)
+class SilhouetteReport:
+    """How the silhouette term moved the fit: share of projected vertices (the term's subset) inside the masks
+    (1 px tolerance), over the views with a mask."""
+
+    inside_before: float  # when the term switched on
+    inside_after: float  # at the end of the fit
+
+    def to_json(self) -> dict[str, float]:
+        return {"inside_before": round(self.inside_before, 4), "inside_after": round(self.inside_after, 4)}
+
+
+@dataclass(frozen=True)
 class KeypointFit:
     pose_parameters: np.ndarray  # [frames, 104, 4, 4] anny local-ref deltas (root delta = world pose)
     phenotype: np.ndarray  # [P] in [0, 1]
     phenotype_labels: tuple[str, ...]
     error_m: np.ndarray  # [frames] weighted mean distance of the fitted keypoints to the targets (metres)
     seconds: float
+    silhouette: SilhouetteReport | None = None  # None when the term was off (no silhouettes or weight 0)
 
     def to_motion(self, frame_index, fps: float = 30.0) -> BodyMotion:
         return BodyMotion(body_model="anny", frame_index=np.asarray(frame_index), fps=fps,
@@ -149,10 +226,53 @@ def initial_root(rest: np.ndarray, targets: KeypointTargets) -> tuple[np.ndarray
     return np.stack(Rs), np.stack(ts)
 
 
+class SilhouetteTerm:
+    """The silhouette term's data as tensors, and the term itself (see the module docstring)."""
+
+    def __init__(self, sil: SilhouetteTargets, frames: int, dtype: torch.dtype):
+        if sil.weight.shape[0] != frames:
+            raise ValueError(f"silhouettes have {sil.weight.shape[0]} frames, keypoint targets {frames}")
+        self.P = torch.as_tensor(sil.P, dtype=dtype)  # [cams, 3, 4]
+        self.size = torch.as_tensor(sil.image_size, dtype=dtype)  # [cams, 2]
+        self.focal = torch.as_tensor(sil.focal_px, dtype=dtype)  # [cams]
+        f, c, h, w = sil.distance.shape
+        self.field = torch.as_tensor(sil.distance, dtype=torch.float32).reshape(f * c, 1, h, w)
+        self.weight = torch.as_tensor(sil.weight, dtype=dtype)  # [frames, cams]
+
+    def distances(self, vertices: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """[frames, n, 3] world vertices -> (metres outside the mask [frames, cams, n], pixels [frames, cams, n])."""
+        f, n, _ = vertices.shape
+        c = self.P.shape[0]
+        x = torch.einsum("cij,fnj->fcni", self.P[..., :3], vertices) + self.P[None, :, None, :, 3]  # [f, c, n, 3]
+        z = x[..., 2].clamp_min(1e-3)
+        uv = x[..., :2] / z[..., None]
+        g = (uv + 0.5) / self.size[None, :, None, :] * 2 - 1  # grid_sample's coordinates, align_corners=False
+        d = torch.nn.functional.grid_sample(self.field, g.reshape(f * c, 1, n, 2).float(), mode="bilinear",
+                                            padding_mode="border", align_corners=False)
+        d_px = d.reshape(f, c, n).to(vertices.dtype)
+        return d_px * z / self.focal[None, :, None], d_px
+
+    def loss(self, vertices: torch.Tensor, scale_m: float) -> torch.Tensor:
+        """Mean over the views with a mask and the vertices of ρ_s(metres outside)."""
+        r, _ = self.distances(vertices)
+        s2 = scale_m ** 2
+        per_view = (s2 * r ** 2 / (r ** 2 + s2)).mean(-1)  # [f, c]
+        return (self.weight * per_view).sum() / self.weight.sum().clamp_min(1e-9)
+
+    def inside(self, vertices: torch.Tensor) -> float:
+        """Share of the projected vertices within 1 px of the masks (views with a mask)."""
+        with torch.no_grad():
+            _, d_px = self.distances(vertices)
+            share = (d_px <= 1.0).to(vertices.dtype).mean(-1)  # [f, c]
+            return float((self.weight * share).sum() / self.weight.sum().clamp_min(1e-9))
+
+
 def fit_anny_keypoints(body, targets: KeypointTargets, cfg: KeypointFitConfig = KeypointFitConfig(),
-                       progress: Callable[[int, int], None] | None = None) -> KeypointFit:
+                       progress: Callable[[int, int], None] | None = None,
+                       silhouettes: SilhouetteTargets | None = None) -> KeypointFit:
     """Fit anny (an `AnnyBody`) to `targets` (see the module docstring for the energy). Every frame needs at
-    least three observed keypoints (the caller drops frames without a person)."""
+    least three observed keypoints (the caller drops frames without a person). With `silhouettes` (rows = the
+    targets' frames) and `cfg.w_silhouette` > 0 the silhouette term joins from step `cfg.silhouette_start * iters`."""
     import time
 
     import roma
@@ -179,12 +299,23 @@ def fit_anny_keypoints(body, targets: KeypointTargets, cfg: KeypointFitConfig = 
     opt = torch.optim.Adam(params, lr=cfg.lr)
     s2 = cfg.robust_scale_m ** 2
     wsum = W.sum().clamp_min(1e-9)
+    sil = None
+    if silhouettes is not None and cfg.w_silhouette > 0 and bool((silhouettes.weight > 0).any()):
+        sil = SilhouetteTerm(silhouettes, f, dt)
+    sil_start = int(cfg.silhouette_start * cfg.iters)
+    sub = None  # [n] the term's vertices, chosen on the first forward pass
+    inside_before = float("nan")
     for it in range(cfg.iters):
         opt.zero_grad()
         pheno = torch.sigmoid(logits)
-        K, _ = kp(kp.pose_matrices(rotvecs, roma.rotvec_to_rotmat(root_rv), root_t), pheno)
+        K, V = kp(kp.pose_matrices(rotvecs, roma.rotvec_to_rotmat(root_rv), root_t), pheno)
         r2 = ((K - X) ** 2).sum(-1)
         loss = (W * s2 * r2 / (r2 + s2)).sum() / wsum
+        if sil is not None and it >= sil_start:
+            if sub is None:
+                sub = spread_indices(V.shape[1], cfg.silhouette_vertices)
+                inside_before = sil.inside(V[:, sub].detach())
+            loss = loss + cfg.w_silhouette * sil.loss(V[:, sub], cfg.silhouette_scale_m)
         loss = loss + cfg.w_pose * (rotvecs ** 2).sum((1, 2)).mean()
         if f > 1:
             loss = loss + cfg.w_smooth * ((rotvecs[1:] - rotvecs[:-1]) ** 2).sum((1, 2)).mean()
@@ -194,11 +325,24 @@ def fit_anny_keypoints(body, targets: KeypointTargets, cfg: KeypointFitConfig = 
         opt.step()
         if progress is not None:
             progress(it + 1, cfg.iters)
+    report = None
     with torch.no_grad():
         pheno = torch.sigmoid(logits)
         pose = kp.pose_matrices(rotvecs, roma.rotvec_to_rotmat(root_rv), root_t)
-        K, _ = kp(pose, pheno)
+        K, V = kp(pose, pheno)
         d = (K - X).norm(dim=-1)
         err = ((W * d).sum(1) / W.sum(1).clamp_min(1e-9)).numpy()
+        if sil is not None:
+            sub = spread_indices(V.shape[1], cfg.silhouette_vertices) if sub is None else sub
+            after = sil.inside(V[:, sub])
+            report = SilhouetteReport(inside_before=after if inside_before != inside_before else inside_before,
+                                      inside_after=after)
     return KeypointFit(pose_parameters=pose.numpy().astype(np.float32), phenotype=pheno.numpy().astype(np.float32),
-                       phenotype_labels=tuple(labels), error_m=err, seconds=time.perf_counter() - t0)
+                       phenotype_labels=tuple(labels), error_m=err, seconds=time.perf_counter() - t0,
+                       silhouette=report)
+
+
+def spread_indices(total: int, n: int) -> torch.Tensor:
+    """[min(n, total)] indices spread evenly over range(total) (deterministic)."""
+    n = min(n, total)
+    return torch.as_tensor(np.linspace(0, total - 1, n).round().astype(np.int64))

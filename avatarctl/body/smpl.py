@@ -29,7 +29,7 @@ dict key `x`), so chumpy is not needed, and refuses any other Python object a mo
 from __future__ import annotations
 
 import zipfile
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -401,3 +401,44 @@ class SmplBody:
     def blend_offsets(self, motion: BodyMotion) -> torch.Tensor:
         """[frames, V, 3] canonical-space pose (+ expression) blend shape offsets, float32."""
         return self.evaluate(motion).blend_offsets.float()
+
+    def motion_from_joint_transforms(self, motion: BodyMotion, joint_transforms: torch.Tensor) -> BodyMotion:
+        """The inverse of `pose` for the pose: [frames, J, 4, 4] joint transforms M'_j (canonical -> world, Eq. 1;
+        e.g. refined by model/pose_refine.py) -> `motion` with the axis-angle pose and `transl` whose forward
+        kinematics give them; betas, expression and the frame index are kept.
+
+        Rotations: R_j = G_parent(j)^T G_j for the global rotations G_j (the 3x3 blocks of M'_j); the root's
+        G_0 is `global_orient`. Translation: the root's transform is [G_0 | (I - G_0) r_0 + transl] for the rest
+        pelvis r_0 (which moves with the SMPL-X expression), so transl = t_0 - (I - G_0) r_0. Every joint is
+        inverted, SMPL-X jaw, eyes and fingers included (they come back as the input's where M' left them alone;
+        with `add_hand_mean` the file's hand mean is taken off again).
+
+        Exact when M' is a kinematic chain of this model (each joint rotating about its own rest joint, as
+        `pose` and pose refinement about the model's joint centres produce). SMPL's parameters have no joint
+        translations: a chain whose children are displaced from their parents' rest joints comes back with the
+        rotations exact and the children placed by the model's skeleton.
+        """
+        self._check_motion(motion)
+        M = torch.as_tensor(joint_transforms, dtype=self.dtype, device=self.device)
+        F, J = motion.num_frames, self.num_joints
+        if M.ndim != 4 or M.shape != (F, J, 4, 4):
+            raise ValueError(f"joint_transforms must be [{F}, {J}, 4, 4], got {tuple(M.shape)}")
+        G = M[..., :3, :3]  # [F, J, 3, 3] global rotations
+        par = torch.as_tensor([max(p, 0) for p in self.parents], device=self.device)
+        local = G[:, par].transpose(-1, -2) @ G  # [F, J, 3, 3] (the root's entry is replaced below)
+        local[:, 0] = G[:, 0]
+        aa = matrix_to_axis_angle(local).cpu().numpy().astype(np.float64)  # [F, J, 3]
+        with torch.no_grad():
+            r0 = self.evaluate(motion, with_vertices=False).rest_joints[:, 0]  # [F, 3] (expression moves it)
+        transl = M[:, 0, :3, 3] - r0 + (G[:, 0] @ r0[..., None])[..., 0]  # [F, 3]
+        kw: dict[str, np.ndarray] = {"global_orient": aa[:, 0], "transl": transl.cpu().numpy().astype(np.float64)}
+        if self.name == "smpl":
+            kw["body_pose"] = aa[:, 1:24].reshape(F, 69)
+        else:
+            hands = aa[:, 25:55]  # [F, 30, 3] left then right
+            if self.add_hand_mean:
+                hands = hands - self.data.hands_mean.reshape(1, 30, 3)
+            kw.update(body_pose=aa[:, 1:22].reshape(F, 63), jaw_pose=aa[:, 22], leye_pose=aa[:, 23],
+                      reye_pose=aa[:, 24], left_hand_pose=hands[:, :15].reshape(F, 45),
+                      right_hand_pose=hands[:, 15:].reshape(F, 45))
+        return replace(motion, **kw)

@@ -27,6 +27,9 @@ def register(app: typer.Typer) -> None:
                                                         "(MediaPipe keypoints -> triangulation -> anny fit)"),
         keypoint_fit_iters: int = typer.Option(400, "--keypoint-fit-iters",
                                                help="Adam steps of the anny fit to the keypoints (--fits keypoints)."),
+        keypoint_silhouette: Optional[float] = typer.Option(
+            None, "--keypoint-silhouette", help="Weight of the keypoint fit's silhouette term (keeps the projected "
+                                                "body inside the masks); 0 = off; default: the fit's own."),
         frames: Optional[str] = typer.Option(None, "--frames",
                                              help="Frame numbers: start:stop[:step] (stop exclusive) or a,b,c."),
         views: Optional[str] = typer.Option(None, "--views", help="Comma-separated camera names (default: all)."),
@@ -42,7 +45,8 @@ def register(app: typer.Typer) -> None:
         with user_errors():
             cfg = stage.IngestConfig(capture=capture, project=project, format=format, body_model=body_model,
                                body_model_path=body_model_path, masks=masks, fits=fits,
-                               keypoint_fit_iters=keypoint_fit_iters, frames=frames,
+                               keypoint_fit_iters=keypoint_fit_iters, keypoint_silhouette=keypoint_silhouette,
+                               frames=frames,
                                views=None if views is None else tuple(views.split(",")), resize=resize,
                                contact_sheet=contact_sheet)
             if cfg.format == "auto":

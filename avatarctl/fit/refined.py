@@ -1,9 +1,10 @@
 """The refined body fits of a fit with pose refinement (model/pose_refine.py, issue 13), as a motion file.
 
 After training, the corrected joint transforms M'_j = D_j M_j of every training frame are turned back into the body
-model's pose parameters (`motion_from_joint_transforms` of the body model: exact for anny) and written as
-`fit/refined_fits.npz`, a `BodyMotion` that `render --motion`, `export` and other tools read like any motion file.
-The frame index is the training frames'. Body models without that inverse (SMPL / SMPL-X, the toy body) get no
+model's pose parameters (`motion_from_joint_transforms` of the body model: anny's local-ref deltas, exact; SMPL /
+SMPL-X global_orient, body_pose (SMPL-X also jaw, eyes, hands) and transl with betas and expression kept, rotations
+exact) and written as `fit/refined_fits.npz`, a `BodyMotion` that `render --poses`, `export` and other tools read like
+any motion file. The frame index is the training frames'. Body models without that inverse (the toy body) get no
 file: their refined poses still live in the checkpoint and are used by `render` / `eval` of training frames.
 """
 

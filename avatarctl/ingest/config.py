@@ -28,6 +28,8 @@ class IngestConfig:
     # plates if every camera has one, else mediapipe)
     fits: str = "auto"  # files | keypoints (MediaPipe keypoints -> triangulation -> anny fit) | auto (files if any)
     keypoint_fit_iters: int = 400  # Adam steps of the anny keypoint fit (--fits keypoints)
+    keypoint_silhouette: float | None = None  # weight of the keypoint fit's silhouette term (None: the fit's default,
+    # avatarctl.body.fit_keypoints.SILHOUETTE_WEIGHT; 0: off)
     frames: str | None = None  # "start:stop[:step]" or "a,b,c" capture frame numbers (avatarctl.frames); None: all
     views: tuple[str, ...] | None = None  # camera names to ingest; None: every calibrated camera
     resize: float = 1.0  # scale factor applied after undistortion (e.g. 0.5)
@@ -50,6 +52,10 @@ class IngestConfig:
             raise InputError(f"unknown --fits {self.fits!r}", fix=f"use one of {', '.join(FITS_CHOICES)}")
         if self.keypoint_fit_iters < 0:
             raise InputError(f"--keypoint-fit-iters {self.keypoint_fit_iters} is negative", fix="use e.g. 400")
+        if self.keypoint_silhouette is not None and not (math.isfinite(self.keypoint_silhouette)
+                                                         and self.keypoint_silhouette >= 0):
+            raise InputError(f"--keypoint-silhouette {self.keypoint_silhouette} must be a weight >= 0",
+                             fix="use 0 to switch the silhouette term off, or leave the option out for the default")
         if not (math.isfinite(self.resize) and 0.05 <= self.resize <= 4.0):
             raise InputError(f"--resize {self.resize} is out of range", fix="use a scale factor in [0.05, 4], e.g. 0.5")
         if self.views is not None:
@@ -65,5 +71,6 @@ class IngestConfig:
                 "project": str(self.project.resolve()), "format": self.format, "body_model": self.body_model,
                 "body_model_path": None if self.body_model_path is None else str(self.body_model_path.resolve()),
                 "masks": self.masks, "fits": self.fits, "keypoint_fit_iters": self.keypoint_fit_iters,
+                "keypoint_silhouette": self.keypoint_silhouette,
                 "frames": self.frames, "views": None if self.views is None else list(self.views),
                 "resize": self.resize, "contact_sheet": self.contact_sheet}

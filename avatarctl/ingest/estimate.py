@@ -8,14 +8,16 @@ undistortion):
 2. `estimate_fits`: robust multi-view triangulation of every keypoint (`avatarctl.geometry.triangulate`: RANSAC
    over view pairs, outlier views rejected by reprojection error, weighted DLT on the inliers); frames where fewer
    than `MIN_JOINTS` keypoints (or fewer than three of the four torso points) triangulate are skipped, never fitted;
-3. the anny fit to the 3D keypoints (`avatarctl.body.fit_keypoints`), one phenotype for the subject.
+3. the anny fit to the 3D keypoints (`avatarctl.body.fit_keypoints`), one phenotype for the subject, with a
+   silhouette term when person masks are at hand (`silhouette_targets`: the capture's mask files or MediaPipe's
+   person segmentation) that keeps the projected body inside them.
 
 Each step's figures land in `EstimateReport` (shown in the ingest summary and saved in the manifest).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Callable
 
 import numpy as np
@@ -29,6 +31,7 @@ MIN_CONFIDENCE = 0.5  # MediaPipe visibility below which a 2D keypoint is not us
 
 PartProgress = Callable[[int, int, str], None]  # (done, total, part)
 ReadView = Callable[[str, int], np.ndarray]  # (camera, frame) -> undistorted RGB uint8 [H, W, 3]
+ReadMask = Callable[[str, int], np.ndarray]  # (camera, frame) -> undistorted person mask, bool [H, W]
 
 
 @dataclass
@@ -103,6 +106,8 @@ class EstimateReport:
     fit_error_cm: float  # mean distance of the fitted anny keypoints to the triangulated ones
     fit_seconds: float
     frames_no_mask: list[int] = field(default_factory=list)  # frames where a view had no person mask (masks mediapipe)
+    silhouette_inside_before: float = float("nan")  # share of projected vertices inside the masks when the
+    silhouette_inside_after: float = float("nan")  # silhouette term switched on / at the end (NaN: term off)
 
     def rows(self, fitted: bool) -> list[tuple[str, str]]:
         """(item, value) lines for the ingest summary; `fitted`: the fits were estimated (else masks only)."""
@@ -121,6 +126,10 @@ class EstimateReport:
                                          f"{100 * self.keypoints_triangulated:.1f}% of keypoints triangulated"))
             out.append(("anny keypoint fit", f"{self.fit_error_cm:.2f} cm mean keypoint error "
                                              f"({self.fit_seconds:.0f} s)"))
+            if np.isfinite(self.silhouette_inside_after):
+                out.append(("silhouette term", f"{100 * self.silhouette_inside_before:.1f}% -> "
+                                               f"{100 * self.silhouette_inside_after:.1f}% of projected vertices "
+                                               "inside the masks"))
         return out
 
     def to_json(self) -> dict:
@@ -133,7 +142,9 @@ class EstimateReport:
                 "frames_no_mask": self.frames_no_mask, "mean_reprojection_px": num(self.mean_reprojection_px, 3),
                 "views_rejected": num(self.views_rejected, 4),
                 "keypoints_triangulated": num(self.keypoints_triangulated, 4),
-                "fit_error_cm": num(self.fit_error_cm, 3), "fit_seconds": num(self.fit_seconds, 1)}
+                "fit_error_cm": num(self.fit_error_cm, 3), "fit_seconds": num(self.fit_seconds, 1),
+                "silhouette_inside_before": num(self.silhouette_inside_before, 4),
+                "silhouette_inside_after": num(self.silhouette_inside_after, 4)}
 
 
 @dataclass(frozen=True)
@@ -143,10 +154,32 @@ class EstimatedFits:
     report: EstimateReport
 
 
+def silhouette_targets(cameras, cams: list[str], frames: list[int], read_mask: ReadMask):
+    """`SilhouetteTargets` of `frames` for the pinhole `cameras` (order of `cams`): the distance field of every
+    view's mask; a view whose mask is empty is left out (weight 0)."""
+    from avatarctl.body.fit_keypoints import SilhouetteTargets, field_grid, mask_distance
+    from avatarctl.geometry.triangulate import projection_matrices
+
+    grid = field_grid(cameras[0].width, cameras[0].height)
+    dist = np.zeros((len(frames), len(cams), *grid), dtype=np.float32)
+    weight = np.zeros((len(frames), len(cams)))
+    for fi, f in enumerate(frames):
+        for ci, c in enumerate(cams):
+            m = read_mask(c, f)
+            if m.any():
+                dist[fi, ci], weight[fi, ci] = mask_distance(m, grid), 1.0
+    return SilhouetteTargets(P=projection_matrices(cameras),
+                             image_size=np.array([[c.width, c.height] for c in cameras], dtype=np.float64),
+                             focal_px=np.array([(c.K[0, 0] + c.K[1, 1]) / 2 for c in cameras]), distance=dist,
+                             weight=weight)
+
+
 def estimate_fits(det: Detections, cameras, body, fit_iters: int, fps: float,
-                  progress: PartProgress | None = None) -> EstimatedFits:
+                  progress: PartProgress | None = None, read_mask: ReadMask | None = None,
+                  silhouette_weight: float | None = None) -> EstimatedFits:
     """Triangulate the detections with the pinhole `cameras` (order of `det.cams`) and fit anny (`body`, an
-    `AnnyBody`) to the frames with enough keypoints. See the module docstring."""
+    `AnnyBody`) to the frames with enough keypoints. With `read_mask` the fit has a silhouette term of weight
+    `silhouette_weight` (None: the keypoint fit's default; 0: off). See the module docstring."""
     from avatarctl.body.fit_keypoints import TORSO, KeypointFitConfig, KeypointTargets, fit_anny_keypoints
     from avatarctl.geometry.triangulate import projection_matrices, triangulate_robust
     from avatarctl.ingest.keypoints import KEYPOINT_WEIGHTS
@@ -174,9 +207,18 @@ def estimate_fits(det: Detections, cameras, body, fit_iters: int, fps: float,
         return EstimatedFits(None, [], EstimateReport(**report, fit_error_cm=float("nan"), fit_seconds=0.0))
     w = np.where(valid[ok], 1.0, 0.0) * KEYPOINT_WEIGHTS[None]
     targets = KeypointTargets(names=det.names, points=np.nan_to_num(X[ok]), weight=w)
-    fit = fit_anny_keypoints(body, targets, KeypointFitConfig(iters=fit_iters),
+    cfg = KeypointFitConfig(iters=fit_iters)
+    if silhouette_weight is not None:
+        cfg = replace(cfg, w_silhouette=float(silhouette_weight))
+    sil = None
+    if read_mask is not None and cfg.w_silhouette > 0:
+        sil = silhouette_targets(cameras, det.cams, kept, read_mask)
+    fit = fit_anny_keypoints(body, targets, cfg, silhouettes=sil,
                              progress=None if progress is None else lambda d, t: progress(d, t, "fit"))
     wsum = (targets.weight > 0).sum(1)
     err = float((fit.error_m * wsum).sum() / wsum.sum())
+    if fit.silhouette is not None:
+        report.update(silhouette_inside_before=fit.silhouette.inside_before,
+                      silhouette_inside_after=fit.silhouette.inside_after)
     return EstimatedFits(fit.to_motion(kept, fps=fps), kept,
                          EstimateReport(**report, fit_error_cm=100 * err, fit_seconds=fit.seconds))

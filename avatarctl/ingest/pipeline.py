@@ -296,11 +296,26 @@ def _estimate(cfg: IngestConfig, plan: IngestPlan, und: dict, progress: Progress
         _check_size(rgb, und[c].source, src.images.where(c, f))
         return und[c].image(rgb)
 
-    det = detect_people(read_view, cams, frames, masks=plan.masks_mode == "mediapipe", progress=progress)
+    from avatarctl.body.fit_keypoints import SILHOUETTE_WEIGHT
+
+    w_sil = SILHOUETTE_WEIGHT if cfg.keypoint_silhouette is None else cfg.keypoint_silhouette
+    silhouette = plan.fits_mode == "keypoints" and w_sil > 0
+    # the silhouette term's masks: the capture's mask files, else MediaPipe's (also with background plates: the
+    # plate matting needs the fitted body as its seed)
+    det = detect_people(read_view, cams, frames, progress=progress,
+                        masks=plan.masks_mode == "mediapipe" or (silhouette and plan.masks_mode == "background"))
     motion, kept = plan.motion, list(frames)
     if plan.fits_mode == "keypoints":
+        def read_mask(c: str, f: int) -> np.ndarray:
+            if plan.masks_mode == "files":
+                m = src.masks.read(c, f)
+                _check_size(m, und[c].source, src.masks.where(c, f))
+                return und[c].mask(m)
+            return det.mask(c, f)
+
         est = estimate_fits(det, [und[c].target for c in cams], plan.body, cfg.keypoint_fit_iters, src.fps or 30.0,
-                            progress)
+                            progress, read_mask=read_mask if silhouette else None,
+                            silhouette_weight=w_sil)
         report, motion, kept = est.report, est.motion, est.kept
     else:
         found = det.found
