@@ -45,7 +45,7 @@ FIT_BONES = ("spine05", "spine04", "spine03", "spine02", "spine01", "neck01", "n
              "clavicle.L", "clavicle.R", "upperarm01.L", "upperarm01.R", "lowerarm01.L", "lowerarm01.R",
              "upperleg01.L", "upperleg01.R", "lowerleg01.L", "lowerleg01.R", "foot.L", "foot.R")
 TORSO = ("left_shoulder", "right_shoulder", "left_hip", "right_hip")
-SILHOUETTE_WEIGHT = 0.0  # the default λ_sil: off (measured: docs/experiments/silhouette_2026-11-26; 10 is the tried setting)
+SILHOUETTE_WEIGHT = 0.0  # the default λ_sil: off (measured: docs/experiments/silhouette_2026-11-25; 10 is the tried setting)
 MAX_FIELD_SIDE = 128  # px: the larger side of the silhouette distance fields (64 KB per view at most)
 
 
