@@ -3,7 +3,9 @@ refinement (experiment tooling).
 
 Joints: the posed centres M_j c_j (`body.joints`, centres solved from the true poses) of the "major" joints, those
 carrying at least 1 % of the template's skinning weight (14 for anny: hips, feet, spine, upper/lower arms, head);
-vertices: the template skinned with the refined / plain / true transforms.
+vertices: the template skinned with the refined / plain / true transforms. The major-joint error vector is also split
+into its mean over frames (an offset all frames share) and the rest (frame-to-frame scatter), and the corrections'
+RMS rotation per refined joint is printed with the part all frames share.
 
     python joint_error.py PROJECT TRUE_MOTION.npz
 """
@@ -47,8 +49,20 @@ def main(project: Path, true_motion: Path) -> None:
     for name, M in (("fits as given", M_fit), ("refined", M_ref)):
         e = (posed_joints(M, c) - x_true).norm(dim=-1)
         ve = (lbs(V, W, M) - v_true).norm(dim=-1)
+        d = (posed_joints(M, c) - x_true)[:, major]  # [T, J, 3]: the offset all frames share + the rest
+        shared = d.mean(0, keepdim=True)
         print(f"  {name:14s} joint error {100 * e[:, major].mean():.2f} cm (all joints {100 * e.mean():.2f} cm), "
-              f"vertex error {100 * ve.mean():.2f} cm")
+              f"vertex error {100 * ve.mean():.2f} cm; major joints: shared by all frames "
+              f"{100 * shared.norm(dim=-1).mean():.2f} cm, frame to frame "
+              f"{100 * (d - shared).norm(dim=-1).mean():.2f} cm")
+    if ref is not None:
+        delta = ref.delta.detach()[:, ref.active]  # [T, refined joints, 3] radians
+
+        def rms_deg(x: torch.Tensor) -> float:
+            return float(x.norm(dim=-1).pow(2).mean().sqrt().rad2deg())
+
+        print(f"  corrections: RMS per refined joint {rms_deg(delta):.2f} deg, of which shared by all frames "
+              f"{rms_deg(delta.mean(0)):.2f} deg")
 
 
 if __name__ == "__main__":
