@@ -6,8 +6,8 @@ Where each keypoint comes from (`smpl_keypoint_map`, decided once per model file
   on the shaped rest mesh, then forward kinematics), which carry the COCO names in `SMPL_JOINT_NAMES`.
   *Convention gap at the hips*: SMPL's hip joints are rotation centres inside the pelvis, while COCO / MediaPipe
   mark the hip lower and more to the front (on anny, whose COCO regressor imitates the annotations, the COCO hip
-  sits 2.3-4.2 cm from the rig's hip joint over the phenotype range: 1.2-2.8 cm lower, 0.7-2.3 cm to the front;
-  `docs/own_capture.md`). No offset is added (the gap on a real SMPL file cannot be measured here); the hips
+  sits 2.2-4.2 cm from the rig's hip joint over the phenotype range: 1.7-3.2 cm lower, 0.5-2.3 cm to the front;
+  `docs/experiments/smpl_keypoints_2026-11-25/`). No offset is added (the gap on a real SMPL file cannot be measured here); the hips
   get the weight `HIP_WEIGHT` in the fit instead, so the knees and shoulders place the pelvis.
 - **face** -- picked from the template's vertices by geometry: the nose is the most anterior vertex of the
   head (vertices whose largest skinning weight is the `head` joint); each ear is the head's most lateral vertex
