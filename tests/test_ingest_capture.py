@@ -68,7 +68,7 @@ def test_anny_fit_recovers_a_known_pose_from_its_keypoints():
 
     from avatarctl.body.anny_model import AnnyBody
     from avatarctl.body.fit_keypoints import (FIT_BONES, AnnyKeypoints, KeypointFitConfig, KeypointTargets,
-                                              fit_anny_keypoints)
+                                              fit_keypoints)
     from avatarctl.ingest.keypoints import KEYPOINT_NAMES
 
     body = AnnyBody()
@@ -83,10 +83,10 @@ def test_anny_fit_recovers_a_known_pose_from_its_keypoints():
     with torch.no_grad():
         K, V = kp(pose, pheno)
     targets = KeypointTargets(KEYPOINT_NAMES, K.numpy(), np.ones(K.shape[:2]))
-    fit = fit_anny_keypoints(body, targets, KeypointFitConfig(iters=250))
+    fit = fit_keypoints(kp, targets, KeypointFitConfig(iters=250))
     with torch.no_grad():
-        K2, V2 = kp(torch.as_tensor(fit.pose_parameters, dtype=torch.float64),
-                    torch.as_tensor(fit.phenotype, dtype=torch.float64))
+        K2, V2 = kp(torch.as_tensor(fit.motion.pose_parameters, dtype=torch.float64),
+                    torch.as_tensor(fit.motion.phenotype, dtype=torch.float64))
     assert (K2 - K).norm(dim=-1).mean() < 0.01  # < 1 cm mean keypoint (joint) error
     assert (V2 - V).norm(dim=-1).mean() < 0.02  # < 2 cm mean vertex error
     assert fit.error_m.max() < 0.02
@@ -282,7 +282,7 @@ def test_silhouette_term_recovers_unobserved_legs():
 
     from avatarctl.body.anny_model import AnnyBody
     from avatarctl.body.fit_keypoints import (FIT_BONES, AnnyKeypoints, KeypointFitConfig, KeypointTargets,
-                                              fit_anny_keypoints)
+                                              fit_keypoints)
     from avatarctl.ingest.estimate import silhouette_targets
     from avatarctl.ingest.keypoints import KEYPOINT_NAMES
     from avatarctl.ingest.silhouette import rasterize_silhouette
@@ -307,10 +307,10 @@ def test_silhouette_term_recovers_unobserved_legs():
     sil = silhouette_targets(cams, [c.name for c in cams], [0, 1], lambda c, f: masks[(c, f)])
     errs = {}
     for weight in (0.0, 100.0):
-        cfg = KeypointFitConfig(iters=200, fit_phenotype=False, w_silhouette=weight, silhouette_start=0.25)
-        fit = fit_anny_keypoints(body, targets, cfg, silhouettes=sil)
+        cfg = KeypointFitConfig(iters=200, fit_shape=False, w_silhouette=weight, silhouette_start=0.25)
+        fit = fit_keypoints(kp, targets, cfg, silhouettes=sil)
         with torch.no_grad():
-            K2, _ = kp(torch.as_tensor(fit.pose_parameters, dtype=torch.float64), pheno)
+            K2, _ = kp(torch.as_tensor(fit.motion.pose_parameters, dtype=torch.float64), pheno)
         errs[weight] = (K2 - K)[:, legs].norm(dim=-1).mean().item()
         if weight:
             assert fit.silhouette is not None and fit.silhouette.inside_after > fit.silhouette.inside_before + 0.02

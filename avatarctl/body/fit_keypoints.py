@@ -1,9 +1,18 @@
-"""Fit anny to 3D body keypoints by gradient descent (the "own capture" path: no body fits given).
+"""Fit a body model (anny, SMPL, SMPL-X) to 3D body keypoints by gradient descent (the "own capture" path: no
+body fits given).
 
-Model: anny's mesh ``V(θ, φ)`` for per-frame local-ref rotations θ (rotation vectors of `FIT_BONES`; every other
+The energy below is written once, in `fit_keypoints`; what differs between body models is a `KeypointBody`: its
+keypoints K(θ, R, t, s) and vertices for per-frame rotation vectors θ, a root pose [R | t] and shape parameters
+s shared over the frames, its shape prior P(s), a relative weight per keypoint, and the conversion of the fitted
+parameters to a `BodyMotion`. `AnnyKeypoints` (below) is anny's; `avatarctl.body.smpl_keypoints.SmplKeypoints`
+is SMPL's / SMPL-X's (body joints from the joint regressor, face and foot points picked from the template by
+geometry); `keypoint_body` picks one for a loaded body model.
+
+anny: the mesh ``V(θ, φ)`` for per-frame local-ref rotations θ (rotation vectors of `FIT_BONES`; every other
 bone stays at anny's reference A-pose) and a root pose ``[R_f | t_f]`` (the root delta acts on the whole body in
 world coordinates: ``V = R_f V_ref + t_f``), and one phenotype φ ∈ [0, 1]^6 per subject (sigmoid of free logits).
-Keypoints are anny's `KeypointsRegressor.coco`, a fixed convex combination of vertices, ``K = W V`` (differentiable).
+Keypoints are anny's `KeypointsRegressor.coco`, a fixed convex combination of vertices, ``K = W V`` (differentiable);
+s = the phenotype's logits, P(s) = ‖φ − ½‖².
 
 Energy minimised with Adam over all frames at once (in the spirit of SMPLify, Bogo et al. 2016, Eq. 1, with 3D
 instead of 2D data):
@@ -11,10 +20,11 @@ instead of 2D data):
     E = Σ_fj w_fj ρ(‖K_fj − X_fj‖) / Σ w          robust data term, ρ = Geman-McClure with scale σ (metres)
       + λ_pose   · mean_f Σ_b ‖θ_fb‖²             pose prior: stay near the reference pose
       + λ_smooth · mean_f Σ_b ‖θ_f+1,b − θ_fb‖²   temporal smoothness (and λ_trans for root translation)
-      + λ_shape  · ‖φ − ½‖²                       phenotype prior: stay near anny's average subject
+      + λ_shape  · P(s)                           shape prior: stay near the average subject
       + λ_sil    · mean_fcv ρ_s(D_fc(π_c(v)) z_fcv / f_c)    silhouette term (optional, from step s_0 on)
 
-ρ(r) = σ² r² / (r² + σ²) (Geman & McClure 1987): quadratic for r ≪ σ, bounded for outliers.
+ρ(r) = σ² r² / (r² + σ²) (Geman & McClure 1987): quadratic for r ≪ σ, bounded for outliers. w_fj is the target's
+weight times the body model's relative weight of keypoint j (SMPL's hips: `smpl_keypoints.HIP_WEIGHT`).
 
 Silhouette term (one-sided): a subset of the posed vertices v is projected into every view c (π_c, pinhole, the
 undistorted geometry); D_fc is the Euclidean distance transform of the *outside* of the person mask (OpenCV,
@@ -24,8 +34,8 @@ weight does not depend on the resolution. It pushes the body *into* the masks an
 loose clothing makes a mask larger than the body. ρ_s is Geman-McClure with its own scale (a mask that misses a
 hand must not drag the arm). It starts at step s_0 (a fraction of the steps), once the keypoints have placed the
 body, and the share of projected vertices inside the masks (1 px tolerance) is reported at s_0 and at the end.
-Initialisation: θ = 0, φ = ½, and the root by a weighted Kabsch / Umeyama (1991) alignment of the reference
-pose's hips and shoulders to the targets of each frame.
+Initialisation: θ = 0, s = 0 (anny φ = ½, SMPL β = 0), and the root by a weighted Kabsch / Umeyama (1991)
+alignment of the rest pose's hips and shoulders (anny: reference A-pose, SMPL: T-pose) to the targets of each frame.
 
 World frame of anny: +x subject's left, +y subject's back, +z up, metres. The capture's world frame may be any
 orientation: the root rotation absorbs it.
@@ -34,7 +44,8 @@ orientation: the root rotation absorbs it.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Callable
+from dataclasses import replace
+from typing import Callable, Protocol
 
 import numpy as np
 import torch
@@ -58,7 +69,7 @@ class KeypointFitConfig:
     w_smooth: float = 1e-4  # λ_smooth (rotation vectors between consecutive fitted frames)
     w_trans: float = 1e-3  # λ_trans (root translation between consecutive fitted frames)
     w_shape: float = 1e-4  # λ_shape
-    fit_phenotype: bool = True  # optimise the subject's phenotype (else anny's average, ½)
+    fit_shape: bool = True  # optimise the subject's shape (anny phenotype, SMPL betas); else the average subject
     w_silhouette: float = SILHOUETTE_WEIGHT  # λ_sil (0: off; used only when silhouettes are given)
     silhouette_scale_m: float = 0.05  # σ of the silhouette term's Geman-McClure (metres at the subject)
     silhouette_start: float = 0.5  # the silhouette term is on from this fraction of `iters` on
@@ -78,7 +89,7 @@ class KeypointFitConfig:
 class KeypointTargets:
     """3D keypoints to fit, one row per frame."""
 
-    names: tuple[str, ...]  # keypoint names (anny's COCO regressor labels), [joints]
+    names: tuple[str, ...]  # keypoint names (COCO-17, heels, big toes: anny's COCO regressor labels), [joints]
     points: np.ndarray  # [frames, joints, 3] world metres (anything where weight is 0)
     weight: np.ndarray  # [frames, joints] >= 0 (0: not observed)
 
@@ -87,6 +98,11 @@ class KeypointTargets:
         if self.points.shape != (f, j, 3) or len(self.names) != j:
             raise ValueError(f"targets: points {self.points.shape}, weight {self.weight.shape}, {len(self.names)} "
                              "names disagree")
+
+    def select(self, names: tuple[str, ...]) -> "KeypointTargets":
+        """The columns of `names` (each must be one of `self.names`), in that order."""
+        idx = [self.names.index(n) for n in names]
+        return KeypointTargets(names=tuple(names), points=self.points[:, idx], weight=self.weight[:, idx])
 
 
 @dataclass(frozen=True)
@@ -146,17 +162,52 @@ class SilhouetteReport:
 
 @dataclass(frozen=True)
 class KeypointFit:
-    pose_parameters: np.ndarray  # [frames, 104, 4, 4] anny local-ref deltas (root delta = world pose)
-    phenotype: np.ndarray  # [P] in [0, 1]
-    phenotype_labels: tuple[str, ...]
+    motion: BodyMotion  # the fitted parameters, one row per target frame (frame_index 0..frames-1)
+    names: tuple[str, ...]  # [joints] the keypoints fitted (those of the targets the body model provides)
     error_m: np.ndarray  # [frames] weighted mean distance of the fitted keypoints to the targets (metres)
     seconds: float
     silhouette: SilhouetteReport | None = None  # None when the term was off (no silhouettes or weight 0)
 
     def to_motion(self, frame_index, fps: float = 30.0) -> BodyMotion:
-        return BodyMotion(body_model="anny", frame_index=np.asarray(frame_index), fps=fps,
-                          pose_parameters=self.pose_parameters, phenotype=self.phenotype,
-                          phenotype_labels=self.phenotype_labels)
+        return replace(self.motion, frame_index=np.asarray(frame_index), fps=fps)
+
+
+class KeypointBody(Protocol):
+    """The body-model-specific part of the keypoint fit (see the module docstring)."""
+
+    body_model: str  # "anny" | "smpl" | "smplx"
+    names: tuple[str, ...]  # [joints] the keypoints it provides (of those asked for, in that order)
+    weight: np.ndarray  # [joints] relative weight of each keypoint in the data term
+    num_rotations: int  # rotation vectors per frame (the root excluded)
+    num_shape: int  # shape parameters, shared over frames
+    dtype: torch.dtype
+
+    def keypoints(self, rotvecs: torch.Tensor, R_root: torch.Tensor, t_root: torch.Tensor,
+                  shape: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """rotvecs [frames, rotations, 3], R_root [frames, 3, 3], t_root [frames, 3] (a point rigid with the root
+        goes to R_root x + t_root), shape [num_shape] -> (keypoints [frames, joints, 3], vertices [frames, V, 3])
+        world metres, differentiable."""
+        ...
+
+    def shape_prior(self, shape: torch.Tensor) -> torch.Tensor:
+        """P(s): a scalar, zero for the average subject (s = 0)."""
+        ...
+
+    def to_motion(self, rotvecs: torch.Tensor, R_root: torch.Tensor, t_root: torch.Tensor,
+                  shape: torch.Tensor) -> BodyMotion:
+        """The parameters as the body model's `BodyMotion` (frame_index 0..frames-1)."""
+        ...
+
+
+def keypoint_body(body, names: tuple[str, ...]) -> KeypointBody:
+    """The `KeypointBody` of a loaded body model (`AnnyBody` or `SmplBody`) for the keypoint `names`."""
+    if body.name == "anny":
+        return AnnyKeypoints(body, names)
+    if body.name in ("smpl", "smplx"):
+        from avatarctl.body.smpl_keypoints import SmplKeypoints
+
+        return SmplKeypoints(body, names)
+    raise ValueError(f"no keypoint fit for the {body.name} body model (anny, smpl, smplx)")
 
 
 class AnnyKeypoints(torch.nn.Module):
@@ -176,6 +227,12 @@ class AnnyKeypoints(torch.nn.Module):
         self.kp_index = torch.tensor([labels.index(n) for n in names])
         self.bone_index = torch.tensor([body.joint_names.index(b) for b in bones])
         self.n_bones = len(body.joint_names)
+        self.body_model = "anny"
+        self.names = tuple(names)
+        self.weight = np.ones(len(names))
+        self.num_rotations = len(bones)
+        self.num_shape = len(body.phenotype_labels)
+        self.dtype = torch.float64
 
     def pose_matrices(self, rotvecs: torch.Tensor, R_root: torch.Tensor, t_root: torch.Tensor) -> torch.Tensor:
         """[frames, 104, 4, 4] local-ref deltas: identity except the fitted bones' rotations and the root pose."""
@@ -197,6 +254,20 @@ class AnnyKeypoints(torch.nn.Module):
         out = self.body.model(pose_parameters=pose, phenotype_kwargs={k: phenotype[i:i + 1] for i, k in
                                                                       enumerate(labels)})
         return self.regressor(out)[:, self.kp_index], out["vertices"]
+
+    # ---- KeypointBody: shape s = the phenotype's logits ----
+    def keypoints(self, rotvecs: torch.Tensor, R_root: torch.Tensor, t_root: torch.Tensor,
+                  shape: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        return self(self.pose_matrices(rotvecs, R_root, t_root), torch.sigmoid(shape))
+
+    def shape_prior(self, shape: torch.Tensor) -> torch.Tensor:
+        return ((torch.sigmoid(shape) - 0.5) ** 2).sum()
+
+    def to_motion(self, rotvecs: torch.Tensor, R_root: torch.Tensor, t_root: torch.Tensor,
+                  shape: torch.Tensor) -> BodyMotion:
+        pose = self.pose_matrices(rotvecs, R_root, t_root)
+        return BodyMotion(body_model="anny", frame_index=np.arange(rotvecs.shape[0]), pose_parameters=pose.numpy(),
+                          phenotype=torch.sigmoid(shape).numpy(), phenotype_labels=self.body.phenotype_labels)
 
 
 def kabsch(src: np.ndarray, dst: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -267,35 +338,35 @@ class SilhouetteTerm:
             return float((self.weight * share).sum() / self.weight.sum().clamp_min(1e-9))
 
 
-def fit_anny_keypoints(body, targets: KeypointTargets, cfg: KeypointFitConfig = KeypointFitConfig(),
-                       progress: Callable[[int, int], None] | None = None,
-                       silhouettes: SilhouetteTargets | None = None) -> KeypointFit:
-    """Fit anny (an `AnnyBody`) to `targets` (see the module docstring for the energy). Every frame needs at
-    least three observed keypoints (the caller drops frames without a person). With `silhouettes` (rows = the
-    targets' frames) and `cfg.w_silhouette` > 0 the silhouette term joins from step `cfg.silhouette_start * iters`."""
+def fit_keypoints(model: KeypointBody, targets: KeypointTargets, cfg: KeypointFitConfig = KeypointFitConfig(),
+                  progress: Callable[[int, int], None] | None = None,
+                  silhouettes: SilhouetteTargets | None = None) -> KeypointFit:
+    """Fit the body `model` (a `KeypointBody`, see `keypoint_body`) to `targets` (see the module docstring for the
+    energy); target keypoints the model does not provide are left out. Every frame needs at least three observed
+    keypoints (the caller drops frames without a person). With `silhouettes` (rows = the targets' frames) and
+    `cfg.w_silhouette` > 0 the silhouette term joins from step `cfg.silhouette_start * iters`."""
     import time
 
     import roma
 
     t0 = time.perf_counter()
+    targets = targets.select(model.names)
     if (np.asarray(targets.weight) > 0).sum(axis=1).min(initial=3) < 3:
         raise ValueError("every frame needs at least three observed keypoints")
-    dt = torch.float64
-    kp = AnnyKeypoints(body, targets.names)
-    labels = body.phenotype_labels
+    dt = model.dtype
     f = targets.points.shape[0]
     X = torch.as_tensor(np.nan_to_num(targets.points), dtype=dt)
-    W = torch.as_tensor(targets.weight, dtype=dt)
+    W_obs = torch.as_tensor(targets.weight, dtype=dt)  # [frames, joints] the targets' own weights
+    W = W_obs * torch.as_tensor(model.weight, dtype=dt)  # ... times the model's relative weights
     with torch.no_grad():
-        eye = torch.eye(3, dtype=dt).expand(1, 3, 3)
-        rest = kp(kp.pose_matrices(torch.zeros(1, len(FIT_BONES), 3, dtype=dt), eye, torch.zeros(1, 3, dtype=dt)),
-                  torch.full((len(labels),), 0.5, dtype=dt))[0][0].numpy()
+        rest = model.keypoints(torch.zeros(1, model.num_rotations, 3, dtype=dt), torch.eye(3, dtype=dt)[None],
+                               torch.zeros(1, 3, dtype=dt), torch.zeros(model.num_shape, dtype=dt))[0][0].numpy()
     R0, t0_root = initial_root(rest, targets)
     root_rv = torch.tensor(roma.rotmat_to_rotvec(torch.as_tensor(R0)).numpy(), dtype=dt, requires_grad=True)
     root_t = torch.tensor(t0_root, dtype=dt, requires_grad=True)
-    rotvecs = torch.zeros(f, len(FIT_BONES), 3, dtype=dt, requires_grad=True)
-    logits = torch.zeros(len(labels), dtype=dt, requires_grad=cfg.fit_phenotype)
-    params = [root_rv, root_t, rotvecs] + ([logits] if cfg.fit_phenotype else [])
+    rotvecs = torch.zeros(f, model.num_rotations, 3, dtype=dt, requires_grad=True)
+    shape = torch.zeros(model.num_shape, dtype=dt, requires_grad=cfg.fit_shape)
+    params = [root_rv, root_t, rotvecs] + ([shape] if cfg.fit_shape else [])
     opt = torch.optim.Adam(params, lr=cfg.lr)
     s2 = cfg.robust_scale_m ** 2
     wsum = W.sum().clamp_min(1e-9)
@@ -307,8 +378,7 @@ def fit_anny_keypoints(body, targets: KeypointTargets, cfg: KeypointFitConfig = 
     inside_before = float("nan")
     for it in range(cfg.iters):
         opt.zero_grad()
-        pheno = torch.sigmoid(logits)
-        K, V = kp(kp.pose_matrices(rotvecs, roma.rotvec_to_rotmat(root_rv), root_t), pheno)
+        K, V = model.keypoints(rotvecs, roma.rotvec_to_rotmat(root_rv), root_t, shape)
         r2 = ((K - X) ** 2).sum(-1)
         loss = (W * s2 * r2 / (r2 + s2)).sum() / wsum
         if sil is not None and it >= sil_start:
@@ -320,25 +390,24 @@ def fit_anny_keypoints(body, targets: KeypointTargets, cfg: KeypointFitConfig = 
         if f > 1:
             loss = loss + cfg.w_smooth * ((rotvecs[1:] - rotvecs[:-1]) ** 2).sum((1, 2)).mean()
             loss = loss + cfg.w_trans * ((root_t[1:] - root_t[:-1]) ** 2).sum(1).mean()
-        loss = loss + cfg.w_shape * ((pheno - 0.5) ** 2).sum()
+        loss = loss + cfg.w_shape * model.shape_prior(shape)
         loss.backward()
         opt.step()
         if progress is not None:
             progress(it + 1, cfg.iters)
     report = None
     with torch.no_grad():
-        pheno = torch.sigmoid(logits)
-        pose = kp.pose_matrices(rotvecs, roma.rotvec_to_rotmat(root_rv), root_t)
-        K, V = kp(pose, pheno)
+        R = roma.rotvec_to_rotmat(root_rv)
+        K, V = model.keypoints(rotvecs, R, root_t, shape)
         d = (K - X).norm(dim=-1)
-        err = ((W * d).sum(1) / W.sum(1).clamp_min(1e-9)).numpy()
+        err = ((W_obs * d).sum(1) / W_obs.sum(1).clamp_min(1e-9)).numpy()
         if sil is not None:
             sub = spread_indices(V.shape[1], cfg.silhouette_vertices) if sub is None else sub
             after = sil.inside(V[:, sub])
             report = SilhouetteReport(inside_before=after if inside_before != inside_before else inside_before,
                                       inside_after=after)
-    return KeypointFit(pose_parameters=pose.numpy().astype(np.float32), phenotype=pheno.numpy().astype(np.float32),
-                       phenotype_labels=tuple(labels), error_m=err, seconds=time.perf_counter() - t0,
+        motion = model.to_motion(rotvecs, R, root_t, shape)
+    return KeypointFit(motion=motion, names=model.names, error_m=err, seconds=time.perf_counter() - t0,
                        silhouette=report)
 
 

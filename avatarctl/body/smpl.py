@@ -351,32 +351,43 @@ class SmplBody:
         if motion.num_frames == 0:
             raise InputError("the motion has no frames", fix="pass a motion with at least one frame")
         betas = self.betas(motion)  # [B]
-        v_shaped = self.v_template + self.shapedirs @ betas  # [V, 3]
-        j_shaped = self.j_template + self.j_shapedirs @ betas  # [J, 3]
         pose = self.full_pose(motion)  # [F, J, 3]
         expr = self.expression(motion)  # [F, E]
         transl = torch.as_tensor(motion.transl, dtype=self.dtype, device=self.device)  # [F, 3]
-        eye = torch.eye(3, dtype=self.dtype, device=self.device)
-        outs: dict[str, list[torch.Tensor]] = {}
-        for s in range(0, motion.num_frames, self.chunk):
-            sl = slice(s, s + self.chunk)
-            R = axis_angle_to_matrix(pose[sl])  # [f, J, 3, 3]
-            rest_joints = j_shaped + torch.einsum("jce,fe->fjc", self.j_exprdirs, expr[sl])  # [f, J, 3]
-            M = forward_kinematics(R, rest_joints, self.parents, root_translation=transl[sl])  # [f, J, 4, 4]
-            joints = transform_points(M, rest_joints)  # [f, J, 3]
-            chunk_out = {"joint_transforms": M, "joints": joints, "rest_joints": rest_joints, "local_rotations": R}
-            if with_vertices:
-                pose_feature = (R[:, 1:] - eye).flatten(1)  # [f, 9(J-1)]
-                offsets = (pose_feature @ self.posedirs.T).reshape(-1, self.num_vertices, 3)  # [f, V, 3]
-                offsets = offsets + torch.einsum("vce,fe->fvc", self.exprdirs, expr[sl])
-                chunk_out["blend_offsets"] = offsets
-                chunk_out["vertices"] = lbs(v_shaped + offsets, self.weights, M)  # [f, V, 3]
-            for k, v in chunk_out.items():
-                outs.setdefault(k, []).append(v)
-        cat = {k: torch.cat(v) for k, v in outs.items()}
-        return SmplEvaluation(joint_transforms=cat["joint_transforms"], joints=cat["joints"],
-                              rest_joints=cat["rest_joints"], local_rotations=cat["local_rotations"],
-                              blend_offsets=cat.get("blend_offsets"), vertices=cat.get("vertices"))
+        parts = [self.forward(axis_angle_to_matrix(pose[s:s + self.chunk]), betas, transl[s:s + self.chunk],
+                              expr[s:s + self.chunk], with_vertices)
+                 for s in range(0, motion.num_frames, self.chunk)]
+
+        def cat(name: str) -> torch.Tensor | None:
+            return None if getattr(parts[0], name) is None else torch.cat([getattr(p, name) for p in parts])
+
+        return SmplEvaluation(joint_transforms=cat("joint_transforms"), joints=cat("joints"),
+                              rest_joints=cat("rest_joints"), local_rotations=cat("local_rotations"),
+                              blend_offsets=cat("blend_offsets"), vertices=cat("vertices"))
+
+    def forward(self, rotations: torch.Tensor, betas: torch.Tensor, transl: torch.Tensor,
+                expression: torch.Tensor | None = None, with_vertices: bool = True) -> SmplEvaluation:
+        """The model on tensors, differentiable in every input (the module docstring's equations).
+
+        rotations [frames, J, 3, 3] local joint rotations (root: global orientation), betas [B] (the file's B),
+        transl [frames, 3], expression [frames, E] or None (zero) -> `SmplEvaluation` in the compute dtype."""
+        v_shaped = self.v_template + self.shapedirs @ betas  # [V, 3]
+        j_shaped = self.j_template + self.j_shapedirs @ betas  # [J, 3]
+        rest_joints = j_shaped.expand(rotations.shape[0], -1, -1)  # [f, J, 3]
+        if expression is not None:
+            rest_joints = rest_joints + torch.einsum("jce,fe->fjc", self.j_exprdirs, expression)
+        M = forward_kinematics(rotations, rest_joints, self.parents, root_translation=transl)  # [f, J, 4, 4]
+        joints = transform_points(M, rest_joints)  # [f, J, 3]
+        offsets = vertices = None
+        if with_vertices:
+            eye = torch.eye(3, dtype=rotations.dtype, device=rotations.device)
+            pose_feature = (rotations[:, 1:] - eye).flatten(1)  # [f, 9(J-1)]
+            offsets = (pose_feature @ self.posedirs.T).reshape(-1, self.num_vertices, 3)  # [f, V, 3]
+            if expression is not None:
+                offsets = offsets + torch.einsum("vce,fe->fvc", self.exprdirs, expression)
+            vertices = lbs(v_shaped + offsets, self.weights, M)  # [f, V, 3]
+        return SmplEvaluation(joint_transforms=M, joints=joints, rest_joints=rest_joints, local_rotations=rotations,
+                              blend_offsets=offsets, vertices=vertices)
 
     # ---- BodyModel --------------------------------------------------------------------------------------------
     def template(self, motion: BodyMotion) -> BodyTemplate:

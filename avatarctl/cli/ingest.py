@@ -17,16 +17,19 @@ def register(app: typer.Typer) -> None:
         format: str = typer.Option("auto", "--format",
                                    help="auto | easymocap | zju | thuman4 | peoplesnapshot | colmap"),
         body_model: Optional[str] = typer.Option(None, "--body-model",
-                                                 help="anny | smpl | smplx (default: what the capture's fits are)"),
+                                                 help="anny | smpl | smplx (default: what the capture's fits are; "
+                                                      "anny for --fits keypoints)"),
         body_model_path: Optional[Path] = typer.Option(None, "--body-model-path",
                                                        help="SMPL / SMPL-X model file (.pkl or .npz)."),
         masks: str = typer.Option("auto", "--masks", help="auto | files | background (matting against "
                                                           "background/<cam>.jpg seeded by the body mesh) | mediapipe "
                                                           "(person segmentation; pip install 'avatarctl[capture]')"),
         fits: str = typer.Option("auto", "--fits", help="auto | files (motion.npz / smpl/*.json) | keypoints "
-                                                        "(MediaPipe keypoints -> triangulation -> anny fit)"),
+                                                        "(MediaPipe keypoints -> triangulation -> a fit of "
+                                                        "--body-model: anny, or smpl / smplx with "
+                                                        "--body-model-path)"),
         keypoint_fit_iters: int = typer.Option(400, "--keypoint-fit-iters",
-                                               help="Adam steps of the anny fit to the keypoints (--fits keypoints)."),
+                                               help="Adam steps of the body fit to the keypoints (--fits keypoints)."),
         keypoint_silhouette: Optional[float] = typer.Option(
             None, "--keypoint-silhouette", help="Weight of the keypoint fit's silhouette term (keeps the projected "
                                                 "body inside the masks); 0 = off; default: the fit's own."),

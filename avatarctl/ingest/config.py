@@ -26,8 +26,8 @@ class IngestConfig:
     body_model_path: Path | None = None  # SMPL / SMPL-X model file (.pkl / .npz); not needed for anny
     masks: str = "auto"  # files | background | mediapipe | auto (files if the capture has masks, else background
     # plates if every camera has one, else mediapipe)
-    fits: str = "auto"  # files | keypoints (MediaPipe keypoints -> triangulation -> anny fit) | auto (files if any)
-    keypoint_fit_iters: int = 400  # Adam steps of the anny keypoint fit (--fits keypoints)
+    fits: str = "auto"  # files | keypoints (MediaPipe keypoints -> triangulation -> body fit) | auto (files if any)
+    keypoint_fit_iters: int = 400  # Adam steps of the keypoint fit (--fits keypoints; anny, smpl or smplx)
     keypoint_silhouette: float | None = None  # weight of the keypoint fit's silhouette term (None: the fit's default,
     # avatarctl.body.fit_keypoints.SILHOUETTE_WEIGHT; 0: off)
     frames: str | None = None  # "start:stop[:step]" or "a,b,c" capture frame numbers (avatarctl.frames); None: all

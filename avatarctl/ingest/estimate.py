@@ -1,4 +1,4 @@
-"""Person masks and anny body fits estimated from the images, for captures that ship neither.
+"""Person masks and body fits (anny, SMPL, SMPL-X) estimated from the images, for captures that ship neither.
 
 Steps (all in the undistorted, resized geometry of the project's pinhole cameras, so 2D points need no further
 undistortion):
@@ -8,7 +8,7 @@ undistortion):
 2. `estimate_fits`: robust multi-view triangulation of every keypoint (`avatarctl.geometry.triangulate`: RANSAC
    over view pairs, outlier views rejected by reprojection error, weighted DLT on the inliers); frames where fewer
    than `MIN_JOINTS` keypoints (or fewer than three of the four torso points) triangulate are skipped, never fitted;
-3. the anny fit to the 3D keypoints (`avatarctl.body.fit_keypoints`), one phenotype for the subject, with a
+3. the body model's fit to the 3D keypoints (`avatarctl.body.fit_keypoints`), one shape for the subject, with a
    silhouette term when person masks are at hand (`silhouette_targets`: the capture's mask files or MediaPipe's
    person segmentation) that keeps the projected body inside them.
 
@@ -103,8 +103,9 @@ class EstimateReport:
     mean_reprojection_px: float  # over triangulated keypoints and their inlier views
     views_rejected: float  # fraction of confident 2D keypoints rejected as outliers by the triangulation
     keypoints_triangulated: float  # fraction of (fitted frame, keypoint) triangulated
-    fit_error_cm: float  # mean distance of the fitted anny keypoints to the triangulated ones
+    fit_error_cm: float  # mean distance of the fitted keypoints to the triangulated ones
     fit_seconds: float
+    body_model: str = "anny"  # the body model fitted
     frames_no_mask: list[int] = field(default_factory=list)  # frames where a view had no person mask (masks mediapipe)
     silhouette_inside_before: float = float("nan")  # share of projected vertices inside the masks when the
     silhouette_inside_after: float = float("nan")  # silhouette term switched on / at the end (NaN: term off)
@@ -124,7 +125,7 @@ class EstimateReport:
             out.append(("triangulation", f"{self.mean_reprojection_px:.2f} px mean reprojection error, "
                                          f"{100 * self.views_rejected:.1f}% of 2D keypoints rejected as outliers, "
                                          f"{100 * self.keypoints_triangulated:.1f}% of keypoints triangulated"))
-            out.append(("anny keypoint fit", f"{self.fit_error_cm:.2f} cm mean keypoint error "
+            out.append((f"{self.body_model} keypoint fit", f"{self.fit_error_cm:.2f} cm mean keypoint error "
                                              f"({self.fit_seconds:.0f} s)"))
             if np.isfinite(self.silhouette_inside_after):
                 out.append(("silhouette term", f"{100 * self.silhouette_inside_before:.1f}% -> "
@@ -143,6 +144,7 @@ class EstimateReport:
                 "views_rejected": num(self.views_rejected, 4),
                 "keypoints_triangulated": num(self.keypoints_triangulated, 4),
                 "fit_error_cm": num(self.fit_error_cm, 3), "fit_seconds": num(self.fit_seconds, 1),
+                "body_model": self.body_model,
                 "silhouette_inside_before": num(self.silhouette_inside_before, 4),
                 "silhouette_inside_after": num(self.silhouette_inside_after, 4)}
 
@@ -177,10 +179,10 @@ def silhouette_targets(cameras, cams: list[str], frames: list[int], read_mask: R
 def estimate_fits(det: Detections, cameras, body, fit_iters: int, fps: float,
                   progress: PartProgress | None = None, read_mask: ReadMask | None = None,
                   silhouette_weight: float | None = None) -> EstimatedFits:
-    """Triangulate the detections with the pinhole `cameras` (order of `det.cams`) and fit anny (`body`, an
-    `AnnyBody`) to the frames with enough keypoints. With `read_mask` the fit has a silhouette term of weight
+    """Triangulate the detections with the pinhole `cameras` (order of `det.cams`) and fit `body` (an `AnnyBody`
+    or `SmplBody`) to the frames with enough keypoints. With `read_mask` the fit has a silhouette term of weight
     `silhouette_weight` (None: the keypoint fit's default; 0: off). See the module docstring."""
-    from avatarctl.body.fit_keypoints import TORSO, KeypointFitConfig, KeypointTargets, fit_anny_keypoints
+    from avatarctl.body.fit_keypoints import TORSO, KeypointFitConfig, KeypointTargets, fit_keypoints, keypoint_body
     from avatarctl.geometry.triangulate import projection_matrices, triangulate_robust
     from avatarctl.ingest.keypoints import KEYPOINT_WEIGHTS
 
@@ -197,7 +199,7 @@ def estimate_fits(det: Detections, cameras, body, fit_iters: int, fps: float,
     ok = (valid.sum(1) >= MIN_JOINTS) & (valid[:, torso].sum(1) >= 3)
     kept = [f for f, k in zip(det.frames, ok) if k]
     n_cand = tri.candidates.sum()
-    report = dict(frames_detected=int((det.found.sum(1) >= 2).sum()), frames_total=nf,
+    report = dict(body_model=body.name, frames_detected=int((det.found.sum(1) >= 2).sum()), frames_total=nf,
                   views_with_person=float(det.found.mean()) if det.found.size else 0.0,
                   frames_skipped=[f for f, k in zip(det.frames, ok) if not k],
                   mean_reprojection_px=float(np.nanmean(tri.error_px)) if tri.valid.any() else float("nan"),
@@ -213,9 +215,9 @@ def estimate_fits(det: Detections, cameras, body, fit_iters: int, fps: float,
     sil = None
     if read_mask is not None and cfg.w_silhouette > 0:
         sil = silhouette_targets(cameras, det.cams, kept, read_mask)
-    fit = fit_anny_keypoints(body, targets, cfg, silhouettes=sil,
-                             progress=None if progress is None else lambda d, t: progress(d, t, "fit"))
-    wsum = (targets.weight > 0).sum(1)
+    fit = fit_keypoints(keypoint_body(body, det.names), targets, cfg, silhouettes=sil,
+                        progress=None if progress is None else lambda d, t: progress(d, t, "fit"))
+    wsum = (targets.select(fit.names).weight > 0).sum(1)
     err = float((fit.error_m * wsum).sum() / wsum.sum())
     if fit.silhouette is not None:
         report.update(silhouette_inside_before=fit.silhouette.inside_before,

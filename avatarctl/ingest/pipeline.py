@@ -5,8 +5,8 @@ Steps:
    images, complete frame grids for images and masks, fits for every frame, metres not millimetres;
 2. convert the fits to the body model's `BodyMotion` (EasyMocap/ZJU Rh/Th -> SMPL global_orient/transl) — or,
    for a capture without fits (`--fits keypoints`) and/or without masks or plates (`--masks mediapipe`), detect
-   the person in every view and estimate anny fits / masks (`avatarctl.ingest.estimate`); frames where no person
-   is found are reported and left out — and pose the body mesh for every frame;
+   the person in every view and estimate anny / SMPL / SMPL-X fits and / or masks (`avatarctl.ingest.estimate`);
+   frames where no person is found are reported and left out — and pose the body mesh for every frame;
 3. per frame and camera: undistort (and resize) the frame and mask — masks from the capture's files, from the
    background plate matted with the projected body mesh as seed, or MediaPipe's person segmentation — and write
    them;
@@ -99,16 +99,27 @@ NO_FITS = "no body fits (motion.npz or smpl/*.json)"
 
 
 def resolve_fits(cfg: IngestConfig, src: CaptureSource) -> str:
-    """"files" (the capture's fits) or "keypoints" (estimated: MediaPipe keypoints -> anny fit)."""
+    from avatarctl.body.registry import needs_model_file
+
+    """"files" (the capture's fits) or "keypoints" (estimated: MediaPipe keypoints -> a fit of `--body-model`, anny
+    by default; smpl / smplx need `--body-model-path`)."""
     mode = cfg.fits if cfg.fits != "auto" else ("files" if src.fits is not None else "keypoints")
     if mode == "files" and src.fits is None:
         raise InputError(NO_FITS, where=str(src.root),
                          fix="add motion.npz (avatarctl BodyMotion) or EasyMocap smpl/%06d.json fits, or estimate "
                              "them with --fits keypoints")
     if mode == "keypoints":
-        if (cfg.body_model or "anny") != "anny":
-            raise InputError(f"--fits keypoints fits the anny body model, not {cfg.body_model}",
-                             fix="drop --body-model (or pass --body-model anny), or provide fits")
+        bm = cfg.body_model or "anny"
+        if bm == "toy":
+            raise InputError("--fits keypoints fits anny, smpl or smplx, not the toy body",
+                             fix="use --body-model anny | smpl | smplx")
+        if needs_model_file(bm) and cfg.body_model_path is None:
+            raise InputError(f"--fits keypoints --body-model {bm} needs the {bm} model file",
+                             fix=f"pass --body-model-path /path/to/{bm.upper()}_NEUTRAL.pkl (or .npz), or drop "
+                                 "--body-model to fit anny")
+        if needs_model_file(bm) and not cfg.body_model_path.is_file():
+            raise InputError(f"{bm} model file not found", where=str(cfg.body_model_path),
+                             fix="check --body-model-path")
         from avatarctl.ingest.keypoints import require_mediapipe
 
         require_mediapipe(f"{NO_FITS if src.fits is None else '--fits keypoints'}: estimating them",
@@ -155,7 +166,7 @@ class IngestPlan:
     body_model: str  # "anny" | "smpl" | "smplx" | "toy"
     body: object  # the BodyModel (AnnyBody / SmplBody)
     motion: object  # BodyMotion, one row per selected frame (None until estimated, for fits "keypoints")
-    faces: np.ndarray  # [F, 3] body mesh triangles
+    faces: np.ndarray | None  # [F, 3] body mesh triangles (None until the fits are estimated)
     fits_mode: str = "files"  # "files" | "keypoints"
     detections: object = None  # `Detections` (with masks for masks "mediapipe") once the people are detected
 
@@ -179,9 +190,9 @@ def plan_ingest(cfg: IngestConfig) -> IngestPlan:
     fits_mode = resolve_fits(cfg, src)
     masks_mode = resolve_masks(cfg, src, cams, frames)
     if fits_mode == "keypoints":
-        body = load_body_model("anny", None)
-        return IngestPlan(src, reason, cams, frames, masks_mode, "anny", body, None,
-                          body.faces().cpu().numpy(), fits_mode)
+        bm_name = cfg.body_model or "anny"
+        body = load_body_model(bm_name, cfg.body_model_path if needs_model_file(bm_name) else None)
+        return IngestPlan(src, reason, cams, frames, masks_mode, bm_name, body, None, None, fits_mode)
 
     fits_where = src.fits_where or str(src.root)
     check_fits(src.fits, frames, fits_where)
@@ -283,8 +294,9 @@ def run_ingest(cfg: IngestConfig, progress: ProgressFn | None = None) -> IngestR
 
 def _estimate(cfg: IngestConfig, plan: IngestPlan, und: dict, progress: ProgressFn | None
               ) -> tuple[IngestPlan, EstimateReport]:
-    """Detect the person in every view; estimate anny fits (fits "keypoints") and keep MediaPipe's masks (masks
-    "mediapipe"). Returns the plan restricted to the frames that could be used, and the figures."""
+    """Detect the person in every view; estimate body fits (fits "keypoints") and keep MediaPipe's masks (masks
+    "mediapipe"). Returns the plan restricted to the frames that could be used (with the body mesh's faces once the
+    fits exist), and the figures."""
     from dataclasses import replace
 
     from avatarctl.ingest.estimate import EstimateReport, detect_people, estimate_fits
@@ -339,7 +351,8 @@ def _estimate(cfg: IngestConfig, plan: IngestPlan, und: dict, progress: Progress
             motion = motion.select(rows)
         elif len(kept) < motion.frame_index.shape[0]:
             motion = motion.select([i for i, f in enumerate(motion.frame_index) if int(f) in set(kept)])
-    return replace(plan, frames=kept, motion=motion, detections=det), report
+    faces = plan.faces if plan.faces is not None else plan.body.template(motion.select([0])).faces.cpu().numpy()
+    return replace(plan, frames=kept, motion=motion, detections=det, faces=faces), report
 
 
 def _detected_points(det, cam: str, frame: int) -> np.ndarray | None:
