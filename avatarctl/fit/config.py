@@ -36,7 +36,7 @@ from dataclasses import asdict, dataclass, field, fields, replace
 from typing import Any
 
 from avatarctl.errors import InputError
-from avatarctl.model.config import ModelConfig
+from avatarctl.model.config import HULL_AUTO, ModelConfig
 
 SCHEMA_VERSION = 1
 PRESETS = ("cpu", "paper", "micro")
@@ -215,6 +215,8 @@ def _parse_value(key: str, text: str, current: Any) -> Any:
     """Parse `text` to the type of the current value of `key` (bool, int, float, str or tuple of floats)."""
     t = text.strip()
     try:
+        if key == "model.hull_nodes" and t.lower() == HULL_AUTO:  # decided from the masks (fit/hull_nodes.py)
+            return HULL_AUTO
         if isinstance(current, bool):
             low = t.lower()
             if low in ("1", "true", "yes", "on"):
@@ -222,7 +224,7 @@ def _parse_value(key: str, text: str, current: Any) -> Any:
             if low in ("0", "false", "no", "off"):
                 return False
             raise ValueError(t)
-        if isinstance(current, int):
+        if isinstance(current, int) or key == "model.hull_nodes":
             f = float(t)
             if not f.is_integer():
                 raise ValueError(t)
@@ -234,8 +236,9 @@ def _parse_value(key: str, text: str, current: Any) -> Any:
             return tuple(conv(x) for x in t.split(","))
         return t
     except ValueError:
-        kind = type(current).__name__
-        example = {"bool": "true|false", "int": "1000", "float": "0.0005", "tuple": "0,0,0"}.get(kind, "text")
+        kind = "int or auto" if key == "model.hull_nodes" else type(current).__name__
+        example = {"bool": "true|false", "int": "1000", "float": "0.0005", "tuple": "0,0,0",
+                   "int or auto": "32|auto"}.get(kind, "text")
         raise InputError(f"cannot read {key}={text!r} as {kind}", where="--set", fix=f"write e.g. {key}={example}") \
             from None
 

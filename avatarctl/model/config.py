@@ -35,7 +35,8 @@ SCHEMA_VERSION = 1
 LATENTS = ("cvae", "deterministic", "per_frame")
 VARIANTS = ("slrf", "lbs_baseline")
 FIELDS = ("mlp", "grid")  # local fields F_i: the paper's per-node MLPs | per-node feature grids (model/grid_field.py)
-REC_REDUCTIONS = ("sum", "mean")  # Eq. 12 as written (sum over rays) | plain MSE, see model/losses.py
+REC_REDUCTIONS = ("sum", "mean")
+HULL_AUTO = "auto"  # `hull_nodes`: decide from the training masks at fit start (fit/hull_nodes.py)  # Eq. 12 as written (sum over rays) | plain MSE, see model/losses.py
 
 
 @dataclass(frozen=True)
@@ -44,8 +45,12 @@ class ModelConfig:
 
     # representation (Eq. 1-6)
     num_nodes: int = 128  # N, nodes by farthest point sampling on the canonical surface
-    hull_nodes: int = 0  # K of the N placed off the body from the masks' visual hull (deviation, fit/hull_nodes.py)
+    # K of the N placed off the body from the masks' visual hull (deviation, fit/hull_nodes.py); "auto": decided
+    # from the masks at fit start (hull_auto_fraction N nodes or none)
+    hull_nodes: int | str = 0
     hull_min_dist: float = 0.14  # hull points farther than this (metres) from every surface node are off-body
+    hull_auto_fraction: float = 0.25  # "auto" says yes: this share of the N nodes goes off the body (32 of 128)
+    hull_auto_min_volume: float = 0.1  # "auto" says yes when the persistent off-body cells hold >= this x body volume
     sigma: float = 0.05  # Eq. 6 Gaussian width, metres
     eps: float = 0.001  # Eq. 6 truncation; support radius sigma*sqrt(-2 ln eps) = 0.186 m
     embed_dim: int = 32  # dim e_i, dynamic detail embedding
@@ -123,11 +128,16 @@ class ModelConfig:
             need(isinstance(v, int) and not isinstance(v, bool) and v >= 0, f"{name} must be an int >= 0, got {v!r}")
         need(isinstance(self.pack_block, int) and self.pack_block >= 0, f"pack_block must be an int >= 0, got "
              f"{self.pack_block!r}")
-        need(isinstance(self.hull_nodes, int) and not isinstance(self.hull_nodes, bool)
-             and 0 <= self.hull_nodes < self.num_nodes,
-             f"hull_nodes must be an int in [0, num_nodes={self.num_nodes}), got {self.hull_nodes!r}")
+        need(self.hull_nodes == HULL_AUTO or (isinstance(self.hull_nodes, int) and not isinstance(self.hull_nodes, bool)
+                                              and 0 <= self.hull_nodes < self.num_nodes),
+             f"hull_nodes must be an int in [0, num_nodes={self.num_nodes}) or {HULL_AUTO!r} (decide from the "
+             f"masks), got {self.hull_nodes!r}")
         need(self.hull_min_dist > 0, f"hull_min_dist must be > 0 (metres), got {self.hull_min_dist}")
-        need(self.hull_nodes == 0 or self.variant == "slrf", "hull_nodes needs the slrf variant (the pose-only "
+        need(0 < self.hull_auto_fraction < 1 and round(self.hull_auto_fraction * self.num_nodes) < self.num_nodes,
+             f"hull_auto_fraction must be in (0, 1) and leave surface nodes, got {self.hull_auto_fraction}")
+        need(self.hull_auto_min_volume >= 0, f"hull_auto_min_volume must be >= 0 (a share of the body volume), got "
+             f"{self.hull_auto_min_volume}")
+        need(self.hull_nodes in (0, HULL_AUTO) or self.variant == "slrf", "hull_nodes needs the slrf variant (the pose-only "
              "baseline has no nodes)")
         need(self.samples_per_ray >= 2, f"samples_per_ray must be >= 2, got {self.samples_per_ray}")
         need(self.head_width >= 2, f"head_width must be >= 2, got {self.head_width}")
