@@ -76,7 +76,7 @@ def test_auto_rule_says_yes_from_a_tenth_of_the_body_volume(cells, k):
     """`hull_nodes = "auto"`: 32 of 128 nodes once the persistent off-body cells hold >= 10 % of the body volume
     (here 8 cells of 5 cm = 1 litre of a 10-litre body), else none."""
     survey = HullSurvey(cells=np.zeros((cells, 3)), cell=0.05, frames=6, body_volume=0.01)
-    assert auto_hull_nodes(survey, 128, fraction=0.25, min_volume=0.1) == k
+    assert auto_hull_nodes(survey, ModelConfig(hull_nodes="auto").hull_auto_nodes, min_volume=0.1) == k
     assert ("8 persistent off-body cells" in survey.describe()) == (cells == 8)
 
 
@@ -149,6 +149,11 @@ def test_config_takes_auto_and_says_how_to_fix_a_typo():
         ModelConfig(hull_nodes="aut")
     with pytest.raises(ValueError, match="hull_auto_fraction"):
         ModelConfig(hull_auto_fraction=1.0)
+    assert ModelConfig(num_nodes=12, hull_nodes="auto").hull_auto_nodes == 3
+    with pytest.raises(ValueError, match="would place 1 of num_nodes=1 nodes off the body"):
+        ModelConfig(num_nodes=1, hull_nodes="auto")
+    assert ModelConfig.preset("paper").hull_nodes == 0  # the paper's placement (Sec. 3.1)
+    assert ModelConfig.preset("cpu").hull_nodes == "auto"
     for text, value in (("auto", "auto"), ("AUTO", "auto"), ("32", 32), ("0", 0)):
         assert resolve_fit_config("cpu", overrides=[f"model.hull_nodes={text}"]).model.hull_nodes == value
     cfg = resolve_fit_config("cpu", overrides=["model.hull_nodes=auto"])

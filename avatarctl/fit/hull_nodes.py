@@ -159,12 +159,12 @@ def mesh_volume(vertices: torch.Tensor, faces: torch.Tensor) -> float:
 
 def survey_hull(capture, body, template, frames: list[int], views: list[str], surface_vertex: torch.Tensor,
                 min_dist: float, *, voxel: float = 0.025, margin: float = 0.35, max_frames: int = 24,
-                min_share: float = 0.15, explain_px: int = 2) -> HullSurvey:
+                min_share: float = 0.15, explain_px: int | None = 2) -> HullSurvey:
     """Steps 1-3 of the module docstring for `capture` (a `ProjectCapture`), its masks of `frames` x `views`:
     the persistent off-body cells, in canonical space. `surface_vertex` [M] long: the template vertices the surface
     nodes sit on.
     `explain_px`: the posed body's silhouette is grown by this many pixels before it explains a mask pixel
-    (body-fit error, anti-aliased mask edges)."""
+    (body-fit error, anti-aliased mask edges); None: no pixel is explained (the carve before 2026-11-25)."""
     import cv2
 
     from avatarctl.body.lbs import blend_transforms
@@ -176,14 +176,15 @@ def survey_hull(capture, body, template, frames: list[int], views: list[str], su
     W = template.skin_weights.double()
     faces = template.faces.numpy()
     cams = [capture.cameras[v] for v in views]
-    grow = np.ones((2 * explain_px + 1,) * 2, dtype=np.uint8)
+    grow = np.ones((2 * (explain_px or 0) + 1,) * 2, dtype=np.uint8)
     pooled = []
     for t, frame in enumerate(use):
         V = posed.vertices[t].double()
         lo = V.amin(0).numpy() - margin
         hi = V.amax(0).numpy() + margin
-        sil = [cv2.dilate(rasterize_silhouette(c, V.numpy(), faces, supersample=1).astype(np.uint8), grow) > 0
-               for c in cams]
+        sil = None if explain_px is None else [
+            cv2.dilate(rasterize_silhouette(c, V.numpy(), faces, supersample=1).astype(np.uint8), grow) > 0
+            for c in cams]
         pts = carve(cams, [capture.mask(v, frame) for v in views], lo, hi, voxel, explained=sil)
         Tv = blend_transforms(W, posed.joint_transforms[t:t + 1].double())[0]  # [V, 4, 4]
         pooled.append(off_body_canonical(pts, V, Tv, V[surface_vertex].numpy(), min_dist))
@@ -192,10 +193,10 @@ def survey_hull(capture, body, template, frames: list[int], views: list[str], su
                       body_volume=mesh_volume(template.vertices, template.faces))
 
 
-def auto_hull_nodes(survey: HullSurvey, num_nodes: int, fraction: float, min_volume: float) -> int:
-    """`hull_nodes = "auto"`: K = round(fraction N) (at least 1) when the persistent off-body cells hold at least
+def auto_hull_nodes(survey: HullSurvey, k: int, min_volume: float) -> int:
+    """`hull_nodes = "auto"`: `k` (`ModelConfig.hull_auto_nodes`) when the persistent off-body cells hold at least
     `min_volume` of the body's volume, else 0 (the paper's placement)."""
-    return max(1, round(fraction * num_nodes)) if survey.share >= min_volume and len(survey.cells) else 0
+    return k if survey.share >= min_volume and len(survey.cells) else 0
 
 
 def choose_hull_nodes(survey: HullSurvey, template, surface_rest: torch.Tensor, k: int) -> HullNodes:

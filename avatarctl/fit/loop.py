@@ -187,11 +187,11 @@ def _place_hull_nodes(model_cfg: ModelConfig, seed: int, capture, body, template
     from avatarctl.model.deformer import farthest_point_sampling
 
     N, auto = model_cfg.num_nodes, model_cfg.hull_nodes == HULL_AUTO
-    k = max(1, round(model_cfg.hull_auto_fraction * N)) if auto else int(model_cfg.hull_nodes)
+    k = model_cfg.hull_auto_nodes if auto else int(model_cfg.hull_nodes)
     surface = farthest_point_sampling(template.vertices, N - k, seed)
     survey = survey_hull(capture, body, template, train_frames, views, surface, model_cfg.hull_min_dist)
     if auto:
-        k = auto_hull_nodes(survey, N, model_cfg.hull_auto_fraction, model_cfg.hull_auto_min_volume)
+        k = auto_hull_nodes(survey, k, model_cfg.hull_auto_min_volume)
         if not k:
             return None, (f"hull: {survey.describe()} < {100 * model_cfg.hull_auto_min_volume:g} % -> none "
                           f"(hull_nodes=auto: all {N} nodes on the surface)")
