@@ -209,3 +209,23 @@ def test_fit_places_hull_nodes_where_the_capture_shows_a_skirt(tmp_path, skirt, 
         idx = farthest_point_sampling(av.template.vertices, 32, av.fit_config.seed)
         if setting == "auto":
             assert torch.equal(av.model.node_rest, av.template.vertices.float()[idx])
+
+
+def test_resuming_an_auto_fit_keeps_its_nodes(tmp_path):
+    """A resumed `hull_nodes=auto` fit does not survey again: the checkpoint's node positions come back as they
+    were and the run continues from them."""
+    from fixtures.toy_capture import make_toy_capture
+
+    from avatarctl.stages import fit, ingest
+    from avatarctl.stages.fit import FitRequest
+    from avatarctl.stages.ingest import IngestConfig
+
+    cap, proj = make_toy_capture(tmp_path / "cap", skirt=0.5), tmp_path / "proj"
+    ingest.run(proj, IngestConfig(capture=cap, project=proj, contact_sheet=False))
+    first = fit.run(proj, FitRequest(preset="micro", iters=2, device="cpu", overrides=(
+        "model.hull_nodes=auto", "val_every=0")), handle_sigint=False)
+    rest = torch.load(first.checkpoint, map_location="cpu", weights_only=True)["model"]["node_rest"]
+    again = fit.run(proj, FitRequest(iters=3, device="cpu", resume=True), handle_sigint=False)
+    assert again.step == 3 and again.hull_nodes is None  # nothing placed this run
+    assert first.hull_nodes is not None and "-> 8 of 32 nodes placed off the body" in first.hull_nodes
+    assert torch.equal(torch.load(again.checkpoint, map_location="cpu", weights_only=True)["model"]["node_rest"], rest)
