@@ -34,7 +34,7 @@ def main() -> None:
     ap.add_argument("runs", nargs="+", help="label=RUN")
     ap.add_argument("--views", required=True, help="comma list of FRAME_CAM, e.g. 000060_cam04")
     a = ap.parse_args()
-    runs = [r.split("=", 1) for r in a.runs]
+    runs = [r.rsplit("=", 1) for r in a.runs]  # the label may hold "=", the path does not
     rows = []
     for key in a.views.split(","):
         row = [labelled(ground_truth(a.project, key), f"ground truth {key}")]
