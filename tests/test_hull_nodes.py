@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 import torch
 
-from avatarctl.fit.hull_nodes import carve, off_body_canonical, persistent_cells
+from avatarctl.fit.hull_nodes import (HullSurvey, auto_hull_nodes, carve, mesh_volume, off_body_canonical,
+                                      persistent_cells)
 from avatarctl.geometry.cameras import Camera, look_at
 from avatarctl.model import ModelConfig
 
@@ -43,6 +44,40 @@ def test_carving_recovers_a_sphere():
     assert len(pts) * 0.04 ** 3 == pytest.approx(4 / 3 * np.pi * r ** 3, rel=0.5)
     inner = np.linalg.norm(np.stack(np.meshgrid(*[np.arange(-0.58, 0.6, 0.04)] * 3, indexing="ij"), -1), axis=-1)
     assert len(pts) >= (inner < r - 0.05).sum()  # everything well inside is kept
+
+
+def test_carving_keeps_only_what_the_body_does_not_explain():
+    """Tight clothing: the masks are the body's silhouettes, so every hull voxel (phantoms included) projects onto
+    the body in every view and none is kept. A second solid the body does not explain (a garment) keeps its own
+    voxels, not the body's."""
+    cams = _ring_cameras()
+    body, garment, r = np.array([0.0, 0.0, 0.0]), np.array([0.0, 0.0, 0.8]), 0.25
+    body_sil = [_sphere_mask(c, body, r) for c in cams]
+    lo, hi = np.array([-0.6, -0.6, -0.6]), np.array([0.6, 0.6, 1.4])
+    assert len(carve(cams, body_sil, lo, hi, 0.04)) > 100
+    assert len(carve(cams, body_sil, lo, hi, 0.04, explained=body_sil)) == 0
+    masks = [b | _sphere_mask(c, garment, r) for b, c in zip(body_sil, cams)]
+    full = carve(cams, masks, lo, hi, 0.04)
+    kept = carve(cams, masks, lo, hi, 0.04, explained=body_sil)
+    near_garment = lambda p: np.linalg.norm(p - garment, axis=-1) < r  # noqa: E731
+    assert near_garment(kept).sum() == near_garment(full).sum() > 50  # the garment's inside: all kept
+    assert (np.linalg.norm(kept - body, axis=-1) < r - 0.05).sum() == 0  # the body's inside: none
+
+
+def test_mesh_volume_of_a_sphere():
+    from avatarctl.body.toy import sphere_template
+
+    tpl = sphere_template(2000, radius=0.3)
+    assert mesh_volume(tpl.vertices, tpl.faces) == pytest.approx(4 / 3 * np.pi * 0.3 ** 3, rel=0.02)
+
+
+@pytest.mark.parametrize("cells, k", [(0, 0), (7, 0), (8, 32), (500, 32)])
+def test_auto_rule_says_yes_from_a_tenth_of_the_body_volume(cells, k):
+    """`hull_nodes = "auto"`: 32 of 128 nodes once the persistent off-body cells hold >= 10 % of the body volume
+    (here 8 cells of 5 cm = 1 litre of a 10-litre body), else none."""
+    survey = HullSurvey(cells=np.zeros((cells, 3)), cell=0.05, frames=6, body_volume=0.01)
+    assert auto_hull_nodes(survey, ModelConfig(hull_nodes="auto").hull_auto_nodes, min_volume=0.1) == k
+    assert ("8 persistent off-body cells" in survey.describe()) == (cells == 8)
 
 
 def test_persistence_drops_what_one_frame_shows():
@@ -103,10 +138,41 @@ def test_config_checks_hull_nodes():
         ModelConfig(hull_nodes=8, variant="lbs_baseline")
 
 
-@pytest.mark.parametrize("min_dist, off_body", [(0.14, 4), (10.0, 0)])
-def test_fit_with_hull_nodes_on_the_toy_capture(tmp_path, min_dist, off_body):
-    """The loop places the hull nodes (with a 10 m `hull_min_dist` no hull point is off the body: all K fall back
-    to the surface and the log says so), and the checkpoint brings their positions back."""
+def test_config_takes_auto_and_says_how_to_fix_a_typo():
+    from avatarctl.errors import InputError
+    from avatarctl.fit.config import resolve_fit_config
+
+    assert ModelConfig(hull_nodes="auto").hull_nodes == "auto"
+    assert ModelConfig(hull_nodes="auto", variant="lbs_baseline").hull_nodes == "auto"  # no nodes: nothing to decide
+    assert ModelConfig.from_json(ModelConfig(hull_nodes="auto").to_json()).hull_nodes == "auto"
+    with pytest.raises(ValueError, match=r"hull_nodes must be an int in \[0, num_nodes=128\) or 'auto'"):
+        ModelConfig(hull_nodes="aut")
+    with pytest.raises(ValueError, match="hull_auto_fraction"):
+        ModelConfig(hull_auto_fraction=1.0)
+    assert ModelConfig(num_nodes=12, hull_nodes="auto").hull_auto_nodes == 3
+    with pytest.raises(ValueError, match="would place 1 of num_nodes=1 nodes off the body"):
+        ModelConfig(num_nodes=1, hull_nodes="auto")
+    assert ModelConfig.preset("paper").hull_nodes == 0  # the paper's placement (Sec. 3.1)
+    assert ModelConfig.preset("cpu").hull_nodes == "auto"
+    for text, value in (("auto", "auto"), ("AUTO", "auto"), ("32", 32), ("0", 0)):
+        assert resolve_fit_config("cpu", overrides=[f"model.hull_nodes={text}"]).model.hull_nodes == value
+    cfg = resolve_fit_config("cpu", overrides=["model.hull_nodes=auto"])
+    assert resolve_fit_config("cpu", overrides=["model.hull_nodes=auto", "model.hull_nodes=8"]).model.hull_nodes == 8
+    assert cfg.model.hull_nodes == "auto"
+    with pytest.raises(InputError, match="as int or auto"):
+        resolve_fit_config("cpu", overrides=["model.hull_nodes=many"])
+
+
+@pytest.mark.parametrize("skirt, setting, note", [
+    (0.5, "4", "-> 4 of 32 nodes placed off the body"),
+    (0.0, "4", "-> 0 of 32 nodes placed off the body, 4 more on the surface"),
+    (0.5, "auto", "(hull_nodes=auto) -> 8 of 32 nodes placed off the body"),
+    (0.0, "auto", "-> none (hull_nodes=auto: all 32 nodes on the surface)"),
+])
+def test_fit_places_hull_nodes_where_the_capture_shows_a_skirt(tmp_path, skirt, setting, note):
+    """The loop surveys the masks, decides ("auto": 8 = 32 / 4 nodes with the skirt, none without) and logs the
+    figure it decided on; the checkpoint brings the node positions back. Without the skirt the toy capture's masks
+    are its body's silhouettes: nothing is off the body, an explicit K falls back to the surface."""
     import json
 
     from fixtures.toy_capture import make_toy_capture
@@ -117,15 +183,49 @@ def test_fit_with_hull_nodes_on_the_toy_capture(tmp_path, min_dist, off_body):
     from avatarctl.stages.fit import FitRequest
     from avatarctl.stages.ingest import IngestConfig
 
-    cap, proj = make_toy_capture(tmp_path / "cap"), tmp_path / "proj"
-    ingest.run(proj, IngestConfig(capture=cap, project=proj))
-    fit.run(proj, FitRequest(preset="micro", iters=2, device="cpu", overrides=(
-        "model.hull_nodes=4", f"model.hull_min_dist={min_dist}", "val_every=0")), handle_sigint=False)
+    cap, proj = make_toy_capture(tmp_path / "cap", skirt=skirt), tmp_path / "proj"
+    ingest.run(proj, IngestConfig(capture=cap, project=proj, contact_sheet=False))
+    result = fit.run(proj, FitRequest(preset="micro", iters=2, device="cpu", overrides=(
+        f"model.hull_nodes={setting}", "val_every=0")), handle_sigint=False)
     notes = [json.loads(line).get("note", "") for line in (proj / "fit" / "log.jsonl").read_text().splitlines()]
-    note = next(n for n in notes if n.startswith("hull nodes"))
-    assert note.startswith(f"hull nodes: {off_body} of 32 nodes placed off the body"), note
-    assert ("4 more on the surface" in note) == (off_body == 0), note
+    logged = next(n for n in notes if n.startswith("hull: "))
+    assert logged.endswith(note), logged
+    assert result.hull_nodes == logged
+    record = Project.open(proj).last("fit")
+    assert record is not None and record.summary["hull_nodes"] == logged
     av = load_avatar(Project.open(proj), device="cpu")
     ckpt = torch.load(proj / "fit" / "checkpoints" / "latest.pt", map_location="cpu", weights_only=False)
     assert torch.equal(av.model.node_rest, ckpt["model"]["node_rest"])
     assert av.model.node_rest.shape[0] == av.model.cfg.num_nodes
+    if skirt:  # the off-body nodes: beyond the 0.3 m sphere, at the skirt's height (z -0.25 to -0.05 m; two
+        # opposite training views do not carve the skirt's depth, so some sit beyond its 0.5 m radius)
+        k = int(note.split("-> ")[1].split(" of")[0])
+        r = torch.linalg.norm(av.model.node_rest[-k:, :2], dim=-1)
+        z = av.model.node_rest[-k:, 2]
+        assert (r > 0.35).all() and (z > -0.35).all() and (z < 0.05).all(), (r, z)
+    else:
+        from avatarctl.model.deformer import farthest_point_sampling  # the paper's placement, bit for bit
+
+        idx = farthest_point_sampling(av.template.vertices, 32, av.fit_config.seed)
+        if setting == "auto":
+            assert torch.equal(av.model.node_rest, av.template.vertices.float()[idx])
+
+
+def test_resuming_an_auto_fit_keeps_its_nodes(tmp_path):
+    """A resumed `hull_nodes=auto` fit does not survey again: the checkpoint's node positions come back as they
+    were and the run continues from them."""
+    from fixtures.toy_capture import make_toy_capture
+
+    from avatarctl.stages import fit, ingest
+    from avatarctl.stages.fit import FitRequest
+    from avatarctl.stages.ingest import IngestConfig
+
+    cap, proj = make_toy_capture(tmp_path / "cap", skirt=0.5), tmp_path / "proj"
+    ingest.run(proj, IngestConfig(capture=cap, project=proj, contact_sheet=False))
+    first = fit.run(proj, FitRequest(preset="micro", iters=2, device="cpu", overrides=(
+        "model.hull_nodes=auto", "val_every=0")), handle_sigint=False)
+    rest = torch.load(first.checkpoint, map_location="cpu", weights_only=True)["model"]["node_rest"]
+    again = fit.run(proj, FitRequest(iters=3, device="cpu", resume=True), handle_sigint=False)
+    assert again.step == 3 and again.hull_nodes is None  # nothing placed this run
+    assert first.hull_nodes is not None and "-> 8 of 32 nodes placed off the body" in first.hull_nodes
+    assert torch.equal(torch.load(again.checkpoint, map_location="cpu", weights_only=True)["model"]["node_rest"], rest)

@@ -22,7 +22,8 @@ from avatarctl.body.motion import BodyMotion
 
 
 def sphere_template(num_vertices: int = 400, radius: float = 0.3) -> BodyTemplate:
-    """Fibonacci-sphere vertices (deterministic), convex-hull faces, 2-joint skinning weights."""
+    """Fibonacci-sphere vertices (deterministic), convex-hull faces wound counter-clockwise seen from outside (as a
+    body model's: the signed volume is positive), 2-joint skinning weights."""
     from scipy.spatial import ConvexHull
 
     k = np.arange(num_vertices) + 0.5
@@ -31,6 +32,9 @@ def sphere_template(num_vertices: int = 400, radius: float = 0.3) -> BodyTemplat
     r = np.sqrt(1.0 - z * z)
     v = np.stack([r * np.cos(phi), r * np.sin(phi), z], axis=-1) * radius
     faces = ConvexHull(v).simplices
+    a, b, c = v[faces[:, 0]], v[faces[:, 1]], v[faces[:, 2]]
+    inward = np.einsum("ij,ij->i", np.cross(b - a, c - a), a + b + c) < 0  # the centre is the origin
+    faces[inward] = faces[inward][:, ::-1]
     w1 = 1.0 / (1.0 + np.exp(-v[:, 2] / (0.2 * radius)))  # upper hemisphere -> joint 1
     weights = np.stack([1.0 - w1, w1], axis=-1)
     return BodyTemplate(name="toy", vertices=torch.tensor(v, dtype=torch.float32),

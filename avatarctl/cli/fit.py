@@ -92,6 +92,8 @@ def _run(project_dir: Path, iters, preset, resume, fresh, seed, device, override
         table.add_row("pose refinement", f"{r.frames} frames x {r.joints} joints: mean {r.mean_rotation_deg:.2f} deg "
                                          f"(max {r.max_rotation_deg:.2f}), root {r.mean_root_shift_cm:.2f} cm"
                       + (f" -> {r.path}" if r.path else " (kept in the checkpoint: no motion file for this body model)"))
+    if result.hull_nodes is not None:  # model.hull_nodes on: what the masks showed beyond the body, what was placed
+        table.add_row("hull nodes", result.hull_nodes.removeprefix("hull: "))
     table.add_row("checkpoint", str(result.checkpoint))
     table.add_row("log / config", f"{project.paths.fit_log} / {project.paths.fit_config}")
     console.print(table)

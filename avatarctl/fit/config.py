@@ -9,11 +9,11 @@ Presets (see docs/fit.md):
 - "paper": the supplement's settings: model preset "paper" (N=128 nodes, 64 samples per ray), 2048 rays per step
   over a batch of 4 images (512 rays each), Adam lr 5e-4 (beta 0.9 / 0.999), lr x0.5 every 20k iterations, 300k
   iterations (the paper's ZJU-MoCap count; 100k PeopleSnapshot, 500k its own multi-view data).
-- "cpu": model preset "cpu" (narrow networks), 512 rays per step over 4 images, 20k iterations, validation on
+- "cpu": model preset "cpu" (narrow networks, hull nodes decided from the masks), 512 rays per step over 4 images, 20k iterations, validation on
   half-size images every 1000 steps: sized for a 2-core CPU (512 rays gave more rays/s than 1024 there: ~530 vs
   ~360 on a shared 2-core machine; a full-size 256x256 validation of 2 views took minutes there).
-- "micro": a smoke-test size for CI (32 nodes, 16 samples per ray, 128 rays over 2 images, 50 iterations). It
-  trains nothing useful.
+- "micro": a smoke-test size for CI (32 nodes, 16 samples per ray, 128 rays over 2 images, 50 iterations; no
+  hull-node survey, all nodes on the surface). It trains nothing useful.
 
 Training target (stated convention): real captures have real backgrounds, so the target of a ray is the masked
 image composited over a fixed `background` colour (black by default: rgb * mask + background * (1 - mask)), and
@@ -36,7 +36,7 @@ from dataclasses import asdict, dataclass, field, fields, replace
 from typing import Any
 
 from avatarctl.errors import InputError
-from avatarctl.model.config import ModelConfig
+from avatarctl.model.config import HULL_AUTO, ModelConfig
 
 SCHEMA_VERSION = 1
 PRESETS = ("cpu", "paper", "micro")
@@ -173,7 +173,7 @@ def preset(name: str) -> FitConfig:
     if name == "micro":
         return FitConfig(preset="micro", iters=50, rays_per_batch=128, images_per_batch=2, log_every=10,
                          checkpoint_every=50, val_every=0, val_pairs=1, val_scale=0.5,
-                         model=ModelConfig.preset("cpu").with_(num_nodes=32, samples_per_ray=16))
+                         model=ModelConfig.preset("cpu").with_(num_nodes=32, samples_per_ray=16, hull_nodes=0))
     raise InputError(f"unknown preset {name!r}", fix=f"use one of: {', '.join(PRESETS)}")
 
 
@@ -215,6 +215,8 @@ def _parse_value(key: str, text: str, current: Any) -> Any:
     """Parse `text` to the type of the current value of `key` (bool, int, float, str or tuple of floats)."""
     t = text.strip()
     try:
+        if key == "model.hull_nodes" and t.lower() == HULL_AUTO:  # decided from the masks (fit/hull_nodes.py)
+            return HULL_AUTO
         if isinstance(current, bool):
             low = t.lower()
             if low in ("1", "true", "yes", "on"):
@@ -222,7 +224,7 @@ def _parse_value(key: str, text: str, current: Any) -> Any:
             if low in ("0", "false", "no", "off"):
                 return False
             raise ValueError(t)
-        if isinstance(current, int):
+        if isinstance(current, int) or key == "model.hull_nodes":
             f = float(t)
             if not f.is_integer():
                 raise ValueError(t)
@@ -234,8 +236,9 @@ def _parse_value(key: str, text: str, current: Any) -> Any:
             return tuple(conv(x) for x in t.split(","))
         return t
     except ValueError:
-        kind = type(current).__name__
-        example = {"bool": "true|false", "int": "1000", "float": "0.0005", "tuple": "0,0,0"}.get(kind, "text")
+        kind = "int or auto" if key == "model.hull_nodes" else type(current).__name__
+        example = {"bool": "true|false", "int": "1000", "float": "0.0005", "tuple": "0,0,0",
+                   "int or auto": "32|auto"}.get(kind, "text")
         raise InputError(f"cannot read {key}={text!r} as {kind}", where="--set", fix=f"write e.g. {key}={example}") \
             from None
 

@@ -40,11 +40,13 @@ from avatarctl.device import resolve_device
 from avatarctl.dist import rank_device
 from avatarctl.errors import AvatarError, InputError, ProjectError
 from avatarctl.fit.config import FitConfig, config_summary
+from avatarctl.model.config import HULL_AUTO, ModelConfig
 from avatarctl.project import Project, now_iso
 
 if TYPE_CHECKING:
     from avatarctl.dist import DistEnv
     from avatarctl.fit.distributed import Replicas
+    from avatarctl.fit.hull_nodes import HullNodes
     from avatarctl.fit.refined import RefinementSummary
     from avatarctl.fit.validate import ValidationResult
 
@@ -90,6 +92,7 @@ class FitResult:
     device: str
     config: FitConfig
     refinement: "RefinementSummary | None" = None  # pose refinement on: how far it moved the fits (fit/refined.py)
+    hull_nodes: str | None = None  # model.hull_nodes on (a fresh fit): what the masks showed, how many nodes it placed
 
 
 @contextlib.contextmanager
@@ -176,6 +179,28 @@ def _resume_config(cfg: FitConfig | None, saved: FitConfig) -> FitConfig:
     return cfg
 
 
+def _place_hull_nodes(model_cfg: ModelConfig, seed: int, capture, body, template, train_frames: list[int],
+                      views: list[str]) -> "tuple[HullNodes | None, str]":
+    """`model.hull_nodes` = K or "auto" (fit/hull_nodes.py): survey the training masks, decide K for "auto", place
+    the nodes. -> (the K hull nodes, or None for the paper's placement; the line for the log and the summary)."""
+    from avatarctl.fit.hull_nodes import auto_hull_nodes, choose_hull_nodes, survey_hull
+    from avatarctl.model.deformer import farthest_point_sampling
+
+    N, auto = model_cfg.num_nodes, model_cfg.hull_nodes == HULL_AUTO
+    k = model_cfg.hull_auto_nodes if auto else int(model_cfg.hull_nodes)
+    surface = farthest_point_sampling(template.vertices, N - k, seed)
+    survey = survey_hull(capture, body, template, train_frames, views, surface, model_cfg.hull_min_dist)
+    if auto:
+        k = auto_hull_nodes(survey, k, model_cfg.hull_auto_min_volume)
+        if not k:
+            return None, (f"hull: {survey.describe()} < {100 * model_cfg.hull_auto_min_volume:g} % -> none "
+                          f"(hull_nodes=auto: all {N} nodes on the surface)")
+    hull = choose_hull_nodes(survey, template, template.vertices.detach().float()[surface], k)
+    more = f", {k - hull.off_body} more on the surface" if hull.off_body < k else ""
+    why = f" >= {100 * model_cfg.hull_auto_min_volume:g} % (hull_nodes=auto)" if auto else ""
+    return hull, f"hull: {survey.describe()}{why} -> {hull.off_body} of {N} nodes placed off the body{more}"
+
+
 def fit(project: Project, cfg: FitConfig | None = None, *, device: str = "auto", resume: bool = False,
         fresh: bool = False, progress: Callable[[StepReport], None] | None = None, stop: StopFlag | None = None,
         handle_sigint: bool = True, env: "DistEnv | None" = None, shards: int | None = None) -> FitResult:
@@ -244,15 +269,10 @@ def fit(project: Project, cfg: FitConfig | None = None, *, device: str = "auto",
     pairs = choose_val_pairs(split.test_views, train_frames, cfg.val_pairs) if main else []
     validator = Validator(capture, body, pairs, train_frames, cfg.background, cfg.val_scale) if pairs else None
 
-    hull = None
-    if cfg.model.hull_nodes and ckpt is None:  # K nodes off the body, from the masks (fit/hull_nodes.py)
-        from avatarctl.fit.hull_nodes import place_hull_nodes
-        from avatarctl.model.deformer import farthest_point_sampling
-
-        surface = farthest_point_sampling(template.vertices, cfg.model.num_nodes - cfg.model.hull_nodes, cfg.seed)
-        hull = place_hull_nodes(capture, body, template, train_frames, list(split.train_views),
-                                template.vertices.detach().float()[surface], surface, cfg.model.hull_nodes,
-                                cfg.model.hull_min_dist)
+    hull, hull_note = None, None
+    if cfg.model.hull_nodes and cfg.model.variant == "slrf" and ckpt is None:  # nodes off the body (fit/hull_nodes.py)
+        hull, hull_note = _place_hull_nodes(cfg.model, cfg.seed, capture, body, template, train_frames,
+                                            list(split.train_views))
     with torch.random.fork_rng(devices=[]):  # weights initialised from cfg.seed, global RNG left as it was
         torch.manual_seed(cfg.seed)
         model = SlrfAvatar(cfg.model, template, num_frames=len(train_frames), seed=cfg.seed,
@@ -274,11 +294,8 @@ def fit(project: Project, cfg: FitConfig | None = None, *, device: str = "auto",
         _set_rng_state(ckpt["rng"])
         same_stream = replicas.load_rng_state(ckpt["rng"], cfg.seed, start_step)
     log = _Log(paths.fit_log, _read_log(paths.fit_log, start_step) if resume else []) if main else None
-    if hull is not None and log is not None:
-        log.append({"step": 0, "note": f"hull nodes: {hull.off_body} of {cfg.model.num_nodes} nodes placed off the "
-                                       f"body from {hull.candidates} hull points of {hull.frames} frames"
-                                       + (f", {cfg.model.hull_nodes - hull.off_body} more on the surface"
-                                          if hull.off_body < cfg.model.hull_nodes else "")})
+    if hull_note is not None and log is not None:
+        log.append({"step": 0, "note": hull_note})
     if ckpt is not None and not same_stream and log is not None:
         log.append({"step": start_step, "note": f"resumed on {world} ranks: {saved_shards(ckpt['rng'])} ray shards "
                                                 f"resharded to {shards}, new sampling streams"})
@@ -388,7 +405,8 @@ def fit(project: Project, cfg: FitConfig | None = None, *, device: str = "auto",
                "rays_per_s": round(rays_per_s, 1), "device": str(dev),
                "val_psnr_bbox": None if val is None else val.psnr,
                "val_pairs": None if val is None else val.to_json()["pairs"], "ranks": world, "ray_shards": shards,
-               "pose_refinement": None if refinement is None else refinement.to_json(), **config_summary(cfg)}
+               "pose_refinement": None if refinement is None else refinement.to_json(), "hull_nodes": hull_note,
+               **config_summary(cfg)}
     if main:
         project.record("fit", {"fit": cfg.to_json(), "device": str(dev), "resume": resume, "ranks": world,
                                "ray_shards": shards},
@@ -397,4 +415,4 @@ def fit(project: Project, cfg: FitConfig | None = None, *, device: str = "auto",
     return FitResult(step=step, iters=cfg.iters, interrupted=interrupted, stop_reason=stop_reason,
                      checkpoint=last_ckpt, seconds=seconds,
                      setup_seconds=setup_seconds, losses=losses, val=val, rays_per_s=rays_per_s, device=str(dev),
-                     config=cfg, refinement=refinement)
+                     config=cfg, refinement=refinement, hull_nodes=hull_note)

@@ -25,7 +25,7 @@ import torch
 from torch import nn
 
 from avatarctl.body.base import BodyTemplate
-from avatarctl.model.config import ModelConfig
+from avatarctl.model.config import HULL_AUTO, ModelConfig
 from avatarctl.model.cvae import MODES, NodeCVAE
 from avatarctl.model.deformer import (blending_weights, candidate_pairs, farthest_point_sampling,
                                       local_coordinates_centered, node_pose_attention, node_pose_condition,
@@ -102,17 +102,22 @@ class SlrfAvatar(nn.Module):
 
     def __init__(self, cfg: ModelConfig, template: BodyTemplate, num_frames: int, seed: int = 0,
                  hull_nodes: tuple[torch.Tensor, torch.Tensor] | None = None):
-        """`hull_nodes` (with `cfg.hull_nodes` = K > 0, a deviation: fit/hull_nodes.py): the K off-body nodes as
-        (canonical positions [K, 3], nearest template vertex [K]); the other N - K nodes are sampled on the surface.
-        None with K > 0: placeholders (K more surface nodes) that a checkpoint's buffers replace (loading)."""
+        """`hull_nodes` (with `cfg.hull_nodes` = K > 0 or "auto", a deviation: fit/hull_nodes.py): the K off-body
+        nodes as (canonical positions [K, 3], nearest template vertex [K]); the other N - K nodes are sampled on the
+        surface. None: all N on the surface, the paper's placement (for K > 0 or "auto", placeholders that a
+        checkpoint's buffers replace when loading)."""
         super().__init__()
         V, J = template.skin_weights.shape
         if cfg.num_nodes > V:
             raise ValueError(f"num_nodes={cfg.num_nodes} exceeds the template's {V} vertices")
         K = cfg.hull_nodes
-        if hull_nodes is not None and (K == 0 or hull_nodes[0].shape != (K, 3) or hull_nodes[1].shape != (K,)):
-            raise ValueError(f"hull_nodes must be ([{K}, 3], [{K}]) for model.hull_nodes={K}, got "
-                             f"{tuple(hull_nodes[0].shape)}, {tuple(hull_nodes[1].shape)}")
+        if hull_nodes is not None:
+            if K == HULL_AUTO:  # the fit decided K from the masks
+                K = int(hull_nodes[0].shape[0])
+            if not 0 < K < cfg.num_nodes or hull_nodes[0].shape != (K, 3) or hull_nodes[1].shape != (K,):
+                raise ValueError(f"hull_nodes must be ([{K}, 3], [{K}]) with 0 < K < num_nodes for "
+                                 f"model.hull_nodes={cfg.hull_nodes!r}, got {tuple(hull_nodes[0].shape)}, "
+                                 f"{tuple(hull_nodes[1].shape)}")
         if num_frames < 0 or (cfg.latent == "per_frame" and num_frames < 1):
             raise ValueError(f"num_frames must be >= 0 (>= 1 for latent 'per_frame'), got {num_frames}")
         self.cfg = cfg

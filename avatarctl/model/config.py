@@ -12,7 +12,9 @@ our choice because the paper's architecture figure (supp. Fig. A) is not availab
 
 Presets: "paper" = the defaults; "cpu" = the same model with narrower networks (node 2 x 32 -> 32, heads 64,
 cVAE 32) so a training step with a few hundred rays takes well under a second on 2 CPU cores, and with empty-space
-skipping on (`occupancy`, model/occupancy.py: same images, ~20 % more steps per second, measured in docs/fit.md).
+skipping on (`occupancy`, model/occupancy.py: same images, ~20 % more steps per second, measured in docs/fit.md) and
+hull nodes decided from the masks (`hull_nodes = "auto"`, fit/hull_nodes.py: +0.4 dB on the skirt capture, the
+paper's placement on tight clothing; docs/experiments/hull_auto_2026-11-25).
 
 Choices beyond the paper text (documented, switchable):
 - `local_coords_in_sigma`: local coordinates p_i (Eq. 4) are divided by sigma before the positional encoding, so
@@ -35,7 +37,8 @@ SCHEMA_VERSION = 1
 LATENTS = ("cvae", "deterministic", "per_frame")
 VARIANTS = ("slrf", "lbs_baseline")
 FIELDS = ("mlp", "grid")  # local fields F_i: the paper's per-node MLPs | per-node feature grids (model/grid_field.py)
-REC_REDUCTIONS = ("sum", "mean")  # Eq. 12 as written (sum over rays) | plain MSE, see model/losses.py
+REC_REDUCTIONS = ("sum", "mean")
+HULL_AUTO = "auto"  # `hull_nodes`: decide from the training masks at fit start (fit/hull_nodes.py)  # Eq. 12 as written (sum over rays) | plain MSE, see model/losses.py
 
 
 @dataclass(frozen=True)
@@ -44,8 +47,12 @@ class ModelConfig:
 
     # representation (Eq. 1-6)
     num_nodes: int = 128  # N, nodes by farthest point sampling on the canonical surface
-    hull_nodes: int = 0  # K of the N placed off the body from the masks' visual hull (deviation, fit/hull_nodes.py)
+    # K of the N placed off the body from the masks' visual hull (deviation, fit/hull_nodes.py); "auto": decided
+    # from the masks at fit start (hull_auto_fraction N nodes or none)
+    hull_nodes: int | str = 0
     hull_min_dist: float = 0.14  # hull points farther than this (metres) from every surface node are off-body
+    hull_auto_fraction: float = 0.25  # "auto" says yes: this share of the N nodes goes off the body (32 of 128)
+    hull_auto_min_volume: float = 0.1  # "auto" says yes when the persistent off-body cells hold >= this x body volume
     sigma: float = 0.05  # Eq. 6 Gaussian width, metres
     eps: float = 0.001  # Eq. 6 truncation; support radius sigma*sqrt(-2 ln eps) = 0.186 m
     embed_dim: int = 32  # dim e_i, dynamic detail embedding
@@ -124,11 +131,18 @@ class ModelConfig:
             need(isinstance(v, int) and not isinstance(v, bool) and v >= 0, f"{name} must be an int >= 0, got {v!r}")
         need(isinstance(self.pack_block, int) and self.pack_block >= 0, f"pack_block must be an int >= 0, got "
              f"{self.pack_block!r}")
-        need(isinstance(self.hull_nodes, int) and not isinstance(self.hull_nodes, bool)
-             and 0 <= self.hull_nodes < self.num_nodes,
-             f"hull_nodes must be an int in [0, num_nodes={self.num_nodes}), got {self.hull_nodes!r}")
+        need(self.hull_nodes == HULL_AUTO or (isinstance(self.hull_nodes, int) and not isinstance(self.hull_nodes, bool)
+                                              and 0 <= self.hull_nodes < self.num_nodes),
+             f"hull_nodes must be an int in [0, num_nodes={self.num_nodes}) or {HULL_AUTO!r} (decide from the "
+             f"masks), got {self.hull_nodes!r}")
         need(self.hull_min_dist > 0, f"hull_min_dist must be > 0 (metres), got {self.hull_min_dist}")
-        need(self.hull_nodes == 0 or self.variant == "slrf", "hull_nodes needs the slrf variant (the pose-only "
+        need(0 < self.hull_auto_fraction < 1, f"hull_auto_fraction must be in (0, 1), got {self.hull_auto_fraction}")
+        need(self.hull_nodes != HULL_AUTO or self.hull_auto_nodes < self.num_nodes,
+             f"hull_nodes='auto' would place {self.hull_auto_nodes} of num_nodes={self.num_nodes} nodes off the "
+             f"body; use more nodes or a smaller hull_auto_fraction")
+        need(self.hull_auto_min_volume >= 0, f"hull_auto_min_volume must be >= 0 (a share of the body volume), got "
+             f"{self.hull_auto_min_volume}")
+        need(self.hull_nodes in (0, HULL_AUTO) or self.variant == "slrf", "hull_nodes needs the slrf variant (the pose-only "
              "baseline has no nodes)")
         need(self.samples_per_ray >= 2, f"samples_per_ray must be >= 2, got {self.samples_per_ray}")
         need(self.head_width >= 2, f"head_width must be >= 2, got {self.head_width}")
@@ -151,6 +165,11 @@ class ModelConfig:
              f"rec_reduction must be one of {REC_REDUCTIONS}, got {self.rec_reduction!r}")
         need(isinstance(self.rec_reference_rays, int) and self.rec_reference_rays > 0,
              f"rec_reference_rays must be a positive int, got {self.rec_reference_rays!r}")
+
+    @property
+    def hull_auto_nodes(self) -> int:
+        """K when `hull_nodes = "auto"` decides for hull nodes: round(hull_auto_fraction N), at least 1."""
+        return max(1, round(self.hull_auto_fraction * self.num_nodes))
 
     @property
     def support_radius(self) -> float:
@@ -179,11 +198,13 @@ class ModelConfig:
 
     @classmethod
     def preset(cls, name: str) -> "ModelConfig":
-        """"paper": the defaults. "cpu": narrower networks and empty-space skipping (see module docstring)."""
+        """"paper": the defaults. "cpu": narrower networks, empty-space skipping and hull nodes where the masks show
+        loose clothing (`hull_nodes = "auto"`, fit/hull_nodes.py; see module docstring)."""
         if name == "paper":
             return cls()
         if name == "cpu":
-            return cls(node_width=32, node_depth=2, feature_dim=32, head_width=64, cvae_width=32, occupancy=True)
+            return cls(node_width=32, node_depth=2, feature_dim=32, head_width=64, cvae_width=32, occupancy=True,
+                       hull_nodes=HULL_AUTO)
         raise ValueError(f"ModelConfig: unknown preset {name!r}; use 'paper' or 'cpu'")
 
     def with_(self, **changes: Any) -> "ModelConfig":
