@@ -283,7 +283,7 @@ def fit(project: Project, cfg: FitConfig | None = None, *, device: str = "auto",
         model.pose_refine.set_centres(joint_centres(poses.joint_transforms, template.parents,
                                                     skin_weighted_centroids(template.vertices, template.skin_weights)))
     if model.pose_refine is not None and cfg.model.lambda_pose_accel > 0:  # the sequence the smoothness term sees
-        model.pose_refine.set_sequence(poses.joint_transforms, train_frames)
+        model.pose_refine.set_sequence(poses.joint_transforms, train_frames, capture.motion.fps)
     model.train()
     optimizer = make_optimizer(cfg, param_groups(cfg, model))
     scheduler = make_scheduler(cfg, optimizer)

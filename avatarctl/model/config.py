@@ -91,7 +91,7 @@ class ModelConfig:
     pose_refine: bool = False  # optimise per-training-frame joint rotations / root translation with the avatar
     lambda_pose: float = 100.0  # weight of the refinement penalty (sum over joints of |delta|^2 + |tau / 0.1 m|^2)
     pose_refine_min_share: float = 0.04  # refine joints whose subtree carries >= this share of the skinning weight
-    lambda_pose_accel: float = 0.0  # temporal smoothness of the refined poses (0: off; model/pose_refine.py)
+    lambda_pose_accel: float = 2e-3  # temporal smoothness of the refined poses, per (m/s^2)^2 (0: off; pose_refine.py)
     # pose condition (Eq. 8)
     pose_attention_hops: int = 2
     # ablations
