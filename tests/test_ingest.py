@@ -87,7 +87,7 @@ def test_frames_and_masks_match_undistorted_ground_truth(capture, ingested):
             psnr = 10 * np.log10(255.0 ** 2 / mse)
             assert psnr > 28.0, (cam.name, f, psnr)  # JPEG re-encoding: ~30 dB; a 1-px shift: < 25 dB
             # the undistorted mask agrees with the mesh rendered directly in the pinhole camera
-            from avatarctl.ingest.silhouette import rasterize_silhouette
+            from avatarctl.geometry.silhouette import rasterize_silhouette
 
             gt = rasterize_silhouette(cam.pinhole(), capture.vertices[f], capture.faces)
             assert iou(read_mask(p, cam.name, f), gt) > 0.9
@@ -114,7 +114,7 @@ def test_background_masks_match_ground_truth(capture, tmp_path):
     ious = []
     for cam in capture.cameras:
         for f in (0, 3):
-            from avatarctl.ingest.silhouette import rasterize_silhouette
+            from avatarctl.geometry.silhouette import rasterize_silhouette
 
             gt = rasterize_silhouette(cam.pinhole(), capture.vertices[f], capture.faces)
             ious.append(iou(read_mask(p, cam.name, f), gt))

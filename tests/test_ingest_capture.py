@@ -285,7 +285,7 @@ def test_silhouette_term_recovers_unobserved_legs():
                                               fit_keypoints)
     from avatarctl.ingest.estimate import silhouette_targets
     from avatarctl.ingest.keypoints import KEYPOINT_NAMES
-    from avatarctl.ingest.silhouette import rasterize_silhouette
+    from avatarctl.geometry.silhouette import rasterize_silhouette
 
     body = AnnyBody()
     kp = AnnyKeypoints(body, KEYPOINT_NAMES)

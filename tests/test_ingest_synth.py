@@ -50,7 +50,7 @@ def test_synth_ingest_matches_undistorted_ground_truth(synth_capture, ingested):
     import cv2
 
     from avatarctl.ingest.masks import iou
-    from avatarctl.ingest.silhouette import rasterize_silhouette
+    from avatarctl.geometry.silhouette import rasterize_silhouette
     from avatarctl.io.easymocap import read_easymocap_cameras
     from avatarctl.io.project_io import load_project_capture
     from avatarctl.project import Project

@@ -168,7 +168,7 @@ def survey_hull(capture, body, template, frames: list[int], views: list[str], su
     import cv2
 
     from avatarctl.body.lbs import blend_transforms
-    from avatarctl.ingest.silhouette import rasterize_silhouette
+    from avatarctl.geometry.silhouette import rasterize_silhouette
 
     use = [frames[i] for i in np.unique(np.linspace(0, len(frames) - 1, min(max_frames, len(frames))).astype(int))]
     motion = capture.motion.select(capture.motion.rows_for(use))

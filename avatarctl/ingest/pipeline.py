@@ -217,7 +217,7 @@ def run_ingest(cfg: IngestConfig, progress: ProgressFn | None = None) -> IngestR
     from avatarctl.atomic import atomic_dir
     from avatarctl.body.registry import needs_model_file
     from avatarctl.ingest.contact_sheet import Tile, pick, write_contact_sheet
-    from avatarctl.ingest.silhouette import fraction_inside
+    from avatarctl.geometry.silhouette import fraction_inside
     from avatarctl.ingest.split import default_split, restrict_split
     from avatarctl.ingest.undistort import Undistorter
     from avatarctl.io.project_io import save_cameras, save_split, write_frame, write_mask
@@ -381,7 +381,7 @@ def _process_view(plan: IngestPlan, u, plate: np.ndarray | None, cam: str, frame
     `u` is the camera's `Undistorter`; `verts` [V, 3] the posed body (world); `plate` the undistorted background
     plate (background masks only)."""
     from avatarctl.ingest.masks import background_mask
-    from avatarctl.ingest.silhouette import rasterize_silhouette
+    from avatarctl.geometry.silhouette import rasterize_silhouette
 
     src = plan.source
     rgb = src.images.read(cam, frame)

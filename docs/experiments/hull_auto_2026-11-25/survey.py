@@ -37,7 +37,7 @@ def unexplained_share(cap, body, tpl, frames: list[int], views: list[str], max_f
     """Mean share of the mask pixels outside the posed body's silhouette grown by 2 px (the survey's frames)."""
     import cv2
 
-    from avatarctl.ingest.silhouette import rasterize_silhouette
+    from avatarctl.geometry.silhouette import rasterize_silhouette
 
     use = [frames[i] for i in np.unique(np.linspace(0, len(frames) - 1, min(max_frames, len(frames))).astype(int))]
     posed = body.pose(cap.motion.select(cap.motion.rows_for(use)))

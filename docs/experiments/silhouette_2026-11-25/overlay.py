@@ -19,7 +19,7 @@ def main() -> None:
     import cv2
 
     from avatarctl.body.motion import BodyMotion
-    from avatarctl.ingest.silhouette import project_vertices, rasterize_silhouette
+    from avatarctl.geometry.silhouette import project_vertices, rasterize_silhouette
 
     sys.path.insert(0, str(Path(__file__).parent))
     from sweep import detections

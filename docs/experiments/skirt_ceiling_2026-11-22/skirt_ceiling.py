@@ -26,7 +26,7 @@ import numpy as np
 
 from avatarctl.evaluate.metrics import to_float
 from avatarctl.evaluate.protocols import bbox_region
-from avatarctl.ingest.silhouette import rasterize_silhouette
+from avatarctl.geometry.silhouette import rasterize_silhouette
 from avatarctl.io.project_io import load_project_capture
 from avatarctl.project import Project
 

@@ -1,4 +1,4 @@
-"""Projected body-mesh silhouettes (the seed for background matting, and the contact-sheet overlay)."""
+"""Projected body-mesh silhouettes (the seed for background matting, the contact-sheet overlay, the hull-node carve)."""
 
 from __future__ import annotations
 
