@@ -94,6 +94,32 @@ def test_anny_fit_recovers_a_known_pose_from_its_keypoints():
     assert motion.body_model == "anny" and motion.pose_parameters.shape == (3, 104, 4, 4)
 
 
+def test_anny_joint_limits_allow_bending_and_punish_a_backward_knee_or_elbow():
+    import torch
+
+    from avatarctl.body.anny_model import AnnyBody
+    from avatarctl.body.fit_keypoints import FIT_BONES, AnnyKeypoints, KeypointFitConfig
+    from avatarctl.ingest.keypoints import KEYPOINT_NAMES
+
+    kp = AnnyKeypoints(AnnyBody(), KEYPOINT_NAMES)
+    knee, elbow = FIT_BONES.index("lowerleg01.L"), FIT_BONES.index("lowerarm01.R")
+    own_x = torch.as_tensor(np.asarray(kp.body.model.reference_bone_orientations), dtype=torch.float64)[
+        kp.body.joint_names.index("lowerarm01.R")][:, 0]
+    rot = torch.zeros(6, len(FIT_BONES), 3, dtype=torch.float64)
+    rot[1, knee, 0] = np.deg2rad(90)  # a knee bent forward: allowed
+    rot[2, elbow] = np.deg2rad(60) * own_x / own_x.norm()  # an elbow bent: allowed
+    rot[3, knee, 0] = np.deg2rad(-30)  # the knee bent backwards by 30 deg (25 past the limit)
+    rot[4, knee, 2] = np.deg2rad(30)  # the knee twisted by 30 deg (20 past the limit)
+    rot[5, elbow] = np.deg2rad(-70) * own_x / own_x.norm()  # the elbow straightened 30 deg past straight
+    L = kp.limit_penalty(rot)
+    assert L[:3].abs().max() < 1e-12
+    assert float(L[3]) == pytest.approx(np.deg2rad(25) ** 2, rel=1e-6)
+    assert float(L[4]) == pytest.approx(np.deg2rad(20) ** 2, rel=1e-6)
+    assert float(L[5]) == pytest.approx(np.deg2rad(30) ** 2, rel=1e-6)
+    with pytest.raises(ValueError):
+        KeypointFitConfig(w_limits=-1.0)
+
+
 def test_kabsch_recovers_a_rigid_motion():
     from scipy.spatial.transform import Rotation
 

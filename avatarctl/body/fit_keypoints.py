@@ -21,6 +21,7 @@ instead of 2D data):
       + λ_pose   · mean_f Σ_b ‖θ_fb‖²             pose prior: stay near the reference pose
       + λ_smooth · mean_f Σ_b ‖θ_f+1,b − θ_fb‖²   temporal smoothness (and λ_trans for root translation)
       + λ_shape  · P(s)                           shape prior: stay near the average subject
+      + λ_limit  · mean_f L(θ_f)                  joint limits of the hinge joints (0 where the body model has none)
       + λ_sil    · mean_fcv ρ_s(D_fc(π_c(v)) z_fcv / f_c)    silhouette term (optional, from step s_0 on)
 
 ρ(r) = σ² r² / (r² + σ²) (Geman & McClure 1987): quadratic for r ≪ σ, bounded for outliers. w_fj is the target's
@@ -34,6 +35,13 @@ weight does not depend on the resolution. It pushes the body *into* the masks an
 loose clothing makes a mask larger than the body. ρ_s is Geman-McClure with its own scale (a mask that misses a
 hand must not drag the arm). It starts at step s_0 (a fraction of the steps), once the keypoints have placed the
 body, and the share of projected vertices inside the masks (1 px tolerance) is reported at s_0 and at the end.
+Joint limits L(θ) (anny; none for SMPL yet): knees and elbows are hinges. With φ the rotation about the hinge's
+flexion axis (knees: +x of the reference pose; elbows: the lowerarm bone's own x axis, `reference_bone_orientations`;
+FACTS.md, checked: +φ bends), L = Σ_hinges relu(φ_lo − φ)² + relu(φ − φ_hi)², plus relu(|θ_⊥| − 10°)² for the knees'
+rotation off that axis (a knee does not twist or bend sideways). Ranges (radians, from anny's reference pose: knees
+straight, elbows pre-flexed 36.5°): knees [−5°, 150°], elbows [−40°, 115°]. Keypoints under a dress or a noisy
+triangulation can otherwise bend a knee backwards.
+
 Initialisation: θ = 0, s = 0 (anny φ = ½, SMPL β = 0), and the root by a weighted Kabsch / Umeyama (1991)
 alignment of the rest pose's hips and shoulders (anny: reference A-pose, SMPL: T-pose) to the targets of each frame.
 
@@ -56,6 +64,10 @@ FIT_BONES = ("spine05", "spine04", "spine03", "spine02", "spine01", "neck01", "n
              "clavicle.L", "clavicle.R", "upperarm01.L", "upperarm01.R", "lowerarm01.L", "lowerarm01.R",
              "upperleg01.L", "upperleg01.R", "lowerleg01.L", "lowerleg01.R", "foot.L", "foot.R")
 TORSO = ("left_shoulder", "right_shoulder", "left_hip", "right_hip")
+# hinge joints of anny's FIT_BONES: (bone, flexion axis: "x" = +x of the reference pose, "own" = the bone's own x axis,
+# range of the flexion angle in degrees, limit on the rotation off that axis in degrees or None); module docstring
+ANNY_HINGES = (("lowerleg01.L", "x", (-5.0, 150.0), 10.0), ("lowerleg01.R", "x", (-5.0, 150.0), 10.0),
+               ("lowerarm01.L", "own", (-40.0, 115.0), None), ("lowerarm01.R", "own", (-40.0, 115.0), None))
 SILHOUETTE_WEIGHT = 0.0  # the default λ_sil: off (measured: docs/experiments/silhouette_2026-11-25; 10 is the tried setting)
 MAX_FIELD_SIDE = 128  # px: the larger side of the silhouette distance fields (64 KB per view at most)
 
@@ -69,6 +81,7 @@ class KeypointFitConfig:
     w_smooth: float = 1e-4  # λ_smooth (rotation vectors between consecutive fitted frames)
     w_trans: float = 1e-3  # λ_trans (root translation between consecutive fitted frames)
     w_shape: float = 1e-4  # λ_shape
+    w_limits: float = 0.0  # λ_limit (0: off)
     fit_shape: bool = True  # optimise the subject's shape (anny phenotype, SMPL betas); else the average subject
     w_silhouette: float = SILHOUETTE_WEIGHT  # λ_sil (0: off; used only when silhouettes are given)
     silhouette_scale_m: float = 0.05  # σ of the silhouette term's Geman-McClure (metres at the subject)
@@ -76,7 +89,7 @@ class KeypointFitConfig:
     silhouette_vertices: int = 2000  # posed vertices projected per frame (an even spread of anny's 13,718)
 
     def __post_init__(self) -> None:
-        if self.iters < 0 or self.lr <= 0 or self.robust_scale_m <= 0:
+        if self.iters < 0 or self.lr <= 0 or self.robust_scale_m <= 0 or not self.w_limits >= 0:
             raise ValueError(f"bad keypoint-fit settings {self}")
         if not (self.w_silhouette >= 0 and self.silhouette_scale_m > 0 and 0 <= self.silhouette_start < 1
                 and self.silhouette_vertices > 0):
@@ -193,6 +206,10 @@ class KeypointBody(Protocol):
         """P(s): a scalar, zero for the average subject (s = 0)."""
         ...
 
+    def limit_penalty(self, rotvecs: torch.Tensor) -> torch.Tensor:
+        """L(θ) of the module docstring per frame: rotvecs [frames, rotations, 3] -> [frames] (zeros: no limits)."""
+        ...
+
     def to_motion(self, rotvecs: torch.Tensor, R_root: torch.Tensor, t_root: torch.Tensor,
                   shape: torch.Tensor) -> BodyMotion:
         """The parameters as the body model's `BodyMotion` (frame_index 0..frames-1)."""
@@ -233,6 +250,14 @@ class AnnyKeypoints(torch.nn.Module):
         self.num_rotations = len(bones)
         self.num_shape = len(body.phenotype_labels)
         self.dtype = torch.float64
+        orient = torch.as_tensor(np.asarray(body.model.reference_bone_orientations), dtype=torch.float64)
+        self._hinges = []  # (slot in bones, unit flexion axis [3], lo, hi, off-axis limit; radians)
+        for bone, kind, (lo, hi), off in ANNY_HINGES:
+            if bone in bones:
+                ax = torch.tensor([1.0, 0.0, 0.0], dtype=torch.float64) if kind == "x" else \
+                    orient[body.joint_names.index(bone)][:, 0] / orient[body.joint_names.index(bone)][:, 0].norm()
+                self._hinges.append((bones.index(bone), ax, np.deg2rad(lo), np.deg2rad(hi),
+                                     np.deg2rad(off) if off is not None else np.inf))
 
     def pose_matrices(self, rotvecs: torch.Tensor, R_root: torch.Tensor, t_root: torch.Tensor) -> torch.Tensor:
         """[frames, 104, 4, 4] local-ref deltas: identity except the fitted bones' rotations and the root pose."""
@@ -262,6 +287,22 @@ class AnnyKeypoints(torch.nn.Module):
 
     def shape_prior(self, shape: torch.Tensor) -> torch.Tensor:
         return ((torch.sigmoid(shape) - 0.5) ** 2).sum()
+
+    def limit_penalty(self, rotvecs: torch.Tensor) -> torch.Tensor:
+        """[frames, bones, 3] -> [frames]: L(θ) of the module docstring over `ANNY_HINGES`."""
+        if not self._hinges:
+            return rotvecs.new_zeros(rotvecs.shape[0])
+        slot, axis, lo, hi, off = self._hinges_tensors(rotvecs.dtype)
+        th = rotvecs[:, slot]  # [frames, H, 3]
+        phi = (th * axis).sum(-1)  # [frames, H] flexion angle
+        perp = (th - phi[..., None] * axis).norm(dim=-1)  # [frames, H] rotation off the axis
+        return (torch.relu(lo - phi) ** 2 + torch.relu(phi - hi) ** 2 + torch.relu(perp - off) ** 2).sum(-1)
+
+    def _hinges_tensors(self, dt: torch.dtype) -> tuple[torch.Tensor, ...]:
+        slot = torch.tensor([h[0] for h in self._hinges])
+        axis = torch.stack([h[1] for h in self._hinges]).to(dt)  # [H, 3] unit
+        lo, hi, off = (torch.tensor([h[k] for h in self._hinges], dtype=dt) for k in (2, 3, 4))
+        return slot, axis, lo, hi, off
 
     def to_motion(self, rotvecs: torch.Tensor, R_root: torch.Tensor, t_root: torch.Tensor,
                   shape: torch.Tensor) -> BodyMotion:
@@ -391,6 +432,8 @@ def fit_keypoints(model: KeypointBody, targets: KeypointTargets, cfg: KeypointFi
             loss = loss + cfg.w_smooth * ((rotvecs[1:] - rotvecs[:-1]) ** 2).sum((1, 2)).mean()
             loss = loss + cfg.w_trans * ((root_t[1:] - root_t[:-1]) ** 2).sum(1).mean()
         loss = loss + cfg.w_shape * model.shape_prior(shape)
+        if cfg.w_limits > 0:
+            loss = loss + cfg.w_limits * model.limit_penalty(rotvecs).mean()
         loss.backward()
         opt.step()
         if progress is not None:

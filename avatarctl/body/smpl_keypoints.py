@@ -154,6 +154,10 @@ class SmplKeypoints:
     def shape_prior(self, shape: torch.Tensor) -> torch.Tensor:
         return ((shape / BETA_PRIOR_SCALE) ** 2).sum()
 
+    def limit_penalty(self, rotvecs: torch.Tensor) -> torch.Tensor:
+        """No joint limits for SMPL / SMPL-X yet (their hinge axes are not checked on a real model file): zeros."""
+        return rotvecs.new_zeros(rotvecs.shape[0])
+
     def to_motion(self, rotvecs: torch.Tensor, R_root: torch.Tensor, t_root: torch.Tensor,
                   shape: torch.Tensor) -> BodyMotion:
         """The fitted parameters as a `BodyMotion` (frame_index 0..frames-1; SMPL-X hands and face zero)."""

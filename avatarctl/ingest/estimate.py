@@ -178,10 +178,11 @@ def silhouette_targets(cameras, cams: list[str], frames: list[int], read_mask: R
 
 def estimate_fits(det: Detections, cameras, body, fit_iters: int, fps: float,
                   progress: PartProgress | None = None, read_mask: ReadMask | None = None,
-                  silhouette_weight: float | None = None) -> EstimatedFits:
+                  silhouette_weight: float | None = None, limit_weight: float | None = None) -> EstimatedFits:
     """Triangulate the detections with the pinhole `cameras` (order of `det.cams`) and fit `body` (an `AnnyBody`
     or `SmplBody`) to the frames with enough keypoints. With `read_mask` the fit has a silhouette term of weight
-    `silhouette_weight` (None: the keypoint fit's default; 0: off). See the module docstring."""
+    `silhouette_weight` (None: the keypoint fit's default; 0: off); `limit_weight`: the joint limits' weight (None:
+    the default). See the module docstring."""
     from avatarctl.body.fit_keypoints import TORSO, KeypointFitConfig, KeypointTargets, fit_keypoints, keypoint_body
     from avatarctl.geometry.triangulate import projection_matrices, triangulate_robust
     from avatarctl.ingest.keypoints import KEYPOINT_WEIGHTS
@@ -212,6 +213,8 @@ def estimate_fits(det: Detections, cameras, body, fit_iters: int, fps: float,
     cfg = KeypointFitConfig(iters=fit_iters)
     if silhouette_weight is not None:
         cfg = replace(cfg, w_silhouette=float(silhouette_weight))
+    if limit_weight is not None:
+        cfg = replace(cfg, w_limits=float(limit_weight))
     sil = None
     if read_mask is not None and cfg.w_silhouette > 0:
         sil = silhouette_targets(cameras, det.cams, kept, read_mask)

@@ -1,6 +1,6 @@
 """The keypoint fit with and without its silhouette term, on one set of MediaPipe detections (issue 13).
 
-    python sweep.py CAP REF OUT.json [--weights 0,10,100] [--detections DET.npz] [--frames N]
+    python sweep.py CAP REF OUT.json [--weights 0,10,100] [--detections DET.npz] [--frames N] [--limits W]
 
 CAP: a synth capture cut down to intri.yml, extri.yml, images/ (masks, fits and plates withheld, as in
 docs/experiments/own_capture_2026-11-25/README.md); REF: the same synth capture ingested with its true masks and fits.
@@ -81,6 +81,7 @@ def main() -> None:
     ap.add_argument("--detections", type=Path)
     ap.add_argument("--frames", type=int, default=0, help="use only the first N frames (0: all)")
     ap.add_argument("--iters", type=int, default=400)
+    ap.add_argument("--limits", type=float, default=0.0, help="weight of the joint limits (w_limits; 0: off)")
     a = ap.parse_args()
     from anny.keypoints import KeypointsRegressor
 
@@ -99,8 +100,9 @@ def main() -> None:
     rows = []
     for w in [float(x) for x in a.weights.split(",")]:
         t0 = time.perf_counter()
-        est = estimate_fits(det, cameras, plan.body, a.iters, 30.0, read_mask=det.mask, silhouette_weight=w)
-        row = {"weight": w, "seconds": round(time.perf_counter() - t0, 1), **compare(plan.body, reg, est.motion, ref),
+        est = estimate_fits(det, cameras, plan.body, a.iters, 30.0, read_mask=det.mask, silhouette_weight=w,
+                            limit_weight=a.limits)
+        row = {"weight": w, "limits": a.limits, "seconds": round(time.perf_counter() - t0, 1), **compare(plan.body, reg, est.motion, ref),
                "fit_error_cm": round(est.report.fit_error_cm, 3),
                "inside_before": est.report.silhouette_inside_before,
                "inside_after": est.report.silhouette_inside_after}
