@@ -81,7 +81,7 @@ class KeypointFitConfig:
     w_smooth: float = 1e-4  # λ_smooth (rotation vectors between consecutive fitted frames)
     w_trans: float = 1e-3  # λ_trans (root translation between consecutive fitted frames)
     w_shape: float = 1e-4  # λ_shape
-    w_limits: float = 0.0  # λ_limit (0: off)
+    w_limits: float = 0.01  # λ_limit (0: off; measured: docs/experiments/silhouette_2026-11-25 "Joint limits")
     fit_shape: bool = True  # optimise the subject's shape (anny phenotype, SMPL betas); else the average subject
     w_silhouette: float = SILHOUETTE_WEIGHT  # λ_sil (0: off; used only when silhouettes are given)
     silhouette_scale_m: float = 0.05  # σ of the silhouette term's Geman-McClure (metres at the subject)
@@ -292,13 +292,15 @@ class AnnyKeypoints(torch.nn.Module):
         """[frames, bones, 3] -> [frames]: L(θ) of the module docstring over `ANNY_HINGES`."""
         if not self._hinges:
             return rotvecs.new_zeros(rotvecs.shape[0])
-        slot, axis, lo, hi, off = self._hinges_tensors(rotvecs.dtype)
+        slot, axis, lo, hi, off = self.hinge_tensors(rotvecs.dtype)
         th = rotvecs[:, slot]  # [frames, H, 3]
         phi = (th * axis).sum(-1)  # [frames, H] flexion angle
         perp = (th - phi[..., None] * axis).norm(dim=-1)  # [frames, H] rotation off the axis
         return (torch.relu(lo - phi) ** 2 + torch.relu(phi - hi) ** 2 + torch.relu(perp - off) ** 2).sum(-1)
 
-    def _hinges_tensors(self, dt: torch.dtype) -> tuple[torch.Tensor, ...]:
+    def hinge_tensors(self, dt: torch.dtype) -> tuple[torch.Tensor, ...]:
+        """The hinges as tensors: (slots in the fitted bones [H], unit flexion axes [H, 3], lower and upper flexion
+        limits [H], off-axis limits [H]; radians, inf = none)."""
         slot = torch.tensor([h[0] for h in self._hinges])
         axis = torch.stack([h[1] for h in self._hinges]).to(dt)  # [H, 3] unit
         lo, hi, off = (torch.tensor([h[k] for h in self._hinges], dtype=dt) for k in (2, 3, 4))
