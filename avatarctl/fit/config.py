@@ -70,7 +70,7 @@ class FitConfig:
     # optimiser (paper: Adam lr 5e-4, betas 0.9 / 0.999, exponential decay every 20k iterations)
     lr: float = 5e-4
     lr_grid: float = 1e-2  # learning rate of the feature grids of `model.field = "grid"` (unused by the MLP field)
-    lr_pose: float = 3e-4  # learning rate of the pose-refinement corrections (`model.pose_refine`; 1e-3 until 2026-11-25)
+    lr_pose: float = 3e-4  # rate of the pose-refinement corrections (`model.pose_refine`; 1e-3 until 2026-11-25)
     pose_refine_start: int = 0  # the corrections stay frozen (lr 0) before this step: the avatar takes shape first
     adam_beta1: float = 0.9
     adam_beta2: float = 0.999

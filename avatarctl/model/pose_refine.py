@@ -11,11 +11,11 @@ M_j(theta) (Eq. 1) of the training frames, so any body model works:
 
 so rotating a joint moves everything below it, like a change of that joint's angle. delta [T, J, 3] (axis-angle,
 radians) and tau [T, 3] (metres) start at zero for each of the T training frames and are pulled towards zero by
-L_pose = lambda_pose * (sum_j |delta_j|^2 + |tau / 0.1 m|^2), averaged over the batch's frames,. Frames the avatar was not trained on (frame id -1)
-are left as they are. Only joints whose subtree (the joint and its descendants) carries at least
-`ModelConfig.pose_refine_min_share` of the template's skinning weight are refined (anny's fingers, toes and face bones are too small in the images to correct and only
-drift); the others keep delta = 0. The corrections live in the model's state, so `render` / `eval` of training frames use the
-refined poses.
+L_pose = lambda_pose * (sum_j |delta_j|^2 + |tau / 0.1 m|^2), averaged over the batch's frames. Frames the avatar
+was not trained on (frame id -1) are left as they are. Only joints whose subtree (the joint and its descendants)
+carries at least `ModelConfig.pose_refine_min_share` of the template's skinning weight are refined (anny's fingers,
+toes and face bones are too small in the images to correct and only drift); the others keep delta = 0. The
+corrections live in the model's state, so `render` / `eval` of training frames use the refined poses.
 
 Temporal smoothness (`ModelConfig.lambda_pose_accel` > 0): fits from per-frame estimates jitter from frame to frame,
 and the prior above pulls each frame towards its own jittered fit. With the unrefined M_j of every training frame and
@@ -134,7 +134,8 @@ class PoseRefinement(nn.Module):
         ids = frame_ids[frame_ids >= 0]
         if not len(ids):
             return self.delta.new_zeros(())
-        return (((self.delta[ids] * self.active[:, None]) ** 2).sum((-1, -2)) + ((self.tau[ids] / 0.1) ** 2).sum(-1)).mean()
+        rot = ((self.delta[ids] * self.active[:, None]) ** 2).sum((-1, -2))
+        return (rot + ((self.tau[ids] / 0.1) ** 2).sum(-1)).mean()
 
 
 def subtree_share(skin_weights: torch.Tensor, parents: tuple[int, ...]) -> torch.Tensor:
