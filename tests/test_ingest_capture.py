@@ -76,8 +76,9 @@ def test_anny_fit_recovers_a_known_pose_from_its_keypoints():
     g = torch.Generator().manual_seed(0)
     rot = 0.35 * torch.randn(3, len(FIT_BONES), 3, generator=g, dtype=torch.float64)
     with torch.no_grad():  # knees and elbows bend about their hinge axes only, within their limits (a body can)
-        slot, axis, lo, hi, _ = kp.hinge_tensors(torch.float64)
-        rot[:, slot] = (lo + (hi - lo) * torch.rand(3, len(slot), generator=g, dtype=torch.float64))[..., None] * axis
+        h = kp.hinges
+        rot[:, h.slot] = (h.lo + (h.hi - h.lo) * torch.rand(3, len(h.slot), generator=g, dtype=torch.float64))[
+            ..., None] * h.axis
     assert float(kp.limit_penalty(rot).max()) == 0.0
     root = torch.tensor([[0.2, -0.3, 2.0], [0.25, -0.3, 2.1], [0.3, -0.25, 2.2]], dtype=torch.float64)
     import roma

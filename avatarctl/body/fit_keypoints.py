@@ -250,14 +250,7 @@ class AnnyKeypoints(torch.nn.Module):
         self.num_rotations = len(bones)
         self.num_shape = len(body.phenotype_labels)
         self.dtype = torch.float64
-        orient = torch.as_tensor(np.asarray(body.model.reference_bone_orientations), dtype=torch.float64)
-        self._hinges = []  # (slot in bones, unit flexion axis [3], lo, hi, off-axis limit; radians)
-        for bone, kind, (lo, hi), off in ANNY_HINGES:
-            if bone in bones:
-                ax = torch.tensor([1.0, 0.0, 0.0], dtype=torch.float64) if kind == "x" else \
-                    orient[body.joint_names.index(bone)][:, 0] / orient[body.joint_names.index(bone)][:, 0].norm()
-                self._hinges.append((bones.index(bone), ax, np.deg2rad(lo), np.deg2rad(hi),
-                                     np.deg2rad(off) if off is not None else np.inf))
+        self.hinges = _anny_hinges(body, bones)
 
     def pose_matrices(self, rotvecs: torch.Tensor, R_root: torch.Tensor, t_root: torch.Tensor) -> torch.Tensor:
         """[frames, 104, 4, 4] local-ref deltas: identity except the fitted bones' rotations and the root pose."""
@@ -290,27 +283,53 @@ class AnnyKeypoints(torch.nn.Module):
 
     def limit_penalty(self, rotvecs: torch.Tensor) -> torch.Tensor:
         """[frames, bones, 3] -> [frames]: L(θ) of the module docstring over `ANNY_HINGES`."""
-        if not self._hinges:
+        h = self.hinges
+        if h is None:
             return rotvecs.new_zeros(rotvecs.shape[0])
-        slot, axis, lo, hi, off = self.hinge_tensors(rotvecs.dtype)
-        th = rotvecs[:, slot]  # [frames, H, 3]
+        axis, lo, hi, off = (x.to(rotvecs.dtype) for x in (h.axis, h.lo, h.hi, h.off))
+        th = rotvecs[:, h.slot]  # [frames, H, 3]
         phi = (th * axis).sum(-1)  # [frames, H] flexion angle
         perp = (th - phi[..., None] * axis).norm(dim=-1)  # [frames, H] rotation off the axis
         return (torch.relu(lo - phi) ** 2 + torch.relu(phi - hi) ** 2 + torch.relu(perp - off) ** 2).sum(-1)
-
-    def hinge_tensors(self, dt: torch.dtype) -> tuple[torch.Tensor, ...]:
-        """The hinges as tensors: (slots in the fitted bones [H], unit flexion axes [H, 3], lower and upper flexion
-        limits [H], off-axis limits [H]; radians, inf = none)."""
-        slot = torch.tensor([h[0] for h in self._hinges])
-        axis = torch.stack([h[1] for h in self._hinges]).to(dt)  # [H, 3] unit
-        lo, hi, off = (torch.tensor([h[k] for h in self._hinges], dtype=dt) for k in (2, 3, 4))
-        return slot, axis, lo, hi, off
 
     def to_motion(self, rotvecs: torch.Tensor, R_root: torch.Tensor, t_root: torch.Tensor,
                   shape: torch.Tensor) -> BodyMotion:
         pose = self.pose_matrices(rotvecs, R_root, t_root)
         return BodyMotion(body_model="anny", frame_index=np.arange(rotvecs.shape[0]), pose_parameters=pose.numpy(),
                           phenotype=torch.sigmoid(shape).numpy(), phenotype_labels=self.body.phenotype_labels)
+
+
+@dataclass(frozen=True)
+class Hinges:
+    """The hinge joints of `ANNY_HINGES` among the fitted bones (radians)."""
+
+    slot: torch.Tensor  # [H] long: index in the fitted bones
+    axis: torch.Tensor  # [H, 3] unit flexion axis
+    lo: torch.Tensor  # [H] lower flexion limit
+    hi: torch.Tensor  # [H] upper flexion limit
+    off: torch.Tensor  # [H] limit of the rotation off the axis (inf: none)
+
+
+def _anny_hinges(body, bones: tuple[str, ...]) -> Hinges | None:
+    """`ANNY_HINGES` of the fitted `bones` as tensors, built once (None: no hinge among them)."""
+    rows = [h for h in ANNY_HINGES if h[0] in bones]
+    if not rows:
+        return None
+    orient = torch.as_tensor(np.asarray(body.model.reference_bone_orientations), dtype=torch.float64)
+
+    def axis(bone: str, kind: str) -> torch.Tensor:
+        if kind == "x":
+            return torch.tensor([1.0, 0.0, 0.0], dtype=torch.float64)
+        own = orient[body.joint_names.index(bone)][:, 0]
+        return own / own.norm()
+
+    def radians(degrees: list[float]) -> torch.Tensor:
+        return torch.tensor(np.deg2rad(degrees), dtype=torch.float64)
+
+    return Hinges(slot=torch.tensor([bones.index(b) for b, *_ in rows]),
+                  axis=torch.stack([axis(b, kind) for b, kind, *_ in rows]),
+                  lo=radians([lim[0] for _, _, lim, _ in rows]), hi=radians([lim[1] for _, _, lim, _ in rows]),
+                  off=radians([np.inf if off is None else off for *_, off in rows]))
 
 
 def kabsch(src: np.ndarray, dst: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

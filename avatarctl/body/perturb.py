@@ -77,8 +77,9 @@ def perturb_motion(motion: BodyMotion, rot_deg: float, transl_cm: float, seed: i
                 else _random_rotations(rng, shape, sigma))
 
     def translations() -> np.ndarray:
-        return _drifting(rng, (F, 3), t_sigma, corr_frames) if corr_frames > 0 else rng.normal(scale=t_sigma,
-                                                                                                 size=(F, 3))
+        if corr_frames > 0:
+            return _drifting(rng, (F, 3), t_sigma, corr_frames)
+        return rng.normal(scale=t_sigma, size=(F, 3))
 
     if motion.body_model == "anny":
         P = motion.pose_parameters.astype(np.float64).copy()  # [F, J, 4, 4] local deltas; root: world pose

@@ -165,8 +165,4 @@ def _ancestry(parents: tuple[int, ...], j: int) -> list[int]:
 
 
 def _depth(parents: tuple[int, ...], j: int) -> int:
-    d = 0
-    while parents[j] >= 0:
-        j = parents[j]
-        d += 1
-    return d
+    return len(_ancestry(parents, j)) - 1
