@@ -29,7 +29,7 @@ def test_export_writes_meshes_skinned_avatar_and_record(toy_fitted_project):
     res = export.run(toy_fitted_project, ExportConfig(frames="0,3", formats=("glb", "ply"), score=True, **FAST),
                      progress=seen.append)
     out = res.out_dir
-    assert [m.frame for m in res.meshes] == [0, 3] and [m.latent for m in res.meshes] == ["mean", "zero"]
+    assert [m.frame for m in res.meshes] == [0, 3] and [m.latent for m in res.meshes] == ["mean", "novel"]
     for m in res.meshes:
         assert m.vertices > 100 and m.faces > 100
         assert all((out / f).stat().st_size == b for f, b in m.files.items())
@@ -57,7 +57,7 @@ def test_export_with_a_motion_file_animates_it(toy_fitted_project, tmp_path):
     res = export.run(toy_fitted_project, ExportConfig(name="walk", poses=str(tmp_path / "walk.npz"), frames="6",
                                                formats=("obj",), **FAST))
     assert res.avatar.animation_frames == 7 and res.avatar.animation_source.endswith("walk.npz")
-    assert [m.latent for m in res.meshes] == ["zero"] and (res.out_dir / "meshes" / "000006.obj").is_file()
+    assert [m.latent for m in res.meshes] == ["novel"] and (res.out_dir / "meshes" / "000006.obj").is_file()
 
 
 @pytest.mark.parametrize("kw, match", [

@@ -197,3 +197,40 @@ def test_knock_out_zeroes_the_chosen_node_variables_only():
         bg = torch.zeros(3)
         r = rays()
         assert not torch.allclose(m.render(r, st, bg).rgb, m.render(r, skinned, bg).rgb)
+
+
+def test_novel_pose_latent_zero_or_the_mean_of_the_training_posterior_means():
+    """model.novel_latent (issue 18): "zero" is the paper's z = 0 at novel poses; "train_mean" uses the mean over the
+    training frames of mu_i, per node, set from the weights of the moment (the fit does it before each checkpoint)."""
+    from avatarctl.model.deformer import node_pose_condition
+    from avatarctl.stages.common import latent_for
+
+    train = conditioning(bends=(0.0, 0.6, 0.3), times=(0.0, 1 / 3, 2 / 3), ids=(0, 1, 2))
+    novel = conditioning(bends=(0.9, 0.1), times=(0.0, 0.0), ids=(-1, -1))
+    paper = make(small_cfg(posterior_logvar_init=-6.0, novel_latent="zero"))
+    assert not hasattr(paper.latent, "latent_mean")
+    paper.set_latent_mean(train)  # a no-op
+    assert torch.equal(paper.node_state(novel, "novel").delta_n, paper.node_state(novel, "zero").delta_n)
+
+    m = make(small_cfg(posterior_logvar_init=-6.0, novel_latent="train_mean"))
+    assert torch.all(m.latent.latent_mean == 0)  # before it is set: z = 0 as in the paper
+    assert torch.equal(m.node_state(novel, "novel").embed, m.node_state(novel, "zero").embed)
+    m.set_latent_mean(train)
+    mu = m.node_state(train, "mean").mu  # [3, N, Z]
+    assert torch.allclose(m.latent.latent_mean, mu.mean(0), atol=1e-6) and m.latent.latent_mean.abs().sum() > 0
+    got = m.node_state(novel, "novel")
+    theta = node_pose_condition(novel.pose_features, m.pose_attention).transpose(0, 1)  # [N, 2, 3J]
+    z = m.latent.latent_mean[:, None].expand(-1, 2, -1)
+    want = m.latent.decoder(torch.cat([z, theta], -1)).transpose(0, 1)  # Eq. 10 at z = mean mu
+    assert torch.allclose(got.delta_n, want[..., :3], atol=1e-6) and torch.allclose(got.embed, want[..., 3:], atol=1e-6)
+    assert not torch.allclose(got.delta_n, m.node_state(novel, "zero").delta_n)
+    # saved with the weights; a checkpoint from before the option loads with z = 0
+    again = make(small_cfg(posterior_logvar_init=-6.0, novel_latent="train_mean"))
+    again.load_state_dict(m.state_dict())
+    assert torch.equal(again.latent.latent_mean, m.latent.latent_mean)
+    old = {k: v for k, v in m.state_dict().items() if not k.endswith("latent_mean")}
+    again.load_state_dict(old)
+    assert torch.all(again.latent.latent_mean == 0)
+    assert latent_for("auto", False) == "novel" and latent_for("auto", True) == "mean"
+    with pytest.raises(ValueError, match="novel_latent"):
+        small_cfg(novel_latent="mean")

@@ -66,7 +66,7 @@ def test_render_project_views(fitted):
     assert meta["frames"] == 3 and meta["size"] == (2 * SIZE, SIZE)  # two views side by side per frame
     cfg = json.loads((out / "config.json").read_text())
     assert cfg["checkpoint_step"] == 8 and cfg["config"]["views"] == ["cam01", "cam03"]
-    assert [im["latent"] for im in cfg["images"]] == ["mean"] * 4 + ["zero"] * 2  # frames 0, 1 train; 2 novel
+    assert [im["latent"] for im in cfg["images"]] == ["mean"] * 4 + ["novel"] * 2  # frames 0, 1 train; 2 novel
     rec = Project.open(fitted).last("render")
     assert rec is not None and rec.outputs == ["render/views"] and rec.summary["images"] == 6
     assert not [p for p in (fitted / "render").iterdir() if p.name.startswith(".")]  # no temporaries left
@@ -96,7 +96,7 @@ def test_render_with_anny_motion_file(fitted, tmp_path):
 
     motion = _anny_motion_file(tmp_path / "motion.npz")
     res = render(fitted, RenderConfig(name="poses", poses=str(motion), views=("cam01",), device="cpu"))
-    assert [im.frame for im in res.images] == [100, 101] and {im.latent for im in res.images} == {"zero"}
+    assert [im.frame for im in res.images] == [100, 101] and {im.latent for im in res.images} == {"novel"}
     assert res.fps == pytest.approx(10.0)
     # recentred onto the training subject: the body is in view (some rays reach the nodes)
     assert all(im.rays > 0 for im in res.images)
@@ -217,7 +217,7 @@ def test_eval_scores_against_masked_ground_truth(fitted, monkeypatch):
         pred = np.broadcast_to(bg, gt.shape)
         assert s.psnr == pytest.approx(metrics.psnr(pred, gt, region.mask), abs=1e-4)
         assert s.ssim == pytest.approx(metrics.ssim(region.crop_image(pred), region.crop_image(gt)), abs=1e-5)
-    assert res.metrics.latent == "zero"
+    assert res.metrics.latent == "novel"
 
 
 def test_eval_full_protocol_and_every(fitted):

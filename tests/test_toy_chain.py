@@ -29,8 +29,19 @@ def test_ingest_fit_render_eval_on_the_toy_body(tmp_path, monkeypatch):
     fr = fit.run(proj, FitRequest(preset="micro", iters=4, overrides=("val_every=2", "log_every=2"), device="cpu"),
                  progress=seen.append, handle_sigint=False)
     assert fr.step == 4 and math.isfinite(fr.losses["total"]) and fr.val is not None
+    # the checkpoint carries the novel-pose latent of the preset (model.novel_latent = "train_mean"): mean training mu
+    import torch
+
+    from avatarctl.fit.checkpoint import load_avatar
+
+    av = load_avatar(Project.open(proj), device="cpu")
+    frames = sorted(av.train_frames)
+    mu = av.model.node_state(av.conditioning(av.capture.motion.select(av.capture.motion.rows_for(frames)), True),
+                             "mean").mu
+    assert av.model.cfg.novel_latent == "train_mean" and av.model.latent.latent_mean.abs().sum() > 0
+    assert torch.allclose(av.model.latent.latent_mean, mu.mean(0), atol=1e-5)
     rr = render.run(proj, RenderConfig(name="toy", frames="0:4:3", device="cpu"), progress=seen.append)
-    assert [(im.frame, im.latent) for im in rr.images] == [(0, "mean"), (3, "zero")]
+    assert [(im.frame, im.latent) for im in rr.images] == [(0, "mean"), (3, "novel")]
     assert all(im.rays > 0 for im in rr.images) and rr.video.is_file()
     er = evaluate.run(proj, EvalConfig(split="novel_view", device="cpu"), progress=seen.append)
     assert er.metrics.images == 6 and er.metrics.model.label == "full model" and 0 < er.psnr < 100

@@ -20,8 +20,9 @@ def register(app: typer.Typer) -> None:
                                              "3,7,9."),
         views: Optional[str] = typer.Option(None, "--views", help="Comma list of cameras (default: the split's)."),
         every: int = typer.Option(1, "--every", help="Keep every N-th frame (Neural Body's protocol: 30)."),
-        latent: str = typer.Option("auto", "--latent", help="auto (mean for training frames, zero for novel) | "
-                                   "mean | zero | sample."),
+        latent: str = typer.Option("auto", "--latent", help="auto (mean for training frames; novel poses: "
+                                   "0, or the training mean with model.novel_latent=train_mean) | mean | zero | "
+                                   "sample."),
         seed: int = typer.Option(0, "--seed", help="Seed for --latent sample."),
         name: Optional[str] = typer.Option(None, "--name", help="Output folder PROJECT/eval/NAME (default: "
                                            "<split>_<protocol>)."),

@@ -29,8 +29,9 @@ def register(app: typer.Typer) -> None:
                                                   "the capture cameras' mean)."),
         radius: Optional[float] = typer.Option(None, "--radius", help="Orbit radius in metres (default: the "
                                                "capture cameras' mean distance)."),
-        latent: str = typer.Option("auto", "--latent", help="auto (z = mu for training frames, 0 for novel poses) "
-                                   "| mean | zero | sample."),
+        latent: str = typer.Option("auto", "--latent", help="auto (z = mu for training frames; novel "
+                                   "poses: 0, or the training mean with model.novel_latent=train_mean) | mean | zero "
+                                   "| sample."),
         seed: int = typer.Option(0, "--seed", help="Seed for --latent sample."),
         resolution: Optional[int] = typer.Option(None, "--resolution", help="Longer image side in pixels "
                                                  "(default: the capture's)."),

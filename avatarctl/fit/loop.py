@@ -209,7 +209,7 @@ def fit(project: Project, cfg: FitConfig | None = None, *, device: str = "auto",
     None = the world size for a fresh fit, the checkpoint's on resume when the world size divides them)."""
     from avatarctl.body.registry import load_body_model
     from avatarctl.fit.checkpoint import read_checkpoint, save_checkpoint, save_snapshot
-    from avatarctl.fit.conditioning import build_pose_table
+    from avatarctl.fit.conditioning import build_pose_table, make_conditioning, time_stamps
     from avatarctl.fit.data import FrameStore, RaySampler
     from avatarctl.fit.distributed import Replicas, saved_shards
     from avatarctl.fit.schedule import make_optimizer, make_scheduler, param_groups
@@ -303,7 +303,11 @@ def fit(project: Project, cfg: FitConfig | None = None, *, device: str = "auto",
     use_amp = cfg.amp and dev.type == "cuda"
     stop = stop or StopFlag()
 
+    all_frames = make_conditioning(poses.joint_transforms, poses.pose_features,
+                                   *time_stamps(train_frames, train_frames, True), device=dev)
+
     def payload(step: int) -> dict[str, Any]:
+        model.set_latent_mean(all_frames)  # model.novel_latent = "train_mean": z of novel poses (model/cvae.py)
         return {"step": step, "model": model.state_dict(), "optimizer": optimizer.state_dict(),
                 "scheduler": scheduler.state_dict(), "rng": _rng_state(replicas),
                 "model_config": cfg.model.to_json(), "fit_config": cfg.to_json(), "train_frames": train_frames}

@@ -178,7 +178,8 @@ class SlrfAvatar(nn.Module):
         """Posed nodes and node variables for B frames.
 
         mode: "posterior" (training: z ~ N(mu, sigma), reparameterised), "mean" (training frames at test: z = mu),
-        "zero" (novel poses: encoder skipped, z = 0), "sample" (z ~ N(0, I) from `generator`).
+        "zero" (encoder skipped, z = 0), "novel" (novel poses: encoder skipped, z = 0 or, with
+        `cfg.novel_latent = "train_mean"`, the running mean of the training mu; model/cvae.py), "sample" (z ~ N(0, I) from `generator`).
         """
         if mode not in MODES:
             raise ValueError(f"unknown mode {mode!r}; use one of {MODES}")
@@ -210,6 +211,15 @@ class SlrfAvatar(nn.Module):
             centers = posed_node_centers(T, self.node_rest, delta.to(T.dtype))  # [B, N, 3]  Eq. 3
         return NodeState(transforms=T, centers=centers, delta_n=delta, embed=embed, mu=mu, logvar=logvar,
                          pose_penalty=pose_penalty)
+
+    def set_latent_mean(self, cond: FrameConditioning) -> None:
+        """With `cfg.novel_latent = "train_mean"`: store the mean posterior mean of the cVAE over `cond`'s frames (all
+        training frames) as the novel-pose latent (model/cvae.py). A no-op otherwise."""
+        if self.cfg.variant != "slrf" or not hasattr(self.latent, "latent_mean"):
+            return
+        dev, dt = self.node_rest.device, self.node_rest.dtype
+        theta_i = node_pose_condition(cond.pose_features.to(dev, dt), self.pose_attention)  # [T, N, 3J]  Eq. 8
+        self.latent.set_latent_mean(theta_i, cond.time.to(dev, dt), cond.frame_ids.to(dev))
 
     def knock_out(self, state: NodeState, delta_n: bool = False, embedding: bool = False) -> NodeState:
         """`state` with Delta n_i and/or e_i set to zero at render time (the paper's render-time knockout of a

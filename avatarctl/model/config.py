@@ -14,7 +14,9 @@ Presets: "paper" = the defaults; "cpu" = the same model with narrower networks (
 cVAE 32) so a training step with a few hundred rays takes well under a second on 2 CPU cores, and with empty-space
 skipping on (`occupancy`, model/occupancy.py: same images, ~20 % more steps per second, measured in docs/fit.md) and
 hull nodes decided from the masks (`hull_nodes = "auto"`, fit/hull_nodes.py: +0.4 dB on the skirt capture, the
-paper's placement on tight clothing; docs/experiments/hull_auto_2026-11-25).
+paper's placement on tight clothing; docs/experiments/hull_auto_2026-11-25) and z of novel poses = the mean posterior
+mean of the training frames (`novel_latent = "train_mean"`, model/cvae.py: +0.08 / +0.15 dB box and +0.3 / +0.4 dB
+body on synth small's novel poses, training frames unchanged; docs/experiments/garment_latent_2026-11-26).
 
 Choices beyond the paper text (documented, switchable):
 - `local_coords_in_sigma`: local coordinates p_i (Eq. 4) are divided by sigma before the positional encoding, so
@@ -38,6 +40,7 @@ LATENTS = ("cvae", "deterministic", "per_frame")
 VARIANTS = ("slrf", "lbs_baseline")
 FIELDS = ("mlp", "grid")  # local fields F_i: the paper's per-node MLPs | per-node feature grids (model/grid_field.py)
 REC_REDUCTIONS = ("sum", "mean")
+NOVEL_LATENTS = ("zero", "train_mean")  # z of novel poses: the paper's 0 | the running mean of the training mu
 HULL_AUTO = "auto"  # `hull_nodes`: decide from the training masks at fit start (fit/hull_nodes.py)  # Eq. 12 as written (sum over rays) | plain MSE, see model/losses.py
 
 
@@ -87,6 +90,10 @@ class ModelConfig:
     occ_stop_eps: float = 0.0  # skip samples whose transmittance estimated from the cached densities is below this
     # cVAE posterior (deviation when != 0): initial log-variance of q(z | t, theta) (issue 18, hypothesis 1)
     posterior_logvar_init: float = 0.0  # 0: the encoder's plain init (sigma ~ 1); e.g. -6 starts sigma ~ 0.05
+    # z of novel poses (deviation when "train_mean", see model/cvae.py): "zero" (paper Sec. 4.1) | "train_mean": the
+    # running mean over training steps of the posterior means mu_i, per node (with a narrow posterior the decoder
+    # never sees z = 0; issue 18, docs/experiments/garment_latent_2026-11-26)
+    novel_latent: str = "zero"
     # per-frame body-pose refinement (deviation when on, see model/pose_refine.py; issue 13)
     pose_refine: bool = False  # optimise per-training-frame joint rotations / root translation with the avatar
     lambda_pose: float = 100.0  # weight of the refinement penalty (sum over joints of |delta|^2 + |tau / 0.1 m|^2)
@@ -149,6 +156,8 @@ class ModelConfig:
         need(self.sigma > 0, f"sigma must be > 0 (metres), got {self.sigma}")
         need(0 < self.eps < 1, f"eps must be in (0, 1), got {self.eps}")
         need(self.latent in LATENTS, f"latent must be one of {LATENTS}, got {self.latent!r}")
+        need(self.novel_latent in NOVEL_LATENTS, f"novel_latent must be one of {NOVEL_LATENTS}, got "
+             f"{self.novel_latent!r}")
         need(self.variant in VARIANTS, f"variant must be one of {VARIANTS}, got {self.variant!r}")
         need(self.density_scale > 0, f"density_scale must be > 0, got {self.density_scale}")
         need(0.0 <= self.pose_refine_min_share < 1.0,
@@ -198,13 +207,14 @@ class ModelConfig:
 
     @classmethod
     def preset(cls, name: str) -> "ModelConfig":
-        """"paper": the defaults. "cpu": narrower networks, empty-space skipping and hull nodes where the masks show
-        loose clothing (`hull_nodes = "auto"`, fit/hull_nodes.py; see module docstring)."""
+        """"paper": the defaults. "cpu": narrower networks, empty-space skipping, hull nodes where the masks show
+        loose clothing (`hull_nodes = "auto"`, fit/hull_nodes.py) and the training frames' mean latent for novel poses
+        (`novel_latent = "train_mean"`, model/cvae.py; see module docstring)."""
         if name == "paper":
             return cls()
         if name == "cpu":
             return cls(node_width=32, node_depth=2, feature_dim=32, head_width=64, cvae_width=32, occupancy=True,
-                       hull_nodes=HULL_AUTO)
+                       hull_nodes=HULL_AUTO, novel_latent="train_mean")
         raise ValueError(f"ModelConfig: unknown preset {name!r}; use 'paper' or 'cpu'")
 
     def with_(self, **changes: Any) -> "ModelConfig":

@@ -10,7 +10,10 @@ Latent variants (`ModelConfig.latent`):
 - "per_frame": a learnable code c_t per training frame (width of gamma(t), shared by all nodes, init N(0, 0.01^2))
   replaces gamma(t/T) as the encoder input; the rest is the cVAE.
 Inference modes: "posterior" z = mu + sigma * eps (reparameterised, training); "mean" z = mu (training frames at test);
-"zero" z = 0, encoder skipped (novel poses); "sample" z ~ N(0, I) from the given generator.
+"zero" z = 0, encoder skipped; "novel" the latent of novel poses, encoder skipped: z = 0 (paper Sec. 4.1), or with
+`novel_latent = "train_mean"` (a deviation) z_i = the mean over all training frames of the posterior means mu_i
+(`latent_mean`, set by `set_latent_mean` from the weights of the moment: the fit does it before every checkpoint);
+"sample" z ~ N(0, I) from the given generator.
 """
 
 from __future__ import annotations
@@ -24,7 +27,7 @@ from avatarctl.model.batched_mlp import BatchedMLP
 from avatarctl.model.config import ModelConfig
 from avatarctl.model.encoding import encoded_dim, positional_encoding
 
-MODES = ("posterior", "mean", "zero", "sample")
+MODES = ("posterior", "mean", "zero", "novel", "sample")
 
 
 @dataclass
@@ -54,6 +57,8 @@ class NodeCVAE(nn.Module):
         if cfg.posterior_logvar_init != 0.0 and self.encoder is not None:
             with torch.no_grad():  # start the posterior narrow: per-frame mu is not drowned by sigma ~ 1 noise
                 self.encoder.layers[-1].bias[..., Z:] += cfg.posterior_logvar_init
+        if cfg.novel_latent == "train_mean" and self.encoder is not None:
+            self.register_buffer("latent_mean", torch.zeros(N, Z))  # [N, Z] mean of mu_i over the training frames
         # small initial outputs: nodes start on the body (Delta n ~ 1e-3 m) with near-zero embeddings
         self.decoder = BatchedMLP(N, [dec_in, W, W, 3 + cfg.embed_dim], last_init_scale=0.01)
 
@@ -89,13 +94,34 @@ class NodeCVAE(nn.Module):
                 else:
                     z = mu
                 mu, logvar = mu.transpose(0, 1), logvar.transpose(0, 1)
-            elif mode == "zero":
+            elif mode == "zero" or (mode == "novel" and not hasattr(self, "latent_mean")):
                 z = cond.new_zeros(N, B, Z)
+            elif mode == "novel":
+                z = self.latent_mean.to(cond)[:, None].expand(N, B, Z)
             else:  # sample from the prior
                 z = _randn((N, B, Z), generator, cond)
             dec_in = torch.cat([z, cond], dim=-1)
         out = self.decoder(dec_in).transpose(0, 1)  # [frames, N, 3 + E]
         return NodeVariables(delta_n=out[..., :3], embed=out[..., 3:], mu=mu, logvar=logvar)
+
+
+    @torch.no_grad()
+    def set_latent_mean(self, theta_i: torch.Tensor, time: torch.Tensor, frame_ids: torch.Tensor,
+                        chunk: int = 256) -> None:
+        """`latent_mean` := the mean over the given (all training) frames of the posterior means mu_i ("train_mean").
+        theta_i [frames, N, 3J] (Eq. 8), time [frames], frame_ids [frames]."""
+        total = None
+        for s in range(0, theta_i.shape[0], chunk):
+            mu = self(theta_i[s:s + chunk], time[s:s + chunk], frame_ids[s:s + chunk], "mean").mu  # [b, N, Z]
+            part = mu.float().sum(0)
+            total = part if total is None else total + part
+        self.latent_mean.copy_(total / theta_i.shape[0])
+
+    def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):
+        # a checkpoint without the running mean (trained before it existed): z = 0, the paper's novel-pose latent
+        if hasattr(self, "latent_mean") and prefix + "latent_mean" not in state_dict:
+            state_dict[prefix + "latent_mean"] = torch.zeros_like(self.latent_mean)
+        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
 
 
 def _randn(shape: tuple[int, ...] | torch.Size, generator: torch.Generator | None, like: torch.Tensor) -> torch.Tensor:

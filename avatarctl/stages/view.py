@@ -97,8 +97,8 @@ def prepare(project_dir: str | Path, cfg: ViewConfig) -> ViewerSetup:
         is_train = fr.source == "train"
         try:
             latent = latent_for(mode, is_train)
-        except AvatarError:  # "mean" on a novel frame: the viewer shows z = 0 rather than failing
-            latent = "zero"
+        except AvatarError:  # "mean" on a novel frame: the viewer shows the novel-pose latent rather than failing
+            latent = "novel"
         return frame_node_state(avatar, motion.select(motion.rows_for([fr.frame])), fr.frame, is_train, latent,
                                 cfg.seed)
 
