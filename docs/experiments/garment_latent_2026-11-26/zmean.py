@@ -5,7 +5,7 @@ and mu is not pulled to 0 (lambda_KL = 1e-5), so z = 0 at a novel pose is a late
 
     python zmean.py PROJECT -- avatarctl eval PROJECT --split novel_pose ... --name NAME
 
-runs the avatarctl CLI with the "zero" latent mode (novel poses) patched to z_i = the mean of mu_i over all
+runs the avatarctl CLI with the novel-pose latent modes ("zero", "novel") patched to z_i = the mean of mu_i over all
 training frames (per node), computed once from the project's training poses and time stamps.
 """
 
@@ -34,7 +34,7 @@ def main(project: Path, argv: list[str]) -> None:
     original = NodeCVAE.forward
 
     def forward(self, theta_i, time, frame_ids, mode, generator=None):
-        if mode != "zero":
+        if mode not in ("zero", "novel"):  # "novel": what --latent auto gives novel poses since novel_latent
             return original(self, theta_i, time, frame_ids, mode, generator)
         B = theta_i.shape[0]
         z = mu_mean.to(theta_i)[:, None].expand(-1, B, -1)  # [N, B, Z]
