@@ -178,8 +178,9 @@ class SlrfAvatar(nn.Module):
         """Posed nodes and node variables for B frames.
 
         mode: "posterior" (training: z ~ N(mu, sigma), reparameterised), "mean" (training frames at test: z = mu),
-        "zero" (encoder skipped, z = 0), "novel" (novel poses: encoder skipped, z = 0 or, with
-        `cfg.novel_latent = "train_mean"`, the running mean of the training mu; model/cvae.py), "sample" (z ~ N(0, I) from `generator`).
+        "zero" (encoder skipped, z = 0), "novel" (novel poses: encoder skipped, z = 0, or with
+        `cfg.novel_latent = "train_mean"` the mean of mu over the training frames; model/cvae.py), "sample"
+        (z ~ N(0, I) from `generator`).
         """
         if mode not in MODES:
             raise ValueError(f"unknown mode {mode!r}; use one of {MODES}")

@@ -40,7 +40,7 @@ LATENTS = ("cvae", "deterministic", "per_frame")
 VARIANTS = ("slrf", "lbs_baseline")
 FIELDS = ("mlp", "grid")  # local fields F_i: the paper's per-node MLPs | per-node feature grids (model/grid_field.py)
 REC_REDUCTIONS = ("sum", "mean")
-NOVEL_LATENTS = ("zero", "train_mean")  # z of novel poses: the paper's 0 | the running mean of the training mu
+NOVEL_LATENTS = ("zero", "train_mean")  # z of novel poses: the paper's 0 | the mean of mu over the training frames
 HULL_AUTO = "auto"  # `hull_nodes`: decide from the training masks at fit start (fit/hull_nodes.py)  # Eq. 12 as written (sum over rays) | plain MSE, see model/losses.py
 
 
@@ -91,8 +91,8 @@ class ModelConfig:
     # cVAE posterior (deviation when != 0): initial log-variance of q(z | t, theta) (issue 18, hypothesis 1)
     posterior_logvar_init: float = 0.0  # 0: the encoder's plain init (sigma ~ 1); e.g. -6 starts sigma ~ 0.05
     # z of novel poses (deviation when "train_mean", see model/cvae.py): "zero" (paper Sec. 4.1) | "train_mean": the
-    # running mean over training steps of the posterior means mu_i, per node (with a narrow posterior the decoder
-    # never sees z = 0; issue 18, docs/experiments/garment_latent_2026-11-26)
+    # mean over the training frames of the posterior means mu_i, per node (the decoder is trained on z ~ N(mu, sigma)
+    # and never sees z = 0; issue 18, docs/experiments/garment_latent_2026-11-26)
     novel_latent: str = "zero"
     # per-frame body-pose refinement (deviation when on, see model/pose_refine.py; issue 13)
     pose_refine: bool = False  # optimise per-training-frame joint rotations / root translation with the avatar

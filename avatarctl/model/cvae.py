@@ -104,7 +104,6 @@ class NodeCVAE(nn.Module):
         out = self.decoder(dec_in).transpose(0, 1)  # [frames, N, 3 + E]
         return NodeVariables(delta_n=out[..., :3], embed=out[..., 3:], mu=mu, logvar=logvar)
 
-
     @torch.no_grad()
     def set_latent_mean(self, theta_i: torch.Tensor, time: torch.Tensor, frame_ids: torch.Tensor,
                         chunk: int = 256) -> None:
@@ -118,7 +117,7 @@ class NodeCVAE(nn.Module):
         self.latent_mean.copy_(total / theta_i.shape[0])
 
     def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):
-        # a checkpoint without the running mean (trained before it existed): z = 0, the paper's novel-pose latent
+        # a checkpoint without the mean (trained before it existed): z = 0, the paper's novel-pose latent
         if hasattr(self, "latent_mean") and prefix + "latent_mean" not in state_dict:
             state_dict[prefix + "latent_mean"] = torch.zeros_like(self.latent_mean)
         super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
