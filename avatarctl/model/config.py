@@ -39,9 +39,9 @@ SCHEMA_VERSION = 1
 LATENTS = ("cvae", "deterministic", "per_frame")
 VARIANTS = ("slrf", "lbs_baseline")
 FIELDS = ("mlp", "grid")  # local fields F_i: the paper's per-node MLPs | per-node feature grids (model/grid_field.py)
-REC_REDUCTIONS = ("sum", "mean")
+REC_REDUCTIONS = ("sum", "mean")  # Eq. 12 as written (sum over rays) | plain MSE, see model/losses.py
 NOVEL_LATENTS = ("zero", "train_mean")  # z of novel poses: the paper's 0 | the mean of mu over the training frames
-HULL_AUTO = "auto"  # `hull_nodes`: decide from the training masks at fit start (fit/hull_nodes.py)  # Eq. 12 as written (sum over rays) | plain MSE, see model/losses.py
+HULL_AUTO = "auto"  # `hull_nodes`: decide from the training masks at fit start (fit/hull_nodes.py)
 
 
 @dataclass(frozen=True)

@@ -109,11 +109,8 @@ class NodeCVAE(nn.Module):
                         chunk: int = 256) -> None:
         """`latent_mean` := the mean over the given (all training) frames of the posterior means mu_i ("train_mean").
         theta_i [frames, N, 3J] (Eq. 8), time [frames], frame_ids [frames]."""
-        total = None
-        for s in range(0, theta_i.shape[0], chunk):
-            mu = self(theta_i[s:s + chunk], time[s:s + chunk], frame_ids[s:s + chunk], "mean").mu  # [b, N, Z]
-            part = mu.float().sum(0)
-            total = part if total is None else total + part
+        total = sum(self(theta_i[s:s + chunk], time[s:s + chunk], frame_ids[s:s + chunk], "mean").mu.float().sum(0)
+                    for s in range(0, theta_i.shape[0], chunk))  # mu [chunk, N, Z] summed over frames -> [N, Z]
         self.latent_mean.copy_(total / theta_i.shape[0])
 
     def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):

@@ -86,7 +86,8 @@ def knocked_out(avatar: "LoadedAvatar", state: "NodeState", knockout: tuple[str,
 
 def latent_for(mode: str, is_training: bool) -> str:
     """The latent of one frame: "auto" = the posterior mean z = mu for training frames, the model's novel-pose latent
-    for novel ones ("novel": z = 0 as in paper Sec. 4.1, or the training mean with `model.novel_latent`); "mean" needs a training frame (mu comes from the cVAE encoder of its time stamp)."""
+    for novel ones ("novel": z = 0 as in paper Sec. 4.1, or the training mean with `model.novel_latent`); "mean"
+    needs a training frame (mu comes from the cVAE encoder of its time stamp)."""
     if mode == "auto":
         return "mean" if is_training else "novel"
     if mode == "mean" and not is_training:
