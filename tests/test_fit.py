@@ -156,14 +156,21 @@ def test_fit_writes_checkpoints_log_config_and_stage_record(project):
 
 
 @pytest.mark.anny
-def test_resume_equals_straight_run_bitwise(project, tmp_path):
+@pytest.mark.parametrize("anneal", [0, 4], ids=["paper", "coarse-to-fine"])
+def test_resume_equals_straight_run_bitwise(project, tmp_path, anneal):
     from avatarctl.fit.loop import fit
 
     other = Project.open(shutil.copytree(project.root, tmp_path / "other"))
     cfg = _cfg(checkpoint_every=100)
+    if anneal:  # model.pe_anneal_steps: the level of gamma(p) follows the step, also across a resume
+        cfg = replace(cfg, model=replace(cfg.model, pe_anneal_steps=anneal, pe_anneal_start=1.0))
     straight = fit(project, cfg, device="cpu")
     half = fit(other, replace(cfg, iters=3), device="cpu")
     assert half.step == 3
+    if anneal:  # set before each step: the third step (index 2) trained at 1 + (m - 1) * 2 / 4
+        m = cfg.model.pe_coords
+        level = torch.load(half.checkpoint, weights_only=True)["model"]["fields.pe_level"]
+        assert float(level) == pytest.approx(1.0 + (m - 1.0) * 2 / anneal)
     with pytest.raises(InputError, match="differs from the checkpoint"):
         fit(other, replace(cfg, lr=1e-3), device="cpu", resume=True)
     resumed = fit(other, cfg, device="cpu", resume=True)
@@ -177,6 +184,8 @@ def test_resume_equals_straight_run_bitwise(project, tmp_path):
             assert torch.equal(torch.as_tensor(v), torch.as_tensor(b["optimizer"]["state"][k][name])), (k, name)
     assert a["scheduler"]["last_epoch"] == b["scheduler"]["last_epoch"] == 6
     assert straight.losses == resumed.losses
+    if anneal:
+        assert float(a["model"]["fields.pe_level"]) == cfg.model.pe_coords  # open after pe_anneal_steps
 
 
 @pytest.mark.anny

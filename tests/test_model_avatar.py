@@ -234,3 +234,48 @@ def test_novel_pose_latent_zero_or_the_mean_of_the_training_posterior_means():
     assert latent_for("auto", False) == "novel" and latent_for("auto", True) == "mean"
     with pytest.raises(ValueError, match="novel_latent"):
         small_cfg(novel_latent="mean")
+
+
+def test_coarse_to_fine_coordinate_encoding_opens_the_bands_over_the_anneal_steps():
+    """model.pe_anneal_steps (issue 18, a deviation): gamma(p) of the MLP fields opens from pe_anneal_start bands to
+    all pe_coords; the level is a buffer saved with the weights; at the full level (the default, and what an older
+    checkpoint loads with) the encoding is exactly the paper's gamma."""
+    from avatarctl.model.encoding import band_weights, positional_encoding
+
+    assert torch.equal(band_weights(6, 6.0), torch.ones(6)) and torch.equal(band_weights(6, 0.0), torch.zeros(6))
+    assert torch.allclose(band_weights(6, 3.0), torch.tensor([1.0, 1, 1, 0, 0, 0]))
+    assert torch.allclose(band_weights(6, 3.5), torch.tensor([1.0, 1, 1, 0.5, 0, 0]), atol=1e-6)
+    x = torch.randn(5, 3)
+    enc = positional_encoding(x, 4, band_weights(4, 2.0))  # (x, sin/cos of bands 0, 1, then zeros)
+    assert torch.equal(enc[:, :3 + 2 * 2 * 3], positional_encoding(x, 2)) and torch.all(enc[:, 3 + 12:] == 0)
+
+    m = make(small_cfg(pe_anneal_steps=100, pe_anneal_start=2.0))
+    field = m.fields
+    assert float(field.pe_level) == m.cfg.pe_coords  # until the fit sets it
+    pts = torch.randn(m.cfg.num_nodes, 7, 3)
+    bias = torch.zeros(m.cfg.num_nodes, 7, m.cfg.node_width)
+    full = field(pts, bias)
+    for step, level in ((0, 2.0), (50, 2.0 + 0.5 * (m.cfg.pe_coords - 2.0)), (100, m.cfg.pe_coords),
+                        (10_000, m.cfg.pe_coords)):
+        m.set_training_step(step)
+        assert float(field.pe_level) == pytest.approx(level)
+    m.set_training_step(0)
+    coarse = field(pts, bias)
+    want = field.mlp(positional_encoding(pts, m.cfg.pe_coords, band_weights(m.cfg.pe_coords, 2.0)), first_bias=bias)
+    assert torch.allclose(coarse, want) and not torch.allclose(coarse, full)
+    again = make(small_cfg(pe_anneal_steps=100, pe_anneal_start=2.0))
+    again.load_state_dict(m.state_dict())
+    assert float(again.fields.pe_level) == 2.0
+    again.load_state_dict({k: v for k, v in m.state_dict().items() if not k.endswith("pe_level")})
+    assert float(again.fields.pe_level) == m.cfg.pe_coords and torch.allclose(again.fields(pts, bias), full)
+    # off (the default): a no-op; the pose-only baseline's canonical field anneals the same way
+    plain = make(small_cfg())
+    plain.set_training_step(0)
+    assert float(plain.fields.pe_level) == plain.cfg.pe_coords
+    base = make(small_cfg(variant="lbs_baseline", pe_anneal_steps=10, pe_anneal_start=1.0))
+    base.set_training_step(5)
+    assert float(base.canonical.pe_level) == pytest.approx(1.0 + 0.5 * (base.cfg.pe_coords - 1.0))
+    with pytest.raises(ValueError, match="pe_anneal_start"):
+        small_cfg(pe_anneal_start=small_cfg().pe_coords + 1.0)
+    with pytest.raises(ValueError, match="pe_anneal_steps"):
+        small_cfg(pe_anneal_steps=-1)

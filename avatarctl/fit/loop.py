@@ -333,6 +333,7 @@ def fit(project: Project, cfg: FitConfig | None = None, *, device: str = "auto",
             if not replicas.distributed and cfg.time_budget_s and time.perf_counter() - t_run >= cfg.time_budget_s:
                 budget_hit = True
                 break
+            model.set_training_step(step)  # model.pe_anneal_steps: the coarse-to-fine level of gamma(p)
             occ_start = replicas.begin_step(model)
             with torch.autocast(device_type="cuda", dtype=torch.bfloat16) if use_amp else contextlib.nullcontext():
                 terms, out, step_rays = replicas.forward(model, background, cfg.jitter)

@@ -30,8 +30,8 @@ from avatarctl.model.cvae import MODES, NodeCVAE
 from avatarctl.model.deformer import (blending_weights, candidate_pairs, farthest_point_sampling,
                                       local_coordinates_centered, node_pose_attention, node_pose_condition,
                                       node_transforms, pose_attention_map, posed_node_centers, ray_sphere_bounds)
-from avatarctl.model.field import (BlockPacking, CanonicalField, NodeFields, Packing, RadianceHeads, fuse_features,
-                                   fuse_features_dense)
+from avatarctl.model.field import (BlockPacking, CanonicalField, CoordinateEncoding, NodeFields, Packing,
+                                   RadianceHeads, fuse_features, fuse_features_dense)
 from avatarctl.model.grid_field import NodeGridFields
 from avatarctl.model.occupancy import UNSEEN, cell_index, occupancy_estimate, select_samples, update_occupancy
 from avatarctl.model.losses import (LossTerms, embedding_loss, kl_loss, reconstruction_loss, total_loss,
@@ -221,6 +221,18 @@ class SlrfAvatar(nn.Module):
         dev, dt = self.node_rest.device, self.node_rest.dtype
         theta_i = node_pose_condition(cond.pose_features.to(dev, dt), self.pose_attention)  # [T, N, 3J]  Eq. 8
         self.latent.set_latent_mean(theta_i, cond.time.to(dev, dt), cond.frame_ids.to(dev))
+
+    def set_training_step(self, step: int) -> None:
+        """With `cfg.pe_anneal_steps` > 0: the coarse-to-fine level of the MLP fields' gamma(p) for training step
+        `step` (0-based), pe_anneal_start + (pe_coords - pe_anneal_start) * min(1, step / pe_anneal_steps). The fit
+        calls it before every step; the level is saved with the weights, so a render uses the one trained last.
+        A no-op otherwise (and for the grid field, which has no gamma(p))."""
+        cfg = self.cfg
+        field = self.fields if cfg.variant == "slrf" else self.canonical
+        if cfg.pe_anneal_steps <= 0 or not isinstance(field, CoordinateEncoding):
+            return
+        a = cfg.pe_anneal_start + (cfg.pe_coords - cfg.pe_anneal_start) * min(1.0, step / cfg.pe_anneal_steps)
+        field.pe_level.fill_(a)
 
     def knock_out(self, state: NodeState, delta_n: bool = False, embedding: bool = False) -> NodeState:
         """`state` with Delta n_i and/or e_i set to zero at render time (the paper's render-time knockout of a

@@ -28,6 +28,8 @@ Choices beyond the paper text (documented, switchable):
   padding is < b rows per node. Same outputs and gradients; `pack_block = 0` is the supplement's layout.
 - `pose_attention_hops`: the SCANimate-style attention map W (Eq. 8) lets joint k attend to every joint within
   this many hops in the kinematic tree (see `deformer.pose_attention_map`).
+- `pe_anneal_steps` (off in every preset): coarse-to-fine gamma(p) of the MLP fields (model/encoding.py), measured
+  no better than the plain encoding (docs/fit.md).
 """
 
 from __future__ import annotations
@@ -65,6 +67,11 @@ class ModelConfig:
     pe_views: int = 4
     pe_time: int = 12
     local_coords_in_sigma: bool = True  # p_i / sigma before gamma (our choice, see module docstring)
+    # coarse-to-fine gamma(p) (deviation when > 0, see model/encoding.py `band_weights`): the coordinate encoding of
+    # the MLP fields opens from `pe_anneal_start` frequency bands to all `pe_coords` over the first `pe_anneal_steps`
+    # training steps (0: all bands from the start, the paper)
+    pe_anneal_steps: int = 0
+    pe_anneal_start: float = 3.0
     # networks (our choice: the paper's architecture figure is unavailable)
     node_width: int = 128  # F_i hidden channels
     node_depth: int = 3  # F_i hidden ReLU layers
@@ -133,7 +140,7 @@ class ModelConfig:
                      "head_width", "cvae_width", "samples_per_ray", "grid_channels", "occ_res"):
             v = getattr(self, name)
             need(isinstance(v, int) and not isinstance(v, bool) and v > 0, f"{name} must be a positive int, got {v!r}")
-        for name in ("pe_coords", "pe_views", "pe_time", "pose_attention_hops", "occ_warmup"):
+        for name in ("pe_coords", "pe_views", "pe_time", "pose_attention_hops", "occ_warmup", "pe_anneal_steps"):
             v = getattr(self, name)
             need(isinstance(v, int) and not isinstance(v, bool) and v >= 0, f"{name} must be an int >= 0, got {v!r}")
         need(isinstance(self.pack_block, int) and self.pack_block >= 0, f"pack_block must be an int >= 0, got "
@@ -151,6 +158,8 @@ class ModelConfig:
              f"{self.hull_auto_min_volume}")
         need(self.hull_nodes in (0, HULL_AUTO) or self.variant == "slrf", "hull_nodes needs the slrf variant (the pose-only "
              "baseline has no nodes)")
+        need(0.0 <= self.pe_anneal_start <= self.pe_coords, f"pe_anneal_start must be in [0, pe_coords="
+             f"{self.pe_coords}] (frequency bands open at the first step), got {self.pe_anneal_start}")
         need(self.samples_per_ray >= 2, f"samples_per_ray must be >= 2, got {self.samples_per_ray}")
         need(self.head_width >= 2, f"head_width must be >= 2, got {self.head_width}")
         need(self.sigma > 0, f"sigma must be > 0 (metres), got {self.sigma}")

@@ -13,7 +13,7 @@ import torch
 from torch import nn
 
 from avatarctl.model.batched_mlp import BatchedLinear, BatchedMLP
-from avatarctl.model.encoding import encoded_dim, positional_encoding
+from avatarctl.model.encoding import band_weights, encoded_dim, positional_encoding
 
 
 # ---- Eq. 5 -------------------------------------------------------------------------------------------------------
@@ -113,7 +113,27 @@ class BlockPacking:
 
 
 # ---- networks ----------------------------------------------------------------------------------------------------
-class NodeFields(nn.Module):
+class CoordinateEncoding(nn.Module):
+    """gamma(p) of the MLP fields' input coordinates (m = pe_coords), with the coarse-to-fine level `pe_level`
+    (a buffer, saved with the weights: `ModelConfig.pe_anneal_steps`, model/encoding.py `band_weights`). At the
+    full level m, the default and what a checkpoint without the buffer loads with, it is exactly gamma(p)."""
+
+    def __init__(self, pe_coords: int):
+        super().__init__()
+        self.pe_coords = pe_coords
+        self.register_buffer("pe_level", torch.tensor(float(pe_coords)))
+
+    def encode(self, coords: torch.Tensor) -> torch.Tensor:
+        full = float(self.pe_level) >= self.pe_coords
+        return positional_encoding(coords, self.pe_coords,
+                                   None if full else band_weights(self.pe_coords, self.pe_level))
+
+    def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):
+        state_dict.setdefault(prefix + "pe_level", torch.tensor(float(self.pe_coords)))  # older checkpoints
+        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
+
+
+class NodeFields(CoordinateEncoding):
     """The N local radiance networks F_i(p_i; e_i) (Sec. 3), run in parallel over a `nodes` dimension.
 
     Input: gamma(p_i) (m = pe_coords) and the detail embedding e_i. e_i enters the first layer as a per-(frame, node)
@@ -121,8 +141,7 @@ class NodeFields(nn.Module):
     """
 
     def __init__(self, num_nodes: int, pe_coords: int, embed_dim: int, width: int, depth: int, feature_dim: int):
-        super().__init__()
-        self.pe_coords = pe_coords
+        super().__init__(pe_coords)
         self.in_dim = encoded_dim(3, pe_coords)
         self.mlp = BatchedMLP(num_nodes, [self.in_dim] + [width] * depth + [feature_dim])
         self.embed = BatchedLinear(num_nodes, embed_dim, width, bias=False)
@@ -136,20 +155,19 @@ class NodeFields(nn.Module):
 
         With `node_index` [blocks] the leading dimension is blocks of `BlockPacking` (block k = node node_index[k]).
         """
-        return self.mlp(positional_encoding(coords, self.pe_coords), first_bias=bias, node_index=node_index)
+        return self.mlp(self.encode(coords), first_bias=bias, node_index=node_index)
 
 
-class CanonicalField(nn.Module):
+class CanonicalField(CoordinateEncoding):
     """One canonical radiance network for the "lbs_baseline" variant (Animatable-NeRF-style, pose-only):
     gamma(x_c) of a canonical point (metres) -> feature [points, F]."""
 
     def __init__(self, pe_coords: int, width: int, depth: int, feature_dim: int):
-        super().__init__()
-        self.pe_coords = pe_coords
+        super().__init__(pe_coords)
         self.mlp = BatchedMLP(1, [encoded_dim(3, pe_coords)] + [width] * depth + [feature_dim])
 
     def forward(self, x_canonical: torch.Tensor) -> torch.Tensor:
-        return self.mlp(positional_encoding(x_canonical, self.pe_coords)[None])[0]
+        return self.mlp(self.encode(x_canonical)[None])[0]
 
 
 class RadianceHeads(nn.Module):
