@@ -81,10 +81,12 @@ def main(capture: str) -> None:
         axis = np.array([dr[2, 1] - dr[1, 2], dr[0, 2] - dr[2, 0], dr[1, 0] - dr[0, 1]])
         omega = axis / max(np.linalg.norm(axis), 1e-12) * ang
         vel[f] = np.r_[omega, rots[f] @ (cens[f] - cens[p])] * (1 if p < f else -1)
-    for comps, use_vel in ((5, False), (10, False), (20, False), (5, True), (20, True)):
+    speed = np.c_[np.linalg.norm(vel[:, :3], axis=1), np.linalg.norm(vel[:, 3:], axis=1)]  # |omega|, |v|
+    for comps, use_vel in ((5, ""), (10, ""), (20, ""), (5, "velocities"), (20, "velocities"), (20, "speeds")):
         feat = (xb - mu) @ vt[:comps].T  # centred on the training frames; the intercept (ym) is not penalised
-        if use_vel:
-            v = vel / vel[train].std(0).clip(1e-9) * feat[train].std()
+        if use_vel:  # velocities: omega and v (signed, 6); speeds: their magnitudes (2: a twirl either way)
+            v = vel if use_vel == "velocities" else speed
+            v = v / v[train].std(0).clip(1e-9) * feat[train].std()
             feat = np.c_[feat, v - v[train].mean(0)]
         a = feat[train]
         best = None
@@ -95,8 +97,21 @@ def main(capture: str) -> None:
             fit = np.mean([rms(pred[f].reshape(-1, 3), sk_w[f]) for f in train])
             if best is None or err < best[0]:
                 best = (err, lam, fit)
-        lines.append(f"ridge pose->skirt, {comps} body components{' + waist velocities' if use_vel else ''} (best lambda {best[1]:g} chosen on the test "
+        lines.append(f"ridge pose->skirt, {comps} body components{' + waist ' + use_vel if use_vel else ''} (best lambda {best[1]:g} chosen on the test "
                      f"frames, an optimistic bound): test skirt {best[0]:.2f} cm, training frames {best[2]:.2f} cm")
+    # one pose, several skirts: within the training frames, each frame's nearest other frame by body (at least 5
+    # frames apart) and how far their skirts are
+    twins = []
+    for f in train:
+        others = [k for k in train if abs(int(k) - int(f)) >= 5]
+        db = [rms(bo_w[f], bo_w[k]) for k in others]
+        k = others[int(np.argmin(db))]
+        twins.append((min(db), rms(sk_w[f], sk_w[k])))
+    tw = np.asarray(twins)
+    close = tw[tw[:, 0] < 3.0]
+    lines.append(f"training frames' nearest body >= 5 frames apart: body {tw[:, 0].mean():.2f} cm, skirt "
+                 f"{tw[:, 1].mean():.2f} cm; the {len(close)} pairs with bodies < 3 cm apart: skirt "
+                 f"{close[:, 1].mean() if len(close) else float('nan'):.2f} cm (max {close[:, 1].max() if len(close) else float('nan'):.2f})")
     lines.append(f"consecutive training frames: skirt {np.mean(cons):.2f} cm per frame")
     print("\n".join(lines))
 
