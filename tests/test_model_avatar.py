@@ -265,7 +265,7 @@ def test_coarse_to_fine_coordinate_encoding_opens_the_bands_over_the_anneal_step
     assert torch.allclose(coarse, want) and not torch.allclose(coarse, full)
     again = make(small_cfg(pe_anneal_steps=100, pe_anneal_start=2.0))
     again.load_state_dict(m.state_dict())
-    assert float(again.fields.pe_level) == 2.0
+    assert float(again.fields.pe_level) == 2.0 and torch.allclose(again.fields(pts, bias), coarse)  # the level loaded
     again.load_state_dict({k: v for k, v in m.state_dict().items() if not k.endswith("pe_level")})
     assert float(again.fields.pe_level) == m.cfg.pe_coords and torch.allclose(again.fields(pts, bias), full)
     # off (the default): a no-op; the pose-only baseline's canonical field anneals the same way

@@ -232,7 +232,7 @@ class SlrfAvatar(nn.Module):
         if cfg.pe_anneal_steps <= 0 or not isinstance(field, CoordinateEncoding):
             return
         a = cfg.pe_anneal_start + (cfg.pe_coords - cfg.pe_anneal_start) * min(1.0, step / cfg.pe_anneal_steps)
-        field.pe_level.fill_(a)
+        field.set_level(a)
 
     def knock_out(self, state: NodeState, delta_n: bool = False, embedding: bool = False) -> NodeState:
         """`state` with Delta n_i and/or e_i set to zero at render time (the paper's render-time knockout of a

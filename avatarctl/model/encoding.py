@@ -6,8 +6,8 @@ applied per component; m = 6 for coordinates, 4 for view directions, 12 for the 
 The input itself is included, so a d-dimensional input encodes to d * (1 + 2m) values.
 
 Coarse-to-fine (a deviation, `ModelConfig.pe_anneal_steps`): band k's sin / cos may be scaled by a weight w_k(a)
-that opens it as the level a passes k (the window of BARF, Lin et al. 2021): w_k = (1 - cos(pi clamp(a - k, 0, 1))) / 2.
-At a = m every weight is 1 and the encoding is exactly gamma(x).
+that opens it as the level a passes k (the window of BARF, Lin et al. 2021):
+w_k = (1 - cos(pi clamp(a - k, 0, 1))) / 2. At a = m every weight is 1 and the encoding is exactly gamma(x).
 """
 
 from __future__ import annotations
@@ -20,11 +20,10 @@ def encoded_dim(dim: int, m: int) -> int:
     return dim * (1 + 2 * m)
 
 
-def band_weights(m: int, level: torch.Tensor | float) -> torch.Tensor:
+def band_weights(m: int, level: float) -> torch.Tensor:
     """The coarse-to-fine window: [m] weights of the frequency bands at `level` a (0 = only x, m = all bands)."""
     k = torch.arange(m, dtype=torch.float32)
-    a = torch.as_tensor(level, dtype=torch.float32).cpu()
-    return 0.5 * (1.0 - torch.cos(torch.pi * (a - k).clamp(0.0, 1.0)))
+    return 0.5 * (1.0 - torch.cos(torch.pi * (float(level) - k).clamp(0.0, 1.0)))
 
 
 def positional_encoding(x: torch.Tensor, m: int, weights: torch.Tensor | None = None) -> torch.Tensor:

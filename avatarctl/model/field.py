@@ -116,21 +116,27 @@ class BlockPacking:
 class CoordinateEncoding(nn.Module):
     """gamma(p) of the MLP fields' input coordinates (m = pe_coords), with the coarse-to-fine level `pe_level`
     (a buffer, saved with the weights: `ModelConfig.pe_anneal_steps`, model/encoding.py `band_weights`). At the
-    full level m, the default and what a checkpoint without the buffer loads with, it is exactly gamma(p)."""
+    full level m, the default and what a checkpoint without the buffer loads with, it is exactly gamma(p). The level
+    is mirrored in a Python float so that a forward pass never reads the buffer back from the device."""
 
     def __init__(self, pe_coords: int):
         super().__init__()
         self.pe_coords = pe_coords
         self.register_buffer("pe_level", torch.tensor(float(pe_coords)))
+        self._level = float(pe_coords)
+
+    def set_level(self, level: float) -> None:
+        self.pe_level.fill_(level)
+        self._level = float(level)
 
     def encode(self, coords: torch.Tensor) -> torch.Tensor:
-        full = float(self.pe_level) >= self.pe_coords
-        return positional_encoding(coords, self.pe_coords,
-                                   None if full else band_weights(self.pe_coords, self.pe_level))
+        weights = None if self._level >= self.pe_coords else band_weights(self.pe_coords, self._level)
+        return positional_encoding(coords, self.pe_coords, weights)
 
     def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):
-        state_dict.setdefault(prefix + "pe_level", torch.tensor(float(self.pe_coords)))  # older checkpoints
+        level = state_dict.setdefault(prefix + "pe_level", torch.tensor(float(self.pe_coords)))  # older checkpoints
         super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
+        self._level = float(level)
 
 
 class NodeFields(CoordinateEncoding):
