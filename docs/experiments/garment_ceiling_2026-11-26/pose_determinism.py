@@ -97,7 +97,8 @@ def main(capture: str) -> None:
             fit = np.mean([rms(pred[f].reshape(-1, 3), sk_w[f]) for f in train])
             if best is None or err < best[0]:
                 best = (err, lam, fit)
-        lines.append(f"ridge pose->skirt, {comps} body components{' + waist ' + use_vel if use_vel else ''} (best lambda {best[1]:g} chosen on the test "
+        extra = f" + waist {use_vel}" if use_vel else ""
+        lines.append(f"ridge pose->skirt, {comps} body components{extra} (best lambda {best[1]:g} chosen on the test "
                      f"frames, an optimistic bound): test skirt {best[0]:.2f} cm, training frames {best[2]:.2f} cm")
     # one pose, several skirts: within the training frames, each frame's nearest other frame by body (at least 5
     # frames apart) and how far their skirts are
@@ -108,10 +109,11 @@ def main(capture: str) -> None:
         k = others[int(np.argmin(db))]
         twins.append((min(db), rms(sk_w[f], sk_w[k])))
     tw = np.asarray(twins)
-    close = tw[tw[:, 0] < 3.0]
+    close = tw[tw[:, 0] < 3.0, 1]  # skirt distances of the pairs whose bodies are < 3 cm apart
+    c_mean, c_max = (close.mean(), close.max()) if len(close) else (float("nan"), float("nan"))
     lines.append(f"training frames' nearest body >= 5 frames apart: body {tw[:, 0].mean():.2f} cm, skirt "
                  f"{tw[:, 1].mean():.2f} cm; the {len(close)} pairs with bodies < 3 cm apart: skirt "
-                 f"{close[:, 1].mean() if len(close) else float('nan'):.2f} cm (max {close[:, 1].max() if len(close) else float('nan'):.2f})")
+                 f"{c_mean:.2f} cm (max {c_max:.2f})")
     lines.append(f"consecutive training frames: skirt {np.mean(cons):.2f} cm per frame")
     print("\n".join(lines))
 
