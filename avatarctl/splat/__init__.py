@@ -1,0 +1,45 @@
+"""Differentiable 3D Gaussian splatting (Kerbl et al. 2023): world Gaussians -> image, gradients back.
+
+Layers (gsplat's): `render_gaussians` (this file) = `project_gaussians` (project.py, pure torch: EWA projection of
+mean and covariance) + `rasterize` (rasterize.py: tile binning, then NVIDIA Warp kernels (`_warp_kernels.py`, CPU
+and CUDA) behind a `torch.autograd.Function`, with a dense pure-PyTorch twin in `_torch_impl.py`).
+
+Conventions: metres; world->camera `x_cam = R x_world + T` (OpenCV: +z forward, x right, y down); pixel centres at
+integer coordinates; colours in any number of channels C. Imports only torch, numpy, warp (lazily, on the first
+Warp rasterization) and nothing of avatarctl above `geometry`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from avatarctl.splat.camera import SplatCamera
+from avatarctl.splat.project import Projected, project_gaussians
+from avatarctl.splat.rasterize import rasterize
+
+
+@dataclass
+class SplatRender:
+    """One rendered image."""
+
+    rgb: torch.Tensor  # [H, W, C] composited over the background
+    alpha: torch.Tensor  # [H, W] accumulated opacity
+    radii: torch.Tensor  # [G] int32 screen radius, pixels; 0 = culled (not in this image)
+    means2d: torch.Tensor  # [G, 2] pixels; call .retain_grad() before backward for 3DGS's densification statistic
+
+
+def render_gaussians(means: torch.Tensor,  # [G, 3] world, metres
+                     covars: torch.Tensor,  # [G, 3, 3] world covariance, metres^2
+                     colors: torch.Tensor,  # [G, C]
+                     opacities: torch.Tensor,  # [G] in [0, 1]
+                     cam: SplatCamera, background: torch.Tensor,  # [C]
+                     backend: str = "auto") -> SplatRender:
+    """Project and rasterize: the image of the Gaussians seen by `cam` (cam.width x cam.height)."""
+    proj = project_gaussians(means, covars, cam)
+    rgb, alpha = rasterize(proj, colors, opacities, cam.width, cam.height, background, backend=backend)
+    return SplatRender(rgb=rgb, alpha=alpha, radii=proj.radii, means2d=proj.means2d)
+
+
+__all__ = ["Projected", "SplatCamera", "SplatRender", "project_gaussians", "rasterize", "render_gaussians"]

@@ -1,0 +1,295 @@
+"""NVIDIA Warp kernels of the 3DGS rasterizer (forward and backward), two ways to walk the work:
+
+- tile walk (`*_tiles`, the CPU variant): one job per 16x16 tile visits the tile's depth-sorted splats and, for each
+  splat, only the pixels of its footprint inside the tile. Per-pixel state lives in global per-pixel arrays; a tile
+  owns its pixels, so jobs never race. The backward pass sums a splat's gradient over its footprint in registers
+  and adds it once per tile. On one CPU core this is ~12x faster than one job per pixel.
+- pixel walk (`*_pixels`, the GPU variant): one thread per pixel walks its tile's list (CUDA blocks of 256 threads
+  are one tile, so they read the same splats); gradients are added with atomics, once per (splat, pixel).
+
+Both give the same numbers and both run on CPU and CUDA. The semantics are those of `_torch_impl` (its docstring);
+the gradients are derived in `backward_tiles`. Colours are Warp vectors of any length (vec3, vec4, ...): the kernels
+are generic over that type. A launch covers the tiles `tile_first + i * tile_step`, so several launches (one per
+CPU thread) can share an image. Warp's CPU atomics are plain adds: concurrent launches need their own gradient
+arrays.
+
+Importing this module imports Warp but compiles nothing; Warp builds the kernels on first launch (cached on disk).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import warp as wp
+
+from avatarctl.splat._torch_impl import ALPHA_MAX, ALPHA_MIN, T_MIN, TILE
+
+wp.set_module_options({"enable_backward": False})  # the adjoints are written by hand below
+
+_TILE = wp.constant(TILE)
+_PIXELS_PER_TILE = wp.constant(TILE * TILE)
+_ALPHA_MIN = wp.constant(ALPHA_MIN)
+_ALPHA_MAX = wp.constant(ALPHA_MAX)
+_T_MIN = wp.constant(T_MIN)
+
+
+@wp.func
+def _raw_alpha(dx: float, dy: float, conic: wp.vec3, opacity: float) -> float:
+    """o exp(power), power = -0.5 d^T Sigma2d^-1 d at d = pixel - mean; 0 where power > 0 (the splat is skipped).
+    The splat counts where min(ALPHA_MAX, this) >= ALPHA_MIN."""
+    power = -0.5 * (conic[0] * dx * dx + conic[2] * dy * dy) - conic[1] * dx * dy
+    if power > 0.0:
+        return 0.0
+    return opacity * wp.exp(power)
+
+
+@wp.func
+def _tile_rect(tile: int, tiles_x: int, width: int, height: int) -> wp.vec4i:
+    """The pixels of a tile, clipped to the image: (x0, y0, x1, y1) inclusive."""
+    x0 = (tile % tiles_x) * _TILE
+    y0 = (tile // tiles_x) * _TILE
+    return wp.vec4i(x0, y0, wp.min(x0 + _TILE, width) - 1, wp.min(y0 + _TILE, height) - 1)
+
+
+@wp.func
+def _pixel_of_thread(i: int, tile_first: int, tile_step: int, tiles_x: int) -> wp.vec3i:
+    """Pixel-walk thread i -> (tile, x, y): 256 consecutive threads cover one tile (may lie outside the image)."""
+    tile = tile_first + (i // _PIXELS_PER_TILE) * tile_step
+    x = (tile % tiles_x) * _TILE + (i % _PIXELS_PER_TILE) % _TILE
+    y = (tile // tiles_x) * _TILE + (i % _PIXELS_PER_TILE) // _TILE
+    return wp.vec3i(tile, x, y)
+
+
+@wp.kernel
+def forward_tiles(tile_first: int, tile_step: int, tiles_x: int, width: int, height: int,
+                  tile_start: wp.array(dtype=wp.int32),  # [tiles + 1] range of each tile in ids
+                  ids: wp.array(dtype=wp.int32),  # [entries] splat index, sorted by (tile, depth)
+                  boxes: wp.array(dtype=wp.vec4i),  # [G] footprint x0, y0, x1, y1 (inclusive)
+                  means2d: wp.array(dtype=wp.vec2),  # [G]
+                  conics: wp.array(dtype=wp.vec3),  # [G]
+                  colors: wp.array(dtype=Any),  # [G] vecC
+                  opacities: wp.array(dtype=float),  # [G]
+                  background: wp.array(dtype=Any),  # [1] vecC
+                  rgb: wp.array(dtype=Any),  # [H * W] vecC out
+                  transmittance: wp.array(dtype=float),  # [H * W] out: T_final
+                  last: wp.array(dtype=wp.int32),  # [H * W] out: 1 + position in ids of the last contributor, 0: none
+                  done: wp.array(dtype=wp.int32)):  # [H * W] scratch
+    tile = tile_first + wp.tid() * tile_step
+    rect = _tile_rect(tile, tiles_x, width, height)
+    tx0, ty0, tx1, ty1 = rect[0], rect[1], rect[2], rect[3]
+    bg = background[0]
+    for y in range(ty0, ty1 + 1):
+        for x in range(tx0, tx1 + 1):
+            p = y * width + x
+            rgb[p] = bg * 0.0
+            transmittance[p] = 1.0
+            last[p] = 0
+            done[p] = 0
+    left = (tx1 - tx0 + 1) * (ty1 - ty0 + 1)  # pixels not finished
+    for k in range(tile_start[tile], tile_start[tile + 1]):
+        if left == 0:
+            break
+        g = ids[k]
+        box = boxes[g]
+        mean = means2d[g]
+        conic = conics[g]
+        opacity = opacities[g]
+        color = colors[g]
+        for y in range(wp.max(box[1], ty0), wp.min(box[3], ty1) + 1):
+            for x in range(wp.max(box[0], tx0), wp.min(box[2], tx1) + 1):
+                p = y * width + x
+                if done[p] == 0:
+                    alpha = wp.min(_ALPHA_MAX, _raw_alpha(float(x) - mean[0], float(y) - mean[1], conic, opacity))
+                    if alpha >= _ALPHA_MIN:
+                        t = transmittance[p]
+                        t_next = t * (1.0 - alpha)
+                        if t_next < _T_MIN:
+                            done[p] = 1
+                            left -= 1
+                        else:
+                            rgb[p] = rgb[p] + color * (t * alpha)
+                            transmittance[p] = t_next
+                            last[p] = k + 1
+    for y in range(ty0, ty1 + 1):
+        for x in range(tx0, tx1 + 1):
+            p = y * width + x
+            rgb[p] = rgb[p] + bg * transmittance[p]
+
+
+@wp.kernel
+def forward_pixels(tile_first: int, tile_step: int, tiles_x: int, width: int, height: int,
+                   tile_start: wp.array(dtype=wp.int32), ids: wp.array(dtype=wp.int32),
+                   boxes: wp.array(dtype=wp.vec4i), means2d: wp.array(dtype=wp.vec2),
+                   conics: wp.array(dtype=wp.vec3), colors: wp.array(dtype=Any), opacities: wp.array(dtype=float),
+                   background: wp.array(dtype=Any), rgb: wp.array(dtype=Any),
+                   transmittance: wp.array(dtype=float), last: wp.array(dtype=wp.int32),
+                   done: wp.array(dtype=wp.int32)):  # unused (the signature of forward_tiles)
+    txy = _pixel_of_thread(wp.tid(), tile_first, tile_step, tiles_x)
+    tile, x, y = txy[0], txy[1], txy[2]
+    if x >= width or y >= height:
+        return
+    bg = background[0]
+    acc = bg * 0.0
+    t = float(1.0)
+    n = int(0)
+    for k in range(tile_start[tile], tile_start[tile + 1]):
+        g = ids[k]
+        box = boxes[g]
+        if x >= box[0] and x <= box[2] and y >= box[1] and y <= box[3]:
+            mean = means2d[g]
+            alpha = wp.min(_ALPHA_MAX, _raw_alpha(float(x) - mean[0], float(y) - mean[1], conics[g], opacities[g]))
+            if alpha >= _ALPHA_MIN:
+                t_next = t * (1.0 - alpha)
+                if t_next < _T_MIN:
+                    break
+                acc = acc + colors[g] * (t * alpha)
+                t = t_next
+                n = k + 1
+    p = y * width + x
+    rgb[p] = acc + bg * t
+    transmittance[p] = t
+    last[p] = n
+
+
+@wp.func
+def _grad_alpha(grad_rgb: Any, grad_alpha: float, color: Any, behind: Any, t: float, t_final: float,
+                one_minus_alpha: float) -> float:
+    """dL/dalpha_i of one pixel: sum_c g_c T_i (c_i - B_c) + g_alpha T_final / (1 - alpha_i)."""
+    return wp.dot(grad_rgb, color - behind) * t + grad_alpha * t_final / one_minus_alpha
+
+
+@wp.kernel
+def backward_tiles(tile_first: int, tile_step: int, tiles_x: int, width: int, height: int,
+                   tile_start: wp.array(dtype=wp.int32), ids: wp.array(dtype=wp.int32),
+                   boxes: wp.array(dtype=wp.vec4i), means2d: wp.array(dtype=wp.vec2),
+                   conics: wp.array(dtype=wp.vec3), colors: wp.array(dtype=Any), opacities: wp.array(dtype=float),
+                   background: wp.array(dtype=Any),
+                   transmittance: wp.array(dtype=float),  # [H * W] T_final of the forward pass
+                   last: wp.array(dtype=wp.int32),  # [H * W] of the forward pass
+                   grad_rgb: wp.array(dtype=Any),  # [H * W] vecC dL/drgb
+                   grad_alpha_out: wp.array(dtype=float),  # [H * W] dL/dalpha
+                   t_scratch: wp.array(dtype=float),  # [H * W] scratch: T in front of the current splat
+                   behind_scratch: wp.array(dtype=Any),  # [H * W] vecC scratch: colour seen behind it
+                   grad_means2d: wp.array(dtype=wp.vec2),  # [G] out, added to
+                   grad_conics: wp.array(dtype=wp.vec3),  # [G] out, added to
+                   grad_colors: wp.array(dtype=Any),  # [G] vecC out, added to
+                   grad_opacities: wp.array(dtype=float)):  # [G] out, added to
+    # Walking back to front from each pixel's last contributor: T_i = T_{i+1} / (1 - alpha_i) (T_N = T_final) and
+    # B_i = alpha_{i+1} c_{i+1} + (1 - alpha_{i+1}) B_{i+1} (B_N = background), the colour behind splat i, so that
+    #   drgb_c/dalpha_i = T_i (c_i,c - B_i,c),  dalpha_out/dalpha_i = T_final / (1 - alpha_i),  drgb/dc_i = T_i alpha_i;
+    # alpha_i = o_i exp(power) (unclamped) -> dalpha/do = exp(power), dalpha/dpower = alpha_i,
+    # dpower/dmean = (a dx + b dy, b dx + c dy), dpower/d(a, b, c) = (-dx^2 / 2, -dx dy, -dy^2 / 2).
+    tile = tile_first + wp.tid() * tile_step
+    rect = _tile_rect(tile, tiles_x, width, height)
+    tx0, ty0, tx1, ty1 = rect[0], rect[1], rect[2], rect[3]
+    bg = background[0]
+    end = int(0)
+    for y in range(ty0, ty1 + 1):
+        for x in range(tx0, tx1 + 1):
+            p = y * width + x
+            t_scratch[p] = transmittance[p]
+            behind_scratch[p] = bg
+            end = wp.max(end, last[p])
+    start = tile_start[tile]
+    for j in range(start, end):
+        k = end - 1 - (j - start)
+        g = ids[k]
+        box = boxes[g]
+        mean = means2d[g]
+        conic = conics[g]
+        opacity = opacities[g]
+        color = colors[g]
+        g_mean = wp.vec2(0.0, 0.0)
+        g_conic = wp.vec3(0.0, 0.0, 0.0)
+        g_color = color * 0.0
+        g_opacity = float(0.0)
+        hit = int(0)
+        for y in range(wp.max(box[1], ty0), wp.min(box[3], ty1) + 1):
+            dy = float(y) - mean[1]
+            for x in range(wp.max(box[0], tx0), wp.min(box[2], tx1) + 1):
+                p = y * width + x
+                if k < last[p]:
+                    dx = float(x) - mean[0]
+                    raw = _raw_alpha(dx, dy, conic, opacity)
+                    alpha = wp.min(_ALPHA_MAX, raw)
+                    if alpha >= _ALPHA_MIN:
+                        hit = 1
+                        one_minus = 1.0 - alpha
+                        t = t_scratch[p] / one_minus
+                        t_scratch[p] = t
+                        g_rgb = grad_rgb[p]
+                        behind = behind_scratch[p]
+                        g_color = g_color + g_rgb * (t * alpha)
+                        d_alpha = _grad_alpha(g_rgb, grad_alpha_out[p], color, behind, t, transmittance[p], one_minus)
+                        behind_scratch[p] = color * alpha + behind * one_minus
+                        if raw < _ALPHA_MAX:
+                            g_opacity += d_alpha * raw / opacity  # dalpha/do = exp(power)
+                            g_mean = g_mean + wp.vec2(conic[0] * dx + conic[1] * dy,
+                                                      conic[1] * dx + conic[2] * dy) * (d_alpha * raw)
+                            g_conic = g_conic + wp.vec3(-0.5 * dx * dx, -dx * dy, -0.5 * dy * dy) * (d_alpha * raw)
+        if hit != 0:
+            wp.atomic_add(grad_means2d, g, g_mean)
+            wp.atomic_add(grad_conics, g, g_conic)
+            wp.atomic_add(grad_colors, g, g_color)
+            wp.atomic_add(grad_opacities, g, g_opacity)
+
+
+@wp.kernel
+def backward_pixels(tile_first: int, tile_step: int, tiles_x: int, width: int, height: int,
+                    tile_start: wp.array(dtype=wp.int32), ids: wp.array(dtype=wp.int32),
+                    boxes: wp.array(dtype=wp.vec4i), means2d: wp.array(dtype=wp.vec2),
+                    conics: wp.array(dtype=wp.vec3), colors: wp.array(dtype=Any), opacities: wp.array(dtype=float),
+                    background: wp.array(dtype=Any), transmittance: wp.array(dtype=float),
+                    last: wp.array(dtype=wp.int32), grad_rgb: wp.array(dtype=Any),
+                    grad_alpha_out: wp.array(dtype=float),
+                    t_scratch: wp.array(dtype=float), behind_scratch: wp.array(dtype=Any),  # unused (same signature)
+                    grad_means2d: wp.array(dtype=wp.vec2), grad_conics: wp.array(dtype=wp.vec3),
+                    grad_colors: wp.array(dtype=Any), grad_opacities: wp.array(dtype=float)):
+    # The derivation is that of backward_tiles, walked per pixel.
+    txy = _pixel_of_thread(wp.tid(), tile_first, tile_step, tiles_x)
+    tile, x, y = txy[0], txy[1], txy[2]
+    if x >= width or y >= height:
+        return
+    p = y * width + x
+    t_final = transmittance[p]
+    t = t_final
+    behind = background[0]
+    g_rgb = grad_rgb[p]
+    g_alpha = grad_alpha_out[p]
+    start = tile_start[tile]
+    end = last[p]
+    for j in range(start, end):
+        k = end - 1 - (j - start)
+        g = ids[k]
+        box = boxes[g]
+        if x >= box[0] and x <= box[2] and y >= box[1] and y <= box[3]:
+            mean = means2d[g]
+            conic = conics[g]
+            dx = float(x) - mean[0]
+            dy = float(y) - mean[1]
+            opacity = opacities[g]
+            raw = _raw_alpha(dx, dy, conic, opacity)
+            alpha = wp.min(_ALPHA_MAX, raw)
+            if alpha >= _ALPHA_MIN:
+                one_minus = 1.0 - alpha
+                t = t / one_minus
+                color = colors[g]
+                wp.atomic_add(grad_colors, g, g_rgb * (t * alpha))
+                d_alpha = _grad_alpha(g_rgb, g_alpha, color, behind, t, t_final, one_minus)
+                behind = color * alpha + behind * one_minus
+                if raw < _ALPHA_MAX:
+                    wp.atomic_add(grad_opacities, g, d_alpha * raw / opacity)
+                    wp.atomic_add(grad_means2d, g, wp.vec2(conic[0] * dx + conic[1] * dy,
+                                                           conic[1] * dx + conic[2] * dy) * (d_alpha * raw))
+                    wp.atomic_add(grad_conics, g, wp.vec3(-0.5 * dx * dx, -dx * dy, -0.5 * dy * dy) * (d_alpha * raw))
+
+
+_COLOR_ARGS = ("colors", "background", "rgb", "grad_rgb", "behind_scratch", "grad_colors")  # the generic arrays
+for _kernel in (forward_tiles, forward_pixels, backward_tiles, backward_pixels):
+    for _vec in (wp.vec3, wp.vec4):  # RGB and RGBA: built together on first launch; other C when first used
+        wp.overload(_kernel, {name: wp.array(dtype=_vec) for name in _COLOR_ARGS if name in _kernel.arg_indices})
+
+
+def color_type(channels: int):
+    """The Warp vector type of `channels` colour channels (vec3 and vec4 are the prebuilt overloads)."""
+    return {3: wp.vec3, 4: wp.vec4}.get(channels) or wp.types.vector(channels, wp.float32)

@@ -1,0 +1,98 @@
+"""Projection of 3D Gaussians to screen-space 2D Gaussians (EWA splatting, Zwicker et al. 2001), pure torch.
+
+For a Gaussian with world mean mu and covariance Sigma seen by camera (K, R, T):
+
+    t = R mu + T                         camera coordinates, metres (z = depth)
+    mean2d = K[:2, :2] (t_x / t_z, t_y / t_z) + K[:2, 2]           pixels
+    J = K[:2, :2] [[1/t_z, 0, -t_x/t_z^2], [0, 1/t_z, -t_y/t_z^2]]   Jacobian of the projection at t
+    Sigma2d = J R Sigma R^T J^T + 0.3 I  (3DGS's low-pass: every splat is at least ~1 px wide)
+    conic = Sigma2d^-1 = [[a, b], [b, c]]  stored as (a, b, c)
+    radius = ceil(3 sqrt(lambda_max(Sigma2d)))  pixels
+
+As in 3DGS, J is evaluated with t_x / t_z and t_y / t_z clamped to 1.3x the half field of view, so that a Gaussian far
+outside the window does not get a huge footprint (the mean itself is not clamped). A Gaussian is culled (radius 0)
+when its depth is not beyond `near`, when Sigma2d is degenerate, or when its footprint misses the image.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from avatarctl.splat.camera import SplatCamera
+
+LOW_PASS = 0.3  # px^2 added to the diagonal of Sigma2d (3DGS)
+FOV_CLAMP = 1.3  # J is evaluated inside 1.3x the half field of view (3DGS)
+
+
+@dataclass
+class Projected:
+    """Screen-space Gaussians, one row per input Gaussian (culled rows have radius 0 and zero conic)."""
+
+    means2d: torch.Tensor  # [G, 2] pixels (pixel centres at integers)
+    conics: torch.Tensor  # [G, 3] (a, b, c) of the inverse 2D covariance [[a, b], [b, c]], 1/px^2
+    depths: torch.Tensor  # [G] camera z, metres (sort key, front to back)
+    radii: torch.Tensor  # [G] int32 pixels, ceil(3 sqrt(lambda_max)); 0 = culled
+
+
+def footprint(means2d: torch.Tensor, radii: torch.Tensor, width: int, height: int) -> torch.Tensor:
+    """The pixels a splat may touch: the square mean +- radius, clipped to the image.
+
+    means2d [G, 2], radii [G] -> [G, 4] int32 (x0, y0, x1, y1), inclusive pixel bounds; x0 > x1 or y0 > y1 where the
+    splat touches no pixel (culled or off screen). Pixel x is inside when ceil(mx - r) <= x <= floor(mx + r).
+    """
+    m = means2d.detach()
+    r = radii.to(m.dtype)
+    x0 = torch.ceil(m[:, 0] - r).clamp(min=0)
+    y0 = torch.ceil(m[:, 1] - r).clamp(min=0)
+    x1 = torch.floor(m[:, 0] + r).clamp(max=width - 1)
+    y1 = torch.floor(m[:, 1] + r).clamp(max=height - 1)
+    box = torch.stack([x0, y0, x1, y1], dim=-1)
+    box = torch.where((radii > 0)[:, None], box, torch.tensor([0.0, 0.0, -1.0, -1.0], dtype=m.dtype, device=m.device))
+    return box.to(torch.int32)
+
+
+def project_gaussians(means: torch.Tensor,  # [G, 3] world, metres
+                      covars: torch.Tensor,  # [G, 3, 3] world covariance, metres^2 (symmetric PSD)
+                      cam: SplatCamera, near: float = 0.01) -> Projected:
+    """World Gaussians -> screen-space Gaussians (see the module docstring). Differentiable w.r.t. means and covars
+    through autograd; radii carry no gradient. Works in the dtype of `means` (float32 or float64)."""
+    assert means.ndim == 2 and means.shape[-1] == 3, f"means: expected [G, 3], got {list(means.shape)}"
+    assert covars.shape == (means.shape[0], 3, 3), \
+        f"covars: expected [{means.shape[0]}, 3, 3], got {list(covars.shape)}"
+    K, R, T = (x.to(device=means.device, dtype=means.dtype) for x in (cam.K, cam.R, cam.T))
+    t = means @ R.T + T  # [G, 3]
+    z = t[:, 2]
+    in_front = z > near
+    z = torch.where(in_front, z, torch.ones_like(z))  # culled rows: finite values, zero gradient
+    xy = t[:, :2] / z[:, None]  # [G, 2]
+    means2d = xy @ K[:2, :2].T + K[:2, 2]
+
+    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+    half_x, half_y = 0.5 * cam.width / fx, 0.5 * cam.height / fy  # tan of the half field of view
+    lim_x = torch.stack([-(cx / fx + (FOV_CLAMP - 1.0) * half_x), (cam.width - cx) / fx + (FOV_CLAMP - 1.0) * half_x])
+    lim_y = torch.stack([-(cy / fy + (FOV_CLAMP - 1.0) * half_y), (cam.height - cy) / fy + (FOV_CLAMP - 1.0) * half_y])
+    xc = torch.clamp(xy[:, 0], lim_x[0], lim_x[1])
+    yc = torch.clamp(xy[:, 1], lim_y[0], lim_y[1])
+    zero = torch.zeros_like(z)
+    jac = torch.stack([torch.stack([1 / z, zero, -xc / z], -1),
+                       torch.stack([zero, 1 / z, -yc / z], -1)], dim=-2)  # [G, 2, 3] d(x/z, y/z)/dt
+    M = K[:2, :2] @ jac @ R  # [G, 2, 3]
+    cov2d = M @ covars @ M.transpose(-1, -2)  # [G, 2, 2]
+    a = cov2d[:, 0, 0] + LOW_PASS
+    b = 0.5 * (cov2d[:, 0, 1] + cov2d[:, 1, 0])
+    c = cov2d[:, 1, 1] + LOW_PASS
+    det = a * c - b * b
+    ok = in_front & (det > 0) & torch.isfinite(det)
+    det = torch.where(ok, det, torch.ones_like(det))
+    conics = torch.stack([c / det, -b / det, a / det], dim=-1) * ok[:, None]
+    means2d = means2d * ok[:, None]
+
+    with torch.no_grad():
+        mid = 0.5 * (a + c)
+        lam_max = mid + torch.sqrt(torch.clamp(mid * mid - det, min=0.0))
+        radii = torch.where(ok, torch.ceil(3.0 * torch.sqrt(lam_max)), torch.zeros_like(lam_max)).to(torch.int32)
+        box = footprint(means2d, radii, cam.width, cam.height)
+        radii = torch.where((box[:, 0] <= box[:, 2]) & (box[:, 1] <= box[:, 3]), radii, torch.zeros_like(radii))
+    return Projected(means2d=means2d, conics=conics, depths=t[:, 2], radii=radii)

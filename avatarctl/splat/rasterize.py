@@ -1,0 +1,214 @@
+"""`rasterize`: screen-space Gaussians -> image, with the Warp kernels behind a `torch.autograd.Function`.
+
+Steps: (1) `bin_gaussians` lists, for every 16x16 tile, the splats whose footprint touches it, sorted front to back
+with one sort on the key (tile id << 32 | depth bits) (torch); (2) the forward kernel composites each tile and keeps
+per pixel the final transmittance and the last contributor; (3) the backward kernel walks back from there.
+
+Backends: "torch" is the dense twin (`_torch_impl`, any dtype, tiny scenes); "warp" picks the kernel variant by
+device: the tile walk on CPU, the pixel walk on CUDA; "warp_tile" / "warp_pixel" force one (both run on either
+device); "auto" = "warp". The Warp path computes in float32. On CPU the tiles are shared among
+`torch.get_num_threads()` Python threads (Warp's CPU launch releases the GIL while the kernel runs; each runs one
+launch on one core), so `torch.set_num_threads` sets the cores used by both torch and the kernels.
+"""
+
+from __future__ import annotations
+
+import functools
+import threading
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+
+import torch
+
+from avatarctl.splat._torch_impl import TILE, rasterize_torch
+from avatarctl.splat.project import Projected, footprint
+
+BACKENDS = ("auto", "warp", "warp_tile", "warp_pixel", "torch")
+
+
+@dataclass(frozen=True)
+class TileBins:
+    """Which splats touch which tile, front to back."""
+
+    ids: torch.Tensor  # [entries] int32 splat index, sorted by (tile, depth)
+    tile_start: torch.Tensor  # [tiles + 1] int32: the splats of tile t are ids[tile_start[t]:tile_start[t + 1]]
+    boxes: torch.Tensor  # [G, 4] int32 footprint (x0, y0, x1, y1), inclusive; empty where culled
+    tiles_x: int
+    tiles_y: int
+
+
+def bin_gaussians(proj: Projected, width: int, height: int) -> TileBins:
+    """One entry per (splat, tile it touches), sorted by tile then depth (ties: by splat index)."""
+    device = proj.means2d.device
+    boxes = footprint(proj.means2d, proj.radii, width, height)  # [G, 4]
+    tiles_x, tiles_y = -(-width // TILE), -(-height // TILE)
+    t0 = torch.div(boxes[:, :2], TILE, rounding_mode="floor")  # [G, 2] first tile x, y
+    span = torch.div(boxes[:, 2:], TILE, rounding_mode="floor") - t0 + 1  # [G, 2] tiles along x, y
+    n = torch.where(proj.radii > 0, span[:, 0] * span[:, 1], torch.zeros_like(span[:, 0])).long()  # [G]
+    g = torch.repeat_interleave(torch.arange(n.shape[0], device=device), n)  # [entries]
+    local = torch.arange(g.shape[0], device=device) - (torch.cumsum(n, 0) - n)[g]
+    sx = span[g, 0].long()
+    tile = (t0[g, 1].long() + local // sx) * tiles_x + t0[g, 0].long() + local % sx
+    depth_bits = proj.depths.detach().float().contiguous().view(torch.int32).long()  # monotone for depth > 0
+    _, order = torch.sort((tile << 32) | depth_bits[g], stable=True)
+    counts = torch.bincount(tile, minlength=tiles_x * tiles_y)
+    tile_start = torch.cat([counts.new_zeros(1), torch.cumsum(counts, 0)]).to(torch.int32)
+    return TileBins(ids=g[order].to(torch.int32), tile_start=tile_start, boxes=boxes, tiles_x=tiles_x,
+                    tiles_y=tiles_y)
+
+
+def rasterize(proj: Projected, colors: torch.Tensor,  # [G, C]
+              opacities: torch.Tensor,  # [G] in [0, 1]
+              width: int, height: int, background: torch.Tensor,  # [C]
+              backend: str = "auto") -> tuple[torch.Tensor, torch.Tensor]:
+    """Alpha-composite the splats front to back (3DGS; the rules are in `_torch_impl`'s docstring).
+
+    -> rgb [H, W, C] over the background, alpha [H, W]. Differentiable w.r.t. proj.means2d, proj.conics, colors
+    and opacities (not the background). `backend`: see the module docstring.
+    """
+    G = proj.means2d.shape[0]
+    assert proj.means2d.shape == (G, 2), f"means2d: expected [G, 2], got {list(proj.means2d.shape)}"
+    assert proj.conics.shape == (G, 3), f"conics: expected [{G}, 3], got {list(proj.conics.shape)}"
+    assert proj.depths.shape == (G,) and proj.radii.shape == (G,), \
+        f"depths, radii: expected [{G}], got {list(proj.depths.shape)}, {list(proj.radii.shape)}"
+    assert colors.ndim == 2 and colors.shape[0] == G, f"colors: expected [{G}, C], got {list(colors.shape)}"
+    assert opacities.shape == (G,), f"opacities: expected [{G}], got {list(opacities.shape)}"
+    assert background.shape == colors.shape[1:], \
+        f"background: expected [{colors.shape[1]}] (the colour channels), got {list(background.shape)}"
+    if backend not in BACKENDS:
+        raise ValueError(f"rasterize: unknown backend {backend!r}; expected one of {', '.join(BACKENDS)}")
+    if backend == "torch":
+        return rasterize_torch(proj, colors, opacities, width, height, background)
+    tensors = (proj.means2d, proj.conics, colors, opacities, background)
+    if any(t.dtype != torch.float32 for t in tensors):
+        raise ValueError("rasterize: the Warp backend computes in float32, got "
+                         f"{sorted({str(t.dtype) for t in tensors})} (use backend='torch' for float64)")
+    on_cuda = proj.means2d.device.type == "cuda"
+    variant = {"warp_tile": "tiles", "warp_pixel": "pixels"}.get(backend, "pixels" if on_cuda else "tiles")
+    bins = bin_gaussians(proj, width, height)
+    return _RasterizeWarp.apply(proj.means2d, proj.conics, colors, opacities, background, bins, width, height,
+                                variant)
+
+
+def _kernels():
+    """The Warp kernel module, imported on first use; Warp initialised (it builds the kernels on first launch)."""
+    import warp as wp
+
+    from avatarctl.splat import _warp_kernels
+
+    wp.init()
+
+    return _warp_kernels
+
+
+@functools.lru_cache(maxsize=None)
+def _pool(workers: int) -> ThreadPoolExecutor:
+    return ThreadPoolExecutor(max_workers=workers, thread_name_prefix="splat")
+
+
+_BUILT: set[tuple] = set()  # (kernel, colour type, device) launched once: Warp has built it
+_BUILD_LOCK = threading.Lock()
+
+
+def _launch(kernel, tiles: int, per_tile: int, jobs: int, args_of_job, channels: int, device: torch.device) -> None:
+    """Launch `kernel` over `tiles` tiles as `jobs` launches (job j: tiles j, j + jobs, ...), concurrently from a
+    thread pool on CPU. `args_of_job(j)` -> the kernel's inputs after (tile_first, tile_step); `channels` picks the
+    kernel's overload (the colour vector type)."""
+    import warp as wp
+
+    def one(j: int) -> None:
+        n = len(range(j, tiles, jobs))
+        if n:
+            wp.launch(kernel, dim=n * per_tile, inputs=[j, jobs, *args_of_job(j)], device=str(device))
+
+    if device.type == "cuda":
+        with wp.ScopedStream(wp.stream_from_torch(device)):
+            one(0)
+        return
+    key = (kernel.key, channels, str(device))
+    if jobs == 1 or key not in _BUILT:
+        with _BUILD_LOCK:  # the first launch builds the module: not from two threads at once
+            for j in range(jobs):
+                one(j)
+            _BUILT.add(key)
+        return
+    futures = [_pool(jobs - 1).submit(one, j) for j in range(1, jobs)]
+    one(0)
+    for f in futures:
+        f.result()
+
+
+def _jobs(device: torch.device) -> int:
+    return 1 if device.type == "cuda" else max(1, torch.get_num_threads())
+
+
+class _RasterizeWarp(torch.autograd.Function):
+    """Autograd glue of the Warp kernels: tensors shared with Warp without copies (wp.from_torch)."""
+
+    @staticmethod
+    def forward(ctx, means2d, conics, colors, opacities, background, bins: TileBins, width: int, height: int,
+                variant: str):
+        import warp as wp
+
+        k = _kernels()
+        device = means2d.device
+        C = colors.shape[1]
+        vec = k.color_type(C)
+        P = width * height
+        rgb = torch.empty(P, C, device=device)
+        trans = torch.ones(P, device=device)
+        last = torch.zeros(P, dtype=torch.int32, device=device)
+        inputs = _inputs(bins, width, height, means2d, conics, colors, opacities, background, vec)
+        if bins.ids.shape[0] == 0:  # nothing visible: no launch (a kernel needs at least one entry to index)
+            rgb[:] = background
+        else:
+            done = torch.empty(P, dtype=torch.int32, device=device)
+            outs = [wp.from_torch(rgb, dtype=vec), wp.from_torch(trans), wp.from_torch(last), wp.from_torch(done)]
+            kernel = k.forward_tiles if variant == "tiles" else k.forward_pixels
+            per_tile = 1 if variant == "tiles" else TILE * TILE
+            _launch(kernel, bins.tiles_x * bins.tiles_y, per_tile, _jobs(device), lambda j: inputs + outs, C,
+                    device)
+        ctx.save_for_backward(means2d, conics, colors, opacities, background, trans, last)
+        ctx.bins, ctx.size, ctx.variant = bins, (width, height), variant
+        return rgb.reshape(height, width, C), (1 - trans).reshape(height, width)
+
+    @staticmethod
+    def backward(ctx, grad_rgb, grad_alpha):
+        import warp as wp
+
+        k = _kernels()
+        means2d, conics, colors, opacities, background, trans, last = ctx.saved_tensors
+        bins, (width, height) = ctx.bins, ctx.size
+        device, (G, C), P = means2d.device, colors.shape, width * height
+        jobs = _jobs(device)
+        grads = [torch.zeros(jobs, G, n, device=device) for n in (2, 3, C, 1)]  # per job: CPU atomics are plain adds
+        if bins.ids.shape[0] > 0:
+            vec = k.color_type(C)
+            inputs = _inputs(bins, width, height, means2d, conics, colors, opacities, background, vec)
+            grad_rgb = grad_rgb.float().contiguous().reshape(P, C)
+            grad_alpha = grad_alpha.float().contiguous().reshape(P)
+            scratch = [wp.from_torch(torch.empty(P, device=device)),
+                       wp.from_torch(torch.empty(P, C, device=device), dtype=vec)]
+            state = [wp.from_torch(trans), wp.from_torch(last), wp.from_torch(grad_rgb, dtype=vec),
+                     wp.from_torch(grad_alpha)]
+            outs = [[wp.from_torch(grads[0][j], dtype=wp.vec2), wp.from_torch(grads[1][j], dtype=wp.vec3),
+                     wp.from_torch(grads[2][j], dtype=vec), wp.from_torch(grads[3][j].reshape(G))]
+                    for j in range(jobs)]
+            kernel = k.backward_tiles if ctx.variant == "tiles" else k.backward_pixels
+            per_tile = 1 if ctx.variant == "tiles" else TILE * TILE
+            _launch(kernel, bins.tiles_x * bins.tiles_y, per_tile, jobs,
+                    lambda j: inputs + state + scratch + outs[j], C, device)
+        g_means, g_conics, g_colors, g_opac = (g.sum(0) for g in grads)
+        return g_means, g_conics, g_colors, g_opac.reshape(G), None, None, None, None, None
+
+
+def _inputs(bins: TileBins, width, height, means2d, conics, colors, opacities, background, vec) -> list:
+    """The kernels' shared inputs after (tile_first, tile_step)."""
+    import warp as wp
+
+    def view(t: torch.Tensor, dtype=None):
+        return wp.from_torch(t.detach().contiguous(), dtype=dtype, requires_grad=False)
+
+    return [bins.tiles_x, width, height, view(bins.tile_start), view(bins.ids), view(bins.boxes, wp.vec4i),
+            view(means2d, wp.vec2), view(conics, wp.vec3), view(colors, vec), view(opacities),
+            view(background.reshape(1, -1), vec)]

@@ -1,0 +1,149 @@
+"""Speed of the Gaussian splatting rasterizer (`avatarctl.splat`): ms per forward (projection, binning, compositing),
+backward and both, on a body-like scene, with one thread and with every core.
+
+The scene: G random Gaussians uniform in a 0.5 x 1.7 x 0.3 m box (a standing person) seen from 3 m by a square camera
+whose image the box fills; scales log-uniform 0.4-3 cm per axis, random rotations, opacities sigmoid(N(1, 1.5)),
+random colours: what a fitted avatar's Gaussians look like from a training view. Times are medians over
+`--repeats` after one warm-up (which builds the Warp kernels on a fresh cache). On CPU the rasterizer shares the
+tiles among `torch.get_num_threads()` threads: the rows with threads 1 and N compare one core with N.
+
+    python -m benchmarks.splat_bench [--device cpu|cuda] [--sizes 256:20000 256:50000 512:50000]
+                                     [--threads 1 2] [--backends warp] [--repeats 5] [--json OUT]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import time
+from pathlib import Path
+
+DEFAULT_SIZES = ((256, 20_000), (256, 50_000), (512, 50_000))  # (image side, Gaussians)
+
+
+def body_scene(n: int, side: int, device: str = "cpu", seed: int = 0):
+    """n Gaussians in a person-sized box seen from 3 m -> (means [n, 3], covars [n, 3, 3], colors [n, 3],
+    opacities [n], SplatCamera side x side)."""
+    import torch
+
+    from avatarctl.splat import SplatCamera
+
+    gen = torch.Generator().manual_seed(seed)
+    means = (torch.rand(n, 3, generator=gen) - 0.5) * torch.tensor([0.5, 1.7, 0.3])
+    scales = torch.exp(torch.empty(n, 3).uniform_(float(torch.log(torch.tensor(0.004))),
+                                                  float(torch.log(torch.tensor(0.03))), generator=gen))
+    q = torch.nn.functional.normalize(torch.randn(n, 4, generator=gen), dim=-1)
+    w, x, y, z = q.unbind(-1)
+    rot = torch.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
+                       2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
+                       2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1).reshape(n, 3, 3)
+    A = rot * scales[:, None, :]
+    covars = A @ A.transpose(-1, -2)
+    colors = torch.rand(n, 3, generator=gen)
+    opacities = torch.sigmoid(1.0 + 1.5 * torch.randn(n, generator=gen))
+    f = side * 3.0 / 1.9  # the 1.7 m box plus a margin fills the image from 3 m
+    K = torch.tensor([[f, 0.0, (side - 1) / 2], [0.0, f, (side - 1) / 2], [0.0, 0.0, 1.0]])
+    cam = SplatCamera(K=K, R=torch.eye(3), T=torch.tensor([0.0, 0.0, 3.0]), width=side, height=side)
+    return (means.to(device), covars.to(device), colors.to(device), opacities.to(device), cam.to(device))
+
+
+def _time_case(side: int, n: int, device: str, backend: str, repeats: int) -> dict:
+    import torch
+
+    from avatarctl.splat import project_gaussians, rasterize
+    from avatarctl.splat.rasterize import bin_gaussians
+
+    means, covars, colors, opacities, cam = body_scene(n, side, device)
+    background = torch.ones(3, device=device)
+    leaves = [t.requires_grad_() for t in (means, covars, colors, opacities)]
+    g_rgb = torch.rand(side, side, 3, generator=torch.Generator().manual_seed(1)).to(device)
+    g_alpha = torch.rand(side, side, generator=torch.Generator().manual_seed(2)).to(device)
+
+    def sync():
+        if device.startswith("cuda"):
+            torch.cuda.synchronize()
+
+    fwd, bwd, prep = [], [], []
+    for i in range(repeats + 1):
+        for t in leaves:
+            t.grad = None
+        sync()
+        t0 = time.perf_counter()
+        with torch.no_grad():
+            proj = project_gaussians(means, covars, cam)
+            bins = bin_gaussians(proj, side, side)
+        sync()
+        t1 = time.perf_counter()
+        proj = project_gaussians(means, covars, cam)
+        rgb, alpha = rasterize(proj, colors, opacities, side, side, background, backend=backend)
+        sync()
+        t2 = time.perf_counter()
+        torch.autograd.backward([rgb, alpha], [g_rgb, g_alpha])
+        sync()
+        t3 = time.perf_counter()
+        if i:  # the first is the warm-up
+            prep.append(t1 - t0)
+            fwd.append(t2 - t1)
+            bwd.append(t3 - t2)
+    med = lambda v: 1e3 * sorted(v)[len(v) // 2]  # noqa: E731
+    visible = int((proj.radii > 0).sum())
+    return {"side": side, "gaussians": n, "visible": visible, "tile_entries": int(bins.ids.shape[0]),
+            "backend": backend, "threads": torch.get_num_threads() if device == "cpu" else None,
+            "project_bin_ms": med(prep), "forward_ms": med(fwd), "backward_ms": med(bwd),
+            "total_ms": med([a + b for a, b in zip(fwd, bwd)]), "repeats": repeats}
+
+
+def run(device: str = "cpu", sizes=DEFAULT_SIZES, threads=None, backends=("warp",), repeats: int = 5) -> dict:
+    """Time every (size, backend, thread count) -> {"device", "host", "rows": [...]}; sizes: (side, Gaussians).
+    threads: CPU thread counts (default 1 and every core); ignored on CUDA."""
+    import torch
+
+    saved = torch.get_num_threads()
+    if threads is None:
+        threads = sorted({1, os.cpu_count() or 1})
+    rows = []
+    try:
+        for side, n in sizes:
+            for backend in backends:
+                for k in (threads if device == "cpu" else [saved]):
+                    torch.set_num_threads(k)
+                    rows.append(_time_case(side, n, device, backend, repeats))
+    finally:
+        torch.set_num_threads(saved)
+    name = torch.cuda.get_device_name() if device.startswith("cuda") else platform.processor() or platform.machine()
+    return {"device": device, "device_name": name, "cpu_count": os.cpu_count(), "rows": rows}
+
+
+def table(result: dict) -> str:
+    """The rows as a fixed-width table."""
+    head = (f"{'image':>7} {'gaussians':>9} {'visible':>7} {'entries':>8} {'backend':>10} {'threads':>7} "
+            f"{'proj+bin':>9} {'forward':>9} {'backward':>9} {'total':>9}")
+    lines = [f"device: {result['device']} ({result['device_name']}), ms per call (median)", head]
+    for r in result["rows"]:
+        lines.append(f"{r['side']:>5}^2 {r['gaussians']:>9} {r['visible']:>7} {r['tile_entries']:>8} "
+                     f"{r['backend']:>10} {str(r['threads'] or '-'):>7} {r['project_bin_ms']:>9.1f} "
+                     f"{r['forward_ms']:>9.1f} {r['backward_ms']:>9.1f} {r['total_ms']:>9.1f}")
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--device", default="cpu", choices=["cpu", "cuda"])
+    ap.add_argument("--sizes", nargs="+", default=[f"{s}:{n}" for s, n in DEFAULT_SIZES],
+                    help="SIDE:GAUSSIANS pairs")
+    ap.add_argument("--threads", type=int, nargs="+", default=None, help="CPU thread counts (default: 1 and all)")
+    ap.add_argument("--backends", nargs="+", default=["warp"], help="warp, warp_tile, warp_pixel, torch")
+    ap.add_argument("--repeats", type=int, default=5)
+    ap.add_argument("--json", type=Path, default=None, help="write the results as JSON here")
+    args = ap.parse_args(argv)
+    sizes = [tuple(int(v) for v in s.split(":")) for s in args.sizes]
+    result = run(args.device, sizes, args.threads, tuple(args.backends), args.repeats)
+    print(table(result))
+    if args.json:
+        args.json.write_text(json.dumps(result, indent=2))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,249 @@
+"""avatarctl.splat: projection by hand, the Warp kernels (tile walk and pixel walk) against the pure-PyTorch twin,
+forward and backward, the twin against finite differences, the compositing cut-offs, empty scenes, both CPU cores,
+and the benchmark at toy scale. A `gpu` test repeats the parity on CUDA."""
+
+from __future__ import annotations
+
+import ast
+import importlib.util
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from avatarctl.geometry.cameras import Camera, look_at
+from avatarctl.splat import Projected, SplatCamera, project_gaussians, rasterize, render_gaussians
+from avatarctl.splat._torch_impl import rasterize_torch
+
+WARP = ["warp_tile", "warp_pixel"]
+W, H = 37, 29  # not a multiple of the 16 px tile
+
+
+def _camera(width: int = W, height: int = H, f: float = 30.0, dtype=torch.float32) -> SplatCamera:
+    K = torch.tensor([[f, 0.0, (width - 1) / 2], [0.0, f, (height - 1) / 2], [0.0, 0.0, 1.0]], dtype=dtype)
+    return SplatCamera(K=K, R=torch.eye(3, dtype=dtype), T=torch.zeros(3, dtype=dtype), width=width, height=height)
+
+
+def _scene(seed: int, G: int = 60, channels: int = 3, dtype=torch.float32):
+    """Random Gaussians 1.2-3 m in front of `_camera`, straddling tiles and the image border; 4 behind the camera,
+    a third nearly opaque (pixels terminate early); covariances from non-orthonormal maps A A^T."""
+    gen = torch.Generator().manual_seed(seed)
+    z = 1.2 + 1.8 * torch.rand(G, generator=gen)
+    xy = (torch.rand(G, 2, generator=gen) - 0.5) * z[:, None] * torch.tensor([1.5, 1.2])
+    means = torch.cat([xy, z[:, None]], -1)
+    means[:4, 2] = -means[:4, 2]
+    A = torch.randn(G, 3, 3, generator=gen) * (0.02 + 0.15 * torch.rand(G, 1, 1, generator=gen))
+    covars = A @ A.transpose(-1, -2)
+    colors = torch.rand(G, channels, generator=gen)
+    opacities = torch.rand(G, generator=gen)
+    opaque = slice(G // 3, 2 * G // 3)
+    opacities[opaque] = 0.995  # above ALPHA_MAX: clamped, no gradient through alpha
+    means[opaque, :2] *= 0.3  # piled up in the middle: pixels end early
+    return means.to(dtype), covars.to(dtype), colors.to(dtype), opacities.to(dtype)
+
+
+def _leaves(proj: Projected, colors, opacities):
+    """Fresh leaves for (means2d, conics, colors, opacities) and the Projected that uses them."""
+    m2, con = proj.means2d.detach().requires_grad_(), proj.conics.detach().requires_grad_()
+    c, o = colors.detach().requires_grad_(), opacities.detach().requires_grad_()
+    return [m2, con, c, o], Projected(means2d=m2, conics=con, depths=proj.depths.detach(), radii=proj.radii)
+
+
+def _grads(backend: str, proj: Projected, colors, opacities, background, seed: int = 0):
+    leaves, p = _leaves(proj, colors, opacities)
+    if backend == "twin":
+        rgb, alpha = rasterize_torch(p, leaves[2], leaves[3], W, H, background)
+    else:
+        rgb, alpha = rasterize(p, leaves[2], leaves[3], W, H, background, backend=backend)
+    gen = torch.Generator().manual_seed(seed)
+    g_rgb, g_alpha = torch.randn(rgb.shape, generator=gen), torch.randn(alpha.shape, generator=gen)
+    torch.autograd.backward([rgb, alpha], [g_rgb.to(rgb), g_alpha.to(alpha)])
+    return [t.grad for t in leaves]
+
+
+# projection ----------------------------------------------------------------------------------------------------
+
+def test_projection_by_hand():
+    K = torch.tensor([[100.0, 0.0, 50.0], [0.0, 120.0, 40.0], [0.0, 0.0, 1.0]])
+    cam = SplatCamera(K=K, R=torch.eye(3), T=torch.zeros(3), width=100, height=80)
+    s = 0.05  # isotropic, metres
+    means = torch.tensor([[0.0, 0.0, 2.0], [0.2, -0.1, 2.0], [0.0, 0.0, -1.0], [0.0, 0.0, 0.005]])
+    proj = project_gaussians(means, (s * s) * torch.eye(3).expand(4, 3, 3), cam)
+    assert torch.allclose(proj.means2d[:2], torch.tensor([[50.0, 40.0], [60.0, 34.0]]))
+    var = torch.tensor([(100 * s / 2) ** 2 + 0.3, (120 * s / 2) ** 2 + 0.3])  # on the axis: J = diag(f / z)
+    assert torch.allclose(proj.conics[0], torch.tensor([1 / var[0], 0.0, 1 / var[1]]))
+    assert proj.radii[0] == int(np.ceil(3 * float(var.max()) ** 0.5))
+    assert proj.radii.dtype == torch.int32 and proj.radii[2] == 0 and proj.radii[3] == 0  # behind, inside near
+    assert torch.allclose(proj.depths, means[:, 2])
+    far_off = project_gaussians(torch.tensor([[5.0, 0.0, 2.0]]), 1e-4 * torch.eye(3)[None], cam)
+    assert far_off.radii[0] == 0  # footprint misses the image
+
+
+def test_projection_agrees_with_the_calibrated_camera_and_crop():
+    R, T = look_at(np.array([2.0, -2.5, 1.2]), np.array([0.0, 0.0, 0.9]))
+    cam = Camera(name="c", K=np.array([[300.0, 0, 120], [0, 310.0, 90], [0, 0, 1]]), R=R, T=T, width=240,
+                 height=180)
+    X = np.random.default_rng(0).uniform(-0.3, 0.3, (10, 3)) + [0.0, 0.0, 0.9]
+    sc = SplatCamera.from_camera(cam)
+    proj = project_gaussians(torch.tensor(X, dtype=torch.float32), 1e-4 * torch.eye(3).expand(10, 3, 3), sc)
+    assert np.allclose(proj.means2d.numpy(), cam.project(X), atol=1e-3)
+    crop = project_gaussians(torch.tensor(X, dtype=torch.float32), 1e-4 * torch.eye(3).expand(10, 3, 3),
+                             sc.crop(30, 20, 100, 90))
+    assert torch.allclose(crop.means2d, proj.means2d - torch.tensor([30.0, 20.0]), atol=1e-4)
+    with pytest.raises(ValueError, match="distortion"):
+        SplatCamera.from_camera(Camera(name="d", K=cam.K, R=R, T=T, width=240, height=180,
+                                       dist=np.array([0.1, 0, 0, 0, 0])))
+
+
+# compositing ---------------------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("backend", ["torch", *WARP])
+def test_compositing_rule_by_hand(backend):
+    """Three splats centred on pixel (5, 5), alpha 0.99, 0.98, 0.6 front to back: T goes 1 -> 0.01 -> 2e-4, and the
+    third would take it below 1e-4, so it ends the pixel unadded."""
+    colors = torch.tensor([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [1.0, 1.0, 1.0]])
+    proj = Projected(means2d=torch.full((3, 2), 5.0), conics=torch.full((3, 3), 1e-3) * torch.tensor([1, 0, 1]),
+                     depths=torch.tensor([3.0, 1.0, 2.0]), radii=torch.full((3,), 3, dtype=torch.int32))
+    opacities = torch.tensor([0.6, 0.99, 0.98])
+    bg = torch.tensor([0.0, 0.0, 1.0])
+    rgb, alpha = rasterize(proj, colors[[2, 0, 1]], opacities, 12, 11, bg, backend=backend)
+    expect = torch.tensor([0.99, 0.01 * 0.98, 2e-4])
+    assert torch.allclose(rgb[5, 5], expect, atol=1e-6) and abs(float(alpha[5, 5]) - (1 - 2e-4)) < 1e-6
+    assert torch.equal(rgb[5, 9], bg) and alpha[5, 9] == 0  # outside the footprint (radius 3)
+
+
+@pytest.mark.parametrize("backend", WARP)
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_warp_forward_matches_the_twin(backend, seed):
+    means, covars, colors, opacities = _scene(seed)
+    proj = project_gaussians(means, covars, _camera())
+    bg = torch.tensor([0.2, 0.5, 0.9])
+    assert (proj.radii == 0).sum() >= 4 and (proj.radii > 16).any()  # culled ones, and ones wider than a tile
+    ref_rgb, ref_alpha = rasterize_torch(proj, colors, opacities, W, H, bg)
+    rgb, alpha = rasterize(proj, colors, opacities, W, H, bg, backend=backend)
+    assert float(ref_alpha.max()) > 1 - 1e-3  # some pixels end early (T < 1e-3)
+    assert (rgb - ref_rgb).abs().max() < 1e-5 and (alpha - ref_alpha).abs().max() < 1e-5
+
+
+@pytest.mark.parametrize("backend", WARP)
+@pytest.mark.parametrize("seed", [0, 3])
+def test_warp_backward_matches_twin_autograd(backend, seed):
+    means, covars, colors, opacities = _scene(seed)
+    proj = project_gaussians(means, covars, _camera())
+    bg = torch.tensor([0.2, 0.5, 0.9])
+    ref = _grads("twin", proj, colors, opacities, bg)
+    got = _grads(backend, proj, colors, opacities, bg)
+    for name, g, r in zip(["means2d", "conics", "colors", "opacities"], got, ref):
+        err = float((g - r).abs().max() / r.abs().max())
+        assert err < 1e-4, f"{name}: relative error {err:.2e}"
+
+
+def test_rgba_channels():
+    means, covars, colors, opacities = _scene(4, channels=4)
+    proj = project_gaussians(means, covars, _camera())
+    bg = torch.tensor([0.2, 0.5, 0.9, 0.0])
+    ref = rasterize_torch(proj, colors, opacities, W, H, bg)
+    got = rasterize(proj, colors, opacities, W, H, bg)
+    assert got[0].shape == (H, W, 4) and (got[0] - ref[0]).abs().max() < 1e-5
+    for g, r in zip(_grads("warp", proj, colors, opacities, bg), _grads("twin", proj, colors, opacities, bg)):
+        assert float((g - r).abs().max() / r.abs().max()) < 1e-4
+
+
+def test_twin_gradients_match_finite_differences():
+    """float64, through projection and compositing, cut-offs off (with them the footprint and 1/255 edges make the
+    image jump where a splat crosses them)."""
+    means, covars, colors, opacities = _scene(5, G=6, dtype=torch.float64)
+    means = means.abs() + torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)  # all in front
+    opacities = 0.2 + 0.6 * opacities  # below ALPHA_MAX
+    cam = _camera(9, 7, f=8.0, dtype=torch.float64)
+    bg = torch.tensor([0.3, 0.6, 0.1], dtype=torch.float64)
+
+    def image(m, cv, c, o):
+        proj = project_gaussians(m, cv, cam)
+        rgb, alpha = rasterize_torch(proj, c, o, cam.width, cam.height, bg, cutoffs=False)
+        return rgb, alpha
+
+    inputs = [t.clone().requires_grad_() for t in (means, covars, colors, opacities)]
+    assert torch.autograd.gradcheck(image, inputs, eps=1e-6, atol=1e-6, rtol=1e-4, fast_mode=True)
+
+
+@pytest.mark.parametrize("backend", ["torch", *WARP])
+def test_empty_scene_gives_the_background(backend):
+    bg = torch.tensor([0.1, 0.2, 0.3])
+    for G in (0, 3):  # nothing, or only Gaussians behind the camera
+        means = torch.tensor([[0.0, 0.0, -2.0]]).repeat(G, 1)
+        colors, opacities = torch.rand(G, 3, requires_grad=True), torch.rand(G, requires_grad=True)
+        out = render_gaussians(means, 0.01 * torch.eye(3).expand(G, 3, 3), colors, opacities, _camera(), bg,
+                               backend=backend)
+        assert torch.equal(out.rgb, bg.expand(H, W, 3)) and not out.alpha.any() and out.radii.shape == (G,)
+        (out.rgb.sum() + out.alpha.sum()).backward()
+        assert colors.grad is None or not colors.grad.any()
+
+
+def test_two_threads_match_one():
+    means, covars, colors, opacities = _scene(6)
+    proj = project_gaussians(means, covars, _camera())
+    bg = torch.tensor([0.2, 0.5, 0.9])
+    threads = torch.get_num_threads()
+    try:
+        torch.set_num_threads(1)
+        one = rasterize(proj, colors, opacities, W, H, bg), _grads("warp", proj, colors, opacities, bg)
+        torch.set_num_threads(2)
+        two = rasterize(proj, colors, opacities, W, H, bg), _grads("warp", proj, colors, opacities, bg)
+    finally:
+        torch.set_num_threads(threads)
+    assert torch.equal(one[0][0], two[0][0]) and torch.equal(one[0][1], two[0][1])
+    for a, b in zip(one[1], two[1]):  # per-thread gradient sums, added in another order
+        assert float((a - b).abs().max() / b.abs().max()) < 1e-5
+
+
+def test_rejects_bad_input():
+    means, covars, colors, opacities = _scene(0)
+    proj = project_gaussians(means, covars, _camera())
+    with pytest.raises(AssertionError, match=r"colors: expected \[60, C\]"):
+        rasterize(proj, colors[:5], opacities, W, H, torch.zeros(3))
+    with pytest.raises(ValueError, match="unknown backend"):
+        rasterize(proj, colors, opacities, W, H, torch.zeros(3), backend="cuda")
+    with pytest.raises(ValueError, match="float32"):
+        rasterize(proj, colors.double(), opacities, W, H, torch.zeros(3))
+
+
+def test_warp_is_imported_lazily():
+    """No module of the library but the kernels' imports Warp (or the kernels) at module level: importing
+    avatarctl.splat stays Warp-free, the kernels load on the first Warp rasterization."""
+    import avatarctl.splat as splat
+
+    for path in Path(splat.__file__).parent.glob("*.py"):
+        if path.name == "_warp_kernels.py":
+            continue
+        top = [n for n in ast.parse(path.read_text()).body if isinstance(n, (ast.Import, ast.ImportFrom))]
+        names = [a.name for n in top for a in n.names] + [n.module or "" for n in top if isinstance(n, ast.ImportFrom)]
+        assert not [n for n in names if n.startswith("warp") or n.endswith("_warp_kernels")], path.name
+
+
+def test_benchmark_runs_at_toy_scale():
+    path = Path(__file__).resolve().parents[1] / "benchmarks" / "splat_bench.py"
+    spec = importlib.util.spec_from_file_location("splat_bench", path)
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    result = bench.run("cpu", sizes=((32, 300),), threads=(1,), repeats=1)
+    (row,) = result["rows"]
+    assert row["visible"] > 0 and row["forward_ms"] > 0 and "forward" in bench.table(result)
+
+
+@pytest.mark.gpu
+@pytest.mark.parametrize("backend", WARP)
+def test_cuda_matches_the_twin(backend):
+    means, covars, colors, opacities = _scene(7)
+    bg = torch.tensor([0.2, 0.5, 0.9])
+    proj = project_gaussians(means, covars, _camera())
+    ref_rgb, ref_alpha = rasterize_torch(proj, colors, opacities, W, H, bg)
+    ref = _grads("twin", proj, colors, opacities, bg)
+    cuda = Projected(*(t.cuda() for t in (proj.means2d, proj.conics, proj.depths, proj.radii)))
+    args = colors.cuda(), opacities.cuda(), W, H, bg.cuda()
+    rgb, alpha = rasterize(cuda, *args, backend=backend)
+    assert (rgb.cpu() - ref_rgb).abs().max() < 1e-5 and (alpha.cpu() - ref_alpha).abs().max() < 1e-5
+    got = _grads(backend, cuda, colors.cuda(), opacities.cuda(), bg.cuda())
+    for g, r in zip(got, ref):
+        assert float((g.cpu() - r).abs().max() / r.abs().max()) < 1e-4
