@@ -36,7 +36,7 @@ from dataclasses import asdict, dataclass, field, fields, replace
 from typing import Any
 
 from avatarctl.errors import InputError
-from avatarctl.model.config import HULL_AUTO, ModelConfig
+from avatarctl.model.config import HULL_AUTO, GaussianConfig, ModelConfig
 
 SCHEMA_VERSION = 1
 PRESETS = ("cpu", "paper", "micro")
@@ -246,9 +246,11 @@ def _parse_value(key: str, text: str, current: Any) -> Any:
 def apply_overrides(cfg: FitConfig, overrides: list[str]) -> FitConfig:
     """Apply `key=value` overrides. Keys: `FitConfig` fields or `model.<ModelConfig field>`."""
     fit_keys = [f.name for f in fields(FitConfig) if f.name not in _NOT_SETTABLE]
-    model_keys = [f"model.{f.name}" for f in fields(ModelConfig)]
+    model_keys = [f"model.{f.name}" for f in fields(ModelConfig) if f.name != "gaussians"]
+    splat_keys = [f"model.gaussians.{f.name}" for f in fields(GaussianConfig)]  # the Gaussian field's own options
     fit_changes: dict[str, Any] = {}
     model_changes: dict[str, Any] = {}
+    splat_changes: dict[str, Any] = {}
     for item in overrides:
         if "=" not in item:
             raise InputError(f"override {item!r} is not key=value", where="--set", fix="write e.g. --set lr=1e-4")
@@ -260,11 +262,19 @@ def apply_overrides(cfg: FitConfig, overrides: list[str]) -> FitConfig:
         elif key in model_keys:
             name = key.split(".", 1)[1]
             model_changes[name] = _parse_value(key, text, getattr(cfg.model, name))
+        elif key in splat_keys:
+            name = key.split(".", 2)[2]
+            splat_changes[name] = _parse_value(key, text, getattr(cfg.model.gaussians, name))
         else:
-            close = difflib.get_close_matches(key, fit_keys + model_keys, n=3)
+            close = difflib.get_close_matches(key, fit_keys + model_keys + splat_keys, n=3)
             hint = f"did you mean {' or '.join(repr(c) for c in close)}? " if close else ""
             raise InputError(f"unknown config key {key!r}", where="--set",
                              fix=f"{hint}keys are FitConfig fields or model.<field> (see docs/fit.md)")
+    if splat_changes:
+        try:
+            model_changes["gaussians"] = replace(cfg.model.gaussians, **splat_changes)
+        except ValueError as e:
+            raise InputError(str(e), where="--set", fix="see docs/fit.md for valid model.gaussians values") from None
     model = _model_with(cfg.model, model_changes) if model_changes else cfg.model
     return replace(cfg, **fit_changes, model=model)
 

@@ -158,16 +158,25 @@ class RaySampler:
             if not cams[v].is_pinhole:
                 raise ValueError(f"camera {v} has lens distortion; training expects undistorted (ingested) cameras")
 
-    def sample(self, generator: torch.Generator, device: str | torch.device = "cpu") -> TrainBatch:
-        B, R = self.images_per_batch, self.rays_per_batch
+    def draw_images(self, generator: torch.Generator) -> tuple[list[int], list[str]]:
+        """The step's `images_per_batch` (frame, view) pairs, uniformly with replacement (see the module docstring)."""
+        B = self.images_per_batch
         if self.pairs is None:
             fi = torch.randint(len(self.train_frames), (B,), generator=generator).tolist()
             vi = torch.randint(len(self.train_views), (B,), generator=generator).tolist()
-            frames = [self.train_frames[i] for i in fi]
-            views = [self.train_views[i] for i in vi]
-        else:
-            picks = [self.pairs[i] for i in torch.randint(len(self.pairs), (B,), generator=generator).tolist()]
-            frames, views = [f for f, _ in picks], [v for _, v in picks]
+            return [self.train_frames[i] for i in fi], [self.train_views[i] for i in vi]
+        picks = [self.pairs[i] for i in torch.randint(len(self.pairs), (B,), generator=generator).tolist()]
+        return [f for f, _ in picks], [v for _, v in picks]
+
+    def conditioning(self, frames: list[int], device: str | torch.device) -> FrameConditioning:
+        rows = self.store.poses.rows(frames)
+        time, ids = time_stamps(frames, self.train_frames, are_training=True)
+        return make_conditioning(self.store.poses.joint_transforms[rows], self.store.poses.pose_features[rows],
+                                 time, ids, device)
+
+    def sample(self, generator: torch.Generator, device: str | torch.device = "cpu") -> TrainBatch:
+        B, R = self.images_per_batch, self.rays_per_batch
+        frames, views = self.draw_images(generator)
         counts = [R // B + (1 if b < R % B else 0) for b in range(B)]
         origins, dirs, slots, targets = [], [], [], []
         for b, (frame, view, n) in enumerate(zip(frames, views, counts)):
@@ -191,11 +200,49 @@ class RaySampler:
             origins.append(o)
             dirs.append(d)
             slots.append(torch.full((n,), b, dtype=torch.long))
-        rows = self.store.poses.rows(frames)
-        time, ids = time_stamps(frames, self.train_frames, are_training=True)
-        cond = make_conditioning(self.store.poses.joint_transforms[rows], self.store.poses.pose_features[rows],
-                                 time, ids, device)
+        cond = self.conditioning(frames, device)
         rays = RayBatch(origins=torch.cat(origins).to(device, torch.float32),
                         dirs=torch.cat(dirs).to(device, torch.float32), frame_slot=torch.cat(slots).to(device))
         return TrainBatch(rays=rays, target=torch.from_numpy(np.concatenate(targets)).to(device), cond=cond,
                           frames=frames, views=views)
+
+
+@dataclass
+class CropTarget:
+    """One training image of an `ImageBatch`: the crop window of a camera and its target."""
+
+    camera: Camera  # the full (undistorted) camera
+    x0: int  # crop window in the full image, pixels
+    y0: int
+    target: torch.Tensor  # [h, w, 3] float32: rgb * mask + background * (1 - mask)
+    mask: torch.Tensor  # [h, w] float32 foreground
+
+
+@dataclass
+class ImageBatch:
+    """One optimisation step of the rasterized field (`model.field = "gaussians"`): whole image crops."""
+
+    crops: list[CropTarget]  # [B]; crop b is frame slot b of `cond`
+    cond: FrameConditioning  # [B]
+    frames: list[int]
+    views: list[str]
+
+    @property
+    def pixels(self) -> int:
+        return sum(int(c.mask.numel()) for c in self.crops)
+
+
+class ImageSampler(RaySampler):
+    """Draws `ImageBatch`es: the same (frame, view) pairs as `RaySampler` (`draw_images`), each image's whole crop
+    (the posed body's box grown by `crop_pad`, see the module docstring) as its target instead of scattered rays."""
+
+    def sample(self, generator: torch.Generator, device: str | torch.device = "cpu") -> ImageBatch:  # type: ignore[override]
+        frames, views = self.draw_images(generator)
+        crops = []
+        for frame, view in zip(frames, views):
+            crop = self.store.get(view, frame)
+            target = ground_truth(crop.rgb, crop.mask, self.background).astype(np.float32)
+            crops.append(CropTarget(camera=self.store.capture.cameras[view], x0=crop.x0, y0=crop.y0,
+                                    target=torch.from_numpy(target).to(device),
+                                    mask=torch.from_numpy(crop.mask.astype(np.float32)).to(device)))
+        return ImageBatch(crops=crops, cond=self.conditioning(frames, device), frames=frames, views=views)

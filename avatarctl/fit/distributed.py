@@ -47,8 +47,8 @@ from avatarctl.dist import DistEnv, active
 from avatarctl.errors import InputError
 
 if TYPE_CHECKING:
-    from avatarctl.fit.data import RaySampler, TrainBatch
-    from avatarctl.model.avatar import NodeState, RenderOutputs, SlrfAvatar
+    from avatarctl.fit.data import ImageBatch, RaySampler, TrainBatch
+    from avatarctl.model.avatar import ImageOutputs, NodeState, RenderOutputs, SlrfAvatar
     from avatarctl.model.losses import LossTerms
 
 SHARD_SEED_STRIDE = 1_000_003
@@ -140,7 +140,11 @@ class Replicas:
                 ) -> tuple["LossTerms", "RenderOutputs", int]:
         """Sample the local shards, compute node states, render and the loss of Eq. 11 over this rank's rays.
         -> (loss terms, render outputs, rays of the whole step over all ranks)."""
+        from avatarctl.fit.data import ImageBatch
+
         parts = [(k, self.samplers[k].sample(self.sampler_gens[k], self.device)) for k in self.local]
+        if isinstance(parts[0][1], ImageBatch):  # the rasterized field: whole crops (`model.field = "gaussians"`)
+            return self._forward_images(model, parts, background)
         if len(parts) == 1:
             k, b = parts[0]
             state = model.node_state(b.cond, mode="posterior", generator=self.noise_gens[k])
@@ -150,13 +154,33 @@ class Replicas:
         state, out, target = self._forward_shards(model, parts, background, jitter)
         return model.losses(out, target, state), out, target.shape[0] * self.world
 
+    def _forward_images(self, model: "SlrfAvatar", parts: list[tuple[int, "ImageBatch"]], background: torch.Tensor
+                        ) -> tuple["LossTerms", "ImageOutputs", int]:
+        """The rasterized field's step: each shard's node state (its noise generator), its crops rasterized, the
+        image loss over all of this rank's crops. -> (loss terms, outputs, pixels of the whole step over all ranks)."""
+        from avatarctl.model.avatar import ImageOutputs
+
+        states, outs, counts = [], [], []
+        for k, b in parts:
+            st = model.node_state(b.cond, mode="posterior", generator=self.noise_gens[k])
+            states.append(st)
+            outs.append(render_crops(model, b, st, background))
+            counts.append(int((b.cond.frame_ids >= 0).sum()))
+        state = states[0] if len(states) == 1 else _cat_states(states, counts)
+        out = ImageOutputs.cat(outs)
+        batches = [b for _, b in parts]
+        targets = [c.target for b in batches for c in b.crops]
+        masks = [c.mask for b in batches for c in b.crops]
+        terms = model.image_losses(out.rgb, out.alpha, targets, masks, state)
+        return terms, out, sum(b.pixels for b in batches) * self.world
+
     def _forward_shards(self, model: "SlrfAvatar", parts: list[tuple[int, "TrainBatch"]], background: torch.Tensor,
                         jitter: bool) -> tuple["NodeState", "RenderOutputs", torch.Tensor]:
         """Several shards on this rank: each rendered as its own rank would (its noise generator, the occupancy grid
         of the step's start), then concatenated; the grids merged as across ranks."""
         from avatarctl.model.avatar import RenderOutputs
 
-        occ = getattr(model, "occupancy", None) if model.cfg.occupancy else None
+        occ = getattr(model, "occupancy", None) if model.cfg.uses_occupancy else None
         start = (occ.clone(), model.occupancy_updates.clone()) if occ is not None else None
         states, outs, afters = [], [], []
         for k, b in parts:
@@ -175,7 +199,7 @@ class Replicas:
 
     def begin_step(self, model: "SlrfAvatar") -> torch.Tensor | None:
         """Call before `forward`: the occupancy grid of the step's start, for the cross-rank merge in `sync`."""
-        if self.distributed and model.cfg.occupancy:
+        if self.distributed and model.cfg.uses_occupancy:
             return model.occupancy.detach().clone()
         return None
 
@@ -245,6 +269,24 @@ class Replicas:
             self.sampler_gens[k].set_state(s.cpu().clone())  # a row of the stack: own storage (set_state
             self.noise_gens[k].set_state(n.cpu().clone())  # reads from the storage's start)
         return True
+
+
+def render_crops(model: "SlrfAvatar", batch: "ImageBatch", state: "NodeState", background: torch.Tensor
+                 ) -> "ImageOutputs":
+    """Rasterize every crop of `batch` (crop b is frame slot b of `state`) with the avatar's posed Gaussians."""
+    from avatarctl.model.avatar import ImageOutputs
+    from avatarctl.splat import SplatCamera
+
+    posed = model.posed_gaussians(state)
+    rgb, alpha = [], []
+    for b, crop in enumerate(batch.crops):
+        h, w = crop.mask.shape
+        cam = SplatCamera.from_camera(crop.camera, device=crop.target.device).crop(crop.x0, crop.y0, w, h)
+        c, a = model.render_image(posed, b, cam, background)
+        rgb.append(c)
+        alpha.append(a)
+    return ImageOutputs(rgb=rgb, alpha=alpha, stats={"images": float(len(rgb)), "gaussians": float(
+        posed.means.shape[1]), "pixels": float(batch.pixels)})
 
 
 def saved_shards(rng: dict) -> int:

@@ -210,7 +210,7 @@ def fit(project: Project, cfg: FitConfig | None = None, *, device: str = "auto",
     from avatarctl.body.registry import load_body_model
     from avatarctl.fit.checkpoint import read_checkpoint, save_checkpoint, save_snapshot
     from avatarctl.fit.conditioning import build_pose_table, make_conditioning, time_stamps
-    from avatarctl.fit.data import FrameStore, RaySampler
+    from avatarctl.fit.data import FrameStore, ImageSampler, RaySampler
     from avatarctl.fit.distributed import Replicas, saved_shards
     from avatarctl.fit.schedule import make_optimizer, make_scheduler, param_groups
     from avatarctl.fit.validate import Validator, choose_val_pairs
@@ -263,7 +263,9 @@ def fit(project: Project, cfg: FitConfig | None = None, *, device: str = "auto",
     template = body.template(capture.motion)
     poses = build_pose_table(body, capture.motion, train_frames)
     store = FrameStore(capture, poses, cfg.crop_pad, cfg.cache_mb * 2**20, cfg.mask_dilate_px)
-    replicas = Replicas(env, shards, lambda pairs, rays, images: RaySampler(
+    # the ray-marched fields learn from scattered rays, the rasterized one (model.field = "gaussians") from whole crops
+    Sampler = RaySampler if cfg.model.ray_marched else ImageSampler
+    replicas = Replicas(env, shards, lambda pairs, rays, images: Sampler(
         store, train_frames, split.train_views, rays, images, cfg.box_fraction, cfg.background, cfg.mask_fraction,
         pairs), train_frames, list(split.train_views), cfg.rays_per_batch, cfg.images_per_batch, cfg.seed, dev)
     pairs = choose_val_pairs(split.test_views, train_frames, cfg.val_pairs) if main else []
@@ -286,6 +288,9 @@ def fit(project: Project, cfg: FitConfig | None = None, *, device: str = "auto",
         model.pose_refine.set_sequence(poses.joint_transforms, train_frames, capture.motion.fps)
     model.train()
     optimizer = make_optimizer(cfg, param_groups(cfg, model))
+    relocate_every = 0 if cfg.model.ray_marched else cfg.model.gaussians.relocate_every
+    if relocate_every:
+        from avatarctl.fit.densify import relocate_dead
     scheduler = make_scheduler(cfg, optimizer)
     if ckpt is not None:
         model.load_state_dict(ckpt["model"])
@@ -348,6 +353,8 @@ def fit(project: Project, cfg: FitConfig | None = None, *, device: str = "auto",
             optimizer.step()
             scheduler.step()
             step += 1
+            if relocate_every and step % relocate_every == 0:  # the Gaussians' density control (fit/densify.py)
+                relocate_dead(model.fields, optimizer, cfg.model.gaussians.min_opacity, cfg.seed, step)
             window_rays += step_rays
 
             record: dict[str, Any] = {}

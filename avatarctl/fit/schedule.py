@@ -31,9 +31,12 @@ def param_groups(cfg: FitConfig, model: torch.nn.Module) -> list[dict]:
     grid = fields.grid_parameters() if hasattr(fields, "grid_parameters") else []
     refine = getattr(model, "pose_refine", None)
     pose = list(refine.parameters()) if refine is not None else []
-    special = {id(p) for p in grid + pose}
+    # the Gaussians' own parameters (`model.field = "gaussians"`) at 3DGS's rates, `model.gaussians.lr_*`
+    splats = fields.gaussian_parameters() if hasattr(fields, "gaussian_parameters") else {}
+    special = {id(p) for p in grid + pose + [q for ps in splats.values() for q in ps]}
     rest = [p for p in model.parameters() if id(p) not in special]
     return [{"params": rest}] + ([{"params": grid, "lr": cfg.lr_grid}] if grid else []) \
+        + [{"params": ps, "lr": getattr(cfg.model.gaussians, name), "name": name} for name, ps in splats.items()] \
         + ([{"params": pose, "lr": cfg.lr_pose, "name": "pose"}] if pose else [])
 
 

@@ -19,7 +19,9 @@ Units: metres, world frame of the capture; time stamps t/T in [0, 1]; densities 
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import torch
 from torch import nn
@@ -34,10 +36,14 @@ from avatarctl.model.field import (BlockPacking, CanonicalField, CoordinateEncod
                                    RadianceHeads, fuse_features, fuse_features_dense)
 from avatarctl.model.grid_field import NodeGridFields
 from avatarctl.model.occupancy import UNSEEN, cell_index, occupancy_estimate, select_samples, update_occupancy
-from avatarctl.model.losses import (LossTerms, embedding_loss, kl_loss, reconstruction_loss, total_loss,
-                                    translation_loss)
+from avatarctl.model.losses import (LossTerms, embedding_loss, image_reconstruction_loss, kl_loss,
+                                    reconstruction_loss, total_loss, translation_loss)
 from avatarctl.geometry.rays import RayBatch
 from avatarctl.render.volume import composite, march, sample_deltas, uniform_samples
+
+if TYPE_CHECKING:
+    from avatarctl.model.gaussian_field import PosedGaussians
+    from avatarctl.splat import SplatCamera
 
 
 @dataclass
@@ -97,6 +103,24 @@ class RenderOutputs:
                              depth=torch.cat([o.depth for o in outs]), stats=stats)
 
 
+@dataclass
+class ImageOutputs:
+    """Rasterized training images (`model.field = "gaussians"`), one per crop of the batch."""
+
+    rgb: list[torch.Tensor]  # [h, w, 3] each, composited over the background
+    alpha: list[torch.Tensor]  # [h, w] each
+    stats: dict[str, float] = field(default_factory=dict)  # images, gaussians, pixels
+
+    @staticmethod
+    def cat(outs: list["ImageOutputs"]) -> "ImageOutputs":
+        stats: dict[str, float] = {}
+        for o in outs:
+            for k, v in o.stats.items():
+                stats[k] = v if k == "gaussians" else stats.get(k, 0.0) + v
+        return ImageOutputs(rgb=[c for o in outs for c in o.rgb], alpha=[a for o in outs for a in o.alpha],
+                            stats=stats)
+
+
 class SlrfAvatar(nn.Module):
     """The SLRF avatar of one subject. See the module docstring for the data flow."""
 
@@ -150,7 +174,13 @@ class SlrfAvatar(nn.Module):
             self.pose_refine.set_centres(skin_weighted_centroids(template.vertices.detach().float(), weights))
         if cfg.variant == "slrf":
             self.latent = NodeCVAE(cfg, J, num_frames)
-            if cfg.field == "grid":
+            if cfg.field == "gaussians":  # rasterized local fields (model/gaussian_field.py); no ray-marching heads
+                from avatarctl.model.gaussian_field import NodeGaussians, initial_gaussians
+
+                means, log_scales = initial_gaussians(template.vertices, template.faces, rest,
+                                                      cfg.gaussians.per_node, cfg.support_radius, seed)
+                self.fields = NodeGaussians(cfg.gaussians, cfg.num_nodes, cfg.embed_dim, means, log_scales)
+            elif cfg.field == "grid":
                 self.fields = NodeGridFields(cfg.num_nodes, cfg.grid_levels, cfg.grid_channels, cfg.embed_dim,
                                              cfg.feature_dim, extent=self._node_extent())
             else:
@@ -159,16 +189,17 @@ class SlrfAvatar(nn.Module):
         else:
             # one canonical network of comparable total capacity: twice as wide and two layers deeper than an F_i
             self.canonical = CanonicalField(cfg.pe_coords, 2 * cfg.node_width, cfg.node_depth + 2, cfg.feature_dim)
-        self.heads = RadianceHeads(cfg.feature_dim, cfg.head_width, cfg.pe_views, cfg.density_scale,
-                                   cfg.density_shift)
-        if cfg.occupancy:  # [N * occ_res^3] per-node occupancy grids (model/occupancy.py), saved with the weights
+        if cfg.ray_marched:
+            self.heads = RadianceHeads(cfg.feature_dim, cfg.head_width, cfg.pe_views, cfg.density_scale,
+                                       cfg.density_shift)
+        if cfg.uses_occupancy:  # [N * occ_res^3] per-node occupancy grids (model/occupancy.py), saved with the weights
             self.register_buffer("occupancy", torch.full((cfg.num_nodes * cfg.occ_res ** 3,), UNSEEN))
             self.register_buffer("occupancy_updates", torch.zeros((), dtype=torch.long))  # training steps seen
 
     def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):
         # checkpoints written before `occupancy_updates` existed: their grids are past any warm-up
         key = prefix + "occupancy_updates"
-        if self.cfg.occupancy and prefix + "occupancy" in state_dict and key not in state_dict:
+        if self.cfg.uses_occupancy and prefix + "occupancy" in state_dict and key not in state_dict:
             state_dict[key] = torch.tensor(self.cfg.occ_warmup, dtype=torch.long)
         super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
 
@@ -244,6 +275,34 @@ class SlrfAvatar(nn.Module):
         return NodeState(transforms=state.transforms, centers=centers, delta_n=delta, embed=embed, mu=state.mu,
                          logvar=state.logvar)
 
+    # ---- step 2 (field "gaussians"): rasterizing ------------------------------------------------------------------
+    def posed_gaussians(self, state: NodeState) -> "PosedGaussians":
+        """The Gaussians of every frame of `state`, posed by T_i, n_i and decoded with e_i (model/gaussian_field.py)."""
+        if self.cfg.field != "gaussians":
+            raise ValueError(f"posed_gaussians needs model.field = 'gaussians', this avatar's is {self.cfg.field!r}")
+        with _float32_geometry(state.transforms.device):
+            return self.fields(state.transforms, state.centers, state.embed)
+
+    def render_image(self, posed: "PosedGaussians", slot: int, camera: "SplatCamera", background: torch.Tensor,
+                     backend: str = "auto") -> tuple[torch.Tensor, torch.Tensor]:
+        """Rasterize frame `slot` of `posed` seen by `camera` (avatarctl/splat) over `background` [3]
+        -> rgb [H, W, 3], alpha [H, W]."""
+        from avatarctl.splat import render_gaussians
+
+        colors = posed.colors(slot, -(camera.R.T @ camera.T))  # camera centre, world
+        out = render_gaussians(posed.means[slot], posed.covars[slot], colors, posed.opacities[slot], camera,
+                               background.to(colors), backend=backend)
+        return out.rgb, out.alpha
+
+    def image_losses(self, rgb: list[torch.Tensor], alpha: list[torch.Tensor], target: list[torch.Tensor],
+                     mask: list[torch.Tensor], state: NodeState) -> LossTerms:
+        """Eq. 11 with the image loss of the rasterized field in place of Eq. 12 (`losses.image_reconstruction_loss`:
+        L1 + D-SSIM + mask, per image crop) and the paper's regularisers (Eq. 13-15) as in `losses`."""
+        c, g = self.cfg, self.cfg.gaussians
+        rec, mse = image_reconstruction_loss(rgb, target, alpha, mask, g.lambda_ssim, g.lambda_mask,
+                                             c.rec_reference_rays)
+        return self._with_regularisers(rec, mse, state)
+
     # ---- step 2: rendering --------------------------------------------------------------------------------------
     def render(self, rays: RayBatch, state: NodeState, background: torch.Tensor, *, jitter: bool = False,
                generator: torch.Generator | None = None, chunk: int | None = None) -> RenderOutputs:
@@ -251,6 +310,8 @@ class SlrfAvatar(nn.Module):
 
         Rays that miss every node sphere return the background with alpha 0. `chunk` bounds memory (rays per chunk).
         """
+        if not self.cfg.ray_marched:
+            raise ValueError("model.field 'gaussians' is rasterized, not ray-marched: use render_image")
         dev, dt = self.node_rest.device, self.node_rest.dtype
         rays = RayBatch(rays.origins.to(dev, dt), rays.dirs.to(dev, dt), rays.frame_slot.to(dev))
         bg = torch.as_tensor(background, device=dev, dtype=dt).reshape(3)
@@ -339,6 +400,9 @@ class SlrfAvatar(nn.Module):
         `cfg.occupancy`, the densities found update the occupancy grids (model/occupancy.py). `candidates`
         (point_idx, node_idx) [pairs]: the pairs in range, already found (sparse path only).
         """
+        if not self.cfg.ray_marched:
+            rgb, sigma = self._query_gaussians(points, dirs, point_frame, state)
+            return rgb, sigma, {"samples": float(points.shape[0]), "valid_samples": float((sigma > 0).sum())}
         if self.cfg.sparse:
             f, wsum, stats, occ_pairs = self._features_sparse(points, point_frame, state, candidates)
             valid = (wsum > 0).nonzero(as_tuple=True)[0]
@@ -359,6 +423,35 @@ class SlrfAvatar(nn.Module):
         stats["samples"] = float(points.shape[0])
         stats["valid_samples"] = float(valid.numel())
         return rgb, sigma, stats
+
+    def _query_gaussians(self, points: torch.Tensor, dirs: torch.Tensor, point_frame: torch.Tensor,
+                         state: NodeState, chunk: int = 2048) -> tuple[torch.Tensor, torch.Tensor]:
+        """`query` of the Gaussian local fields (mesh export): the Gaussians as a density,
+        sigma(x) = sum_g o_g exp(-d^T Sigma_g^-1 d / 2) / (sqrt(2 pi) s_g), s_g = det(Sigma_g)^(1/6) (1/metre: a ray
+        through an isotropic Gaussian's centre accumulates o_g), and the colour as the sum of the Gaussians'
+        view-dependent colours weighted by their terms. Only the Gaussians of nodes within 1.5 support radii of
+        a point are summed. points / dirs [P, 3], point_frame [P] -> rgb [P, 3], sigma [P]."""
+        from avatarctl.model.gaussian_field import eval_sh
+
+        posed = self.posed_gaussians(state)
+        B, G = posed.opacities.shape
+        N, K = self.cfg.num_nodes, posed.per_node
+        prec = torch.linalg.inv(posed.covars)  # [B, G, 3, 3]
+        norm = posed.opacities / (math.sqrt(2 * math.pi) * torch.linalg.det(posed.covars).clamp(min=1e-30) ** (1 / 6))
+        pi, ni = candidate_pairs(points, point_frame, state.centers, 1.5 * self.cfg.support_radius)
+        sigma = points.new_zeros(points.shape[0])
+        rgb = points.new_zeros(points.shape[0], 3)
+        for s in range(0, pi.numel(), chunk):
+            p, n = pi[s:s + chunk], ni[s:s + chunk]
+            f = point_frame[p]
+            g = n[:, None] * K + torch.arange(K, device=n.device)  # [pairs, K] the node's Gaussians
+            d = points[p][:, None, :] - posed.means[f[:, None], g]  # [pairs, K, 3]
+            w = norm[f[:, None], g] * torch.exp(-0.5 * torch.einsum("pki,pkij,pkj->pk", d, prec[f[:, None], g], d))
+            d_local = torch.einsum("pij,pj->pi", posed.linear_inv[f, n], dirs[p])
+            c = eval_sh(posed.sh[f[:, None], g], torch.nn.functional.normalize(d_local, dim=-1)[:, None, :])
+            sigma.index_add_(0, p, w.sum(1))
+            rgb.index_add_(0, p, (w[..., None] * c).sum(1))
+        return rgb / sigma.clamp(min=1e-12)[:, None], sigma
 
     def _local_scale(self) -> float:
         return 1.0 / self.cfg.sigma if self.cfg.local_coords_in_sigma else 1.0
@@ -474,6 +567,11 @@ class SlrfAvatar(nn.Module):
         target = target_rgb.to(out.rgb.device)
         rec = reconstruction_loss(out.rgb, target, c.rec_reduction, c.rec_reference_rays)
         mse = rec if c.rec_reduction == "mean" else reconstruction_loss(out.rgb.detach(), target, "mean")
+        return self._with_regularisers(rec, mse, state)
+
+    def _with_regularisers(self, rec: torch.Tensor, mse: torch.Tensor, state: NodeState) -> LossTerms:
+        """Eq. 11: the reconstruction term plus Eq. 13-15 (and the pose-refinement terms when on)."""
+        c = self.cfg
         zero = rec.new_zeros(())
         kl = kl_loss(state.mu, state.logvar) if state.mu is not None and state.logvar is not None else zero
         # over all training frames, once per step (not per frame of the batch): the same on every rank

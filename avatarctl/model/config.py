@@ -40,10 +40,66 @@ from typing import Any
 SCHEMA_VERSION = 1
 LATENTS = ("cvae", "deterministic", "per_frame")
 VARIANTS = ("slrf", "lbs_baseline")
-FIELDS = ("mlp", "grid")  # local fields F_i: the paper's per-node MLPs | per-node feature grids (model/grid_field.py)
+# local fields F_i: the paper's per-node MLPs | per-node feature grids (model/grid_field.py) | per-node 3D Gaussians
+# rasterized instead of ray-marched (model/gaussian_field.py, options in `GaussianConfig`)
+FIELDS = ("mlp", "grid", "gaussians")
 REC_REDUCTIONS = ("sum", "mean")  # Eq. 12 as written (sum over rays) | plain MSE, see model/losses.py
 NOVEL_LATENTS = ("zero", "train_mean")  # z of novel poses: the paper's 0 | the mean of mu over the training frames
 HULL_AUTO = "auto"  # `hull_nodes`: decide from the training masks at fit start (fit/hull_nodes.py)
+
+
+@dataclass(frozen=True)
+class GaussianConfig:
+    """Options of the structured local Gaussian fields (`ModelConfig.field = "gaussians"`, a deviation: model/
+    gaussian_field.py, docs/fit.md). Used by no other backend."""
+
+    per_node: int = 192  # K Gaussians owned by each node (fixed budget: N K Gaussians, memory known in advance)
+    feature_dim: int = 16  # appearance feature of a Gaussian, decoded with the node's e_i
+    decoder_width: int = 32  # hidden channels of the per-node decoder (one ReLU layer)
+    sh_degree: int = 1  # spherical-harmonic degree of the colours (0: view-independent; at most 1)
+    init_opacity: float = 0.3
+    offset_scale: float = 0.02  # metres: the decoder's offset output is multiplied by this (detail motion)
+    # losses (3DGS): (1 - lambda_ssim) L1 + lambda_ssim D-SSIM per image; lambda_mask |alpha - mask| (deviation)
+    lambda_ssim: float = 0.2
+    lambda_mask: float = 0.1
+    # learning rates of the Gaussians' own parameters (3DGS's; the networks use FitConfig.lr)
+    lr_means: float = 1.6e-4  # metres
+    lr_scales: float = 5e-3  # log metres
+    lr_quats: float = 1e-3
+    lr_opacity: float = 5e-2  # logit
+    lr_colors: float = 2.5e-3  # SH coefficients and appearance features
+    # density control under the fixed budget (3DGS-MCMC's relocation, within each node): every `relocate_every`
+    # steps the Gaussians with opacity < `min_opacity` move onto live ones of their node (0: never)
+    relocate_every: int = 100
+    min_opacity: float = 0.005
+
+    def __post_init__(self) -> None:
+        def need(ok: bool, msg: str) -> None:
+            if not ok:
+                raise ValueError(f"GaussianConfig: {msg}")
+
+        for name in ("per_node", "feature_dim", "decoder_width"):
+            v = getattr(self, name)
+            need(isinstance(v, int) and not isinstance(v, bool) and v > 0, f"{name} must be a positive int, got {v!r}")
+        need(self.sh_degree in (0, 1), f"sh_degree must be 0 or 1, got {self.sh_degree!r}")
+        need(isinstance(self.relocate_every, int) and self.relocate_every >= 0,
+             f"relocate_every must be an int >= 0, got {self.relocate_every!r}")
+        need(0 < self.init_opacity < 1, f"init_opacity must be in (0, 1), got {self.init_opacity}")
+        need(0 <= self.min_opacity < self.init_opacity, f"min_opacity must be in [0, init_opacity), got "
+             f"{self.min_opacity}")
+        need(0 <= self.lambda_ssim <= 1, f"lambda_ssim must be in [0, 1], got {self.lambda_ssim}")
+        for name in ("offset_scale", "lambda_mask"):
+            need(getattr(self, name) >= 0, f"{name} must be >= 0, got {getattr(self, name)}")
+        for name in ("lr_means", "lr_scales", "lr_quats", "lr_opacity", "lr_colors"):
+            need(getattr(self, name) > 0, f"{name} must be > 0, got {getattr(self, name)}")
+
+    @classmethod
+    def from_json(cls, d: dict[str, Any]) -> "GaussianConfig":
+        known = {f.name for f in fields(cls)}
+        unknown = sorted(set(d) - known)
+        if unknown:
+            raise ValueError(f"GaussianConfig: unknown keys {unknown}; known keys are {sorted(known)}")
+        return cls(**d)
 
 
 @dataclass(frozen=True)
@@ -79,7 +135,8 @@ class ModelConfig:
     head_width: int = 128  # G and H hidden channels (Eq. 7)
     cvae_width: int = 128  # per-node encoder / decoder hidden channels
     # local-field backend (deviation when "grid", see model/grid_field.py and docs/fit.md)
-    field: str = "mlp"  # "mlp": the paper's F_i MLPs | "grid": per-node multi-resolution feature grids + decoder
+    field: str = "mlp"  # "mlp": the paper's F_i MLPs | "grid": per-node feature grids | "gaussians": see `gaussians`
+    gaussians: GaussianConfig = GaussianConfig()  # options of field "gaussians" (model/gaussian_field.py)
     grid_levels: tuple[int, ...] = (8, 16, 32)  # grid backend: vertices per side of each level over the node cube
     grid_channels: int = 4  # grid backend: features per level
     # density head H (deviation when not 1 / 0, see model/field.py RadianceHeads)
@@ -135,6 +192,11 @@ class ModelConfig:
              and all(isinstance(d, int) and not isinstance(d, bool) and 2 <= d <= 128 for d in self.grid_levels),
              f"grid_levels must be ints in [2, 128], got {self.grid_levels!r}")
         need(self.field in FIELDS, f"field must be one of {FIELDS}, got {self.field!r}")
+        if isinstance(self.gaussians, dict):  # JSON
+            object.__setattr__(self, "gaussians", GaussianConfig.from_json(self.gaussians))
+        need(isinstance(self.gaussians, GaussianConfig), "gaussians must be a GaussianConfig")
+        need(self.field != "gaussians" or self.variant == "slrf", "field 'gaussians' needs the slrf variant (the "
+             "pose-only baseline is the ray-marched canonical MLP)")
 
         for name in ("num_nodes", "embed_dim", "latent_dim", "node_width", "node_depth", "feature_dim",
                      "head_width", "cvae_width", "samples_per_ray", "grid_channels", "occ_res"):
@@ -195,6 +257,16 @@ class ModelConfig:
         import math
 
         return self.sigma * math.sqrt(-2.0 * math.log(self.eps))
+
+    @property
+    def ray_marched(self) -> bool:
+        """The field is ray-marched (mlp, grid), not rasterized (gaussians): the options of ray marching (samples,
+        occupancy grids, packing) apply."""
+        return self.field != "gaussians"
+
+    @property
+    def uses_occupancy(self) -> bool:
+        return self.occupancy and self.ray_marched
 
     def to_json(self) -> dict[str, Any]:
         return {"schema_version": SCHEMA_VERSION, **asdict(self), "grid_levels": list(self.grid_levels)}

@@ -84,3 +84,44 @@ def total_loss(rec: torch.Tensor, trans: torch.Tensor, ebd: torch.Tensor, kl: to
     if pose_accel is not None:
         total = total + lambda_pose_accel * pose_accel
     return LossTerms(total=total, rec=rec, trans=trans, ebd=ebd, kl=kl, mse=mse, pose=pose, pose_accel=pose_accel)
+
+
+def _gaussian_window(size: int = 11, sigma: float = 1.5, device=None, dtype=None) -> torch.Tensor:
+    x = torch.arange(size, device=device, dtype=dtype) - (size - 1) / 2
+    g = torch.exp(-x * x / (2 * sigma * sigma))
+    return g / g.sum()
+
+
+def ssim_map(a: torch.Tensor, b: torch.Tensor, window: int = 11) -> torch.Tensor:
+    """Differentiable SSIM (Wang et al. 2004; Gaussian window 11, sigma 1.5, C1 = 0.01^2, C2 = 0.03^2; the
+    image's own borders zero-padded as 3DGS trains it): images [H, W, C] in [0, 1] -> [H, W, C] SSIM map. A training
+    loss only; scores are computed by evaluate/metrics.py."""
+    C = a.shape[-1]
+    x = torch.stack([a, b, a * a, b * b, a * b]).permute(0, 3, 1, 2).reshape(1, 5 * C, *a.shape[:2])
+    g = _gaussian_window(window, 1.5, a.device, a.dtype)
+    x = torch.nn.functional.conv2d(x, g.reshape(1, 1, 1, -1).expand(5 * C, 1, 1, window), padding=(0, window // 2),
+                                   groups=5 * C)
+    x = torch.nn.functional.conv2d(x, g.reshape(1, 1, -1, 1).expand(5 * C, 1, window, 1), padding=(window // 2, 0),
+                                   groups=5 * C)
+    mu_a, mu_b, aa, bb, ab = x.reshape(5, C, *a.shape[:2]).permute(0, 2, 3, 1).unbind(0)
+    va, vb, cov = aa - mu_a * mu_a, bb - mu_b * mu_b, ab - mu_a * mu_b
+    c1, c2 = 0.01 ** 2, 0.03 ** 2
+    return ((2 * mu_a * mu_b + c1) * (2 * cov + c2)) / ((mu_a * mu_a + mu_b * mu_b + c1) * (va + vb + c2))
+
+
+def image_reconstruction_loss(rgb: list[torch.Tensor], target: list[torch.Tensor], alpha: list[torch.Tensor],
+                              mask: list[torch.Tensor], lambda_ssim: float, lambda_mask: float,
+                              reference_rays: int = 2048) -> tuple[torch.Tensor, torch.Tensor]:
+    """L_rec of the rasterized (Gaussian) field, trained on whole image crops (3DGS's loss, a deviation from Eq. 12):
+    per image (1 - lambda_ssim) L1 + lambda_ssim (1 - SSIM) over pixels, summed over channels, plus lambda_mask
+    |alpha - mask| per pixel; averaged over the images and scaled by `reference_rays`, so that it weighs against
+    the regularisers of Eq. 11 as Eq. 12's sum over the paper's 2048 rays does. rgb / target [h, w, 3], alpha / mask
+    [h, w] per image (images of different sizes). -> (loss, mean squared colour error for the logs)."""
+    terms, se, n = [], 0.0, 0
+    for c, t, a, m in zip(rgb, target, alpha, mask, strict=True):
+        t = t.to(c.dtype)
+        photo = (1 - lambda_ssim) * (c - t).abs().mean() + lambda_ssim * (1 - ssim_map(c, t)).mean()
+        terms.append(3 * photo + lambda_mask * (a - m.to(a.dtype)).abs().mean())
+        se = se + ((c.detach() - t) ** 2).sum()
+        n += c.numel()
+    return torch.stack(terms).mean() * reference_rays, se / max(n, 1)

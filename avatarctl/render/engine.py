@@ -80,6 +80,8 @@ def render_view(model: "SlrfAvatar", state: "NodeState", slot: int, camera: Came
                          "use camera.pinhole() for undistorted images")
     if not 0 <= slot < state.centers.shape[0]:
         raise IndexError(f"slot {slot} outside the NodeState batch of {state.centers.shape[0]} frames")
+    if not model.cfg.ray_marched:  # the rasterized local fields (model.field = "gaussians")
+        return _rasterize_view(model, state, slot, camera, background, pixel_mask, progress, t0)
     H, W = int(camera.height), int(camera.width)
     device = state.centers.device
     bg = torch.tensor(background, dtype=torch.float32, device=device)
@@ -112,3 +114,33 @@ def render_view(model: "SlrfAvatar", state: "NodeState", slot: int, camera: Came
                 progress(e, total)
     return ViewRender(rgb=np.clip(rgb, 0.0, 1.0).reshape(H, W, 3), alpha=alpha.reshape(H, W),
                       seconds=time.perf_counter() - t0, rays=total)
+
+
+def _rasterize_view(model: "SlrfAvatar", state: "NodeState", slot: int, camera: Camera,
+                    background: tuple[float, float, float], pixel_mask: np.ndarray | None,
+                    progress: ProgressFn | None, t0: float) -> ViewRender:
+    """`render_view` for the Gaussian local fields: the whole image rasterized at once (avatarctl/splat); pixels
+    outside `pixel_mask` set to the background with alpha 0 afterwards. `rays` counts the pixels rendered."""
+    from avatarctl.model.avatar import NodeState
+    from avatarctl.splat import SplatCamera
+
+    H, W = int(camera.height), int(camera.width)
+    if pixel_mask is not None and np.asarray(pixel_mask).shape != (H, W):
+        raise ValueError(f"pixel_mask {np.asarray(pixel_mask).shape} does not match the camera's image ({H}, {W})")
+    one = slice(slot, slot + 1)
+    state = NodeState(transforms=state.transforms[one], centers=state.centers[one], delta_n=state.delta_n[one],
+                      embed=state.embed[one])
+    device = state.centers.device
+    with torch.no_grad():
+        posed = model.posed_gaussians(state)
+        rgb_t, alpha_t = model.render_image(posed, 0, SplatCamera.from_camera(camera, device=device),
+                                            torch.tensor(background, dtype=torch.float32, device=device))
+    rgb = rgb_t.float().cpu().numpy()
+    alpha = alpha_t.float().cpu().numpy()
+    if pixel_mask is not None:
+        keep = np.asarray(pixel_mask, dtype=bool)
+        rgb[~keep] = np.asarray(background, dtype=np.float32)
+        alpha[~keep] = 0.0
+    if progress is not None:
+        progress(H * W, H * W)
+    return ViewRender(rgb=np.clip(rgb, 0.0, 1.0), alpha=alpha, seconds=time.perf_counter() - t0, rays=H * W)

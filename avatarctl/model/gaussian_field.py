@@ -1,0 +1,183 @@
+"""Structured local Gaussian fields (`ModelConfig.field = "gaussians"`; a deviation from the paper, docs/fit.md).
+
+The paper's structure is kept and only what a local field *is* changes: node i owns K 3D Gaussians instead of the
+MLP F_i. Motion is decomposed exactly as in the paper:
+1. skeleton: T_i from the body pose (Eq. 1, `deformer.node_transforms`);
+2. node residual: the cVAE's Delta n_i moves the node (Eq. 3: n_i = T_i (n_bar_i + Delta n_i));
+3. dynamic details: a small per-node decoder D^g_i(e_i, f_ik) (batched over a `nodes` dimension like the node MLPs)
+   turns the node's detail embedding e_i and a Gaussian's appearance feature f_ik into a colour residual (spherical
+   harmonics), an offset and an opacity change of that Gaussian.
+
+A Gaussian k of node i lives in the node's local frame (Eq. 4 read backwards): its mean is
+    x_ik = n_i + A_i (mu_ik + offset_ik)            (A_i: the 3x3 linear part of T_i)
+its covariance Sigma_ik = A_i R_ik S_ik^2 R_ik^T A_i^T (R from a unit quaternion (w, x, y, z), S = exp(log-scales),
+metres), its opacity sigmoid(logit_ik + delta_ik), its colour c = 0.5 + SH(d_local) with the viewing direction
+d_local = A_i^-1 d (normalised) in the node's frame, so the view dependence turns with the body. The last decoder
+layer starts at zero: at initialisation every frame renders the same static Gaussians.
+
+Initialisation: points drawn uniformly on the canonical template surface, each given to its nearest node (so a
+node's Gaussians start within its support); K per node drawn from them (with replacement when a node has fewer);
+nodes with no surface point (hull nodes off the body, fit/hull_nodes.py) get K points uniformly in a ball of a third of
+the support radius around them. Scales from the area each point covers.
+
+Units: metres, world frame of the capture; colours in [0, 1]; SH constants of 3DGS (degree 0: 0.28209479).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+from torch import nn
+
+from avatarctl.model.batched_mlp import BatchedLinear, BatchedMLP
+from avatarctl.model.config import GaussianConfig
+
+SH_C0 = 0.28209479177387814
+SH_C1 = 0.4886025119029199
+
+
+def sh_coefficients(degree: int) -> int:
+    """Coefficients per colour channel of real spherical harmonics up to `degree`: (degree + 1)^2."""
+    return (degree + 1) ** 2
+
+
+def eval_sh(sh: torch.Tensor, dirs: torch.Tensor) -> torch.Tensor:
+    """Colour from SH coefficients (3DGS's basis and signs): sh [..., S, 3] (S = 1 or 4), dirs [..., 3] unit ->
+    rgb [..., 3] = max(0, 0.5 + sum_s Y_s(d) sh_s)."""
+    out = SH_C0 * sh[..., 0, :]
+    if sh.shape[-2] > 1:
+        x, y, z = dirs[..., 0:1], dirs[..., 1:2], dirs[..., 2:3]
+        out = out - SH_C1 * y * sh[..., 1, :] + SH_C1 * z * sh[..., 2, :] - SH_C1 * x * sh[..., 3, :]
+    return torch.clamp(out + 0.5, min=0.0)
+
+
+def rgb_to_sh0(rgb: torch.Tensor) -> torch.Tensor:
+    """Inverse of the degree-0 part of `eval_sh`: the DC coefficient that gives colour `rgb`."""
+    return (rgb - 0.5) / SH_C0
+
+
+def quaternion_to_matrix(q: torch.Tensor) -> torch.Tensor:
+    """[..., 4] quaternions (w, x, y, z), any norm -> [..., 3, 3] rotation matrices of the normalised quaternion."""
+    q = q / q.norm(dim=-1, keepdim=True).clamp(min=1e-12)
+    w, x, y, z = q.unbind(-1)
+    return torch.stack([
+        1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
+        2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
+        2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], dim=-1).reshape(*q.shape[:-1], 3, 3)
+
+
+@dataclass
+class PosedGaussians:
+    """The Gaussians of B frames, posed (world frame). G = nodes x per_node, node-major."""
+
+    means: torch.Tensor  # [B, G, 3] metres
+    covars: torch.Tensor  # [B, G, 3, 3] metres^2
+    sh: torch.Tensor  # [B, G, S, 3] colour SH coefficients in the node's local frame
+    opacities: torch.Tensor  # [B, G] in (0, 1)
+    linear_inv: torch.Tensor  # [B, N, 3, 3] A_i^-1 of each node (viewing directions into the local frame)
+    per_node: int  # K
+
+    def colors(self, slot: int, camera_center: torch.Tensor) -> torch.Tensor:
+        """[G, 3] colours of frame `slot` seen from `camera_center` [3] (world): SH at the local viewing direction."""
+        sh = self.sh[slot]
+        if sh.shape[-2] == 1:
+            return eval_sh(sh, sh.new_zeros(sh.shape[0], 3))
+        d = self.means[slot] - camera_center.to(self.means)  # [G, 3]
+        N = self.linear_inv.shape[1]
+        d_local = torch.einsum("nab,nkb->nka", self.linear_inv[slot], d.reshape(N, self.per_node, 3)).reshape(-1, 3)
+        return eval_sh(sh, d_local / d_local.norm(dim=-1, keepdim=True).clamp(min=1e-12))
+
+
+def _surface_samples(vertices: torch.Tensor, faces: torch.Tensor, count: int,
+                     generator: torch.Generator) -> tuple[torch.Tensor, float]:
+    """`count` points uniformly on the triangle mesh ([count, 3]) and the mesh area (square metres)."""
+    tri = vertices[faces]  # [F, 3, 3]
+    area = 0.5 * torch.linalg.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]).norm(dim=-1)  # [F]
+    face = torch.multinomial(area, count, replacement=True, generator=generator)
+    u, v = torch.rand(count, generator=generator), torch.rand(count, generator=generator)
+    flip = u + v > 1
+    u, v = torch.where(flip, 1 - u, u), torch.where(flip, 1 - v, v)
+    t = tri[face]
+    return t[:, 0] + u[:, None] * (t[:, 1] - t[:, 0]) + v[:, None] * (t[:, 2] - t[:, 0]), float(area.sum())
+
+
+def initial_gaussians(vertices: torch.Tensor, faces: torch.Tensor, node_rest: torch.Tensor, per_node: int,
+                      support_radius: float, seed: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Initial local means [N, K, 3] (metres, relative to the canonical node n_bar_i) and log-scales [N, K, 3]; see
+    the module docstring. vertices [V, 3] and node_rest [N, 3] canonical, faces [F, 3]."""
+    gen = torch.Generator().manual_seed(int(seed) + 4_242)
+    N, K = node_rest.shape[0], per_node
+    pts, area = _surface_samples(vertices.detach().float().cpu(), faces.cpu(), 8 * N * K, gen)
+    rest = node_rest.detach().float().cpu()
+    owner = torch.cat([torch.cdist(c, rest).argmin(dim=1) for c in pts.split(16_384)])  # [P] nearest node
+    per_point_area = area / pts.shape[0]
+    means = torch.empty(N, K, 3)
+    log_scales = torch.empty(N, K, 3)
+    order = torch.argsort(owner, stable=True)
+    counts = torch.bincount(owner, minlength=N).tolist()
+    start = 0
+    for i, c in enumerate(counts):
+        mine = pts[order[start:start + c]]
+        start += c
+        if c == 0:  # an off-body (hull) node: a ball of support / 3
+            r = support_radius / 3
+            d = torch.randn(K, 3, generator=gen)
+            d = d / d.norm(dim=-1, keepdim=True) * r * torch.rand(K, 1, generator=gen) ** (1 / 3)
+            means[i] = d
+            log_scales[i] = math.log(0.5 * r / K ** (1 / 3))
+            continue
+        pick = torch.randperm(c, generator=gen)[:K] if c >= K else torch.randint(c, (K,), generator=gen)
+        means[i] = mine[pick] - rest[i]
+        log_scales[i] = math.log(max(0.5 * math.sqrt(per_point_area * c / K), 1e-4))
+    return means, log_scales
+
+
+class NodeGaussians(nn.Module):
+    """The N nodes' K Gaussians and their per-node decoder (see the module docstring)."""
+
+    def __init__(self, cfg: GaussianConfig, num_nodes: int, embed_dim: int, init_means: torch.Tensor,
+                 init_log_scales: torch.Tensor):
+        super().__init__()
+        N, K = num_nodes, cfg.per_node
+        assert init_means.shape == (N, K, 3), f"init_means: expected [{N}, {K}, 3], got {tuple(init_means.shape)}"
+        self.cfg = cfg
+        self.num_nodes, self.per_node = N, K
+        S = sh_coefficients(cfg.sh_degree)
+        self.num_sh = S
+        self.means = nn.Parameter(init_means.clone().float())  # [N, K, 3] local, metres
+        self.log_scales = nn.Parameter(init_log_scales.clone().float())  # [N, K, 3]
+        self.quats = nn.Parameter(torch.tensor([1.0, 0.0, 0.0, 0.0]).repeat(N, K, 1))  # [N, K, 4] (w, x, y, z)
+        p = cfg.init_opacity
+        self.opacity_logits = nn.Parameter(torch.full((N, K), math.log(p / (1 - p))))  # [N, K]
+        self.sh = nn.Parameter(torch.zeros(N, K, S, 3))  # [N, K, S, 3]: grey at the start
+        self.features = nn.Parameter(0.1 * torch.randn(N, K, cfg.feature_dim))  # [N, K, F]
+        self.embed = BatchedLinear(N, embed_dim, cfg.decoder_width, bias=False)  # e_i's first-layer term
+        self.decoder = BatchedMLP(N, [cfg.feature_dim, cfg.decoder_width, 3 * S + 3 + 1], last_init_scale=0.0)
+
+    def gaussian_parameters(self) -> dict[str, list[nn.Parameter]]:
+        """The per-Gaussian parameters by learning-rate group (names of `GaussianConfig.lr_*`)."""
+        return {"lr_means": [self.means], "lr_scales": [self.log_scales], "lr_quats": [self.quats],
+                "lr_opacity": [self.opacity_logits], "lr_colors": [self.sh, self.features]}
+
+    def forward(self, transforms: torch.Tensor, centers: torch.Tensor, embed: torch.Tensor) -> PosedGaussians:
+        """transforms [B, N, 4, 4] T_i (Eq. 1), centers [B, N, 3] posed nodes n_i (Eq. 3), embed [B, N, E] e_i ->
+        the posed Gaussians of the B frames."""
+        B, N, K, S = centers.shape[0], self.num_nodes, self.per_node, self.num_sh
+        F = self.features.shape[-1]
+        bias = self.embed(embed.transpose(0, 1))  # [N, B, width]
+        x = self.features[:, None].expand(N, B, K, F).reshape(N, B * K, F)
+        first = bias[:, :, None, :].expand(N, B, K, bias.shape[-1]).reshape(N, B * K, -1)
+        out = self.decoder(x, first_bias=first).reshape(N, B, K, -1).transpose(0, 1)  # [B, N, K, 3S + 4]
+        sh = self.sh[None] + out[..., :3 * S].reshape(B, N, K, S, 3)
+        offset = out[..., 3 * S:3 * S + 3] * self.cfg.offset_scale
+        opacity = torch.sigmoid(self.opacity_logits[None] + out[..., -1])  # [B, N, K]
+        A = transforms[..., :3, :3]  # [B, N, 3, 3]
+        local = self.means[None] + offset  # [B, N, K, 3]
+        means = centers[:, :, None, :] + torch.einsum("bnij,bnkj->bnki", A, local)
+        M = torch.einsum("bnij,nkjl->bnkil", A, quaternion_to_matrix(self.quats) * self.log_scales.exp()[:, :, None, :])
+        covars = M @ M.transpose(-1, -2)  # [B, N, K, 3, 3]
+        return PosedGaussians(means=means.reshape(B, N * K, 3), covars=covars.reshape(B, N * K, 3, 3),
+                              sh=sh.reshape(B, N * K, S, 3), opacities=opacity.reshape(B, N * K),
+                              linear_inv=torch.linalg.inv(A), per_node=K)

@@ -1,0 +1,215 @@
+"""Every GPU measurement of the Gaussian local fields in one script (issue 28): run it in one call of a lent GPU.
+
+    python -m benchmarks.gpu_suite --out OUT [--device cuda] [--quick]
+
+Parts (each timed, each a section of OUT/gpu_suite.json; a part that fails is recorded and the rest still run):
+1. `env`: torch / warp versions, the device's name.
+2. `parity`: the rasterizer on the device against the CPU (the same random scene, forward and gradients), and a
+   whole avatar render (`SlrfAvatar` with `model.field = "gaussians"`, same weights) device vs CPU.
+3. `raster`: `benchmarks.splat_bench` on the device (ms per forward / backward, 256² and 512², 20k / 50k Gaussians).
+4. `train`: training throughput of the avatar at 512²: full images per second of a whole training step (node state
+   with the cVAE posterior, posed Gaussians, rasterize B full 512² images, L1 + D-SSIM + mask loss, backward, Adam).
+   The body is the toy sphere template (`body/toy.py`, a 1 m sphere filling a 512² view from 3 m) with the `cpu`
+   preset's 128 nodes x `model.gaussians.per_node` Gaussians, since anny's model cache cannot be built on a bare GPU
+   machine in a lease; the cost per image depends on the Gaussians' number and screen size, not on the body.
+5. `render`: ms per 512² render of that avatar in eval mode (`render.engine.render_view`, the path of render /
+   eval / view), mean of 20 after 3 warm-ups.
+
+`--quick`: tiny sizes, so the script itself runs in the CPU test suite (tests/test_gpu_suite.py) and cannot rot.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import time
+import traceback
+from pathlib import Path
+from typing import Any, Callable
+
+
+def _sync(device: str) -> None:
+    import torch
+
+    if device.startswith("cuda"):
+        torch.cuda.synchronize()
+
+
+def _timed(fn: Callable[[], Any], device: str, repeats: int, warmup: int = 2) -> float:
+    """Mean seconds of `fn` over `repeats` calls after `warmup` calls."""
+    for _ in range(warmup):
+        fn()
+    _sync(device)
+    t0 = time.perf_counter()
+    for _ in range(repeats):
+        fn()
+    _sync(device)
+    return (time.perf_counter() - t0) / repeats
+
+
+def _toy_avatar(device: str, per_node: int, nodes: int, seed: int = 0):
+    """A Gaussian-field avatar on a 1 m toy sphere, with its conditioning for 4 training frames."""
+    import torch
+
+    from avatarctl.body.toy import sphere_template, toy_joint_transforms
+    from avatarctl.model.avatar import FrameConditioning, SlrfAvatar
+    from avatarctl.model.config import ModelConfig
+
+    template = sphere_template(num_vertices=max(4 * nodes, 400), radius=0.5)
+    cfg = ModelConfig.preset("cpu").with_(field="gaussians", num_nodes=nodes, hull_nodes=0)
+    cfg = cfg.with_(gaussians=cfg.gaussians.__class__(per_node=per_node))
+    torch.manual_seed(seed)
+    model = SlrfAvatar(cfg, template, num_frames=4, seed=seed)
+    bend = torch.linspace(0.0, 0.6, 4)
+    M, feats = toy_joint_transforms(bend)
+    cond = FrameConditioning(M, feats, torch.linspace(0, 1, 4), torch.arange(4))
+    return model.to(device), cond.to(device)
+
+
+def _camera(size: int):
+    """A camera 3 m in front of the sphere, its 1 m filling about 60 % of the image."""
+    import numpy as np
+
+    from avatarctl.geometry.cameras import Camera
+
+    f = 1.8 * size
+    return Camera(name="bench", K=np.array([[f, 0, (size - 1) / 2], [0, f, (size - 1) / 2], [0, 0, 1]]),
+                  R=np.eye(3), T=np.array([0.0, 0.0, 3.0]), width=size, height=size)
+
+
+def part_env(device: str) -> dict:
+    import torch
+    import warp as wp
+
+    out = {"torch": torch.__version__, "warp": wp.config.version, "python": platform.python_version(),
+           "device": device}
+    if device.startswith("cuda"):
+        out["gpu"] = torch.cuda.get_device_name(0)
+    return out
+
+
+def part_parity(device: str, quick: bool) -> dict:
+    import torch
+
+    from avatarctl.render.engine import render_view
+    from avatarctl.splat import SplatCamera, project_gaussians, rasterize
+
+    gen = torch.Generator().manual_seed(0)
+    G, size = (200, 48) if quick else (5000, 256)
+    means = torch.randn(G, 3, generator=gen) * 0.3
+    A = torch.randn(G, 3, 3, generator=gen) * 0.02
+    covars = A @ A.transpose(1, 2) + 1e-5 * torch.eye(3)
+    colors = torch.rand(G, 3, generator=gen)
+    opac = torch.rand(G, generator=gen) * 0.9
+    cam = SplatCamera.from_camera(_camera(size))
+    bg = torch.tensor([0.1, 0.2, 0.3])
+    res: dict[str, Any] = {}
+    outs = {}
+    for dev in ("cpu", device):
+        m = means.to(dev).requires_grad_()
+        c = colors.to(dev).requires_grad_()
+        o = opac.to(dev).requires_grad_()
+        proj = project_gaussians(m, covars.to(dev), cam.to(dev))
+        rgb, alpha = rasterize(proj, c, o, size, size, bg.to(dev))
+        (rgb * torch.linspace(0, 1, 3, device=dev)).sum().backward()
+        outs[dev] = [t.detach().cpu() for t in (rgb, alpha, m.grad, c.grad, o.grad)]
+    for name, a, b in zip(("rgb", "alpha", "grad_means", "grad_colors", "grad_opacities"), outs["cpu"], outs[device]):
+        res[f"raster_{name}_max_abs_diff"] = float((a - b).abs().max())
+        res[f"raster_{name}_max_abs"] = float(a.abs().max())
+    model, cond = _toy_avatar("cpu", 8 if quick else 64, 16 if quick else 128)
+    model.eval()
+    views = {}
+    for dev in ("cpu", device):
+        m = model.to(dev)
+        with torch.no_grad():
+            state = m.node_state(cond.to(dev), "mean")
+        views[dev] = render_view(m, state, 1, _camera(size), (0.0, 0.0, 0.0)).rgb
+    res["avatar_render_max_abs_diff"] = float(abs(views["cpu"] - views[device]).max())
+    return res
+
+
+def part_raster(device: str, quick: bool) -> dict:
+    from benchmarks.splat_bench import run
+
+    sizes = [(64, 500)] if quick else [(256, 20_000), (256, 50_000), (512, 50_000)]
+    return {"table": run(device, sizes)}
+
+
+def part_train(device: str, quick: bool) -> dict:
+    import torch
+
+    from avatarctl.fit.densify import relocate_dead
+    from avatarctl.splat import SplatCamera
+
+    size, per_node, nodes, steps = (48, 8, 16, 3) if quick else (512, 192, 128, 30)
+    model, cond = _toy_avatar(device, per_node, nodes)
+    model.train()
+    opt = torch.optim.Adam(model.parameters(), lr=5e-4)
+    cam = SplatCamera.from_camera(_camera(size), device=device)
+    gen = torch.Generator(device=device).manual_seed(0)
+    target = [torch.rand(size, size, 3, device=device, generator=gen) for _ in range(4)]
+    mask = [torch.ones(size, size, device=device) for _ in range(4)]
+    bg = torch.zeros(3, device=device)
+
+    def step() -> None:
+        state = model.node_state(cond, "posterior", generator=gen)
+        posed = model.posed_gaussians(state)
+        outs = [model.render_image(posed, b, cam, bg) for b in range(4)]
+        terms = model.image_losses([o[0] for o in outs], [o[1] for o in outs], target, mask, state)
+        opt.zero_grad(set_to_none=True)
+        terms.total.backward()
+        opt.step()
+
+    sec = _timed(step, device, steps)
+    relocate_dead(model.fields, opt, 0.005, 0, 100)  # the density control runs on the device too
+    _sync(device)
+    peak = torch.cuda.max_memory_allocated() / 2**30 if device.startswith("cuda") else None
+    return {"image_size": size, "gaussians": nodes * per_node, "images_per_step": 4, "seconds_per_step": sec,
+            "images_per_s": 4 / sec, "pixels_per_s": 4 * size * size / sec, "peak_gpu_gb": peak}
+
+
+def part_render(device: str, quick: bool) -> dict:
+    import torch
+
+    from avatarctl.render.engine import render_view
+
+    size, per_node, nodes = (48, 8, 16) if quick else (512, 192, 128)
+    model, cond = _toy_avatar(device, per_node, nodes)
+    model.eval()
+    with torch.no_grad():
+        state = model.node_state(cond, "mean")
+    cam = _camera(size)
+    sec = _timed(lambda: render_view(model, state, 0, cam, (0.0, 0.0, 0.0)), device, 3 if quick else 20, 3)
+    return {"image_size": size, "gaussians": nodes * per_node, "ms_per_render": 1e3 * sec}
+
+
+PARTS = {"env": part_env, "parity": part_parity, "raster": part_raster, "train": part_train, "render": part_render}
+
+
+def main(argv: list[str] | None = None) -> dict:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--out", type=Path, required=True)
+    ap.add_argument("--device", default="cuda")
+    ap.add_argument("--quick", action="store_true", help="tiny sizes (the CPU test of this script)")
+    ap.add_argument("--parts", default=",".join(PARTS))
+    a = ap.parse_args(argv)
+    a.out.mkdir(parents=True, exist_ok=True)
+    results: dict[str, Any] = {"command": " ".join(["python -m benchmarks.gpu_suite"] + (argv or [])), "parts": {}}
+    for name in [p.strip() for p in a.parts.split(",") if p.strip()]:
+        t0 = time.perf_counter()
+        try:
+            fn = PARTS[name]
+            out = fn(a.device) if name == "env" else fn(a.device, a.quick)
+            results["parts"][name] = {"ok": True, **out}
+        except Exception as e:  # recorded, the other parts still run
+            results["parts"][name] = {"ok": False, "error": f"{type(e).__name__}: {e}",
+                                      "traceback": traceback.format_exc()[-3000:]}
+        results["parts"][name]["seconds"] = round(time.perf_counter() - t0, 2)
+        print(f"[gpu_suite] {name}: {json.dumps(results['parts'][name], default=str)[:1500]}", flush=True)
+        (a.out / "gpu_suite.json").write_text(json.dumps(results, indent=2, default=str))
+    return results
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,255 @@
+"""The structured local Gaussian fields (model/gaussian_field.py, fit/densify.py) and their whole chain on the toy body."""
+
+from __future__ import annotations
+
+import math
+import sys
+
+import pytest
+import torch
+
+from avatarctl.model.config import GaussianConfig, ModelConfig
+from avatarctl.model.gaussian_field import (NodeGaussians, eval_sh, initial_gaussians, quaternion_to_matrix,
+                                            rgb_to_sh0)
+
+
+def _sphere(n: int = 12):
+    """A UV sphere of radius 0.3 m: vertices [V, 3], faces [F, 3]."""
+    th, ph = torch.meshgrid(torch.linspace(0.1, math.pi - 0.1, n), torch.linspace(0, 2 * math.pi, n + 1)[:-1],
+                            indexing="ij")
+    v = 0.3 * torch.stack([th.sin() * ph.cos(), th.cos(), th.sin() * ph.sin()], -1).reshape(-1, 3)
+    f = []
+    for i in range(n - 1):
+        for j in range(n):
+            a, b, c, d = i * n + j, i * n + (j + 1) % n, (i + 1) * n + j, (i + 1) * n + (j + 1) % n
+            f += [[a, c, b], [b, c, d]]
+    return v, torch.tensor(f)
+
+
+def test_sh_colour_and_quaternions():
+    rgb = torch.tensor([[0.2, 0.5, 0.9]])
+    sh = torch.zeros(1, 4, 3)
+    sh[:, 0] = rgb_to_sh0(rgb)
+    d = torch.nn.functional.normalize(torch.randn(1, 3), dim=-1)
+    assert torch.allclose(eval_sh(sh, d), rgb, atol=1e-6)  # degree 0 is view-independent
+    sh[:, 3, 0] = 1.0  # the x-linear band: red changes with the x of the viewing direction
+    left, right = eval_sh(sh, torch.tensor([[-1.0, 0, 0]])), eval_sh(sh, torch.tensor([[1.0, 0, 0]]))
+    assert left[0, 0] > right[0, 0] and torch.allclose(left[0, 1:], right[0, 1:])
+    q = torch.randn(50, 4)
+    R = quaternion_to_matrix(q)
+    assert torch.allclose(R @ R.transpose(-1, -2), torch.eye(3).expand(50, 3, 3), atol=1e-5)
+    assert torch.allclose(torch.linalg.det(R), torch.ones(50), atol=1e-5)
+    assert torch.allclose(quaternion_to_matrix(torch.tensor([2.0, 0, 0, 0])), torch.eye(3))
+
+
+def test_initial_gaussians_start_on_the_surface_within_their_node():
+    v, f = _sphere()
+    from avatarctl.model.deformer import farthest_point_sampling
+
+    nodes = v[farthest_point_sampling(v, 40, 0)]
+    hull = torch.tensor([[0.0, 0.0, 0.8]])  # off the body: no surface point is nearest to it
+    rest = torch.cat([nodes, hull])
+    means, log_scales = initial_gaussians(v, f, rest, 16, support_radius=0.19, seed=0)
+    assert means.shape == (rest.shape[0], 16, 3) and log_scales.shape == means.shape
+    world = means + rest[:, None]
+    r = world[:-1].norm(dim=-1)
+    assert (r > 0.27).all() and (r <= 0.3 + 1e-5).all()  # on the (faceted) sphere
+    assert (means[:-1].norm(dim=-1) < 0.19).all()  # within the node's support
+    assert (means[-1].norm(dim=-1) <= 0.19 / 3 + 1e-6).all()  # the hull node's ball
+    again, _ = initial_gaussians(v, f, rest, 16, support_radius=0.19, seed=0)
+    assert torch.equal(means, again)
+
+
+def _fields(N: int = 3, K: int = 5, E: int = 4, sh_degree: int = 1) -> NodeGaussians:
+    torch.manual_seed(0)
+    cfg = GaussianConfig(per_node=K, feature_dim=6, decoder_width=8, sh_degree=sh_degree)
+    return NodeGaussians(cfg, N, E, 0.05 * torch.randn(N, K, 3), torch.full((N, K, 3), math.log(0.02)))
+
+
+def test_posed_gaussians_follow_the_node_transforms():
+    g = _fields()
+    B, N, K = 2, 3, 5
+    angle = 0.7
+    rot = torch.tensor([[math.cos(angle), -math.sin(angle), 0], [math.sin(angle), math.cos(angle), 0], [0, 0, 1.0]])
+    T = torch.eye(4).repeat(B, N, 1, 1)
+    T[1, :, :3, :3] = rot
+    centers = torch.randn(B, N, 3)
+    posed = g(T, centers, torch.zeros(B, N, 4))
+    assert posed.means.shape == (B, N * K, 3) and posed.covars.shape == (B, N * K, 3, 3)
+    # x_ik = n_i + A_i mu_ik (Eq. 4 read backwards); Sigma = A R S^2 R^T A^T
+    local = g.means.detach()
+    assert torch.allclose(posed.means[0], (centers[0][:, None] + local).reshape(-1, 3), atol=1e-6)
+    assert torch.allclose(posed.means[1], (centers[1][:, None] + local @ rot.T).reshape(-1, 3), atol=1e-6)
+    assert torch.allclose(posed.covars[1], rot @ posed.covars[0] @ rot.T, atol=1e-7)
+    assert torch.allclose(posed.covars[0], torch.eye(3).expand(N * K, 3, 3) * 0.02 ** 2, atol=1e-9)
+    # the decoder's last layer starts at zero: e_i changes nothing yet; once trained it does (the detail level)
+    e = torch.randn(B, N, 4)
+    assert torch.allclose(g(T, centers, e).opacities, posed.opacities)
+    with torch.no_grad():
+        g.decoder.layers[-1].weight.normal_()
+    a, b = g(T, centers, e), g(T, centers, torch.zeros(B, N, 4))
+    assert not torch.allclose(a.means, b.means) and not torch.allclose(a.opacities, b.opacities)
+
+
+def test_view_dependent_colour_turns_with_the_node():
+    g = _fields(N=1, K=1)
+    with torch.no_grad():
+        g.sh[0, 0, 3, 0] = 1.0  # red depends on the local x of the viewing direction
+    rot = torch.tensor([[-1.0, 0, 0], [0, -1.0, 0], [0, 0, 1.0]])  # the node turned by 180 degrees about z
+    T = torch.eye(4).repeat(2, 1, 1, 1)
+    T[1, 0, :3, :3] = rot
+    posed = g(T, torch.zeros(2, 1, 3), torch.zeros(2, 1, 4))
+    cam = posed.means[0, 0] + torch.tensor([5.0, 0, 0])
+    cam1 = posed.means[1, 0] + torch.tensor([-5.0, 0, 0])  # the same side of the turned node
+    assert torch.allclose(posed.colors(0, cam), posed.colors(1, cam1), atol=1e-5)
+    assert not torch.allclose(posed.colors(0, cam), posed.colors(1, -cam1 + 2 * posed.means[1, 0]))
+
+
+def test_relocation_moves_dead_gaussians_onto_live_ones_of_their_node():
+    from avatarctl.fit.densify import relocate_dead
+
+    g = _fields(N=2, K=4)
+    opt = torch.optim.Adam(g.parameters(), lr=1e-3)
+    for p in g.parameters():
+        p.grad = torch.ones_like(p)
+    opt.step()
+    with torch.no_grad():
+        g.opacity_logits.copy_(torch.logit(torch.tensor([[0.001, 0.5, 0.001, 0.3], [0.5, 0.5, 0.5, 0.5]])))
+    before = {n: p.detach().clone() for n, p in g.named_parameters()}
+    moved = relocate_dead(g, opt, min_opacity=0.005, seed=0, step=100)
+    assert moved == 2
+    op = torch.sigmoid(g.opacity_logits.detach())
+    assert (op > 0.005).all()
+    assert torch.equal(g.means[1], before["means"][1]) and torch.equal(op[1], torch.full((4,), 0.5))  # node 1 alive
+    for k in (0, 2):  # each copy came from a live Gaussian of node 0 (features, scales equal to one of them)
+        src = [j for j in (1, 3) if torch.equal(g.features[0, k], before["features"][0, j])]
+        assert src and torch.equal(g.log_scales[0, k], before["log_scales"][0, src[0]])
+        assert torch.equal(opt.state[g.means]["exp_avg"][0, k], torch.zeros(3))
+    # a source shared by n copies keeps the coverage 1 - (1 - o)^(1/n) each: together they cover what it covered
+    o = {1: 0.5, 3: 0.3}
+    for j in (1, 3):
+        n = 1 + sum(torch.equal(g.features[0, k], before["features"][0, j]) for k in (0, 2))
+        assert math.isclose(float(op[0, j]), 1 - (1 - o[j]) ** (1 / n), rel_tol=1e-5)
+    # deterministic in (seed, step)
+    g2 = _fields(N=2, K=4)
+    g2.load_state_dict({n: before[n] for n in before})
+    relocate_dead(g2, torch.optim.Adam(g2.parameters()), min_opacity=0.005, seed=0, step=100)
+    assert all(torch.equal(a, b) for a, b in zip(g.parameters(), g2.parameters()))
+
+
+def test_model_config_keeps_the_gaussian_options_in_their_own_config():
+    from avatarctl.errors import InputError
+    from avatarctl.fit.config import FitConfig, resolve_fit_config
+
+    cfg = resolve_fit_config("cpu", overrides=["model.field=gaussians", "model.gaussians.per_node=64"])
+    assert cfg.model.gaussians.per_node == 64 and not cfg.model.uses_occupancy and not cfg.model.ray_marched
+    assert FitConfig.from_json(cfg.to_json()) == cfg
+    assert ModelConfig.from_json({k: v for k, v in ModelConfig().to_json().items() if k != "gaussians"}) == ModelConfig()
+    with pytest.raises(InputError, match="per_node"):
+        resolve_fit_config("cpu", overrides=["model.gaussians.per_node=0"])
+    with pytest.raises(InputError, match="did you mean 'model.gaussians.per_node'"):
+        resolve_fit_config("cpu", overrides=["model.gaussians.per_nod=3"])
+    with pytest.raises(InputError, match="slrf variant"):
+        resolve_fit_config("cpu", ablation="lbs-baseline", overrides=["model.field=gaussians"])
+
+
+def test_fit_render_eval_with_gaussian_fields_on_the_toy_body(tmp_path, monkeypatch):
+    """The chain on the rasterized field: fit (image crops, L1 + D-SSIM), resume bitwise, render, eval."""
+    from fixtures.toy_capture import make_toy_capture
+
+    from avatarctl.fit.checkpoint import read_checkpoint
+    from avatarctl.project import Project
+    from avatarctl.stages import evaluate, fit, ingest, render
+    from avatarctl.stages.evaluate import EvalConfig
+    from avatarctl.stages.fit import FitRequest
+    from avatarctl.stages.ingest import IngestConfig
+    from avatarctl.stages.render import RenderConfig
+
+    monkeypatch.setitem(sys.modules, "anny", None)
+    cap, proj = make_toy_capture(tmp_path / "cap"), tmp_path / "proj"
+    ingest.run(proj, IngestConfig(capture=cap, project=proj))
+    sets = ("model.field=gaussians", "model.gaussians.per_node=24", "model.gaussians.relocate_every=2",
+            "val_every=0", "log_every=2", "checkpoint_every=3")
+    fr = fit.run(proj, FitRequest(preset="micro", iters=6, overrides=sets, device="cpu"), handle_sigint=False)
+    assert fr.step == 6 and math.isfinite(fr.losses["total"]) and fr.val is not None and 0 < fr.val.psnr < 100
+    straight = read_checkpoint(Project.open(proj).paths.latest_checkpoint)["model"]
+    # the same 6 steps as 3 + resume 3: bitwise (relocation at steps 2, 4, 6 included)
+    proj2 = tmp_path / "proj2"
+    ingest.run(proj2, IngestConfig(capture=cap, project=proj2))
+    fit.run(proj2, FitRequest(preset="micro", iters=3, overrides=sets, device="cpu"), handle_sigint=False)
+    fit.run(proj2, FitRequest(iters=6, resume=True, device="cpu"), handle_sigint=False)
+    resumed = read_checkpoint(Project.open(proj2).paths.latest_checkpoint)["model"]
+    assert straight.keys() == resumed.keys() and all(torch.equal(straight[k], resumed[k]) for k in straight)
+    rr = render.run(proj, RenderConfig(name="toy", frames="0:4:3", device="cpu"))
+    assert len(rr.images) == 2 and rr.video.is_file()
+    er = evaluate.run(proj, EvalConfig(split="novel_view", device="cpu"))
+    assert er.metrics.images == 6 and 0 < er.psnr < 100
+
+
+def test_splat_ply_holds_the_posed_gaussians_in_the_world_frame(tmp_path):
+    """The 3DGS .ply (export/splat_ply.py), read back by trimesh: the same centres, covariances, opacities, and the
+    same view-dependent colour once the local-frame SH band is turned into the world frame."""
+    trimesh = pytest.importorskip("trimesh")
+    from avatarctl.export.splat_ply import splat_arrays, write_splat_ply
+    from avatarctl.model.gaussian_field import SH_C0, SH_C1
+
+    g = _fields(N=2, K=3)
+    with torch.no_grad():
+        g.sh.normal_()
+        g.quats.normal_()
+    T = torch.eye(4).repeat(1, 2, 1, 1)
+    T[0, 1, :3, :3] = quaternion_to_matrix(torch.tensor([0.8, 0.1, -0.5, 0.3]))
+    posed = g(T, torch.randn(1, 2, 3), torch.zeros(1, 2, 4))
+    cols = splat_arrays(posed.means[0], posed.covars[0], posed.sh[0], posed.opacities[0], T[0, :, :3, :3], 3)
+    v = trimesh.load(write_splat_ply(tmp_path / "f.ply", cols)).metadata["_ply_raw"]["vertex"]["data"]
+    col = lambda n: torch.tensor(v[n], dtype=torch.float64)  # noqa: E731
+    xyz = torch.stack([col("x"), col("y"), col("z")], -1)
+    assert torch.allclose(xyz, posed.means[0].double(), atol=1e-6)
+    assert torch.allclose(torch.sigmoid(col("opacity")), posed.opacities[0].double(), atol=1e-5)
+    R = quaternion_to_matrix(torch.stack([col(f"rot_{i}") for i in range(4)], -1))
+    S = torch.stack([col(f"scale_{i}") for i in range(3)], -1).exp()
+    cov = R @ torch.diag_embed(S ** 2) @ R.transpose(-1, -2)
+    assert torch.allclose(cov, posed.covars[0].double(), atol=1e-9, rtol=1e-4)
+    cam = torch.tensor([2.0, -1.0, 3.0])
+    d = torch.nn.functional.normalize(xyz - cam.double(), dim=-1)
+    rest = torch.stack([col(f"f_rest_{i}") for i in range(45)], -1).reshape(-1, 3, 15)  # channel-major
+    dc = torch.stack([col(f"f_dc_{i}") for i in range(3)], -1)
+    rgb = 0.5 + SH_C0 * dc + SH_C1 * (-d[:, 1:2] * rest[..., 0] + d[:, 2:3] * rest[..., 1] - d[:, 0:1] * rest[..., 2])
+    assert torch.allclose(rgb.clamp(min=0), posed.colors(0, cam).double(), atol=1e-5)
+
+
+def test_density_query_of_the_gaussians_for_mesh_export():
+    """`SlrfAvatar.query` on the Gaussian field = the sum over every Gaussian (brute force), and a ray through an
+    isotropic Gaussian's centre accumulates its opacity."""
+    from avatarctl.body.toy import sphere_template, toy_joint_transforms
+    from avatarctl.model.avatar import FrameConditioning, SlrfAvatar
+
+    cfg = ModelConfig.preset("cpu").with_(field="gaussians", num_nodes=64, hull_nodes=0,
+                                          gaussians=GaussianConfig(per_node=16))
+    torch.manual_seed(0)
+    model = SlrfAvatar(cfg, sphere_template(), num_frames=1)
+    M, feats = toy_joint_transforms(torch.tensor([0.3]))
+    state = model.node_state(FrameConditioning(M, feats, torch.zeros(1), torch.zeros(1, dtype=torch.long)), "mean")
+    pts = 0.35 * torch.nn.functional.normalize(torch.randn(200, 3), dim=-1)
+    dirs = torch.nn.functional.normalize(torch.randn(200, 3), dim=-1)
+    with torch.no_grad():
+        rgb, sigma, _ = model.query(pts, dirs, torch.zeros(200, dtype=torch.long), state)
+        posed = model.posed_gaussians(state)
+        d = pts[:, None] - posed.means[0][None]
+        q = torch.einsum("pgi,gij,pgj->pg", d, torch.linalg.inv(posed.covars[0]), d)
+        s = torch.linalg.det(posed.covars[0]) ** (1 / 6)
+        brute = (posed.opacities[0] / (math.sqrt(2 * math.pi) * s) * torch.exp(-0.5 * q)).sum(1)
+    assert sigma.shape == (200,) and rgb.shape == (200, 3) and (sigma > 0).sum() > 20
+    assert torch.allclose(sigma, brute, rtol=1e-4, atol=1e-6)
+    with torch.no_grad():  # one isotropic Gaussian left: the line integral through its centre is its opacity
+        model.fields.opacity_logits.fill_(-30.0)
+        model.fields.opacity_logits[0, 0] = 0.0
+        model.fields.quats[0, 0] = torch.tensor([0.9, 0.1, 0.3, -0.2])
+        model.fields.log_scales[0, 0] = math.log(0.01)
+        c = model.posed_gaussians(state).means[0, 0]
+        A = state.transforms[0, 0, :3, :3]
+        s_world = 0.01 * torch.linalg.det(A) ** (1 / 3)  # A is a rotation up to blending: isotropic stays so
+        t = torch.linspace(-0.1, 0.1, 2001)
+        line = c + t[:, None] * torch.tensor([0.0, 0.6, 0.8])
+        _, sig, _ = model.query(line, line * 0, torch.zeros(2001, dtype=torch.long), state)
+    assert abs(float(torch.trapezoid(sig, t)) - 0.5) < 0.01 * (1 + float(abs(s_world - 0.01) / 0.01))

@@ -1,0 +1,20 @@
+"""benchmarks/gpu_suite.py, the one script of every GPU measurement, run at toy scale on the CPU so it cannot rot."""
+
+from __future__ import annotations
+
+import json
+
+
+def test_gpu_suite_runs_every_part_at_toy_scale(tmp_path):
+    from benchmarks.gpu_suite import PARTS, main
+
+    res = main(["--out", str(tmp_path), "--device", "cpu", "--quick"])
+    parts = res["parts"]
+    assert set(parts) == set(PARTS)
+    bad = {k: v.get("error") for k, v in parts.items() if not v["ok"]}
+    assert not bad, bad
+    assert parts["parity"]["avatar_render_max_abs_diff"] == 0.0  # cpu against cpu: the same code, the same numbers
+    assert parts["parity"]["raster_grad_means_max_abs"] > 0
+    assert parts["train"]["images_per_s"] > 0 and parts["render"]["ms_per_render"] > 0
+    assert parts["raster"]["table"]["rows"]
+    assert json.loads((tmp_path / "gpu_suite.json").read_text())["parts"].keys() == parts.keys()
