@@ -48,8 +48,8 @@ def _timed(fn: Callable[[], Any], device: str, repeats: int, warmup: int = 2) ->
     return (time.perf_counter() - t0) / repeats
 
 
-def _toy_avatar(device: str, per_node: int, nodes: int, seed: int = 0):
-    """A Gaussian-field avatar on a 1 m toy sphere, with its conditioning for 4 training frames."""
+def _toy_avatar(device: str, per_node: int, nodes: int, seed: int = 0, frames: int = 4):
+    """A Gaussian-field avatar on a 1 m toy sphere, with its conditioning for `frames` training frames."""
     import torch
 
     from avatarctl.body.toy import sphere_template, toy_joint_transforms
@@ -60,10 +60,10 @@ def _toy_avatar(device: str, per_node: int, nodes: int, seed: int = 0):
     cfg = ModelConfig.preset("cpu").with_(field="gaussians", num_nodes=nodes, hull_nodes=0)
     cfg = cfg.with_(gaussians=cfg.gaussians.__class__(per_node=per_node))
     torch.manual_seed(seed)
-    model = SlrfAvatar(cfg, template, num_frames=4, seed=seed)
-    bend = torch.linspace(0.0, 0.6, 4)
+    model = SlrfAvatar(cfg, template, num_frames=frames, seed=seed)
+    bend = torch.linspace(0.0, 0.6, frames)
     M, feats = toy_joint_transforms(bend)
-    cond = FrameConditioning(M, feats, torch.linspace(0, 1, 4), torch.arange(4))
+    cond = FrameConditioning(M, feats, torch.linspace(0, 1, frames), torch.arange(frames))
     return model.to(device), cond.to(device)
 
 
@@ -107,9 +107,7 @@ def part_parity(device: str, quick: bool) -> dict:
     res: dict[str, Any] = {}
     outs = {}
     for dev in ("cpu", device):
-        m = means.to(dev).requires_grad_()
-        c = colors.to(dev).requires_grad_()
-        o = opac.to(dev).requires_grad_()
+        m, c, o = (t.detach().to(dev).clone().requires_grad_() for t in (means, colors, opac))
         proj = project_gaussians(m, covars.to(dev), cam.to(dev))
         rgb, alpha = rasterize(proj, c, o, size, size, bg.to(dev))
         (rgb * torch.linspace(0, 1, 3, device=dev)).sum().backward()
@@ -137,36 +135,43 @@ def part_raster(device: str, quick: bool) -> dict:
 
 
 def part_train(device: str, quick: bool) -> dict:
+    """Images per second of whole training steps, with 4 images per step (the cpu preset's batch) and with 16."""
     import torch
 
     from avatarctl.fit.densify import relocate_dead
     from avatarctl.splat import SplatCamera
 
     size, per_node, nodes, steps = (48, 8, 16, 3) if quick else (512, 192, 128, 30)
-    model, cond = _toy_avatar(device, per_node, nodes)
-    model.train()
-    opt = torch.optim.Adam(model.parameters(), lr=5e-4)
-    cam = SplatCamera.from_camera(_camera(size), device=device)
-    gen = torch.Generator(device=device).manual_seed(0)
-    target = [torch.rand(size, size, 3, device=device, generator=gen) for _ in range(4)]
-    mask = [torch.ones(size, size, device=device) for _ in range(4)]
-    bg = torch.zeros(3, device=device)
+    out: dict[str, Any] = {"image_size": size, "gaussians": nodes * per_node}
+    for batch in (4, 16):
+        model, cond = _toy_avatar(device, per_node, nodes, frames=batch)
+        model.train()
+        opt = torch.optim.Adam(model.parameters(), lr=5e-4)
+        cam = SplatCamera.from_camera(_camera(size), device=device)
+        gen = torch.Generator(device=device).manual_seed(0)
+        target = [torch.rand(size, size, 3, device=device, generator=gen) for _ in range(batch)]
+        mask = [torch.ones(size, size, device=device) for _ in range(batch)]
+        bg = torch.zeros(3, device=device)
 
-    def step() -> None:
-        state = model.node_state(cond, "posterior", generator=gen)
-        posed = model.posed_gaussians(state)
-        outs = [model.render_image(posed, b, cam, bg) for b in range(4)]
-        terms = model.image_losses([o[0] for o in outs], [o[1] for o in outs], target, mask, state)
-        opt.zero_grad(set_to_none=True)
-        terms.total.backward()
-        opt.step()
+        def step() -> None:
+            state = model.node_state(cond, "posterior", generator=gen)
+            posed = model.posed_gaussians(state)
+            outs = [model.render_image(posed, b, cam, bg) for b in range(batch)]
+            terms = model.image_losses([o[0] for o in outs], [o[1] for o in outs], target, mask, state)
+            opt.zero_grad(set_to_none=True)
+            terms.total.backward()
+            opt.step()
 
-    sec = _timed(step, device, steps)
-    relocate_dead(model.fields, opt, 0.005, 0, 100)  # the density control runs on the device too
-    _sync(device)
-    peak = torch.cuda.max_memory_allocated() / 2**30 if device.startswith("cuda") else None
-    return {"image_size": size, "gaussians": nodes * per_node, "images_per_step": 4, "seconds_per_step": sec,
-            "images_per_s": 4 / sec, "pixels_per_s": 4 * size * size / sec, "peak_gpu_gb": peak}
+        if device.startswith("cuda"):
+            torch.cuda.reset_peak_memory_stats()
+        sec = _timed(step, device, steps)
+        relocate_dead(model.fields, opt, 0.005, 0, 100)  # the density control runs on the device too
+        _sync(device)
+        out[f"batch{batch}"] = {"seconds_per_step": sec, "images_per_s": batch / sec,
+                                "pixels_per_s": batch * size * size / sec,
+                                "peak_gpu_gb": torch.cuda.max_memory_allocated() / 2**30
+                                if device.startswith("cuda") else None}
+    return out
 
 
 def part_render(device: str, quick: bool) -> dict:
@@ -180,8 +185,25 @@ def part_render(device: str, quick: bool) -> dict:
     with torch.no_grad():
         state = model.node_state(cond, "mean")
     cam = _camera(size)
-    sec = _timed(lambda: render_view(model, state, 0, cam, (0.0, 0.0, 0.0)), device, 3 if quick else 20, 3)
-    return {"image_size": size, "gaussians": nodes * per_node, "ms_per_render": 1e3 * sec}
+    reps = 3 if quick else 20
+    sec = _timed(lambda: render_view(model, state, 0, cam, (0.0, 0.0, 0.0)), device, reps, 3)
+    # where the time goes: posing (decoder, covariances), colours + projection + binning, the raster kernel
+    from avatarctl.splat import SplatCamera, project_gaussians, rasterize
+    from avatarctl.splat.rasterize import bin_gaussians
+
+    scam = SplatCamera.from_camera(cam, device=device)
+    bg = torch.zeros(3, device=device)
+    with torch.no_grad():
+        posed = model.posed_gaussians(state)
+        proj = project_gaussians(posed.means[0], posed.covars[0], scam)
+        colors = posed.colors(0, -(scam.R.T @ scam.T))
+        parts = {"pose_ms": _timed(lambda: model.posed_gaussians(state), device, reps),
+                 "project_ms": _timed(lambda: project_gaussians(posed.means[0], posed.covars[0], scam), device, reps),
+                 "bin_ms": _timed(lambda: bin_gaussians(proj, size, size), device, reps),
+                 "raster_ms": _timed(lambda: rasterize(proj, colors, posed.opacities[0], size, size, bg), device,
+                                     reps)}
+    return {"image_size": size, "gaussians": nodes * per_node, "ms_per_render": 1e3 * sec,
+            **{k: 1e3 * v for k, v in parts.items()}}
 
 
 PARTS = {"env": part_env, "parity": part_parity, "raster": part_raster, "train": part_train, "render": part_render}

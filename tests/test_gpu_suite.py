@@ -15,6 +15,7 @@ def test_gpu_suite_runs_every_part_at_toy_scale(tmp_path):
     assert not bad, bad
     assert parts["parity"]["avatar_render_max_abs_diff"] == 0.0  # cpu against cpu: the same code, the same numbers
     assert parts["parity"]["raster_grad_means_max_abs"] > 0
-    assert parts["train"]["images_per_s"] > 0 and parts["render"]["ms_per_render"] > 0
+    assert parts["train"]["batch4"]["images_per_s"] > 0 and parts["train"]["batch16"]["images_per_s"] > 0
+    assert parts["render"]["ms_per_render"] > 0 and parts["render"]["raster_ms"] > 0
     assert parts["raster"]["table"]["rows"]
     assert json.loads((tmp_path / "gpu_suite.json").read_text())["parts"].keys() == parts.keys()
