@@ -58,6 +58,12 @@ def test_initial_gaussians_start_on_the_surface_within_their_node():
     assert (means[-1].norm(dim=-1) <= 0.19 / 3 + 1e-6).all()  # the hull node's ball
     again, _ = initial_gaussians(v, f, rest, 16, support_radius=0.19, seed=0)
     assert torch.equal(means, again)
+    # with the hull survey's off-body cells (a loose garment's volume) the hull node starts inside them
+    cell = torch.tensor([[0.0, 0.0, 0.78], [0.0, 0.05, 0.8]])
+    hull_means, hull_scales = initial_gaussians(v, f, rest, 16, support_radius=0.19, seed=0, off_body=(cell, 0.05))
+    inside = ((hull_means[-1] + rest[-1])[:, None, :] - cell[None]).abs().amax(-1).amin(-1)  # [K] to the nearest cell
+    assert (inside <= 0.025 + 1e-6).all()
+    assert hull_scales[-1].exp().max() < 0.05
 
 
 def _fields(N: int = 3, K: int = 5, E: int = 4, sh_degree: int = 1) -> NodeGaussians:

@@ -278,7 +278,9 @@ def fit(project: Project, cfg: FitConfig | None = None, *, device: str = "auto",
     with torch.random.fork_rng(devices=[]):  # weights initialised from cfg.seed, global RNG left as it was
         torch.manual_seed(cfg.seed)
         model = SlrfAvatar(cfg.model, template, num_frames=len(train_frames), seed=cfg.seed,
-                           hull_nodes=None if hull is None else (hull.rest, hull.vertex)).to(dev)
+                           hull_nodes=None if hull is None else (hull.rest, hull.vertex),
+                           off_body=None if hull is None else (torch.from_numpy(hull.survey.cells), hull.survey.cell)
+                           ).to(dev)
     if model.pose_refine is not None and ckpt is None:  # canonical joint centres from the training poses
         from avatarctl.body.joints import joint_centres, skin_weighted_centroids
 

@@ -125,11 +125,14 @@ class SlrfAvatar(nn.Module):
     """The SLRF avatar of one subject. See the module docstring for the data flow."""
 
     def __init__(self, cfg: ModelConfig, template: BodyTemplate, num_frames: int, seed: int = 0,
-                 hull_nodes: tuple[torch.Tensor, torch.Tensor] | None = None):
+                 hull_nodes: tuple[torch.Tensor, torch.Tensor] | None = None,
+                 off_body: tuple[torch.Tensor, float] | None = None):
         """`hull_nodes` (with `cfg.hull_nodes` = K > 0 or "auto", a deviation: fit/hull_nodes.py): the K off-body
         nodes as (canonical positions [K, 3], nearest template vertex [K]); the other N - K nodes are sampled on the
         surface. None: all N on the surface, the paper's placement (for K > 0 or "auto", placeholders that a
-        checkpoint's buffers replace when loading)."""
+        checkpoint's buffers replace when loading). `off_body` (field "gaussians"): the hull survey's off-body cells
+        (canonical points [C, 3], cell side) where the Gaussians of the nodes nearest to them start
+        (model/gaussian_field.py `initial_gaussians`)."""
         super().__init__()
         V, J = template.skin_weights.shape
         if cfg.num_nodes > V:
@@ -178,7 +181,7 @@ class SlrfAvatar(nn.Module):
                 from avatarctl.model.gaussian_field import NodeGaussians, initial_gaussians
 
                 means, log_scales = initial_gaussians(template.vertices, template.faces, rest,
-                                                      cfg.gaussians.per_node, cfg.support_radius, seed)
+                                                      cfg.gaussians.per_node, cfg.support_radius, seed, off_body)
                 self.fields = NodeGaussians(cfg.gaussians, cfg.num_nodes, cfg.embed_dim, means, log_scales)
             elif cfg.field == "grid":
                 self.fields = NodeGridFields(cfg.num_nodes, cfg.grid_levels, cfg.grid_channels, cfg.embed_dim,
