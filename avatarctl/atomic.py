@@ -78,6 +78,8 @@ def durable_replace(src: str | os.PathLike, dest: str | os.PathLike) -> None:
 
 def _make_parent(dest: Path) -> None:
     """Create `dest`'s missing parent folders, each one's entry durable in its own parent."""
+    if dest.parent.is_dir():
+        return
     missing = [p for p in reversed(dest.parents) if not p.exists()]
     dest.parent.mkdir(parents=True, exist_ok=True)
     for p in missing:
