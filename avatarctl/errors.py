@@ -36,6 +36,13 @@ class ProjectError(AvatarError):
     """A project directory that is missing, from an unknown schema, or lacks a stage output."""
 
 
+class BusyError(AvatarError):
+    """Another command is writing what this one would write (`avatarctl.lock`). Exit 75 (EX_TEMPFAIL): the same
+    command can succeed later."""
+
+    exit_code = 75
+
+
 class NotBuiltError(AvatarError):
     """A stage that is not implemented yet. Exits non-zero; never produces fake output."""
 

@@ -17,7 +17,8 @@ Layout (see docs/project_dir.md)::
       eval/<name>/...                   metrics.json, per_frame.csv, sheet.png
       export/<name>/...                 avatar.glb (skinned, animated), meshes/<frame:06d>.{glb,ply,obj}, export.json
 
-Only this module knows these names. Writes go through `avatarctl.atomic`.
+Only this module knows these names. Writes go through `avatarctl.atomic`; the outputs' locks are files
+`.<output>.lock` beside them (`avatarctl.lock`), present only while a command writes.
 """
 
 from __future__ import annotations
@@ -34,6 +35,7 @@ from typing import Any
 from avatarctl import __version__
 from avatarctl.atomic import write_json
 from avatarctl.errors import ProjectError
+from avatarctl.lock import hold
 
 SCHEMA_VERSION = 1
 STAGES = ("ingest", "fit", "render", "eval", "export")
@@ -219,21 +221,7 @@ class Project:
     @classmethod
     def open(cls, root: str | os.PathLike) -> "Project":
         root = Path(root)
-        mpath = root / "project.json"
-        if not mpath.is_file():
-            raise ProjectError("not an avatarctl project (no project.json)", where=str(root),
-                               fix="create one with `avatarctl ingest CAPTURE PROJECT`")
-        try:
-            data = json.loads(mpath.read_text())
-        except (OSError, json.JSONDecodeError) as e:
-            raise ProjectError(f"cannot read project manifest ({e})", where=str(mpath),
-                               fix="re-create the project with `avatarctl ingest`") from None
-        version = data.get("schema_version")
-        if version != SCHEMA_VERSION:
-            raise ProjectError(f"unknown project schema_version {version!r} (this avatarctl {__version__} reads "
-                               f"{SCHEMA_VERSION})", where=str(mpath),
-                               fix="use the avatarctl version that wrote it, or re-run `avatarctl ingest`")
-        return cls(root, Manifest.from_json(data, mpath))
+        return cls(root, _read_manifest(root))
 
     def save(self) -> None:
         write_json(self.paths.manifest, self.manifest.to_json())
@@ -241,14 +229,21 @@ class Project:
     # ---- stage records -------------------------------------------------------------------------------------
     def record(self, stage: str, config: dict[str, Any], outputs: list[str | Path], started: str,
                summary: dict[str, Any] | None = None) -> StageRecord:
-        """Append a stage record and save the manifest atomically. Output paths are stored relative to root."""
+        """Append a stage record and save the manifest atomically. Output paths are stored relative to root.
+
+        Read-modify-write under the manifest's lock (`avatarctl.lock`, waited for: it is held for milliseconds),
+        the manifest read again first, so that commands running together (a fit and a render) keep each other's
+        records."""
         if stage not in STAGES:
             raise ValueError(f"unknown stage {stage!r}; expected one of {STAGES}")
         rel = [_relative_to_root(Path(p), self.root) for p in outputs]
         rec = StageRecord(stage=stage, started=started, finished=now_iso(), version=__version__,
                           config=config, outputs=rel, summary=summary or {})
-        self.manifest.stages.append(rec)
-        self.save()
+        with hold(self.paths.manifest, f"{stage} (recording in project.json)", wait=True):
+            if self.paths.manifest.is_file():
+                self.manifest = _read_manifest(self.root)
+            self.manifest.stages.append(rec)
+            self.save()
         return rec
 
     def last(self, stage: str) -> StageRecord | None:
@@ -270,6 +265,24 @@ class Project:
                 raise ProjectError(f"{stage} output is missing: {out}", where=str(self.root),
                                    fix=f"{hint} again")
         return rec
+
+
+def _read_manifest(root: Path) -> Manifest:
+    mpath = root / "project.json"
+    if not mpath.is_file():
+        raise ProjectError("not an avatarctl project (no project.json)", where=str(root),
+                           fix="create one with `avatarctl ingest CAPTURE PROJECT`")
+    try:
+        data = json.loads(mpath.read_text())
+    except (OSError, json.JSONDecodeError) as e:
+        raise ProjectError(f"cannot read project manifest ({e})", where=str(mpath),
+                           fix="re-create the project with `avatarctl ingest`") from None
+    version = data.get("schema_version")
+    if version != SCHEMA_VERSION:
+        raise ProjectError(f"unknown project schema_version {version!r} (this avatarctl {__version__} reads "
+                           f"{SCHEMA_VERSION})", where=str(mpath),
+                           fix="use the avatarctl version that wrote it, or re-run `avatarctl ingest`")
+    return Manifest.from_json(data, mpath)
 
 
 def _relative_to_root(p: Path, root: Path) -> str:

@@ -3,7 +3,8 @@
 Table-driven: each `Fault` corrupts a copy of a small fixture (the toy-body capture, its ingested project, or the
 project after a 4-step fit), runs one CLI command on it, and expects
 
-- exit code 2 (an `AvatarError` mapped by the CLI, not a crash: a bug exits 70 with "internal error"),
+- exit code 2 (an `AvatarError` mapped by the CLI, not a crash: a bug exits 70 with "internal error"); 74 for a
+  refused write, 75 for an output another command is writing (issue 32: its lock is held during the command),
 - exactly one line on stderr, starting with "error:", containing the fault's message fragment, no traceback,
 - the source untouched and nothing half-written: the content hash of the whole capture AND project trees (hidden
   temporary files included) is the same before and after the command, and an ingest leaves no PROJECT behind.
@@ -11,6 +12,7 @@ project after a 4-step fit), runs one CLI command on it, and expects
 
 from __future__ import annotations
 
+import contextlib
 import errno
 import json
 import os
@@ -26,6 +28,7 @@ from fixtures.toy_capture import make_toy_project
 from typer.testing import CliRunner
 
 from avatarctl.cli.app import app
+from avatarctl.lock import hold
 from avatarctl.project import hash_tree
 
 CAMS = ("cam00", "cam01", "cam02", "cam03")
@@ -235,7 +238,17 @@ class Fault:
     expect: str  # fragment of the one-line message
     patch: Callable[[pytest.MonkeyPatch], None] | None = None  # environment faults (disk)
     marker: bool = field(default=False)  # a malicious pickle: its payload must never run
-    code: int = 2  # exit code: 2 an AvatarError (bad input / project), 74 the system refused a write
+    code: int = 2  # exit code: 2 an AvatarError (bad input / project), 74 the system refused a write, 75 busy
+    busy: tuple[Callable[[Path, Path], Path], str] | None = None  # an output ((source, out) -> path) and the command
+    #                                                                 holding its lock during this one
+
+
+def busy(rel: str | None, command: str = "fit") -> dict:
+    """Fault fields for an output (`rel` in the source tree; None: ingest's PROJECT) that `command` is writing: its
+    lock is held during the command (in this process, through another file description: to flock, another
+    process; tests/test_lock.py holds them from real other processes)."""
+    return {"busy": ((lambda src, out: src / rel) if rel else (lambda src, out: out), command), "code": 75,
+            "expect": f"is being written by `{command}` (pid {os.getpid()}"}
 
 
 def ingest(*extra: str) -> Callable[[Path, Path], list[str]]:
@@ -370,6 +383,16 @@ FAULTS = [
     Fault("fit_resume_disk_full", "fitted", None, resume("--iters", "3"), "No space left", patch=_no_space,
           code=74),
     Fault("eval_read_only_disk", "fitted", None, evaluate(), "Read-only", patch=_read_only, code=74),
+    # -- another command writing the same output (issue 32)
+    Fault("fit_while_fitting", "fitted", None, fit("--fresh"), **busy("fit")),
+    Fault("fit_resume_while_fitting", "fitted", None, resume("--iters", "3"), **busy("fit", "fit --resume")),
+    Fault("fit_first_while_fitting", "project", None, fit(), **busy("fit")),
+    Fault("render_same_name_while_rendering", "fitted", None, render(), **busy("render/default", "render")),
+    Fault("eval_same_name_while_evaluating", "fitted", None, evaluate(), **busy("eval/novel_view_bbox", "eval")),
+    Fault("export_same_name_while_exporting", "fitted", None,
+          lambda src, out: ["export", str(src), "--device", "cpu", "--format", "glb"],
+          **busy("export/default", "export")),
+    Fault("ingest_into_a_project_being_ingested", "capture", None, ingest(), **busy(None, "ingest")),
 ]
 
 
@@ -387,7 +410,9 @@ def test_fault_is_refused_cleanly(fault: Fault, base, tmp_path, monkeypatch):
     monkeypatch.delenv("AVATARCTL_DEBUG", raising=False)
     if fault.patch is not None:
         fault.patch(monkeypatch)
-    res = CliRunner().invoke(app, fault.args(src, out))
+    held = hold(fault.busy[0](src, out), fault.busy[1]) if fault.busy else contextlib.nullcontext()
+    with held:
+        res = CliRunner().invoke(app, fault.args(src, out))
     monkeypatch.undo()
     err = res.stderr.strip()
     assert isinstance(res.exception, SystemExit), f"crashed: {res.exception!r}\n{res.output}"

@@ -13,7 +13,8 @@ from pathlib import Path
 
 PKG = Path(__file__).resolve().parents[1] / "avatarctl"
 LIBRARIES = {"model", "render", "fit", "evaluate", "ingest", "io", "body", "synth", "export", "viewer", "splat"}
-BASE = {"geometry", "project", "atomic", "errors", "device", "frames", "allocator", "safe_pickle", "dist", "__init__"}
+BASE = {"geometry", "project", "atomic", "lock", "errors", "device", "frames", "allocator", "safe_pickle", "dist",
+        "__init__"}
 LAYER = {"__main__": 4, "cli": 3, "stages": 2, **{lib: 1 for lib in LIBRARIES}, **{b: 0 for b in BASE}}
 CHAINS = {"avatarctl.stages.demo", "avatarctl.stages.reproduce"}  # stages that run other stages
 CLI_MAY_IMPORT = {"cli", "stages", "project", "errors", "allocator", "__init__"}

@@ -22,6 +22,9 @@ console = Console(stderr=False, highlight=False)
 err_console = Console(stderr=True, highlight=False)
 
 
+WAIT_HELP = ("If another command is writing the same output (a fit of this project, a render / eval / export of "
+             "the same name, an ingest into the same PROJECT), wait for it to finish instead of stopping at once "
+             "(exit 75).")
 DEBUG_ENV = "AVATARCTL_DEBUG"  # "1": tracebacks instead of one-line errors (what `avatarctl --debug` sets)
 EXIT_OS = 74  # EX_IOERR: the system refused a read or write (disk full, read-only, permission)
 EXIT_BUG = 70  # EX_SOFTWARE: an unexpected exception, i.e. a bug in avatarctl

@@ -9,6 +9,8 @@ import typer
 
 
 def register(app: typer.Typer) -> None:
+    from avatarctl.cli.common import WAIT_HELP
+
     @app.command("eval", help="Score renders against held-out ground truth (PSNR/SSIM, bbox or full protocol).")
     def eval_cmd(
         projects: list[Path] = typer.Argument(..., help="Project directory (with --compare: several)."),
@@ -44,6 +46,7 @@ def register(app: typer.Typer) -> None:
                                      "`avatarctl eval FULL --compare ABL1 ABL2`."),
         nproc: int = typer.Option(1, "--nproc", help="Split the frames over N ranks of this machine (same scores "
                                   "as one process). Clusters: torchrun ... -m avatarctl eval ..."),
+        wait: bool = typer.Option(False, "--wait", help=WAIT_HELP),
     ) -> None:
         from avatarctl.cli.common import console, user_errors
         from avatarctl.errors import InputError
@@ -65,10 +68,10 @@ def register(app: typer.Typer) -> None:
                              checkpoint=str(checkpoint) if checkpoint else None, save_images=save_images,
                              region=region,
                              knockout=parse_knockout(knockout))
-            _run(projects[0], cfg, nproc, console)
+            _run(projects[0], cfg, nproc, wait, console)
 
 
-def _run(project: Path, cfg, nproc: int, console) -> None:
+def _run(project: Path, cfg, nproc: int, wait: bool, console) -> None:
     from rich.table import Table
 
     from avatarctl.cli.common import progress_bar
@@ -84,7 +87,7 @@ def _run(project: Path, cfg, nproc: int, console) -> None:
                 info += f" | last {p.detail.psnr:.2f} dB"
             bar.update(task, total=p.total, completed=p.done, info=info)
 
-        res = evaluate.run(project, cfg, progress=progress, nproc=nproc)
+        res = evaluate.run(project, cfg, progress=progress, nproc=nproc, wait=wait)
     if res is None:  # a torchrun rank > 0: rank 0 reports
         return
 

@@ -9,6 +9,8 @@ import typer
 
 
 def register(app: typer.Typer) -> None:
+    from avatarctl.cli.common import WAIT_HELP
+
     @app.command("export", help="Export a fitted avatar: posed meshes (GLB / PLY / OBJ, marching cubes of the density "
                                 "with baked colours) and avatar.glb, a skinned glTF 2.0 mesh with the body's "
                                 "skeleton and the motion as an animation.")
@@ -40,6 +42,7 @@ def register(app: typer.Typer) -> None:
         device: str = typer.Option("auto", "--device", help="auto | cpu | cuda."),
         checkpoint: Optional[Path] = typer.Option(None, "--checkpoint", help="Checkpoint file (default: "
                                                   "fit/checkpoints/latest.pt)."),
+        wait: bool = typer.Option(False, "--wait", help=WAIT_HELP),
     ) -> None:
         from avatarctl.cli.common import console, user_errors
 
@@ -52,10 +55,10 @@ def register(app: typer.Typer) -> None:
                                threshold=threshold, influences=influences, latent=latent, seed=seed,
                                recenter=recenter, score=score,
                                device=device, checkpoint=str(checkpoint) if checkpoint else None)
-            _run(project, cfg, console)
+            _run(project, cfg, wait, console)
 
 
-def _run(project: Path, cfg, console) -> None:
+def _run(project: Path, cfg, wait: bool, console) -> None:
     from rich.table import Table
 
     from avatarctl.cli.common import progress_bar
@@ -68,7 +71,7 @@ def _run(project: Path, cfg, console) -> None:
         def progress(p: StageProgress) -> None:
             bar.update(task, total=p.total, completed=p.done, part=p.part)
 
-        res = export.run(project, cfg, progress=progress)
+        res = export.run(project, cfg, progress=progress, wait=wait)
 
     t = Table(title="avatarctl export", show_header=False)
     t.add_row("output", str(res.out_dir))

@@ -12,6 +12,8 @@ PRESET_HELP = ("Sizes: 'cpu' (narrow networks, 512 rays/step, 20k it; for a 2-co
 
 
 def register(app: typer.Typer) -> None:
+    from avatarctl.cli.common import WAIT_HELP
+
     @app.command("fit", help="Train the avatar (structured local radiance fields + per-node cVAEs) on a project.")
     def _cmd(
         project: Path = typer.Argument(..., help="Project directory written by `avatarctl ingest`."),
@@ -31,15 +33,16 @@ def register(app: typer.Typer) -> None:
                                   "--nproc_per_node N -m avatarctl fit ..."),
         shards: Optional[int] = typer.Option(None, "--shards", help="Ray shards (default: the number of ranks); a "
                                              "fit samples the same rays on any --nproc dividing them."),
+        wait: bool = typer.Option(False, "--wait", help=WAIT_HELP),
     ) -> None:
         from avatarctl.cli.common import console, user_errors
 
         with user_errors():
-            _run(project, iters, preset, resume, fresh, seed, device, overrides or [], ablation, nproc, shards,
+            _run(project, iters, preset, resume, fresh, seed, device, overrides or [], ablation, nproc, shards, wait,
                  console)
 
 
-def _run(project_dir: Path, iters, preset, resume, fresh, seed, device, overrides, ablation, nproc, shards,
+def _run(project_dir: Path, iters, preset, resume, fresh, seed, device, overrides, ablation, nproc, shards, wait,
          console) -> None:
     from rich.table import Table
 
@@ -48,7 +51,7 @@ def _run(project_dir: Path, iters, preset, resume, fresh, seed, device, override
     from avatarctl.stages.common import StageProgress
 
     req = fit.FitRequest(preset=preset, iters=iters, seed=seed, overrides=tuple(overrides), ablation=ablation,
-                         device=device, resume=resume, fresh=fresh, nproc=nproc, shards=shards)
+                         device=device, resume=resume, fresh=fresh, nproc=nproc, shards=shards, wait=wait)
     plan = fit.prepare(project_dir, req)  # option errors before the progress bar
     project = plan.project
     if not fit.is_main_rank():  # a torchrun rank > 0: train quietly, rank 0 reports

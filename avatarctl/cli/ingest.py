@@ -9,6 +9,8 @@ import typer
 
 
 def register(app: typer.Typer) -> None:
+    from avatarctl.cli.common import WAIT_HELP
+
     @app.command("ingest", help="Turn a raw capture (frames, cameras, masks, body fits) into a project directory.")
     def ingest(
         capture: Path = typer.Argument(..., help="Capture folder (EasyMocap, ZJU-MoCap, THuman4.0, PeopleSnapshot, "
@@ -39,6 +41,7 @@ def register(app: typer.Typer) -> None:
         resize: float = typer.Option(1.0, "--resize", help="Scale factor after undistortion, e.g. 0.5."),
         contact_sheet: bool = typer.Option(True, "--contact-sheet/--no-contact-sheet",
                                            help="Write ingest/contact_sheet.png (frames with the body overlaid)."),
+        wait: bool = typer.Option(False, "--wait", help=WAIT_HELP),
     ) -> None:
         from rich.table import Table
 
@@ -57,8 +60,8 @@ def register(app: typer.Typer) -> None:
                 console.print(f"detected format [bold]{fmt}[/]: {reason}")
             with progress_bar("ingest", ("part",), out=console) as bar:
                 task = bar.add_task("frames", total=None, part="")
-                res = stage.run(cfg.project, cfg, progress=lambda p: bar.update(task, completed=p.done, total=p.total,
-                                                                                part=p.part))
+                res = stage.run(cfg.project, cfg, wait=wait,
+                                progress=lambda p: bar.update(task, completed=p.done, total=p.total, part=p.part))
 
             t = Table(title=f"ingest -> {res.project}")
             t.add_column("item")

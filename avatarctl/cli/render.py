@@ -12,6 +12,8 @@ FRAMES_HELP = ("Frames: all | train | test | a:b[:step] | 3,7,9 (frame numbers; 
 
 
 def register(app: typer.Typer) -> None:
+    from avatarctl.cli.common import WAIT_HELP
+
     @app.command("render", help="Render novel views / novel poses of a fitted avatar to PNG frames and MP4.")
     def render_cmd(
         project: Path = typer.Argument(..., help="Project directory with a fit (`avatarctl fit`)."),
@@ -54,6 +56,7 @@ def register(app: typer.Typer) -> None:
                                                "rendering; recorded in config.json."),
         nproc: int = typer.Option(1, "--nproc", help="Split the video frames over N ranks of this machine (same "
                                   "files as one process). Clusters: torchrun ... -m avatarctl render ..."),
+        wait: bool = typer.Option(False, "--wait", help=WAIT_HELP),
     ) -> None:
         from avatarctl.cli.common import console, user_errors
 
@@ -68,10 +71,10 @@ def register(app: typer.Typer) -> None:
                                max_rays_per_chunk=max_rays, device=device,
                                checkpoint=str(checkpoint) if checkpoint else None,
                                knockout=parse_knockout(knockout))
-            _run(project, cfg, nproc, console)
+            _run(project, cfg, nproc, wait, console)
 
 
-def _run(project: Path, cfg, nproc: int, console) -> None:
+def _run(project: Path, cfg, nproc: int, wait: bool, console) -> None:
     from rich.table import Table
 
     from avatarctl.cli.common import progress_bar
@@ -84,7 +87,7 @@ def _run(project: Path, cfg, nproc: int, console) -> None:
         def progress(p: StageProgress) -> None:
             bar.update(task, total=p.total, completed=p.done, speed=f"{p.per_second:.2f} frames/s")
 
-        res = render.run(project, cfg, progress=progress, nproc=nproc)
+        res = render.run(project, cfg, progress=progress, nproc=nproc, wait=wait)
     if res is None:  # a torchrun rank > 0: rank 0 reports
         return
 

@@ -17,7 +17,8 @@ with `torch.load(weights_only=True)`):
     train_frames      [int], capture frame numbers the model was trained on, in time-stamp order
     avatarctl_version str
 
-Files are written atomically (temporary file + rename): `fit/checkpoints/step_<step:08d>.pt` and `latest.pt`.
+Files are written atomically and durably (temporary file, fsync, rename, folder fsync: `atomic.atomic_path`):
+`fit/checkpoints/step_<step:08d>.pt`, then `latest.pt`; older step files are deleted only after both.
 """
 
 from __future__ import annotations
@@ -61,8 +62,8 @@ def _torch_save(obj: dict[str, Any], dest: Path) -> None:
 
 
 def save_checkpoint(project: Project, payload: dict[str, Any], keep: int = 3) -> Path:
-    """Write `payload` (see the module docstring) as `step_<step>.pt` and `latest.pt`, atomically; keep the
-    `keep` most recent step files. Returns the step file."""
+    """Write `payload` (see the module docstring) as `step_<step>.pt` and `latest.pt`, atomically and durably;
+    then keep the `keep` most recent step files. Returns the step file."""
     paths = project.paths
     step = int(payload["step"])
     payload = {"format": FORMAT, "schema_version": SCHEMA_VERSION, "avatarctl_version": __version__, **payload}

@@ -1,6 +1,6 @@
 """What several stages share, stated once: the progress report, view / latent selection, the sample-seed formula,
-the cheap pre-checks, loading a fitted avatar, making a motion file (`--poses`) drive it and running a stage on
-several ranks (`run_ranked`).
+the cheap pre-checks, loading a fitted avatar, making a motion file (`--poses`) drive it, running a stage on
+several ranks (`run_ranked`) and holding the lock of what a stage writes (`writing`).
 
 Frame specs are `avatarctl.frames` (ingest uses them too); ground-truth compositing is
 `avatarctl.evaluate.protocols.ground_truth` (fit targets and validation use it too); devices are
@@ -9,9 +9,10 @@ Frame specs are `avatarctl.frames` (ingest uses them too); ground-truth composit
 
 from __future__ import annotations
 
+import contextlib
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Callable
+from typing import TYPE_CHECKING, Any, Callable, Iterator
 
 from avatarctl.errors import InputError
 
@@ -223,3 +224,22 @@ def rank_device_name(env: Any, device: str) -> str:
     from avatarctl.dist import rank_device
 
     return str(rank_device(env, resolve_device(device)))
+
+
+@contextlib.contextmanager
+def writing(dest: Path, command: str, wait: bool, sweep: bool = False) -> Iterator[bool]:
+    """Hold the lock of the output `dest` (`avatarctl.lock.hold`) while the stage runs; yields whether this process
+    holds it. Under torchrun only rank 0 takes it (the ranks > 0 yield False); the ranks of `--nproc` are spawned
+    by the process that holds it. `sweep`: also tidy what killed writers left of the other outputs in `dest`'s
+    folder (render/, eval/, export/)."""
+    from avatarctl.dist import DistEnv
+    from avatarctl.lock import hold, sweep as sweep_folder
+
+    env = DistEnv.from_env()
+    if env is not None and not env.is_main:
+        yield False
+        return
+    with hold(dest, command, wait=wait):
+        if sweep:
+            sweep_folder(dest.parent)
+        yield True

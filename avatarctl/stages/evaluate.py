@@ -39,9 +39,9 @@ import numpy as np
 from avatarctl.errors import InputError
 from avatarctl.evaluate.report import PSNR_CAP, SCHEMA_VERSION, EvalMetrics, ImageScore, ScoredModel
 from avatarctl.frames import select_frames
-from avatarctl.project import check_name, now_iso
+from avatarctl.project import Project, check_name, now_iso
 from avatarctl.stages.common import StageProgress, ProgressFn, check_knockout, check_latent_mode, frame_node_state, \
-    knocked_out, latent_for, load_fitted, open_fitted, rank_device_name, run_ranked, select_views
+    knocked_out, latent_for, load_fitted, open_fitted, rank_device_name, run_ranked, select_views, writing
 
 SPLITS = ("novel_view", "novel_pose", "train")
 
@@ -143,10 +143,13 @@ def split_pairs(avatar: Any, cfg: EvalConfig) -> tuple[list[int], list[str], boo
 
 
 def run(project_dir: str | Path, cfg: EvalConfig, progress: ProgressFn | None = None, *,
-        nproc: int = 1) -> EvalResult | None:
+        nproc: int = 1, wait: bool = False) -> EvalResult | None:
     """Run the eval stage on `project_dir` (see the module docstring) on `nproc` ranks (None on the ranks > 0 of
-    a torchrun launch)."""
-    return run_ranked(_run, nproc, (str(project_dir), cfg), progress, cfg.device, "eval")
+    a torchrun launch). Holds the lock of `eval/<name>`; `wait`: for another command writing it to finish, instead
+    of refusing (`BusyError`)."""
+    out_dir = Project.open(project_dir).paths.eval(cfg.out_name)
+    with writing(out_dir, f"eval --name {cfg.out_name}", wait, sweep=True):
+        return run_ranked(_run, nproc, (str(project_dir), cfg), progress, cfg.device, "eval")
 
 
 @dataclass

@@ -38,9 +38,9 @@ import numpy as np
 
 from avatarctl.errors import InputError
 from avatarctl.frames import select_frames
-from avatarctl.project import check_name, now_iso
+from avatarctl.project import Project, check_name, now_iso
 from avatarctl.stages.common import StageProgress, ProgressFn, check_latent_mode, frame_node_state, latent_for, \
-    load_fitted, motion_for_avatar, open_fitted
+    load_fitted, motion_for_avatar, open_fitted, writing
 
 SCHEMA_VERSION = 1
 FORMATS = ("glb", "ply", "obj")
@@ -153,8 +153,16 @@ class ExportResult:
                 float(np.mean([s.psnr_volume for s in self.scores])))
 
 
-def run(project_dir: str | Path, cfg: ExportConfig, progress: ProgressFn | None = None) -> ExportResult:
-    """Run the export stage on `project_dir` (see the module docstring)."""
+def run(project_dir: str | Path, cfg: ExportConfig, progress: ProgressFn | None = None, *,
+        wait: bool = False) -> ExportResult:
+    """Run the export stage on `project_dir` (see the module docstring). Holds the lock of `export/<name>`; `wait`:
+    for another command writing it to finish, instead of refusing (`BusyError`)."""
+    out_dir = Project.open(project_dir).paths.export(cfg.name)
+    with writing(out_dir, f"export --name {cfg.name}", wait, sweep=True):
+        return _run(project_dir, cfg, progress)
+
+
+def _run(project_dir: str | Path, cfg: ExportConfig, progress: ProgressFn | None) -> ExportResult:
     from avatarctl.atomic import atomic_dir, write_json
     from avatarctl.render.trajectories import up_from_cameras
 

@@ -20,7 +20,7 @@ from typing import TYPE_CHECKING
 
 from avatarctl.errors import InputError
 from avatarctl.project import Project
-from avatarctl.stages.common import StageProgress, ProgressFn
+from avatarctl.stages.common import StageProgress, ProgressFn, writing
 
 if TYPE_CHECKING:
     from avatarctl.fit.config import FitConfig
@@ -44,6 +44,7 @@ class FitRequest:
     fresh: bool = False  # discard an existing fit
     nproc: int = 1  # ranks to spawn on this machine (1 = this process, or the torchrun group it belongs to)
     shards: int | None = None  # ray shards (fit/distributed.py); None = the number of ranks / the checkpoint's
+    wait: bool = False  # another command fitting this project: wait for it to finish instead of refusing
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "overrides", tuple(self.overrides))
@@ -51,6 +52,11 @@ class FitRequest:
             raise InputError(f"--nproc must be >= 1, got {self.nproc}", where="--nproc", fix="e.g. --nproc 2")
         if self.shards is not None and self.shards < 1:
             raise InputError(f"--shards must be >= 1, got {self.shards}", where="--shards", fix="e.g. --shards 2")
+
+    @property
+    def command(self) -> str:
+        """How the lock names this fit to a command it refuses."""
+        return "fit --resume" if self.resume else "fit --fresh" if self.fresh else "fit"
 
 
 def fit_config(project: Project, req: FitRequest) -> "FitConfig | None":
@@ -129,11 +135,22 @@ def is_main_rank() -> bool:
 def run(project_dir: str | Path, req: FitRequest, progress: ProgressFn | None = None, *,
         plan: FitPlan | None = None, stop: "StopFlag | None" = None, handle_sigint: bool = True) -> "FitResult":
     """Train (or resume) the project's avatar; `progress` gets every step (`detail`: the loop's `StepReport`).
-    `plan`: the result of `prepare(project_dir, req)` when the caller already has it."""
+    `plan`: the result of `prepare(project_dir, req)` when the caller already has it. Holds the lock of the
+    project's `fit/` (another fit of it is refused with `BusyError`, or waited for with `req.wait`)."""
+    from avatarctl.atomic import remove_stale_temps
+
+    plan = plan or prepare(project_dir, req)
+    with writing(plan.project.paths.fit, req.command, req.wait) as held:
+        if held:  # what a killed fit left in fit/ (its checkpoints' temporaries: the loop)
+            remove_stale_temps(plan.project.paths.fit)
+        return _train(plan, req, progress, stop, handle_sigint)
+
+
+def _train(plan: FitPlan, req: FitRequest, progress: ProgressFn | None, stop: "StopFlag | None",
+           handle_sigint: bool) -> "FitResult":
     from avatarctl.dist import DistEnv, launch, process_group, signals_request_stop
     from avatarctl.fit.loop import StepReport, StopFlag, fit
 
-    plan = plan or prepare(project_dir, req)
     project, cfg = plan.project, plan.config
     t0 = time.perf_counter()
 

@@ -10,7 +10,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from avatarctl.ingest.config import IngestConfig
-from avatarctl.stages.common import StageProgress, ProgressFn
+from avatarctl.stages.common import StageProgress, ProgressFn, writing
 
 if TYPE_CHECKING:
     from avatarctl.ingest.pipeline import IngestResult
@@ -25,8 +25,10 @@ def detect(capture: str | Path) -> tuple[str, str]:
     return detect_format(Path(capture))
 
 
-def run(project_dir: str | Path, cfg: IngestConfig, progress: ProgressFn | None = None) -> "IngestResult":
-    """Build the project `project_dir` from `cfg.capture` (see `avatarctl.ingest.pipeline`)."""
+def run(project_dir: str | Path, cfg: IngestConfig, progress: ProgressFn | None = None, *,
+        wait: bool = False) -> "IngestResult":
+    """Build the project `project_dir` from `cfg.capture` (see `avatarctl.ingest.pipeline`). Holds the lock of the
+    path `project_dir` (another ingest into it is refused with `BusyError`, or waited for with `wait`)."""
     from avatarctl.ingest.pipeline import run_ingest
 
     t0 = time.perf_counter()
@@ -36,4 +38,5 @@ def run(project_dir: str | Path, cfg: IngestConfig, progress: ProgressFn | None 
             progress(StageProgress(stage="ingest", done=done, total=total, seconds=time.perf_counter() - t0,
                                    part=part))
 
-    return run_ingest(replace(cfg, project=Path(project_dir)), progress=on_frame)
+    with writing(Path(project_dir), "ingest", wait):
+        return run_ingest(replace(cfg, project=Path(project_dir)), progress=on_frame)

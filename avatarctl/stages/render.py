@@ -37,9 +37,10 @@ import numpy as np
 from avatarctl.errors import InputError
 from avatarctl.frames import select_frames
 from avatarctl.geometry.cameras import Camera
-from avatarctl.project import check_name, now_iso
+from avatarctl.project import Project, check_name, now_iso
 from avatarctl.stages.common import StageProgress, ProgressFn, check_knockout, check_latent_mode, frame_node_state, \
-    knocked_out, latent_for, load_fitted, motion_for_avatar, open_fitted, rank_device_name, run_ranked, select_views
+    knocked_out, latent_for, load_fitted, motion_for_avatar, open_fitted, rank_device_name, run_ranked, select_views, \
+    writing
 
 SCHEMA_VERSION = 1
 DEFAULT_MAX_RAYS = 8192
@@ -175,10 +176,13 @@ class _Plan:
 
 
 def run(project_dir: str | Path, cfg: RenderConfig, progress: ProgressFn | None = None, *,
-        nproc: int = 1) -> RenderResult | None:
+        nproc: int = 1, wait: bool = False) -> RenderResult | None:
     """Run the render stage on `project_dir` (see the module docstring), on `nproc` ranks. Returns what was written
-    (None on the ranks > 0 of a torchrun launch)."""
-    return run_ranked(_run, nproc, (str(project_dir), cfg), progress, cfg.device, "render")
+    (None on the ranks > 0 of a torchrun launch). Holds the lock of `render/<name>`; `wait`: for another command
+    writing it to finish, instead of refusing (`BusyError`)."""
+    out_dir = Project.open(project_dir).paths.render(cfg.name)
+    with writing(out_dir, f"render --name {cfg.name}", wait, sweep=True):
+        return run_ranked(_run, nproc, (str(project_dir), cfg), progress, cfg.device, "render")
 
 
 def _run(env: Any, progress: ProgressFn | None, project_dir: str, cfg: RenderConfig) -> RenderResult | None:
