@@ -73,7 +73,7 @@ def _time_case(side: int, n: int, device: str, backend: str, repeats: int) -> di
         t0 = time.perf_counter()
         with torch.no_grad():
             proj = project_gaussians(means, covars, cam)
-            bins = bin_gaussians(proj, side, side)
+            bins = bin_gaussians(proj, opacities, side, side)
         sync()
         t1 = time.perf_counter()
         proj = project_gaussians(means, covars, cam)

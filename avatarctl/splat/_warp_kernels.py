@@ -44,18 +44,26 @@ def _raw_alpha(dx: float, dy: float, conic: wp.vec3, opacity: float) -> float:
 
 
 @wp.func
-def _row_span(y: int, mean: wp.vec2, conic: wp.vec3, opacity: float, x0: int, x1: int) -> wp.vec2i:
-    """The pixels x0 <= x <= x1 of row y where the splat may reach ALPHA_MIN: the row's chord of the ellipse
-    o exp(power) = ALPHA_MIN, widened by a margin (0.05 in power, 0.01 px) so that float error never drops a pixel
-    that counts (they are tested exactly after). Returns (xa, xb), empty when xb < xa. Only a speed-up."""
+def _power_cutoff(opacity: float) -> float:
+    """The power below which the splat is fainter than ALPHA_MIN, lowered by a margin of 0.05 (~5 % in alpha) so
+    that float error in `_row_span` never drops a pixel that counts; +1 where no pixel can count."""
     if opacity < _ALPHA_MIN:
-        return wp.vec2i(0, -1)
+        return 1.0
+    return wp.log(_ALPHA_MIN / opacity) - 0.05
+
+
+@wp.func
+def _row_span(y: int, mean: wp.vec2, conic: wp.vec3, cutoff: float, x0: int, x1: int) -> wp.vec2i:
+    """The pixels x0 <= x <= x1 of row y inside the ellipse power = cutoff (`_power_cutoff`), widened by 0.01 px:
+    (xa, xb), empty when xb < xa. Only a speed-up: the pixels inside are tested exactly."""
     a = conic[0]
+    if cutoff > 0.0:
+        return wp.vec2i(0, -1)
     if a <= 0.0:  # not positive definite: no ellipse, keep the row
         return wp.vec2i(x0, x1)
     dy = float(y) - mean[1]
-    thr = wp.log(_ALPHA_MIN / opacity) - 0.05  # power >= thr  <=>  0.5 a dx^2 + b dy dx + 0.5 c dy^2 + thr <= 0
-    disc = conic[1] * conic[1] * dy * dy - a * (conic[2] * dy * dy + 2.0 * thr)
+    # power >= cutoff  <=>  0.5 a dx^2 + b dy dx + 0.5 c dy^2 + cutoff <= 0
+    disc = conic[1] * conic[1] * dy * dy - a * (conic[2] * dy * dy + 2.0 * cutoff)
     if disc < 0.0:
         return wp.vec2i(0, -1)
     root = wp.sqrt(disc)
@@ -94,18 +102,20 @@ def forward_tiles(tile_first: int, tile_step: int, tiles_x: int, width: int, hei
                   rgb: wp.array(dtype=Any),  # [H * W] vecC out
                   transmittance: wp.array(dtype=float),  # [H * W] out: T_final
                   last: wp.array(dtype=wp.int32),  # [H * W] out: 1 + position in ids of the last contributor, 0: none
-                  done: wp.array(dtype=wp.int32)):  # [H * W] scratch
+                  row_alive: wp.array(dtype=wp.int32)):  # [tiles * 16] scratch: unfinished pixels of each tile row
+    # A finished pixel keeps -T in `transmittance` until the end (T >= T_MIN > 0); rows with no unfinished pixel
+    # are skipped without a look at their pixels.
     tile = tile_first + wp.tid() * tile_step
     rect = _tile_rect(tile, tiles_x, width, height)
     tx0, ty0, tx1, ty1 = rect[0], rect[1], rect[2], rect[3]
     bg = background[0]
     for y in range(ty0, ty1 + 1):
+        row_alive[tile * _TILE + y - ty0] = tx1 - tx0 + 1
         for x in range(tx0, tx1 + 1):
             p = y * width + x
             rgb[p] = bg * 0.0
             transmittance[p] = 1.0
             last[p] = 0
-            done[p] = 0
     left = (tx1 - tx0 + 1) * (ty1 - ty0 + 1)  # pixels not finished
     for k in range(tile_start[tile], tile_start[tile + 1]):
         if left == 0:
@@ -115,18 +125,23 @@ def forward_tiles(tile_first: int, tile_step: int, tiles_x: int, width: int, hei
         mean = means2d[g]
         conic = conics[g]
         opacity = opacities[g]
+        cutoff = _power_cutoff(opacity)
         color = colors[g]
         for y in range(wp.max(box[1], ty0), wp.min(box[3], ty1) + 1):
-            span = _row_span(y, mean, conic, opacity, wp.max(box[0], tx0), wp.min(box[2], tx1))
+            row = tile * _TILE + y - ty0
+            if row_alive[row] == 0:
+                continue
+            span = _row_span(y, mean, conic, cutoff, wp.max(box[0], tx0), wp.min(box[2], tx1))
             for x in range(span[0], span[1] + 1):
                 p = y * width + x
-                if done[p] == 0:
+                t = transmittance[p]
+                if t > 0.0:
                     alpha = wp.min(_ALPHA_MAX, _raw_alpha(float(x) - mean[0], float(y) - mean[1], conic, opacity))
                     if alpha >= _ALPHA_MIN:
-                        t = transmittance[p]
                         t_next = t * (1.0 - alpha)
                         if t_next < _T_MIN:
-                            done[p] = 1
+                            transmittance[p] = -t
+                            row_alive[row] = row_alive[row] - 1
                             left -= 1
                         else:
                             rgb[p] = rgb[p] + color * (t * alpha)
@@ -135,7 +150,9 @@ def forward_tiles(tile_first: int, tile_step: int, tiles_x: int, width: int, hei
     for y in range(ty0, ty1 + 1):
         for x in range(tx0, tx1 + 1):
             p = y * width + x
-            rgb[p] = rgb[p] + bg * transmittance[p]
+            t = wp.abs(transmittance[p])
+            transmittance[p] = t
+            rgb[p] = rgb[p] + bg * t
 
 
 @wp.kernel
@@ -145,7 +162,7 @@ def forward_pixels(tile_first: int, tile_step: int, tiles_x: int, width: int, he
                    conics: wp.array(dtype=wp.vec3), colors: wp.array(dtype=Any), opacities: wp.array(dtype=float),
                    background: wp.array(dtype=Any), rgb: wp.array(dtype=Any),
                    transmittance: wp.array(dtype=float), last: wp.array(dtype=wp.int32),
-                   done: wp.array(dtype=wp.int32)):  # unused (the signature of forward_tiles)
+                   row_alive: wp.array(dtype=wp.int32)):  # unused (the signature of forward_tiles)
     txy = _pixel_of_thread(wp.tid(), tile_first, tile_step, tiles_x)
     tile, x, y = txy[0], txy[1], txy[2]
     if x >= width or y >= height:
@@ -192,6 +209,7 @@ def backward_tiles(tile_first: int, tile_step: int, tiles_x: int, width: int, he
                    grad_alpha_out: wp.array(dtype=float),  # [H * W] dL/dalpha
                    t_scratch: wp.array(dtype=float),  # [H * W] scratch: T in front of the current splat
                    behind_scratch: wp.array(dtype=Any),  # [H * W] vecC scratch: colour seen behind it
+                   row_last: wp.array(dtype=wp.int32),  # [tiles * 16] scratch: the largest `last` of each tile row
                    grad_means2d: wp.array(dtype=wp.vec2),  # [G] out, added to
                    grad_conics: wp.array(dtype=wp.vec3),  # [G] out, added to
                    grad_colors: wp.array(dtype=Any),  # [G] vecC out, added to
@@ -207,11 +225,14 @@ def backward_tiles(tile_first: int, tile_step: int, tiles_x: int, width: int, he
     bg = background[0]
     end = int(0)
     for y in range(ty0, ty1 + 1):
+        row_end = int(0)
         for x in range(tx0, tx1 + 1):
             p = y * width + x
             t_scratch[p] = transmittance[p]
             behind_scratch[p] = bg
-            end = wp.max(end, last[p])
+            row_end = wp.max(row_end, last[p])
+        row_last[tile * _TILE + y - ty0] = row_end
+        end = wp.max(end, row_end)
     start = tile_start[tile]
     for j in range(start, end):
         k = end - 1 - (j - start)
@@ -220,6 +241,7 @@ def backward_tiles(tile_first: int, tile_step: int, tiles_x: int, width: int, he
         mean = means2d[g]
         conic = conics[g]
         opacity = opacities[g]
+        cutoff = _power_cutoff(opacity)
         color = colors[g]
         g_mean = wp.vec2(0.0, 0.0)
         g_conic = wp.vec3(0.0, 0.0, 0.0)
@@ -227,8 +249,10 @@ def backward_tiles(tile_first: int, tile_step: int, tiles_x: int, width: int, he
         g_opacity = float(0.0)
         hit = int(0)
         for y in range(wp.max(box[1], ty0), wp.min(box[3], ty1) + 1):
+            if k >= row_last[tile * _TILE + y - ty0]:
+                continue
             dy = float(y) - mean[1]
-            span = _row_span(y, mean, conic, opacity, wp.max(box[0], tx0), wp.min(box[2], tx1))
+            span = _row_span(y, mean, conic, cutoff, wp.max(box[0], tx0), wp.min(box[2], tx1))
             for x in range(span[0], span[1] + 1):
                 p = y * width + x
                 if k < last[p]:
@@ -266,6 +290,7 @@ def backward_pixels(tile_first: int, tile_step: int, tiles_x: int, width: int, h
                     last: wp.array(dtype=wp.int32), grad_rgb: wp.array(dtype=Any),
                     grad_alpha_out: wp.array(dtype=float),
                     t_scratch: wp.array(dtype=float), behind_scratch: wp.array(dtype=Any),  # unused (same signature)
+                    row_last: wp.array(dtype=wp.int32),  # unused
                     grad_means2d: wp.array(dtype=wp.vec2), grad_conics: wp.array(dtype=wp.vec3),
                     grad_colors: wp.array(dtype=Any), grad_opacities: wp.array(dtype=float)):
     # The derivation is that of backward_tiles, walked per pixel.

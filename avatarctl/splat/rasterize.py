@@ -20,7 +20,7 @@ from dataclasses import dataclass
 
 import torch
 
-from avatarctl.splat._torch_impl import TILE, rasterize_torch
+from avatarctl.splat._torch_impl import ALPHA_MIN, TILE, rasterize_torch
 from avatarctl.splat.project import Projected, footprint
 
 BACKENDS = ("auto", "warp", "warp_tile", "warp_pixel", "torch")
@@ -32,19 +32,39 @@ class TileBins:
 
     ids: torch.Tensor  # [entries] int32 splat index, sorted by (tile, depth)
     tile_start: torch.Tensor  # [tiles + 1] int32: the splats of tile t are ids[tile_start[t]:tile_start[t + 1]]
-    boxes: torch.Tensor  # [G, 4] int32 footprint (x0, y0, x1, y1), inclusive; empty where culled
+    boxes: torch.Tensor  # [G, 4] int32 (x0, y0, x1, y1) inclusive: the pixels a splat may count at (`reach`)
     tiles_x: int
     tiles_y: int
 
 
-def bin_gaussians(proj: Projected, width: int, height: int) -> TileBins:
-    """One entry per (splat, tile it touches), sorted by tile then depth (ties: by splat index)."""
+def reach(proj: Projected, opacities: torch.Tensor, width: int, height: int) -> torch.Tensor:
+    """[G, 4] int32 (x0, y0, x1, y1), inclusive: the splat's footprint (`project.footprint`) cut down to the box of
+    its ellipse o exp(power) >= ALPHA_MIN, widened by a margin (0.05 in power, 1 px); empty (x0 > x1) where no pixel
+    can count. Every pixel outside has alpha < ALPHA_MIN, so binning and compositing over it give the footprint's
+    image with fewer tiles and rows to visit."""
+    box = footprint(proj.means2d, proj.radii, width, height)
+    con, m = proj.conics.detach(), proj.means2d.detach()
+    det = con[:, 0] * con[:, 2] - con[:, 1] ** 2
+    r2 = 2.0 * (torch.log(torch.clamp(opacities.detach() / ALPHA_MIN, min=1e-30)) + 0.05)  # d^T conic d <= r2
+    ok = (det > 0) & (con[:, 0] > 0)
+    det = torch.where(ok, det, torch.ones_like(det))
+    ext = torch.sqrt(torch.clamp(r2[:, None] * torch.stack([con[:, 2], con[:, 0]], -1) / det[:, None], min=0))
+    lo = torch.floor(torch.clamp(m - ext - 1.0, -1e6, 1e6)).to(torch.int32)  # [G, 2]
+    hi = torch.ceil(torch.clamp(m + ext + 1.0, -1e6, 1e6)).to(torch.int32)
+    tight = torch.cat([torch.maximum(box[:, :2], lo), torch.minimum(box[:, 2:], hi)], -1)
+    tight = torch.where(ok[:, None], tight, box)
+    return torch.where((r2 > 0)[:, None], tight, torch.tensor([0, 0, -1, -1], dtype=torch.int32, device=box.device))
+
+
+def bin_gaussians(proj: Projected, opacities: torch.Tensor, width: int, height: int) -> TileBins:
+    """One entry per (splat, tile its `reach` box touches), sorted by tile then depth (ties: by splat index)."""
     device = proj.means2d.device
-    boxes = footprint(proj.means2d, proj.radii, width, height)  # [G, 4]
+    boxes = reach(proj, opacities, width, height)  # [G, 4]
     tiles_x, tiles_y = -(-width // TILE), -(-height // TILE)
     t0 = torch.div(boxes[:, :2], TILE, rounding_mode="floor")  # [G, 2] first tile x, y
     span = torch.div(boxes[:, 2:], TILE, rounding_mode="floor") - t0 + 1  # [G, 2] tiles along x, y
-    n = torch.where(proj.radii > 0, span[:, 0] * span[:, 1], torch.zeros_like(span[:, 0])).long()  # [G]
+    n = torch.where((boxes[:, 0] <= boxes[:, 2]) & (boxes[:, 1] <= boxes[:, 3]), span[:, 0] * span[:, 1],
+                    torch.zeros_like(span[:, 0])).long()  # [G]
     g = torch.repeat_interleave(torch.arange(n.shape[0], device=device), n)  # [entries]
     local = torch.arange(g.shape[0], device=device) - (torch.cumsum(n, 0) - n)[g]
     sx = span[g, 0].long()
@@ -85,7 +105,7 @@ def rasterize(proj: Projected, colors: torch.Tensor,  # [G, C]
                          f"{sorted({str(t.dtype) for t in tensors})} (use backend='torch' for float64)")
     on_cuda = proj.means2d.device.type == "cuda"
     variant = {"warp_tile": "tiles", "warp_pixel": "pixels"}.get(backend, "pixels" if on_cuda else "tiles")
-    bins = bin_gaussians(proj, width, height)
+    bins = bin_gaussians(proj, opacities, width, height)
     return _RasterizeWarp.apply(proj.means2d, proj.conics, colors, opacities, background, bins, width, height,
                                 variant)
 
@@ -162,8 +182,8 @@ class _RasterizeWarp(torch.autograd.Function):
         if bins.ids.shape[0] == 0:  # nothing visible: no launch (a kernel needs at least one entry to index)
             rgb[:] = background
         else:
-            done = torch.empty(P, dtype=torch.int32, device=device)
-            outs = [wp.from_torch(rgb, dtype=vec), wp.from_torch(trans), wp.from_torch(last), wp.from_torch(done)]
+            rows = torch.empty(bins.tiles_x * bins.tiles_y * TILE, dtype=torch.int32, device=device)  # scratch
+            outs = [wp.from_torch(rgb, dtype=vec), wp.from_torch(trans), wp.from_torch(last), wp.from_torch(rows)]
             kernel = k.forward_tiles if variant == "tiles" else k.forward_pixels
             per_tile = 1 if variant == "tiles" else TILE * TILE
             _launch(kernel, bins.tiles_x * bins.tiles_y, per_tile, _jobs(device), lambda j: inputs + outs, C,
@@ -188,7 +208,8 @@ class _RasterizeWarp(torch.autograd.Function):
             grad_rgb = grad_rgb.float().contiguous().reshape(P, C)
             grad_alpha = grad_alpha.float().contiguous().reshape(P)
             scratch = [wp.from_torch(torch.empty(P, device=device)),
-                       wp.from_torch(torch.empty(P, C, device=device), dtype=vec)]
+                       wp.from_torch(torch.empty(P, C, device=device), dtype=vec),
+                       wp.from_torch(torch.empty(bins.tiles_x * bins.tiles_y * TILE, dtype=torch.int32, device=device))]
             state = [wp.from_torch(trans), wp.from_torch(last), wp.from_torch(grad_rgb, dtype=vec),
                      wp.from_torch(grad_alpha)]
             outs = [[wp.from_torch(grads[0][j], dtype=wp.vec2), wp.from_torch(grads[1][j], dtype=wp.vec3),
