@@ -53,7 +53,7 @@ def _time_case(side: int, n: int, device: str, backend: str, repeats: int) -> di
     import torch
 
     from avatarctl.splat import project_gaussians, rasterize
-    from avatarctl.splat.rasterize import bin_gaussians
+    from avatarctl.splat.rasterizer import bin_gaussians
 
     means, covars, colors, opacities, cam = body_scene(n, side, device)
     background = torch.ones(3, device=device)
