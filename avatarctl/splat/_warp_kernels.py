@@ -9,9 +9,12 @@
 
 Both give the same numbers and both run on CPU and CUDA. The semantics are those of `_torch_impl` (its docstring);
 the gradients are derived in `backward_tiles`. Colours are Warp vectors of any length (vec3, vec4, ...): the kernels
-are generic over that type. A launch covers the tiles `tile_first + i * tile_step`, so several launches (one per
-CPU thread) can share an image. Warp's CPU atomics are plain adds: concurrent launches need their own gradient
-arrays.
+are generic over that type. A launch covers the tiles `tile_order[first + i * step]`, so several launches (one per
+CPU thread) can share an image; `tile_order` lists the busiest tiles first, which balances them. Warp's CPU atomics
+are plain adds: concurrent launches need their own gradient arrays.
+
+`count_tiles` and `fill_tiles` bin the splats on the CPU without a sort of the (tile, depth) pairs: a bucket sort by
+tile of the splats taken in depth order.
 
 Importing this module imports Warp but compiles nothing; Warp builds the kernels on first launch (cached on disk).
 """
@@ -81,16 +84,47 @@ def _tile_rect(tile: int, tiles_x: int, width: int, height: int) -> wp.vec4i:
 
 
 @wp.func
-def _pixel_of_thread(i: int, tile_first: int, tile_step: int, tiles_x: int) -> wp.vec3i:
+def _pixel_of_thread(i: int, tile_order: wp.array(dtype=wp.int32), first: int, step: int, tiles_x: int) -> wp.vec3i:
     """Pixel-walk thread i -> (tile, x, y): 256 consecutive threads cover one tile (may lie outside the image)."""
-    tile = tile_first + (i // _PIXELS_PER_TILE) * tile_step
+    tile = tile_order[first + (i // _PIXELS_PER_TILE) * step]
     x = (tile % tiles_x) * _TILE + (i % _PIXELS_PER_TILE) % _TILE
     y = (tile // tiles_x) * _TILE + (i % _PIXELS_PER_TILE) // _TILE
     return wp.vec3i(tile, x, y)
 
 
 @wp.kernel
-def forward_tiles(tile_first: int, tile_step: int, tiles_x: int, width: int, height: int,
+def count_tiles(boxes: wp.array(dtype=wp.vec4i),  # [G] pixels the splat may count at (x0, y0, x1, y1)
+                tiles_x: int, counts: wp.array(dtype=wp.int32)):  # [tiles] zeroed, added to
+    g = wp.tid()
+    box = boxes[g]
+    if box[0] > box[2] or box[1] > box[3]:
+        return
+    for ty in range(box[1] // _TILE, box[3] // _TILE + 1):
+        for tx in range(box[0] // _TILE, box[2] // _TILE + 1):
+            wp.atomic_add(counts, ty * tiles_x + tx, 1)
+
+
+@wp.kernel
+def fill_tiles(order: wp.array(dtype=wp.int32),  # [visible] splat indices front to back (stable)
+               boxes: wp.array(dtype=wp.vec4i), tiles_x: int,
+               cursor: wp.array(dtype=wp.int32),  # [tiles] in: each tile's first entry; out: one past its last
+               ids: wp.array(dtype=wp.int32)):  # [entries] out
+    # One job (launch dim 1): appending the splats in depth order keeps every tile's list sorted by depth.
+    for i in range(order.shape[0]):
+        g = order[i]
+        box = boxes[g]
+        if box[0] > box[2] or box[1] > box[3]:
+            continue
+        for ty in range(box[1] // _TILE, box[3] // _TILE + 1):
+            for tx in range(box[0] // _TILE, box[2] // _TILE + 1):
+                t = ty * tiles_x + tx
+                ids[cursor[t]] = g
+                cursor[t] = cursor[t] + 1
+
+
+@wp.kernel
+def forward_tiles(tile_order: wp.array(dtype=wp.int32), first: int, step: int,  # tiles of this launch
+                  tiles_x: int, width: int, height: int,
                   tile_start: wp.array(dtype=wp.int32),  # [tiles + 1] range of each tile in ids
                   ids: wp.array(dtype=wp.int32),  # [entries] splat index, sorted by (tile, depth)
                   boxes: wp.array(dtype=wp.vec4i),  # [G] footprint x0, y0, x1, y1 (inclusive)
@@ -105,7 +139,7 @@ def forward_tiles(tile_first: int, tile_step: int, tiles_x: int, width: int, hei
                   row_alive: wp.array(dtype=wp.int32)):  # [tiles * 16] scratch: unfinished pixels of each tile row
     # A finished pixel keeps -T in `transmittance` until the end (T >= T_MIN > 0); rows with no unfinished pixel
     # are skipped without a look at their pixels.
-    tile = tile_first + wp.tid() * tile_step
+    tile = tile_order[first + wp.tid() * step]
     rect = _tile_rect(tile, tiles_x, width, height)
     tx0, ty0, tx1, ty1 = rect[0], rect[1], rect[2], rect[3]
     bg = background[0]
@@ -156,14 +190,15 @@ def forward_tiles(tile_first: int, tile_step: int, tiles_x: int, width: int, hei
 
 
 @wp.kernel
-def forward_pixels(tile_first: int, tile_step: int, tiles_x: int, width: int, height: int,
+def forward_pixels(tile_order: wp.array(dtype=wp.int32), first: int, step: int,  # tiles of this launch
+                   tiles_x: int, width: int, height: int,
                    tile_start: wp.array(dtype=wp.int32), ids: wp.array(dtype=wp.int32),
                    boxes: wp.array(dtype=wp.vec4i), means2d: wp.array(dtype=wp.vec2),
                    conics: wp.array(dtype=wp.vec3), colors: wp.array(dtype=Any), opacities: wp.array(dtype=float),
                    background: wp.array(dtype=Any), rgb: wp.array(dtype=Any),
                    transmittance: wp.array(dtype=float), last: wp.array(dtype=wp.int32),
                    row_alive: wp.array(dtype=wp.int32)):  # unused (the signature of forward_tiles)
-    txy = _pixel_of_thread(wp.tid(), tile_first, tile_step, tiles_x)
+    txy = _pixel_of_thread(wp.tid(), tile_order, first, step, tiles_x)
     tile, x, y = txy[0], txy[1], txy[2]
     if x >= width or y >= height:
         return
@@ -198,7 +233,8 @@ def _grad_alpha(grad_rgb: Any, grad_alpha: float, color: Any, behind: Any, t: fl
 
 
 @wp.kernel
-def backward_tiles(tile_first: int, tile_step: int, tiles_x: int, width: int, height: int,
+def backward_tiles(tile_order: wp.array(dtype=wp.int32), first: int, step: int,  # tiles of this launch
+                   tiles_x: int, width: int, height: int,
                    tile_start: wp.array(dtype=wp.int32), ids: wp.array(dtype=wp.int32),
                    boxes: wp.array(dtype=wp.vec4i), means2d: wp.array(dtype=wp.vec2),
                    conics: wp.array(dtype=wp.vec3), colors: wp.array(dtype=Any), opacities: wp.array(dtype=float),
@@ -219,7 +255,7 @@ def backward_tiles(tile_first: int, tile_step: int, tiles_x: int, width: int, he
     #   drgb_c/dalpha_i = T_i (c_i,c - B_i,c),  dalpha_out/dalpha_i = T_final / (1 - alpha_i),  drgb/dc_i = T_i alpha_i;
     # alpha_i = o_i exp(power) (unclamped) -> dalpha/do = exp(power), dalpha/dpower = alpha_i,
     # dpower/dmean = (a dx + b dy, b dx + c dy), dpower/d(a, b, c) = (-dx^2 / 2, -dx dy, -dy^2 / 2).
-    tile = tile_first + wp.tid() * tile_step
+    tile = tile_order[first + wp.tid() * step]
     rect = _tile_rect(tile, tiles_x, width, height)
     tx0, ty0, tx1, ty1 = rect[0], rect[1], rect[2], rect[3]
     bg = background[0]
@@ -282,7 +318,8 @@ def backward_tiles(tile_first: int, tile_step: int, tiles_x: int, width: int, he
 
 
 @wp.kernel
-def backward_pixels(tile_first: int, tile_step: int, tiles_x: int, width: int, height: int,
+def backward_pixels(tile_order: wp.array(dtype=wp.int32), first: int, step: int,  # tiles of this launch
+                    tiles_x: int, width: int, height: int,
                     tile_start: wp.array(dtype=wp.int32), ids: wp.array(dtype=wp.int32),
                     boxes: wp.array(dtype=wp.vec4i), means2d: wp.array(dtype=wp.vec2),
                     conics: wp.array(dtype=wp.vec3), colors: wp.array(dtype=Any), opacities: wp.array(dtype=float),
@@ -294,7 +331,7 @@ def backward_pixels(tile_first: int, tile_step: int, tiles_x: int, width: int, h
                     grad_means2d: wp.array(dtype=wp.vec2), grad_conics: wp.array(dtype=wp.vec3),
                     grad_colors: wp.array(dtype=Any), grad_opacities: wp.array(dtype=float)):
     # The derivation is that of backward_tiles, walked per pixel.
-    txy = _pixel_of_thread(wp.tid(), tile_first, tile_step, tiles_x)
+    txy = _pixel_of_thread(wp.tid(), tile_order, first, step, tiles_x)
     tile, x, y = txy[0], txy[1], txy[2]
     if x >= width or y >= height:
         return
