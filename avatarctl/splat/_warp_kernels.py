@@ -3,7 +3,7 @@
 - tile walk (`*_tiles`, the CPU variant): one job per 16x16 tile visits the tile's depth-sorted splats and, for each
   splat, only the pixels of its footprint inside the tile. Per-pixel state lives in global per-pixel arrays; a tile
   owns its pixels, so jobs never race. The backward pass sums a splat's gradient over its footprint in registers
-  and adds it once per tile. On one CPU core this is ~12x faster than one job per pixel.
+  and adds it once per tile. On one CPU core this is ~4x faster than one job per pixel (benchmarks/splat_bench).
 - pixel walk (`*_pixels`, the GPU variant): one thread per pixel walks its tile's list (CUDA blocks of 256 threads
   are one tile, so they read the same splats); gradients are added with atomics, once per (splat, pixel).
 
