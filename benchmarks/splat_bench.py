@@ -20,8 +20,8 @@ torch 2.11; ms per call, medians of 11 / 20; total = forward + backward, project
 The same code measured 76-90 ms (256^2 / 20k, one thread) on earlier machines of that kind: compare rows of one run
 only. The scene is deep (a filled box: ~35 splats per pixel over the image, ~0.9 M of 2.3 M splat-pixel pairs
 composited before the pixels end), hence slower than a surface-only avatar. On the CPU the pixel walk (the GPU
-variant) takes 4.2x the tile walk (351 vs 85 ms). On CUDA the time is launch overhead (projection and binning are
-~50 small torch ops, ~5 ms): the kernels take ~1-2 ms.
+variant) takes 4.2x the tile walk (351 vs 85 ms). On CUDA the time is mostly launch overhead: projection and
+binning (~50 small torch ops) take ~5-6 ms, the forward's compositing ~1.4 ms on top.
 Two cores: Warp's CPU launch is a ctypes call that releases the GIL (a Python thread runs on during a launch; two
 launches from two threads use two cores), so the tiles are split among torch.get_num_threads() threads: 1.7-1.9x
 with 2, 2.6-3.3x with 4 on idle cores. On a 2-core machine busy with other jobs, torch.set_num_threads(2) made the
