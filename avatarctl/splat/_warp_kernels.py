@@ -1,9 +1,10 @@
 """NVIDIA Warp kernels of the 3DGS rasterizer (forward and backward), two ways to walk the work:
 
 - tile walk (`*_tiles`, the CPU variant): one job per 16x16 tile visits the tile's depth-sorted splats and, for each
-  splat, only the pixels of its footprint inside the tile. Per-pixel state lives in global per-pixel arrays; a tile
-  owns its pixels, so jobs never race. The backward pass sums a splat's gradient over its footprint in registers
-  and adds it once per tile. On one CPU core this is ~4x faster than one job per pixel (benchmarks/splat_bench).
+  splat, only the tile's pixels on each row's chord of its alpha >= 1/255 ellipse (`_row_span`). Per-pixel state
+  lives in global per-pixel arrays; a tile owns its pixels, so jobs never race. The backward pass sums a splat's
+  gradient over its pixels in registers and adds it once per tile. On one CPU core this is ~4x faster than one job
+  per pixel (benchmarks/splat_bench).
 - pixel walk (`*_pixels`, the GPU variant): one thread per pixel walks its tile's list (CUDA blocks of 256 threads
   are one tile, so they read the same splats); gradients are added with atomics, once per (splat, pixel).
 
@@ -127,7 +128,7 @@ def forward_tiles(tile_order: wp.array(dtype=wp.int32), first: int, step: int,  
                   tiles_x: int, width: int, height: int,
                   tile_start: wp.array(dtype=wp.int32),  # [tiles + 1] range of each tile in ids
                   ids: wp.array(dtype=wp.int32),  # [entries] splat index, sorted by (tile, depth)
-                  boxes: wp.array(dtype=wp.vec4i),  # [G] footprint x0, y0, x1, y1 (inclusive)
+                  boxes: wp.array(dtype=wp.vec4i),  # [G] pixels it may count at (rasterizer.reach), inclusive
                   means2d: wp.array(dtype=wp.vec2),  # [G]
                   conics: wp.array(dtype=wp.vec3),  # [G]
                   colors: wp.array(dtype=Any),  # [G] vecC
