@@ -9,6 +9,24 @@ tiles among `torch.get_num_threads()` threads: the rows with threads 1 and N com
 
     python -m benchmarks.splat_bench [--device cpu|cuda] [--sizes 256:20000 256:50000 512:50000]
                                      [--threads 1 2] [--backends warp] [--repeats 5] [--json OUT]
+
+Measured (2026-11-26, commit "CPU binning by a bucket sort", the lent H200 machine: idle Xeon cores, warp 1.19.0,
+torch 2.11; ms per call, medians of 11 / 20; total = forward + backward, projection included):
+
+    256^2 / 20k    CPU 1 thread 121.8, 2 threads 70.2, 4 threads 47.4    H200 11.2
+    256^2 / 50k    CPU 1 thread 188.2, 2 threads 102.3, 4 threads 64.7   H200 11.0
+    512^2 / 50k    CPU 1 thread 427.9, 2 threads 222.1, 4 threads 129.5  H200 10.5
+
+The same code measured 76-90 ms (256^2 / 20k, one thread) on earlier machines of that kind: compare rows of one run
+only. The scene is deep (a filled box: ~35 splats per pixel over the image, ~0.9 M of 2.3 M splat-pixel pairs
+composited before the pixels end), hence slower than a surface-only avatar. On the CPU the pixel walk (the GPU
+variant) takes 4.2x the tile walk (351 vs 85 ms). On CUDA the time is mostly launch overhead: projection and
+binning (~50 small torch ops) take ~5-6 ms, the forward's compositing ~1.4 ms on top.
+Two cores: Warp's CPU launch is a ctypes call that releases the GIL (a Python thread runs on during a launch; two
+launches from two threads use two cores), so the tiles are split among torch.get_num_threads() threads: 1.7-1.9x
+with 2, 2.6-3.3x with 4 on idle cores. On a 2-core machine busy with other jobs, torch.set_num_threads(2) made the
+torch part (projection, binning) ~5x slower (OpenMP barriers wait for a descheduled thread) and the whole step 2-2.6x
+slower than one thread: set one torch thread there.
 """
 
 from __future__ import annotations
@@ -53,7 +71,7 @@ def _time_case(side: int, n: int, device: str, backend: str, repeats: int) -> di
     import torch
 
     from avatarctl.splat import project_gaussians, rasterize
-    from avatarctl.splat.rasterize import bin_gaussians
+    from avatarctl.splat.rasterizer import bin_gaussians
 
     means, covars, colors, opacities, cam = body_scene(n, side, device)
     background = torch.ones(3, device=device)
@@ -73,7 +91,7 @@ def _time_case(side: int, n: int, device: str, backend: str, repeats: int) -> di
         t0 = time.perf_counter()
         with torch.no_grad():
             proj = project_gaussians(means, covars, cam)
-            bins = bin_gaussians(proj, side, side)
+            bins = bin_gaussians(proj, opacities, side, side)
         sync()
         t1 = time.perf_counter()
         proj = project_gaussians(means, covars, cam)

@@ -1,7 +1,7 @@
 """Differentiable 3D Gaussian splatting (Kerbl et al. 2023): world Gaussians -> image, gradients back.
 
 Layers (gsplat's): `render_gaussians` (this file) = `project_gaussians` (project.py, pure torch: EWA projection of
-mean and covariance) + `rasterize` (rasterize.py: tile binning, then NVIDIA Warp kernels (`_warp_kernels.py`, CPU
+mean and covariance) + `rasterize` (rasterizer.py: tile binning, then NVIDIA Warp kernels (`_warp_kernels.py`, CPU
 and CUDA) behind a `torch.autograd.Function`, with a dense pure-PyTorch twin in `_torch_impl.py`).
 
 Conventions: metres; world->camera `x_cam = R x_world + T` (OpenCV: +z forward, x right, y down); pixel centres at
@@ -17,7 +17,7 @@ import torch
 
 from avatarctl.splat.camera import SplatCamera
 from avatarctl.splat.project import Projected, project_gaussians
-from avatarctl.splat.rasterize import rasterize
+from avatarctl.splat.rasterizer import rasterize
 
 
 @dataclass

@@ -62,31 +62,30 @@ def project_gaussians(means: torch.Tensor,  # [G, 3] world, metres
     assert covars.shape == (means.shape[0], 3, 3), \
         f"covars: expected [{means.shape[0]}, 3, 3], got {list(covars.shape)}"
     K, R, T = (x.to(device=means.device, dtype=means.dtype) for x in (cam.K, cam.R, cam.T))
-    t = means @ R.T + T  # [G, 3]
+    t = torch.addmm(T, means, R.T)  # [G, 3] camera coordinates
     z = t[:, 2]
     in_front = z > near
-    z = torch.where(in_front, z, torch.ones_like(z))  # culled rows: finite values, zero gradient
-    xy = t[:, :2] / z[:, None]  # [G, 2]
-    means2d = xy @ K[:2, :2].T + K[:2, 2]
+    inv_z = 1.0 / torch.where(in_front, z, torch.ones_like(z))  # culled rows: finite values, zero gradient
+    x, y = t[:, 0] * inv_z, t[:, 1] * inv_z  # [G]
+    fx, skew, cx, fy, cy = K[0, 0], K[0, 1], K[0, 2], K[1, 1], K[1, 2]
+    means2d = torch.stack([fx * x + skew * y + cx, fy * y + cy], dim=-1)  # [G, 2]
 
-    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
     half_x, half_y = 0.5 * cam.width / fx, 0.5 * cam.height / fy  # tan of the half field of view
-    lim_x = torch.stack([-(cx / fx + (FOV_CLAMP - 1.0) * half_x), (cam.width - cx) / fx + (FOV_CLAMP - 1.0) * half_x])
-    lim_y = torch.stack([-(cy / fy + (FOV_CLAMP - 1.0) * half_y), (cam.height - cy) / fy + (FOV_CLAMP - 1.0) * half_y])
-    xc = torch.clamp(xy[:, 0], lim_x[0], lim_x[1])
-    yc = torch.clamp(xy[:, 1], lim_y[0], lim_y[1])
-    zero = torch.zeros_like(z)
-    jac = torch.stack([torch.stack([1 / z, zero, -xc / z], -1),
-                       torch.stack([zero, 1 / z, -yc / z], -1)], dim=-2)  # [G, 2, 3] d(x/z, y/z)/dt
-    M = K[:2, :2] @ jac @ R  # [G, 2, 3]
-    cov2d = M @ covars @ M.transpose(-1, -2)  # [G, 2, 2]
-    a = cov2d[:, 0, 0] + LOW_PASS
-    b = 0.5 * (cov2d[:, 0, 1] + cov2d[:, 1, 0])
-    c = cov2d[:, 1, 1] + LOW_PASS
+    margin = FOV_CLAMP - 1.0
+    xc = torch.clamp(x, -(cx / fx + margin * half_x), (cam.width - cx) / fx + margin * half_x)
+    yc = torch.clamp(y, -(cy / fy + margin * half_y), (cam.height - cy) / fy + margin * half_y)
+    # rows of M = K[:2, :2] J R, J = d(x/z, y/z)/dt = [[1, 0, -xc], [0, 1, -yc]] / z:
+    row_x = (R[0] - xc[:, None] * R[2]) * inv_z[:, None]  # [G, 3]
+    row_y = (R[1] - yc[:, None] * R[2]) * inv_z[:, None]
+    m0, m1 = fx * row_x + skew * row_y, fy * row_y  # [G, 3] each
+    cov_m = torch.bmm(covars, torch.stack([m0, m1], dim=-1))  # [G, 3, 2] Sigma M^T
+    a = (m0 * cov_m[..., 0]).sum(-1) + LOW_PASS  # Sigma2d = M Sigma M^T + LOW_PASS I = [[a, b], [b, c]]
+    b = (m1 * cov_m[..., 0]).sum(-1)
+    c = (m1 * cov_m[..., 1]).sum(-1) + LOW_PASS
     det = a * c - b * b
     ok = in_front & (det > 0) & torch.isfinite(det)
-    det = torch.where(ok, det, torch.ones_like(det))
-    conics = torch.stack([c / det, -b / det, a / det], dim=-1) * ok[:, None]
+    inv_det = torch.where(ok, 1.0 / torch.where(ok, det, torch.ones_like(det)), torch.zeros_like(det))
+    conics = torch.stack([c * inv_det, -b * inv_det, a * inv_det], dim=-1)
     means2d = means2d * ok[:, None]
 
     with torch.no_grad():
