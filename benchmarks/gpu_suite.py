@@ -189,7 +189,7 @@ def part_render(device: str, quick: bool) -> dict:
     sec = _timed(lambda: render_view(model, state, 0, cam, (0.0, 0.0, 0.0)), device, reps, 3)
     # where the time goes: posing (decoder, covariances), colours + projection + binning, the raster kernel
     from avatarctl.splat import SplatCamera, project_gaussians, rasterize
-    from avatarctl.splat.rasterize import bin_gaussians
+    from avatarctl.splat.rasterizer import bin_gaussians
 
     scam = SplatCamera.from_camera(cam, device=device)
     bg = torch.zeros(3, device=device)
