@@ -199,7 +199,7 @@ def part_render(device: str, quick: bool) -> dict:
         colors = posed.colors(0, -(scam.R.T @ scam.T))
         parts = {"pose_ms": _timed(lambda: model.posed_gaussians(state), device, reps),
                  "project_ms": _timed(lambda: project_gaussians(posed.means[0], posed.covars[0], scam), device, reps),
-                 "bin_ms": _timed(lambda: bin_gaussians(proj, size, size), device, reps),
+                 "bin_ms": _timed(lambda: bin_gaussians(proj, posed.opacities[0], size, size), device, reps),
                  "raster_ms": _timed(lambda: rasterize(proj, colors, posed.opacities[0], size, size, bg), device,
                                      reps)}
     return {"image_size": size, "gaussians": nodes * per_node, "ms_per_render": 1e3 * sec,

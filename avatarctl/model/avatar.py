@@ -182,7 +182,8 @@ class SlrfAvatar(nn.Module):
 
                 means, log_scales = initial_gaussians(template.vertices, template.faces, rest,
                                                       cfg.gaussians.per_node, cfg.support_radius, seed, off_body)
-                self.fields = NodeGaussians(cfg.gaussians, cfg.num_nodes, cfg.embed_dim, means, log_scales)
+                self.fields = NodeGaussians(cfg.gaussians, cfg.num_nodes, cfg.embed_dim, means, log_scales,
+                                            cfg.sigma)
             elif cfg.field == "grid":
                 self.fields = NodeGridFields(cfg.num_nodes, cfg.grid_levels, cfg.grid_channels, cfg.embed_dim,
                                              cfg.feature_dim, extent=self._node_extent())

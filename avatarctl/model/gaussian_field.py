@@ -4,9 +4,11 @@ The paper's structure is kept and only what a local field *is* changes: node i o
 MLP F_i. Motion is decomposed exactly as in the paper:
 1. skeleton: T_i from the body pose (Eq. 1, `deformer.node_transforms`);
 2. node residual: the cVAE's Delta n_i moves the node (Eq. 3: n_i = T_i (n_bar_i + Delta n_i));
-3. dynamic details: a small per-node decoder D^g_i(e_i, f_ik) (batched over a `nodes` dimension like the node MLPs)
-   turns the node's detail embedding e_i and a Gaussian's appearance feature f_ik into a colour residual (spherical
-   harmonics), an offset and an opacity change of that Gaussian.
+3. dynamic details: a small per-node decoder D^g_i(e_i, f_ik, mu_ik / sigma) (batched over a `nodes` dimension like
+   the node MLPs) turns the node's detail embedding e_i, a Gaussian's appearance feature f_ik and its local position
+   (in units of the Eq. 6 sigma, as the MLP fields see p_i) into a colour residual (spherical harmonics), an offset and
+   an opacity change of that Gaussian. With the position it can bend or turn the node's patch per frame, which a
+   loose garment needs (a node's own motion is T_i and a translation Delta n_i only).
 
 A Gaussian k of node i lives in the node's local frame (Eq. 4 read backwards): its mean is
     x_ik = n_i + A_i (mu_ik + offset_ik)            (A_i: the 3x3 linear part of T_i)
@@ -159,7 +161,7 @@ class NodeGaussians(nn.Module):
     """The N nodes' K Gaussians and their per-node decoder (see the module docstring)."""
 
     def __init__(self, cfg: GaussianConfig, num_nodes: int, embed_dim: int, init_means: torch.Tensor,
-                 init_log_scales: torch.Tensor):
+                 init_log_scales: torch.Tensor, sigma: float = 0.05):
         super().__init__()
         N, K = num_nodes, cfg.per_node
         assert init_means.shape == (N, K, 3), f"init_means: expected [{N}, {K}, 3], got {tuple(init_means.shape)}"
@@ -175,7 +177,8 @@ class NodeGaussians(nn.Module):
         self.sh = nn.Parameter(torch.zeros(N, K, S, 3))  # [N, K, S, 3]: grey at the start
         self.features = nn.Parameter(0.1 * torch.randn(N, K, cfg.feature_dim))  # [N, K, F]
         self.embed = BatchedLinear(N, embed_dim, cfg.decoder_width, bias=False)  # e_i's first-layer term
-        self.decoder = BatchedMLP(N, [cfg.feature_dim, cfg.decoder_width, 3 * S + 3 + 1], last_init_scale=0.0)
+        self.coord_scale = 1.0 / sigma  # the decoder sees mu_ik / sigma (Eq. 6 sigma, metres)
+        self.decoder = BatchedMLP(N, [cfg.feature_dim + 3, cfg.decoder_width, 3 * S + 3 + 1], last_init_scale=0.0)
 
     def gaussian_parameters(self) -> dict[str, list[nn.Parameter]]:
         """The per-Gaussian parameters by learning-rate group (names of `GaussianConfig.lr_*`)."""
@@ -188,7 +191,8 @@ class NodeGaussians(nn.Module):
         B, N, K, S = centers.shape[0], self.num_nodes, self.per_node, self.num_sh
         F = self.features.shape[-1]
         bias = self.embed(embed.transpose(0, 1))  # [N, B, width]
-        x = self.features[:, None].expand(N, B, K, F).reshape(N, B * K, F)
+        x = torch.cat([self.features, self.means * self.coord_scale], -1)  # [N, K, F + 3]
+        x = x[:, None].expand(N, B, K, F + 3).reshape(N, B * K, F + 3)
         first = bias[:, :, None, :].expand(N, B, K, bias.shape[-1]).reshape(N, B * K, -1)
         out = self.decoder(x, first_bias=first).reshape(N, B, K, -1).transpose(0, 1)  # [B, N, K, 3S + 4]
         sh = self.sh[None] + out[..., :3 * S].reshape(B, N, K, S, 3)
