@@ -43,3 +43,11 @@ def toy_fitted_project(tmp_path_factory):
     from fixtures.toy_fitted import make_toy_fitted
 
     return make_toy_fitted(tmp_path_factory.mktemp("toy_fitted"), iters=10)
+
+
+@pytest.fixture(scope="session")
+def toy_gaussian_project(tmp_path_factory):
+    """The toy project fitted for a few steps with the Gaussian local fields (viewer and player tests)."""
+    from fixtures.toy_fitted import make_toy_fitted_gaussians
+
+    return make_toy_fitted_gaussians(tmp_path_factory.mktemp("toy_gaussians"))

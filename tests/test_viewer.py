@@ -203,3 +203,63 @@ def test_cli_prints_the_url_and_stops_cleanly_on_ctrl_c(toy_fitted_project):
         if proc.poll() is None:
             proc.kill()
     assert proc.returncode == 0 and "viewer stopped" in out and "Traceback" not in out, out
+
+
+def test_a_gaussian_avatar_gives_the_page_its_splats(toy_gaussian_project, tmp_path):
+    """Field "gaussians": the session hands out each frame's posed Gaussians (cached), switches motions, and its
+    server render is the rasterizer's exact image."""
+    from fixtures.toy_capture import toy_motion
+
+    from avatarctl.stages.view import PROJECT, ViewConfig, prepare
+
+    setup = prepare(toy_gaussian_project, ViewConfig(device="cpu"))
+    s = setup.session
+    assert s.gaussian and s.motion.name == PROJECT and s.motion.fps > 0
+    a, b = s.splats(0, "auto"), s.splats(3, "auto")
+    assert a.count + a.dropped == 8 * 24 * 4 or a.count > 0
+    assert a.centers.shape == (a.count, 3) and a.covariances.shape == (a.count, 3, 3)
+    assert a.rgbs.shape == (a.count, 3) and a.opacities.shape == (a.count, 1)
+    assert np.all(np.linalg.eigvalsh(a.covariances.astype(np.float64)) > 0), "covariances positive definite"
+    assert 0 <= a.rgbs.min() and a.rgbs.max() <= 1 and a.opacities.min() >= 1 / 255
+    assert s.splats(0, "auto") is a, "cached per (frame, latent)"
+    assert not np.allclose(a.centers, b.centers), "another frame, another pose"
+    req = request_looking_at(setup.initial.position, setup.initial.look_at, setup.initial.up, resolution=48)
+    img = s.render(req)
+    assert img.shape == (36, 48, 3) and img[12:24, 18:30].mean() != img[:4, :4].mean()
+    toy_motion(5).save(tmp_path / "walk.npz")
+    m = s.set_motion(str(tmp_path / "walk.npz"))
+    assert [f.source for f in s.frames] == ["motion"] * 5 and m.name == str(tmp_path / "walk.npz")
+    assert s.splats(4, "zero").count > 0
+    with pytest.raises(Exception, match="no motion file"):
+        s.set_motion(str(tmp_path / "missing.npz"))
+    assert len(s.frames) == 5, "a failed load keeps the motion shown"
+
+
+@pytest.mark.browser
+def test_gaussian_viewer_page_draws_orbits_and_plays_in_headless_chromium(toy_gaussian_project, tmp_path):
+    """The page of a Gaussian-field avatar (benchmarks/viewer_page.py at toy scale): drawn by the browser, the drag
+    turns it, a frame change shows a new image, play shows frames, a second tab draws too, memory stays small."""
+    pytest.importorskip("viser")
+    from fixtures.browser import Browser, find_chromium, free_port
+
+    if find_chromium() is None:
+        pytest.skip("no chromium / chrome on this machine")
+    from benchmarks.viewer_page import measure
+
+    from avatarctl.stages.view import PROJECT, ViewConfig, prepare
+    from avatarctl.viewer.server import ViewerServer
+
+    setup = prepare(toy_gaussian_project, ViewConfig(device="cpu"))
+    server = ViewerServer(setup.session, setup.initial, port=free_port(), motions=(PROJECT,))
+    browser = None
+    try:
+        browser = Browser(640, 480)
+        fig = measure(server, browser, seconds=2.0, shots=tmp_path, changes=3)
+    finally:
+        if browser is not None:
+            browser.close()
+        server.stop()
+    assert fig.orbit_distinct_images > 1, "dragging turns the view (drawn by the page)"
+    assert fig.orbit_fps > 0 and fig.frame_change_ms, fig
+    assert fig.playback_fps_page > 0 and fig.playback_pushes_per_s > 0, fig
+    assert fig.second_tab_drawn and fig.peak_rss_mb < 2048, fig

@@ -22,7 +22,9 @@ def register(app: typer.Typer) -> None:
         poses: Optional[Path] = typer.Option(None, "--poses", help="Motion file (as for `avatarctl render`): the "
                                              "posed frames and the animation of avatar.glb. Default: the "
                                              "project's own frames."),
-        formats: str = typer.Option("glb,ply", "--format", help="Posed mesh files: comma list of glb, ply, obj."),
+        formats: str = typer.Option("glb,ply", "--format", help="Comma list: posed meshes glb, ply, obj; for a "
+                               "Gaussian-field avatar also splat (splats/<frame>.ply, 3DGS layout) and player "
+                               "(player.html: plays the frames without Python; 30 frames without --frames)."),
         posed: bool = typer.Option(True, "--posed/--no-posed", help="Write posed meshes."),
         skinned: bool = typer.Option(True, "--skinned/--no-skinned", help="Write avatar.glb (rest-pose mesh, "
                                      "skeleton, skinning weights, animation)."),
@@ -86,6 +88,9 @@ def _run(project: Path, cfg, wait: bool, console) -> None:
         t.add_row("reload check", f"max vertex error {r['vs_lbs_same_weights_max_m'] * 1000:.3g} mm vs our LBS "
                   f"(same weights), {r['vs_lbs_dense_weights_max_m'] * 1000:.3g} mm vs dense weights"
                   if r.get("checked") else f"skipped: {r['reason']}")
+    if res.splats:
+        t.add_row("splats", ", ".join(f"{f} ({b / 1e6:.1f} MB)" for f, b in list(res.splats.items())[:3])
+                  + (f" ... ({len(res.splats)} files)" if len(res.splats) > 3 else ""))
     mean = res.mean_psnr()
     if mean is not None:
         t.add_row("PSNR (held-out views)", f"mesh {mean[0]:.2f} dB, volume {mean[1]:.2f} dB "

@@ -30,7 +30,7 @@ capture's up (estimated from the cameras) is glTF's +Y (`export.json` "glb_basis
 from __future__ import annotations
 
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -43,7 +43,10 @@ from avatarctl.stages.common import StageProgress, ProgressFn, check_latent_mode
     load_fitted, motion_for_avatar, open_fitted, writing
 
 SCHEMA_VERSION = 1
-FORMATS = ("glb", "ply", "obj")
+MESH_FORMATS = ("glb", "ply", "obj")
+SPLAT_FORMATS = ("splat", "player")  # Gaussian-field avatars: per-frame 3DGS .ply, the HTML player (_splats)
+FORMATS = MESH_FORMATS + SPLAT_FORMATS
+PLAYER_FRAMES = 30  # frames of the player without --frames
 CHECK_FRAMES = 8  # animation frames of the reload check
 
 
@@ -56,7 +59,7 @@ class ExportConfig:
     posed: bool = True  # write posed meshes
     skinned: bool = True  # write the animatable avatar.glb
     poses: str | None = None  # motion file: the posed frames and the animation; None = the project's frames
-    formats: tuple[str, ...] = ("glb", "ply")  # posed mesh files: glb | ply | obj
+    formats: tuple[str, ...] = ("glb", "ply")  # posed mesh files: glb | ply | obj; Gaussian fields: splat | player
     voxel: float = 0.008  # grid spacing, metres
     threshold: float = 10.0  # density level of the surface, 1/metre (export.mesh.DEFAULT_THRESHOLD)
     min_component: float = 0.01  # drop connected pieces with fewer than this fraction of the faces
@@ -145,6 +148,7 @@ class ExportResult:
     scores: list[MeshScore]
     seconds: float
     checkpoint_step: int
+    splats: dict[str, int] = field(default_factory=dict)  # splat / player files -> bytes
 
     def mean_psnr(self) -> tuple[float, float] | None:
         if not self.scores:
@@ -186,9 +190,18 @@ def _run(project_dir: str | Path, cfg: ExportConfig, progress: ProgressFn | None
         (motion, retarget), source = motion_for_avatar(avatar, cfg.poses, cfg.recenter), str(cfg.poses)
         pool = [int(f) for f in motion.frame_index]
         default = pool[:1]
+    mesh_formats = tuple(f for f in cfg.formats if f in MESH_FORMATS)
+    splat_formats = tuple(f for f in cfg.formats if f in SPLAT_FORMATS)
+    if splat_formats and avatar.model.cfg.ray_marched:
+        raise InputError(f"--format {','.join(splat_formats)} needs a Gaussian-field avatar", where="--format",
+                         fix="fit with --set model.field=gaussians, or export glb / ply / obj")
+    if "player" in splat_formats and cfg.frames is None:
+        default = pool[:PLAYER_FRAMES]
     frames = (select_frames(cfg.frames, pool, train=cap.split.train_frames if cfg.poses is None else None,
                             test=cap.split.test_frames if cfg.poses is None else None)
               if cfg.frames is not None else default) if cfg.posed else []
+    splat_columns: list[dict[str, np.ndarray]] = []
+    splat_files: dict[str, int] = {}
     total = len(frames) + int(cfg.skinned)
     out_dir = project.paths.export(cfg.name)
     meshes: list[ExportedMesh] = []
@@ -208,9 +221,14 @@ def _run(project_dir: str | Path, cfg: ExportConfig, progress: ProgressFn | None
             latent = latent_for(cfg.latent, is_train)
             one = motion.select(motion.rows_for([frame]))
             state = frame_node_state(avatar, one, frame, is_train, latent, cfg.seed)
+            if splat_formats:
+                splat_columns.append(_splats(tmp, frame, avatar, state, "splat" in splat_formats, splat_files))
+            if not mesh_formats:
+                report("posed")
+                continue
             ts = time.perf_counter()
             mesh, queried = _extract(avatar, state, cfg, f"frame {frame}")
-            files = _write_posed(tmp, frame, mesh, cfg.formats, basis)
+            files = _write_posed(tmp, frame, mesh, mesh_formats, basis)
             meshes.append(ExportedMesh(frame=frame, latent=latent, files=files, vertices=mesh.num_vertices,
                                        faces=mesh.num_faces, grid_points=queried,
                                        seconds=round(time.perf_counter() - ts, 3)))
@@ -219,7 +237,15 @@ def _run(project_dir: str | Path, cfg: ExportConfig, progress: ProgressFn | None
             elif not preview:
                 preview.append(_mesh_preview(avatar, mesh))
             report("posed")
-        if cfg.skinned:
+        if "player" in splat_formats:
+            from avatarctl.export.player import pack_frames, write_player
+            from avatarctl.render.trajectories import up_from_cameras as _up
+
+            fps = float(motion.fps) if motion.fps > 0 else 30.0
+            block = pack_frames(splat_columns, fps, _up(list(cap.cameras.values())), [f"frame {f}" for f in frames])
+            write_player(tmp / "player.html", block, f"avatarctl player: {project.root.name}")
+            splat_files["player.html"] = (tmp / "player.html").stat().st_size
+        if cfg.skinned and mesh_formats:  # the skinned avatar is a mesh product: not with splat formats alone
             skinned = _export_skinned(tmp, avatar, cfg, motion if cfg.poses else cap.motion, source, basis)
             report("skinned")
         if preview:
@@ -227,7 +253,8 @@ def _run(project_dir: str | Path, cfg: ExportConfig, progress: ProgressFn | None
 
             write_png(tmp / "preview.png", np.concatenate(preview, axis=1), None)
         result = ExportResult(out_dir=out_dir, meshes=meshes, avatar=skinned, scores=scores,
-                              seconds=round(time.perf_counter() - t_start, 3), checkpoint_step=avatar.step)
+                              seconds=round(time.perf_counter() - t_start, 3), checkpoint_step=avatar.step,
+                              splats=splat_files)
         write_json(tmp / "export.json", _record(cfg, avatar, result, basis, source, retarget))
     project.record("export", config=cfg.to_json(), outputs=[out_dir], started=started,
                    summary={"name": cfg.name, "meshes": len(meshes), "avatar": skinned.file if skinned else None,
@@ -235,6 +262,24 @@ def _run(project_dir: str | Path, cfg: ExportConfig, progress: ProgressFn | None
                             **({"psnr_mesh": round(result.mean_psnr()[0], 3),
                                 "psnr_volume": round(result.mean_psnr()[1], 3)} if scores else {})})
     return result
+
+
+def _splats(tmp: Path, frame: int, avatar: Any, state: Any, write: bool, files: dict[str, int]) -> dict[str, Any]:
+    """The 3DGS .ply columns of one posed frame (`export.splat_ply`); written as splats/<frame:06d>.ply if `write`."""
+    import torch
+
+    from avatarctl.export.splat_ply import splat_arrays, write_splat_ply
+
+    with torch.no_grad():
+        posed = avatar.model.posed_gaussians(state)
+        cols = splat_arrays(posed.means[0], posed.covars[0], posed.sh[0], posed.opacities[0],
+                            state.transforms[0, :, :3, :3], posed.per_node)
+    if write:
+        rel = f"splats/{frame:06d}.ply"
+        (tmp / "splats").mkdir(exist_ok=True)
+        write_splat_ply(tmp / rel, cols)
+        files[rel] = (tmp / rel).stat().st_size
+    return cols
 
 
 def _require(module: str, what: str, alternative: str = "") -> None:
@@ -409,7 +454,7 @@ def _record(cfg: ExportConfig, avatar: Any, res: ExportResult, basis: np.ndarray
                         "colour": "volume render of a 4 cm ray segment (8 samples) looking at each vertex along -normal from "
                                   "2 voxels outside, divided by its opacity (one view direction per vertex)"},
             "glb_basis": basis.tolist(), "ply_obj_frame": "capture world (metres)",
-            "meshes": [asdict(m) for m in res.meshes], "avatar": asdict(res.avatar) if res.avatar else None,
+            "meshes": [asdict(m) for m in res.meshes], "splats": res.splats, "avatar": asdict(res.avatar) if res.avatar else None,
             "scores": [asdict(s) for s in res.scores],
             "score_mean": {"psnr_mesh": mean[0], "psnr_volume": mean[1], "protocol": "bbox (eval), held-out views",
                            "mesh_render": "unlit baked vertex colours, 1 ray per pixel"} if mean else None,

@@ -1,5 +1,15 @@
-"""The render callback of the interactive viewer: a `ViewRequest` (camera pose, frame, latent mode, resolution) ->
-an RGB image of the avatar, with the node state of each (frame, latent) cached.
+"""What the interactive viewer shows of one fitted avatar, per (frame, latent), cached:
+
+- `render(request)`: the exact image (`render.engine.render_view`, the renderer of `render` and `eval`: ray-marched
+  for the SLRF fields, rasterized for the Gaussian local fields), at the request's camera and resolution;
+- `splats(frame, latent)` (Gaussian local fields only): the frame's posed Gaussians as arrays a browser splat
+  renderer draws and orbits by itself (`viewer.splats.SplatFrame`; node transforms, Delta n and the per-node
+  decoder: milliseconds on the CPU);
+- `mesh(frame, latent)`: a posed mesh from the `MeshFn` callback the stage gives (for the ray-marched fields: drawn by
+  the page while the progressive render refines), or None without one.
+
+A session plays one `ViewerMotion` at a time (the project's frames, or a motion file's); `set_motion` switches to
+another one (loaded by the stage's `MotionLoader`) and empties the caches.
 
 Camera convention: the viewer's camera follows OpenCV axes (x right, y down, z forward, as viser does); `wxyz` is
 the camera-to-world rotation and `position` the camera centre, so the world->camera `Camera` has R = R_wc^T and
@@ -10,10 +20,11 @@ from a callback (`StateFn`, the stage's `frame_node_state`).
 
 from __future__ import annotations
 
+import threading
 import time
 from collections import OrderedDict
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Callable
+from typing import TYPE_CHECKING, Any, Callable
 
 import numpy as np
 
@@ -22,6 +33,7 @@ from avatarctl.viewer.progressive import Cancelled, ViewRequest
 
 if TYPE_CHECKING:
     from avatarctl.model.avatar import NodeState, SlrfAvatar
+    from avatarctl.viewer.splats import SplatFrame
 
 
 @dataclass(frozen=True)
@@ -34,6 +46,21 @@ class ViewerFrame:
 
 
 StateFn = Callable[[int, str], "NodeState"]  # (position in the frame list, latent mode) -> NodeState of one frame
+MeshFn = Callable[["NodeState"], Any]  # NodeState of one frame -> a mesh with vertices [V, 3], faces [F, 3], colors
+
+
+@dataclass(frozen=True)
+class ViewerMotion:
+    """A frame list the viewer plays: its name in the page, its frames, their node states, its frame rate."""
+
+    name: str  # "project" or the motion file's path
+    frames: list[ViewerFrame]
+    state_fn: StateFn
+    fps: float  # frames per second of the motion (play speed)
+    note: str | None = None  # e.g. what retargeting did, shown in the page
+
+
+MotionLoader = Callable[[str], ViewerMotion]  # a motion file's path -> its ViewerMotion (raises with a one-line error)
 
 
 def quaternion_wxyz_to_matrix(wxyz: tuple[float, float, float, float]) -> np.ndarray:
@@ -61,43 +88,103 @@ def request_camera(req: ViewRequest) -> Camera:
 
 
 class ViewerSession:
-    """Renders `ViewRequest`s of one fitted avatar (`render` is the `ProgressiveRenderer` callback)."""
+    """Renders `ViewRequest`s of one fitted avatar (`render` is the `ProgressiveRenderer` callback), and gives the
+    posed Gaussians (`splats`) or a posed mesh (`mesh`) of a frame for the browser to draw. Thread-safe: one lock
+    serialises every model call (one model, one device)."""
 
-    def __init__(self, model: "SlrfAvatar", frames: list[ViewerFrame], state_fn: StateFn,
-                 background: tuple[float, float, float], max_rays_per_chunk: int = 4096, cache: int = 8):
-        if not frames:
+    def __init__(self, model: "SlrfAvatar", motion: ViewerMotion, background: tuple[float, float, float],
+                 max_rays_per_chunk: int = 4096, cache: int = 8, load_motion: MotionLoader | None = None,
+                 mesh_fn: MeshFn | None = None, splat_cache: int = 512):
+        if not motion.frames:
             raise ValueError("the viewer needs at least one frame")
-        self.model, self.frames, self.state_fn = model, frames, state_fn
+        self.model, self.motion = model, motion
         self.background = tuple(float(c) for c in background)
         self.max_rays = int(max_rays_per_chunk)
+        self.load_motion, self.mesh_fn = load_motion, mesh_fn
+        self.lock = threading.RLock()
         self._states: OrderedDict[tuple[int, str], "NodeState"] = OrderedDict()
-        self._cache = int(cache)
+        self._splats: OrderedDict[tuple[int, str], "SplatFrame"] = OrderedDict()
+        self._cache, self._splat_cache = int(cache), int(splat_cache)
         self.last_seconds = 0.0
+
+    @property
+    def frames(self) -> list[ViewerFrame]:
+        return self.motion.frames
+
+    @property
+    def gaussian(self) -> bool:
+        """True for the Gaussian local fields (the page draws splats), False for the ray-marched fields."""
+        return not self.model.cfg.ray_marched
+
+    def set_motion(self, name: str) -> ViewerMotion:
+        """Play another motion (the stage's loader; its errors pass through); empties the caches."""
+        if self.load_motion is None:
+            raise ValueError("this viewer has no motion loader")
+        motion = self.load_motion(name)
+        if not motion.frames:
+            raise ValueError(f"motion {name} has no frames")
+        with self.lock:
+            self.motion = motion
+            self._states.clear()
+            self._splats.clear()
+        return motion
+
+    def _check(self, frame: int) -> None:
+        if not 0 <= frame < len(self.frames):
+            raise IndexError(f"frame position {frame} outside the viewer's {len(self.frames)} frames")
 
     def state(self, frame: int, latent: str) -> "NodeState":
         key = (int(frame), latent)
-        if key not in self._states:
-            self._states[key] = self.state_fn(int(frame), latent)
-            while len(self._states) > self._cache:
-                self._states.popitem(last=False)
-        self._states.move_to_end(key)
-        return self._states[key]
+        with self.lock:
+            if key not in self._states:
+                self._states[key] = self.motion.state_fn(int(frame), latent)
+                while len(self._states) > self._cache:
+                    self._states.popitem(last=False)
+            self._states.move_to_end(key)
+            return self._states[key]
+
+    def splats(self, frame: int, latent: str) -> "SplatFrame":
+        """The posed Gaussians of a frame for a browser splat renderer (Gaussian local fields only)."""
+        import torch
+
+        from avatarctl.viewer.splats import splat_frame
+
+        if not self.gaussian:
+            raise ValueError("splats need a Gaussian-field avatar (model.field = 'gaussians')")
+        self._check(frame)
+        key = (int(frame), latent)
+        with self.lock:
+            if key not in self._splats:
+                with torch.no_grad():
+                    self._splats[key] = splat_frame(self.model.posed_gaussians(self.state(frame, latent)), 0)
+                while len(self._splats) > self._splat_cache:
+                    self._splats.popitem(last=False)
+            self._splats.move_to_end(key)
+            return self._splats[key]
+
+    def mesh(self, frame: int, latent: str) -> Any:
+        """The mesh of `mesh_fn` for a frame, or None without one (not cached: the page keeps what it was sent)."""
+        if self.mesh_fn is None:
+            return None
+        self._check(frame)
+        with self.lock:
+            return self.mesh_fn(self.state(frame, latent))
 
     def render(self, req: ViewRequest, should_stop: Callable[[], bool] = lambda: False) -> np.ndarray:
         """[H, W, 3] uint8 image of the request (raises `Cancelled` when `should_stop()` turns true)."""
         from avatarctl.render.engine import render_view
         from avatarctl.render.images import to_uint8
 
-        if not 0 <= req.frame < len(self.frames):
-            raise IndexError(f"frame position {req.frame} outside the viewer's {len(self.frames)} frames")
-        t0 = time.perf_counter()
-        state = self.state(req.frame, req.latent)
+        self._check(req.frame)
+        with self.lock:
+            t0 = time.perf_counter()
+            state = self.state(req.frame, req.latent)
 
-        def progress(done: int, total: int) -> None:
-            if should_stop():
-                raise Cancelled()
+            def progress(done: int, total: int) -> None:
+                if should_stop():
+                    raise Cancelled()
 
-        view = render_view(self.model, state, 0, request_camera(req), self.background,
-                           max_rays_per_chunk=self.max_rays, progress=progress)
-        self.last_seconds = time.perf_counter() - t0
+            view = render_view(self.model, state, 0, request_camera(req), self.background,
+                               max_rays_per_chunk=self.max_rays, progress=progress)
+            self.last_seconds = time.perf_counter() - t0
         return to_uint8(view.rgb)

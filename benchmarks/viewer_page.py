@@ -1,0 +1,250 @@
+"""The viewer page of a Gaussian-field avatar measured in headless Chromium (SwiftShader WebGL: a CPU floor).
+
+Starts `avatarctl view`'s server in this process (`stages.view.prepare` + `viewer.server.ViewerServer`), opens the
+page, and measures in the browser, with a probe injected into the page (a `requestAnimationFrame` loop that counts
+animation frames and, when sampling, draws the WebGL canvas into a 24x18 canvas and notes the wall time whenever it
+changes):
+- **orbit fps**: animation frames per second while the mouse drags the orbit camera (Chromium input events; the
+  canvas is checked to change during the drag, so the frames are really drawn);
+- **frame-change latency**: wall time from setting the frame slider on the server to the first animation frame
+  whose canvas differs (posing, sending, the page's sort and draw; same clock, one machine);
+- **playback fps**: distinct canvas images per second while "play" runs (the frames of motion actually shown), and
+  the server's pushes per second;
+- **memory**: the peak resident memory of this process (the viewer's: model, caches, server), from /proc;
+- **second tab**: a second page of the same browser shows the avatar too.
+
+    python -m benchmarks.viewer_page PROJECT [--seconds 5] [--size 640 480] [--out figures.json] [--shots DIR]
+
+Needs viser and Chromium (`apt-get install -y chromium`). Run it with `nice -n 19` on a shared machine.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+PROBE = """
+(() => {
+  if (window.__probe) return true;
+  const p = {frames: 0, changes: [], sig: null, sample: false};
+  const small = document.createElement('canvas'); small.width = 24; small.height = 18;
+  const ctx = small.getContext('2d', {willReadFrequently: true});
+  function gl() {
+    let best = null;
+    for (const c of document.querySelectorAll('canvas'))
+      if (!best || c.width * c.height > best.width * best.height) best = c;
+    return best;
+  }
+  function tick() {
+    p.frames++;
+    const c = gl();
+    if (p.sample && c && c.width > 0) {
+      ctx.drawImage(c, 0, 0, 24, 18);
+      const d = ctx.getImageData(0, 0, 24, 18).data;
+      let h = 0;
+      for (let i = 0; i < d.length; i += 4) h = (Math.imul(h, 31) + d[i] + 7 * d[i + 1] + 13 * d[i + 2]) | 0;
+      if (h !== p.sig) { p.sig = h; p.changes.push(Date.now()); }
+    }
+    requestAnimationFrame(tick);
+  }
+  requestAnimationFrame(tick);
+  window.__probe = p;
+  return true;
+})()
+"""
+
+
+@dataclass
+class PageFigures:
+    gaussians: int  # Gaussians sent per frame
+    orbit_fps: float  # animation frames per second during the drag
+    orbit_distinct_images: int  # distinct canvas images seen during a sampled drag (> 1: the view really turns)
+    idle_changes_per_s: float  # canvas changes per second with nothing happening (0: the latency probe is clean)
+    frame_change_ms: list[float]  # per frame change, slider set -> canvas changed
+    playback_fps_page: float  # distinct canvas images per second while playing
+    playback_pushes_per_s: float  # frames the server sent per second while playing
+    motion_fps: float
+    peak_rss_mb: float
+    second_tab_drawn: bool
+    splat_seconds: float  # posing + arrays of one uncached frame on the server
+
+
+def peak_rss_mb() -> float:
+    for line in Path("/proc/self/status").read_text().splitlines():
+        if line.startswith("VmHWM:"):
+            return int(line.split()[1]) / 1024.0
+    return float("nan")
+
+
+def evaluate(tab: Any, expr: str) -> Any:
+    return tab.call("Runtime.evaluate", expression=expr, returnByValue=True)["result"].get("value")
+
+
+CANVAS_RECT = """
+(() => { let best = null;
+  for (const c of document.querySelectorAll('canvas'))
+    if (!best || c.width * c.height > best.width * best.height) best = c;
+  if (!best) return null; const r = best.getBoundingClientRect();
+  return [Math.round(r.left), Math.round(r.top), Math.round(r.width), Math.round(r.height)]; })()
+"""
+
+
+def canvas_rect(tab: Any) -> tuple[int, int, int, int] | None:
+    """(left, top, width, height) of the page's WebGL canvas, CSS pixels."""
+    rect = evaluate(tab, CANVAS_RECT)
+    return tuple(rect) if rect and rect[2] > 0 and rect[3] > 0 else None
+
+
+def drag(tab: Any, seconds: float, rect: tuple[int, int, int, int]) -> int:
+    """Drag the orbit camera left and right over the canvas for `seconds` (mouse events, DevTools protocol)."""
+    cx, cy = rect[0] + rect[2] // 2, rect[1] + rect[3] // 2
+    tab.call("Input.dispatchMouseEvent", type="mouseMoved", x=cx, y=cy)
+    tab.call("Input.dispatchMouseEvent", type="mousePressed", x=cx, y=cy, button="left", clickCount=1)
+    t0, k = time.monotonic(), 0
+    while time.monotonic() - t0 < seconds:
+        x = cx + int(120 * np.sin(k * 0.05))
+        tab.call("Input.dispatchMouseEvent", type="mouseMoved", x=x, y=cy, button="left", buttons=1)
+        k += 1
+        time.sleep(0.008)
+    tab.call("Input.dispatchMouseEvent", type="mouseReleased", x=cx, y=cy, button="left", clickCount=1)
+    return k
+
+
+def wait_drawn(tab: Any, timeout: float = 60.0) -> np.ndarray | None:
+    """A screenshot once the centre of the canvas differs from its bottom-right corner (the avatar drawn), else
+    None."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        rect = canvas_rect(tab)
+        if rect is None:
+            time.sleep(0.5)
+            continue
+        shot = tab.screenshot()
+        x, y, w, h = rect
+        view = shot[y:y + h, x:x + w]
+        centre = view[h // 3:2 * h // 3, w // 3:2 * w // 3].astype(float)
+        corner = view[-h // 8:, -w // 8:].astype(float)
+        if np.abs(centre.mean(axis=(0, 1)) - corner.mean(axis=(0, 1))).max() > 8:
+            return shot
+        time.sleep(0.5)
+    return None
+
+
+def measure(server: Any, browser: Any, seconds: float = 5.0, size: tuple[int, int] = (640, 480),
+            shots: Path | None = None, changes: int = 8) -> PageFigures:
+    """The figures of the module docstring for a running `ViewerServer` (Gaussian-field session) and a `Browser`
+    (tests/fixtures/browser.py) whose page is not yet opened."""
+    session = server.session
+    t = time.perf_counter()
+    splats = session.splats(len(session.frames) - 1, "zero")
+    splat_seconds = time.perf_counter() - t
+    browser.open(server.url)
+    first = wait_drawn(browser)
+    if first is None:
+        raise RuntimeError("the page never showed the avatar")
+    evaluate(browser, PROBE)
+    rect = canvas_rect(browser)
+    time.sleep(1.0)
+    # orbit: animation frames while dragging (no sampling: it would cost frames)
+    f0, t0 = evaluate(browser, "window.__probe.frames"), time.monotonic()
+    drag(browser, seconds, rect)
+    f1, t1 = evaluate(browser, "window.__probe.frames"), time.monotonic()
+    orbit_fps = (f1 - f0) / (t1 - t0)
+    evaluate(browser, "window.__probe.sample = true; window.__probe.changes = []")
+    drag(browser, 1.5, rect)
+    time.sleep(0.3)
+    distinct = len(evaluate(browser, "window.__probe.changes"))
+    orbited = browser.screenshot()
+    # frame changes: slider set on the server -> the first canvas change in the page
+    n = len(session.frames)
+    time.sleep(1.0)
+    evaluate(browser, "window.__probe.changes = []")
+    time.sleep(2.0)
+    idle = len(evaluate(browser, "window.__probe.changes")) / 2.0
+    latencies = []
+    for k in range(changes):
+        time.sleep(0.6)
+        evaluate(browser, "window.__probe.changes = []")
+        time.sleep(0.2)
+        settled = len(evaluate(browser, "window.__probe.changes"))
+        t_set = time.time() * 1000.0
+        server.frame.value = (int(server.frame.value) + max(1, n // (changes + 1))) % n
+        deadline = time.monotonic() + 5
+        seen = []
+        while time.monotonic() < deadline:
+            seen = evaluate(browser, "window.__probe.changes")
+            if any(c >= t_set for c in seen[settled:]):
+                break
+            time.sleep(0.01)
+        after = [c for c in seen[settled:] if c >= t_set]
+        if after:
+            latencies.append(float(after[0] - t_set))
+    # playback
+    evaluate(browser, "window.__probe.changes = []")
+    pushes0 = len(server.pushes)
+    tp = time.monotonic()
+    server.play.value = True
+    time.sleep(seconds)
+    server.play.value = False
+    played = time.monotonic() - tp
+    shown = evaluate(browser, "window.__probe.changes")
+    pushed = [t for t, _ in server.pushes[pushes0:]]
+    playback_page = (len(shown) - 1) / ((shown[-1] - shown[0]) / 1000.0) if len(shown) > 2 else 0.0
+    pushes_per_s = (len(pushed) - 1) / (pushed[-1] - pushed[0]) if len(pushed) > 2 else 0.0
+    # a second tab
+    second = browser.new_tab(server.url)
+    drawn2 = wait_drawn(second)
+    if shots is not None:
+        import cv2
+
+        shots.mkdir(parents=True, exist_ok=True)
+        for name, img in (("start", first), ("orbited", orbited), ("second_tab", drawn2)):
+            if img is not None:
+                cv2.imwrite(str(shots / f"viewer_{name}.png"), img[..., ::-1])
+    second.close()
+    return PageFigures(gaussians=splats.count, orbit_fps=round(orbit_fps, 2), orbit_distinct_images=distinct, idle_changes_per_s=idle,
+                       frame_change_ms=[round(x, 1) for x in latencies],
+                       playback_fps_page=round(playback_page, 2), playback_pushes_per_s=round(pushes_per_s, 2),
+                       motion_fps=float(server.fps.value), peak_rss_mb=round(peak_rss_mb(), 1),
+                       second_tab_drawn=drawn2 is not None, splat_seconds=round(splat_seconds, 4))
+
+
+def main(argv: list[str] | None = None) -> None:
+    import sys
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+    from fixtures.browser import Browser, free_port
+
+    from avatarctl.stages.view import PROJECT, ViewConfig, prepare
+    from avatarctl.viewer.server import ViewerServer
+
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("project", type=Path)
+    ap.add_argument("--seconds", type=float, default=5.0)
+    ap.add_argument("--size", type=int, nargs=2, default=[640, 480])
+    ap.add_argument("--device", default="cpu")
+    ap.add_argument("--out", type=Path, default=None, help="write the figures as JSON here")
+    ap.add_argument("--shots", type=Path, default=None, help="write screenshots here")
+    args = ap.parse_args(argv)
+    setup = prepare(args.project, ViewConfig(device=args.device))
+    server = ViewerServer(setup.session, setup.initial, port=free_port(), motions=(PROJECT,))
+    browser = Browser(*args.size)
+    try:
+        figures = measure(server, browser, args.seconds, tuple(args.size), args.shots)
+    finally:
+        browser.close()
+        server.stop()
+    text = json.dumps(asdict(figures), indent=1)
+    print(text)
+    if args.out is not None:
+        args.out.write_text(text + "\n")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,125 @@
+"""`export --format splat,player` of a Gaussian-field avatar: per-frame 3DGS .ply files (read by a third-party splat
+tool, PlayCanvas's splat-transform from npm, installed into a cache at test time) and the self-contained HTML
+player (played in headless Chromium: no console error, three moments differ)."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import subprocess
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+
+@pytest.fixture(scope="module")
+def exported(toy_gaussian_project):
+    from avatarctl.stages import export
+    from avatarctl.stages.export import ExportConfig
+
+    res = export.run(toy_gaussian_project, ExportConfig(name="splats", formats=("splat", "player"), device="cpu"))
+    return res
+
+
+def test_splat_and_player_files(exported, toy_gaussian_project):
+    from avatarctl.export.player import BYTES_PER_GAUSSIAN
+
+    plys = sorted(f for f in exported.splats if f.startswith("splats/"))
+    assert len(plys) == 4 and "player.html" in exported.splats, "the toy's 4 frames (player default: up to 30)"
+    assert not exported.meshes and exported.avatar is None, "no mesh products with splat formats alone"
+    head = (exported.out_dir / plys[0]).read_bytes()[:2000].decode("latin-1")
+    assert head.startswith("ply\nformat binary_little_endian 1.0\nelement vertex 768\n")
+    html = (exported.out_dir / "player.html").read_text()
+    assert "http://" not in html and "https://" not in html, "self-contained: nothing fetched"
+    assert exported.splats["player.html"] < 4 * 768 * BYTES_PER_GAUSSIAN * 1.4 + 30_000
+    record = json.loads((exported.out_dir / "export.json").read_text())
+    assert record["splats"] == exported.splats
+
+
+def test_gaussian_formats_refuse_a_ray_marched_avatar(toy_fitted_project):
+    from avatarctl.errors import InputError
+    from avatarctl.stages import export
+    from avatarctl.stages.export import ExportConfig
+
+    with pytest.raises(InputError, match="needs a Gaussian-field avatar"):
+        export.run(toy_fitted_project, ExportConfig(name="nope", formats=("player",), device="cpu"))
+
+
+def _npm_package(cache: Path, spec: str, bin_name: str) -> Path:
+    """`bin_name` of the npm package `spec`, installed into `cache` once; skips when node / npm / the registry
+    are not reachable."""
+    exe = cache / "node_modules" / ".bin" / bin_name
+    if exe.exists():
+        return exe
+    if shutil.which("npm") is None or shutil.which("node") is None:
+        pytest.skip("no node / npm on this machine")
+    cache.mkdir(parents=True, exist_ok=True)
+    try:
+        proc = subprocess.run(["npm", "install", "--no-audit", "--no-fund", "--prefix", str(cache), spec],
+                              capture_output=True, text=True, timeout=300)
+    except subprocess.TimeoutExpired:
+        pytest.skip(f"npm install {spec} timed out (registry unreachable?)")
+    if proc.returncode != 0 or not exe.exists():
+        pytest.skip(f"npm install {spec} failed (registry unreachable?): {proc.stderr.strip()[-200:]}")
+    return exe
+
+
+def test_splat_ply_opens_in_playcanvas_splat_transform(exported, tmp_path):
+    """A third-party reader: splat-transform (PlayCanvas, npm) reads our .ply and writes it back as CSV; the
+    centres, opacities and colours it read are ours."""
+    import os
+
+    cache = Path(os.environ.get("AVATARCTL_NPM_CACHE", Path.home() / ".cache" / "avatarctl-npm"))
+    exe = _npm_package(cache, "@playcanvas/splat-transform@3", "splat-transform")
+    ply = exported.out_dir / sorted(f for f in exported.splats if f.startswith("splats/"))[0]
+    out = tmp_path / "read.csv"
+    proc = subprocess.run([str(exe), str(ply), str(out)], capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0 and out.is_file(), proc.stdout[-500:] + proc.stderr[-500:]
+    lines = out.read_text().splitlines()
+    names = lines[0].split(",")
+    table = np.array([[float(x) for x in s.split(",")] for s in lines[1:]])
+    assert table.shape[0] == 768
+    trimesh = pytest.importorskip("trimesh")
+    ours = trimesh.load(ply).metadata["_ply_raw"]["vertex"]["data"]
+    for name in ("x", "y", "z", "opacity", "f_dc_0", "scale_0", "rot_0"):
+        assert np.allclose(table[:, names.index(name)], ours[name], atol=1e-5), name
+
+
+@pytest.mark.browser
+def test_player_plays_in_headless_chromium(exported, tmp_path):
+    from fixtures.browser import Browser, find_chromium
+
+    if find_chromium() is None:
+        pytest.skip("no chromium / chrome on this machine")
+    import cv2
+
+    browser = Browser(480, 400)
+    try:
+        browser.call("Runtime.enable")
+        browser.call("Log.enable")
+        browser.open((exported.out_dir / "player.html").as_uri())
+        shots, shown, deadline = [], [], time.monotonic() + 60
+        while time.monotonic() < deadline and len(shots) < 3:  # a screenshot whenever the playing frame moved on
+            frame = browser.call("Runtime.evaluate", expression="window.__player ? window.__player.frame : -1",
+                                 returnByValue=True)["result"].get("value")
+            if frame is not None and frame >= 0 and frame not in shown[-1:]:
+                time.sleep(0.05)
+                shots.append(browser.screenshot())
+                shown.append(frame)
+            else:
+                time.sleep(0.01)
+        errors = [m for m in browser.events if m.get("method") in ("Runtime.exceptionThrown",)
+                  or (m.get("method") == "Runtime.consoleAPICalled" and m["params"].get("type") == "error")
+                  or (m.get("method") == "Log.entryAdded" and m["params"]["entry"].get("level") == "error")]
+    finally:
+        browser.close()
+    assert len(shots) == 3, "the player never started"
+    for k, s in enumerate(shots):
+        cv2.imwrite(str(tmp_path / f"player_{k}.png"), s[..., ::-1])
+    assert not errors, errors
+    canvas = [s[:-40].astype(float) for s in shots]
+    assert canvas[0].std() > 2, "something is drawn"
+    assert np.abs(canvas[0] - canvas[1]).mean() > 0.05 and np.abs(canvas[1] - canvas[2]).mean() > 0.05, \
+        "three moments of the motion differ"
