@@ -62,6 +62,13 @@ def _fit_record(project: Path) -> dict:
             "pairs_per_step": stats.get("pairs")}
 
 
+def _box_psnr(per_frame: Path) -> float:
+    """Mean over the images of the per-image bbox PSNR (eval's per_frame.csv)."""
+    with per_frame.open() as f:
+        vals = [float(r["psnr"]) for r in csv.DictReader(f)]
+    return sum(vals) / len(vals)
+
+
 def _render_512(project: Path, threads: int) -> dict:
     """Time one 512x512 render (held-out camera scaled x2, first training frame, posterior-mean latent)."""
     code = (
@@ -70,14 +77,18 @@ def _render_512(project: Path, threads: int) -> dict:
         "from avatarctl.fit.checkpoint import load_avatar\n"
         "from avatarctl.render.engine import render_view\n"
         "av = load_avatar(Project.open(sys.argv[1]), device='cpu')\n"
-        "cam = av.capture.cameras[av.capture.split.test_views[0]].pinhole()\n"
-        "cam = cam.scaled(512 / max(cam.width, cam.height))\n"
+        "cam0 = av.capture.cameras[av.capture.split.test_views[0]].pinhole()\n"
+        "cam = cam0.scaled(512 / max(cam0.width, cam0.height))\n"
         "cond = av.conditioning(av.capture.motion.select([av.train_frames[0]]), frames_are_training=True)\n"
         "with torch.no_grad():\n"
         "    st = av.model.node_state(cond, mode='mean')\n"
+        "    render_view(av.model, st, 0, cam0, av.fit_config.background)  # warm-up (kernel load)\n"
+        "    t0 = time.perf_counter(); render_view(av.model, st, 0, cam0, av.fit_config.background)\n"
+        "    native = time.perf_counter() - t0\n"
         "    t0 = time.perf_counter(); v = render_view(av.model, st, 0, cam, av.fit_config.background)\n"
         "print(json.dumps({'render_512_s': time.perf_counter() - t0, 'render_512_rays': v.rays,\n"
-        "                  'render_512_size': [int(cam.width), int(cam.height)]}))\n")
+        "                  'render_512_size': [int(cam.width), int(cam.height)], 'render_native_s': native,\n"
+        "                  'render_native_size': [int(cam0.width), int(cam0.height)]}))\n")
     env = {**os.environ, "OMP_NUM_THREADS": str(threads)}
     out = subprocess.run([sys.executable, "-c", code, str(project)], env=env, capture_output=True, text=True)
     if out.returncode != 0:
@@ -96,6 +107,7 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--parallel", type=int, default=2, help="fits / evals run at the same time")
     ap.add_argument("--every", type=int, default=10, help="eval: keep every N-th training frame")
+    ap.add_argument("--region", default=None, help="eval --region (e.g. garment): region PSNRs in the table")
     ap.add_argument("--reuse", action="store_true",
                     help="keep backends whose OUT/NAME/project already holds a finished fit (no re-fit, no re-eval)")
     args = ap.parse_args(argv)
@@ -150,7 +162,8 @@ def main(argv: list[str] | None = None) -> None:
         procs = []
         for name, m, snap in batch:
             cmd = [exe, "eval", str(projects[name]), "--split", "novel_view", "--protocol", "bbox",
-                   "--every", str(args.every), "--checkpoint", str(snap), "--name", f"t{m:g}min", "--sheet", "4"]
+                   "--every", str(args.every), "--checkpoint", str(snap), "--name", f"t{m:g}min", "--sheet", "4"] \
+                + (["--region", args.region] if args.region else [])
             procs.append((f"{name}@{m:g}", _run(cmd, args.threads, args.out / name / f"eval_t{m:g}.log")))
         _wait_all(procs)
 
@@ -164,8 +177,12 @@ def main(argv: list[str] | None = None) -> None:
             if not mfile.exists():
                 continue
             met = json.loads(mfile.read_text())
+            box = _box_psnr(mfile.parent / "per_frame.csv")  # with --region, metrics.json's headline is the region
+            regions = {f"{k}_psnr": v["psnr"] for k, v in (met.get("regions") or {}).items()}
+            regions.update({f"{k}_flat_colour_psnr": v.get("flat_colour_psnr")
+                            for k, v in (met.get("regions") or {}).items()})
             rows.append({"backend": name, "overrides": " ".join(sets), "minutes": m,
-                         "psnr_bbox": met["psnr"], "ssim_bbox": met["ssim"], "images": met["images"],
+                         "psnr_bbox": box, "ssim_bbox": met["ssim"], "images": met["images"], **regions,
                          "sheet": str(projects[name] / "eval" / f"t{m:g}min" / "sheet.png"),
                          "fit_peak_rss_gb": round(peaks.get(name, float("nan")), 3), **rec})
     with (args.out / "results.csv").open("w", newline="") as f:
