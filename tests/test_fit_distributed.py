@@ -115,6 +115,24 @@ def test_two_ranks_match_one_rank_and_resume_on_one(toy_project, tmp_path):
     assert rec.stage == "fit"
 
 
+def test_gaussian_field_on_two_ranks_matches_one_rank_of_the_same_shards(toy_project, tmp_path):
+    """`model.field=gaussians` (whole crops instead of rays): 2 ranks of one image each = 1 rank of both shards,
+    the relocation of dead Gaussians (at step 2) included."""
+    from avatarctl.stages import fit
+    from avatarctl.stages.fit import FitRequest
+
+    one, two = _copy(toy_project, tmp_path / "one"), _copy(toy_project, tmp_path / "two")
+    sets = TINY + ("model.field=gaussians", "model.gaussians.per_node=16", "model.gaussians.relocate_every=2")
+    base = dict(preset="micro", overrides=sets, device="cpu")
+    fit.run(one, FitRequest(iters=3, shards=2, **base), handle_sigint=False)
+    t0 = time.perf_counter()
+    r2 = fit.run(two, FitRequest(iters=3, nproc=2, **base))
+    assert time.perf_counter() - t0 < WAIT_S and r2.step == 3
+    ckpt = lambda p: p / "fit" / "checkpoints" / f"step_{3:08d}.pt"  # noqa: E731
+    a, b = _params(ckpt(one)), _params(ckpt(two))
+    assert "fields.means" in a and _max_diff(a, b) <= RANK_TOL
+
+
 def test_resume_on_more_ranks_than_shards_reshards_and_says_so(toy_project, tmp_path):
     """A fit of 1 shard resumed on 2 ranks: new shards (2), their own streams, a note in the log."""
     import json
