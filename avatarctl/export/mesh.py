@@ -51,7 +51,7 @@ class ColouredMesh:
     vertices: np.ndarray  # [verts, 3] float32, metres
     faces: np.ndarray  # [faces, 3] int32, counter-clockwise seen from outside
     normals: np.ndarray  # [verts, 3] float32 unit outward normals
-    colours: np.ndarray  # [verts, 3] float32 in [0, 1]
+    colours: np.ndarray  # [verts, 3] float32 in [0, 1], display (sRGB-encoded) values as the volume render gives
 
     def __post_init__(self) -> None:
         V = self.vertices.shape[0]

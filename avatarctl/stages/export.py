@@ -23,8 +23,12 @@ Steps:
    the first posed frame in the first held-out view) are written with the meshes into a temporary directory,
    renamed into place (`atomic_dir`), and the stage is recorded.
 
-Frames of the files: PLY / OBJ in the capture's world frame (metres, the cameras' frame); GLB files rotated so the
-capture's up (estimated from the cameras) is glTF's +Y (`export.json` "glb_basis" holds the 3x3 rotation).
+Frames of the files: PLY / OBJ in the capture's world frame (metres, the cameras' frame). GLB files (posed meshes and
+avatar.glb alike) in one frame that other tools expect (`export.skinning.glb_frame`): rotated so the capture's up
+(estimated from the cameras) is glTF's +Y, and moved so the origin is on the ground under the body: height 0 is the
+lowest point the body template's feet reach over the motion (the project's frames, or `--poses`), the horizontal
+origin the middle of the body's footprint in the motion's first frame; the root motion is relative to it
+(`export.json` "glb_frame": the 4x4 world -> file matrix, "glb_basis" its rotation).
 """
 
 from __future__ import annotations
@@ -158,7 +162,7 @@ def run(project_dir: str | Path, cfg: ExportConfig, progress: ProgressFn | None 
     from avatarctl.atomic import atomic_dir, write_json
     from avatarctl.render.trajectories import up_from_cameras
 
-    from avatarctl.export.skinning import up_to_y_basis
+    from avatarctl.export.skinning import glb_frame, up_to_y_basis
 
     started = now_iso()
     t_start = time.perf_counter()
@@ -178,6 +182,7 @@ def run(project_dir: str | Path, cfg: ExportConfig, progress: ProgressFn | None 
         (motion, retarget), source = motion_for_avatar(avatar, cfg.poses, cfg.recenter), str(cfg.poses)
         pool = [int(f) for f in motion.frame_index]
         default = pool[:1]
+    frame_glb = glb_frame(basis, _ground_origin(avatar, motion, basis))
     frames = (select_frames(cfg.frames, pool, train=cap.split.train_frames if cfg.poses is None else None,
                             test=cap.split.test_frames if cfg.poses is None else None)
               if cfg.frames is not None else default) if cfg.posed else []
@@ -202,7 +207,7 @@ def run(project_dir: str | Path, cfg: ExportConfig, progress: ProgressFn | None 
             state = frame_node_state(avatar, one, frame, is_train, latent, cfg.seed)
             ts = time.perf_counter()
             mesh, queried = _extract(avatar, state, cfg, f"frame {frame}")
-            files = _write_posed(tmp, frame, mesh, cfg.formats, basis)
+            files = _write_posed(tmp, frame, mesh, cfg.formats, frame_glb)
             meshes.append(ExportedMesh(frame=frame, latent=latent, files=files, vertices=mesh.num_vertices,
                                        faces=mesh.num_faces, grid_points=queried,
                                        seconds=round(time.perf_counter() - ts, 3)))
@@ -212,7 +217,7 @@ def run(project_dir: str | Path, cfg: ExportConfig, progress: ProgressFn | None 
                 preview.append(_mesh_preview(avatar, mesh))
             report("posed")
         if cfg.skinned:
-            skinned = _export_skinned(tmp, avatar, cfg, motion if cfg.poses else cap.motion, source, basis)
+            skinned = _export_skinned(tmp, avatar, cfg, motion, source, frame_glb)
             report("skinned")
         if preview:
             from avatarctl.render.images import write_png
@@ -220,7 +225,7 @@ def run(project_dir: str | Path, cfg: ExportConfig, progress: ProgressFn | None 
             write_png(tmp / "preview.png", np.concatenate(preview, axis=1), None)
         result = ExportResult(out_dir=out_dir, meshes=meshes, avatar=skinned, scores=scores,
                               seconds=round(time.perf_counter() - t_start, 3), checkpoint_step=avatar.step)
-        write_json(tmp / "export.json", _record(cfg, avatar, result, basis, source, retarget))
+        write_json(tmp / "export.json", _record(cfg, avatar, result, frame_glb, source, retarget))
     project.record("export", config=cfg.to_json(), outputs=[out_dir], started=started,
                    summary={"name": cfg.name, "meshes": len(meshes), "avatar": skinned.file if skinned else None,
                             "checkpoint_step": avatar.step, "motion": source,
@@ -253,21 +258,38 @@ def _extract(avatar: Any, state: Any, cfg: ExportConfig, what: str) -> tuple[Any
         raise InputError(str(e), where="--voxel", fix="use a larger --voxel") from None
 
 
-def _in_basis(mesh: Any, basis: np.ndarray) -> Any:
+def _ground_origin(avatar: Any, motion: Any, basis: np.ndarray, chunk: int = 64) -> np.ndarray:
+    """[3] world point that becomes the GLB files' origin (module docstring): the body template posed over `motion`,
+    its lowest point along the up axis over all frames, the middle of its first frame's footprint."""
+    from avatarctl.export.skinning import ground_origin
+
+    up = np.asarray(basis, np.float64)[1]
+    lowest, first = np.inf, None
+    for s in range(0, motion.num_frames, chunk):
+        v = avatar.body.pose(motion.select(slice(s, s + chunk))).vertices.detach().double().cpu().numpy()
+        first = v[0] if first is None else first
+        lowest = min(lowest, float((v @ up).min()))
+    return ground_origin(first, lowest, basis)
+
+
+def _in_frame(mesh: Any, frame: np.ndarray) -> Any:
+    """The mesh in the GLB files' frame (a [4, 4] `export.skinning.glb_frame`)."""
     from dataclasses import replace
 
-    C = basis.astype(np.float32)
-    return replace(mesh, vertices=mesh.vertices @ C.T, normals=mesh.normals @ C.T)
+    from avatarctl.export.skinning import to_frame
+
+    return replace(mesh, vertices=to_frame(mesh.vertices, frame).astype(np.float32),
+                   normals=(mesh.normals @ frame[:3, :3].T.astype(np.float32)).astype(np.float32))
 
 
-def _write_posed(tmp: Path, frame: int, mesh: Any, formats: tuple[str, ...], basis: np.ndarray) -> dict[str, int]:
+def _write_posed(tmp: Path, frame: int, mesh: Any, formats: tuple[str, ...], glb: np.ndarray) -> dict[str, int]:
     from avatarctl.export.gltf import write_mesh
 
     (tmp / "meshes").mkdir(exist_ok=True)
     files = {}
     for fmt in formats:
         rel = f"meshes/{frame:06d}.{fmt}"
-        write_mesh(tmp / rel, _in_basis(mesh, basis) if fmt == "glb" else mesh)
+        write_mesh(tmp / rel, _in_frame(mesh, glb) if fmt == "glb" else mesh)
         files[rel] = (tmp / rel).stat().st_size
     return files
 
@@ -312,7 +334,7 @@ def _score(avatar: Any, one: Any, state: Any, mesh: Any, frame: int, is_train: b
 
 
 def _export_skinned(tmp: Path, avatar: Any, cfg: ExportConfig, motion: Any, source: str,
-                    basis: np.ndarray) -> SkinnedExport:
+                    frame: np.ndarray) -> SkinnedExport:
     """Step 3 and 4: avatar.glb and its reload check."""
     import torch
 
@@ -331,9 +353,8 @@ def _export_skinned(tmp: Path, avatar: Any, cfg: ExportConfig, motion: Any, sour
     M = M_capture if motion is cap.motion else _joint_transforms(avatar, motion)
     fallback = skin_weighted_centroids(tpl.vertices.cpu(), tpl.skin_weights.cpu())
     pivots = joint_centres(torch.from_numpy(M_capture), tpl.parents, fallback).numpy()  # [J, 3] canonical
-    pivots_y = pivots @ basis.T
-    M_y = skinning.conjugate(M, basis)
-    rest = skinning.rest_trs(pivots_y, tpl.parents)
+    pivots_y = skinning.to_frame(pivots, frame)
+    M_y = skinning.conjugate(M, frame)
     ibm = np.tile(np.eye(4), (len(tpl.parents), 1, 1))
     ibm[:, :3, 3] = -pivots_y
     trs = skinning.local_trs(skinning.joint_globals(M_y, pivots_y), tpl.parents)
@@ -341,8 +362,10 @@ def _export_skinned(tmp: Path, avatar: Any, cfg: ExportConfig, motion: Any, sour
     times = (np.asarray(motion.frame_index, np.float64) - float(motion.frame_index[0])) / fps
     if len(times) > 1 and not np.all(np.diff(times) > 0):
         times = np.arange(len(times)) / fps
-    mesh_y = _in_basis(mesh, basis)
-    skin = SkinnedMesh(weights=weights, joint_names=tpl.joint_names, parents=tpl.parents, rest=rest, inverse_bind=ibm)
+    mesh_y = _in_frame(mesh, frame)
+    first = skinning.JointTrs(translation=trs.translation[:1], rotation=trs.rotation[:1], scale=trs.scale[:1],
+                              residual=trs.residual)  # the joints' own TRS: the first frame, standing on the floor
+    skin = SkinnedMesh(weights=weights, joint_names=tpl.joint_names, parents=tpl.parents, pose=first, inverse_bind=ibm)
     data = glb_bytes(mesh_y, skin, (Animation(name=Path(source).stem if source != "project" else "capture",
                                               times=times, trs=trs),))
     (tmp / "avatar.glb").write_bytes(data)
@@ -373,7 +396,6 @@ def _reload_check(path: Path, mesh_y: Any, weights: Any, dense: np.ndarray, M_y:
     from avatarctl.export.gltf_read import pose_glb, read_skinned_glb
 
     data = read_skinned_glb(path)
-    rest_err = float(np.abs(pose_glb(data) - mesh_y.vertices).max()) if len(mesh_y.vertices) else 0.0
     F = M_y.shape[0]
     sel = sorted(set(np.linspace(0, F - 1, min(CHECK_FRAMES, F)).round().astype(int).tolist()))
     v = torch.from_numpy(mesh_y.vertices.astype(np.float64))
@@ -382,15 +404,16 @@ def _reload_check(path: Path, mesh_y: Any, weights: Any, dense: np.ndarray, M_y:
     Ms = torch.from_numpy(M_y[sel])
     ours4, ours_dense = lbs(v, w4, Ms).numpy(), lbs(v, wd, Ms).numpy()  # [checked, verts, 3]
     theirs = np.stack([pose_glb(data, 0, f) for f in sel])
+    default_err = float(np.abs(pose_glb(data) - ours4[0]).max()) if len(mesh_y.vertices) else 0.0  # sel[0] = 0
     e4 = np.linalg.norm(theirs - ours4, axis=-1)
     ed = np.linalg.norm(theirs - ours_dense, axis=-1)
     return {"checked": True, "reader": "pygltflib + export.gltf_read (the glTF skinning equation on the file's data)",
-            "frames_checked": [int(f) for f in sel], "rest_max_m": rest_err,
+            "frames_checked": [int(f) for f in sel], "default_pose_max_m": default_err,
             "vs_lbs_same_weights_max_m": float(e4.max()), "vs_lbs_same_weights_mean_m": float(e4.mean()),
             "vs_lbs_dense_weights_max_m": float(ed.max()), "vs_lbs_dense_weights_mean_m": float(ed.mean())}
 
 
-def _record(cfg: ExportConfig, avatar: Any, res: ExportResult, basis: np.ndarray, source: str,
+def _record(cfg: ExportConfig, avatar: Any, res: ExportResult, frame: np.ndarray, source: str,
             retarget: str | None) -> dict[str, Any]:
     import torch
 
@@ -400,7 +423,10 @@ def _record(cfg: ExportConfig, avatar: Any, res: ExportResult, basis: np.ndarray
             "surface": {"threshold_per_m": cfg.threshold, "voxel_m": cfg.voxel, "min_component": cfg.min_component,
                         "colour": "volume render of a 4 cm ray segment (8 samples) looking at each vertex along -normal from "
                                   "2 voxels outside, divided by its opacity (one view direction per vertex)"},
-            "glb_basis": basis.tolist(), "ply_obj_frame": "capture world (metres)",
+            "glb_frame": frame.tolist(), "glb_basis": frame[:3, :3].tolist(),
+            "glb_origin": "on the ground (the lowest point of the body template over the motion) under the middle "
+                          "of the body's footprint in the motion's first frame; +Y up",
+            "ply_obj_frame": "capture world (metres)",
             "meshes": [asdict(m) for m in res.meshes], "avatar": asdict(res.avatar) if res.avatar else None,
             "scores": [asdict(s) for s in res.scores],
             "score_mean": {"psnr_mesh": mean[0], "psnr_volume": mean[1], "protocol": "bbox (eval), held-out views",
