@@ -4,6 +4,8 @@ linear vertex colours in glTF, sRGB bytes in PLY."""
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 import torch
@@ -47,11 +49,14 @@ def pivots_of(mesh, w, M) -> np.ndarray:
     return joint_centres(torch.from_numpy(M), PARENTS, fallback).numpy()
 
 
-def skinned_glb(tmp_path, basis=np.eye(3), influences=4, weights=None):
+CAPS = np.array([[0, 2, 1], [0, 3, 2], [40, 41, 42], [40, 42, 43]], np.int32)  # close the chain's tube (outward)
+
+
+def skinned_glb(tmp_path, basis=np.eye(3), influences=4, weights=None, colours=None, closed=False):
     mesh, w, M = chain()
     w = w if weights is None else weights
-    from dataclasses import replace
-
+    mesh = mesh if colours is None else replace(mesh, colours=colours)
+    mesh = replace(mesh, faces=np.concatenate([mesh.faces, CAPS])) if closed else mesh
     mesh_y = replace(mesh, vertices=(mesh.vertices @ basis.T).astype(np.float32))
     pivots = pivots_of(mesh, w, M) @ basis.T
     M_y = skinning.conjugate(M, basis)
@@ -151,8 +156,6 @@ def test_glb_colours_are_linear_and_ply_bytes_srgb(tmp_path):
     pygltflib = pytest.importorskip("pygltflib")
     mesh, _, _ = chain()
     rng = np.random.default_rng(0)
-    from dataclasses import replace
-
     mesh = replace(mesh, colours=rng.uniform(0, 1, mesh.colours.shape).astype(np.float32))
     write_mesh(tmp_path / "m.glb", mesh)
     g = pygltflib.GLTF2().load(str(tmp_path / "m.glb"))
@@ -183,3 +186,40 @@ def test_khronos_validator_zero_errors_and_warnings(tmp_path):
     for p in (path, tmp_path / "static.glb"):
         report = validate_gltf(p)
         assert report["errors"] == 0 and report["warnings"] == 0, (p.name, report)
+
+
+@pytest.mark.browser
+@pytest.mark.node
+def test_three_js_shows_the_baked_colours(tmp_path):
+    """The chain, olive below and skin-coloured above (sRGB), in three.js (GLTFLoader, sRGB output): at two
+    animation times its pixels have the baked colours (within 3 levels of our rasterisation of the file, and the
+    median pixel within 2 levels of a palette colour; a file holding sRGB in COLOR_0 shows the olive 80 levels too
+    bright) and the images differ."""
+    from fixtures.three_view import ThreeView, agreement, our_view, three_or_skip
+
+    from avatarctl.export.gltf_read import read_skinned_glb
+    from avatarctl.geometry.cameras import Camera, look_at
+
+    modules = three_or_skip()
+    palette = np.array([[112, 114, 87], [224, 172, 140]], np.float32) / 255.0  # an olive top, skin
+    ring = (np.repeat(np.arange(11), 4) >= 6).astype(int)
+    path, *_ = skinned_glb(tmp_path, skinning.up_to_y_basis(np.array([0, 0, 1.0])), colours=palette[ring],
+                              closed=True)  # a viewer culls back faces (the file is single-sided); we do not
+    data = read_skinned_glb(path)
+    R, T = look_at(np.array([0.0, 0.3, 1.6]), np.array([0.0, 0.3, 0.0]), np.array([0.0, 1.0, 0.0]))
+    camera = Camera("front", K=np.array([[320.0, 0, 119.5], [0, 320.0, 119.5], [0, 0, 1]]), R=R, T=T, width=240,
+                    height=240)
+    magenta = (1.0, 0.0, 1.0)
+    shots = []
+    with ThreeView(path, camera.width, camera.height, modules, magenta) as view:
+        for key in (0, 5):
+            img, info = view.show(key / 30.0, camera)
+            assert info["skinned_meshes"] == 1 and info["bones"] == 3 and info["animations"] == 1, info
+            ours = our_view(data, key, camera, magenta)
+            iou, diff, pixels = agreement(img, ours, magenta)
+            assert pixels > 300 and iou > 0.9 and diff.max() < 3.0, (iou, diff, pixels)
+            body = np.abs(img.astype(int) - [255, 0, 255]).max(-1) > 0
+            nearest = np.abs(img[body][:, None].astype(float) - palette[None] * 255).max(-1).min(-1)
+            assert np.median(nearest) <= 2.0, "the pixels are the palette's sRGB colours"
+            shots.append(img)
+    assert np.abs(shots[0].astype(float) - shots[1].astype(float)).mean() > 1.0, "the animation moves the chain"

@@ -146,3 +146,49 @@ def test_every_exported_glb_passes_the_khronos_validator(toy_fitted_project):
     for path in files:
         report = validate_gltf(path)
         assert report["errors"] == 0 and report["warnings"] == 0, (path.name, report)
+
+
+def _in_file_frame(camera, A: np.ndarray, scale: float = 1.0):
+    """A world camera as the same camera in the GLB file's frame (x_file = A x_world), its image `scale`d."""
+    from avatarctl.geometry.cameras import Camera
+
+    C, t = A[:3, :3], A[:3, 3]
+    K = np.diag([scale, scale, 1.0]) @ camera.K
+    K[:2, 2] = (camera.K[:2, 2] + 0.5) * scale - 0.5  # pixel centres at integer coordinates
+    return Camera(camera.name, K=K, R=camera.R @ C.T, T=camera.T - camera.R @ C.T @ t,
+                  width=round(camera.width * scale), height=round(camera.height * scale))
+
+
+@pytest.mark.browser
+@pytest.mark.node
+def test_avatar_glb_in_three_js_matches_the_file_posed_by_us(toy_fitted_project):
+    """The stage's avatar.glb in three.js (GLTFLoader + AnimationMixer, headless Chromium): one SkinnedMesh with the
+    body's bones and the unlit material; at two animation times three.js's own skinning has the lowest point we
+    compute and the images differ; each has the silhouette and colours of our rasterisation of the file posed by the
+    glTF skinning equation (`export.gltf_read`). (Colour fidelity on a colourful mesh: test_export_gltf.py.)"""
+    from fixtures.three_view import ThreeView, agreement, our_view, three_or_skip
+
+    from avatarctl.export.gltf_read import pose_glb, read_skinned_glb
+    from avatarctl.stages.common import load_fitted, open_fitted
+
+    modules = three_or_skip()
+    out = _ground_export(toy_fitted_project)
+    A = np.array(json.loads((out / "export.json").read_text())["glb_frame"])
+    cap = load_fitted(open_fitted(toy_fitted_project, None), "cpu", None).capture
+    camera = _in_file_frame(cap.cameras[cap.split.test_views[0]], A, scale=2.0)
+    data = read_skinned_glb(out / "avatar.glb")
+    fps = cap.motion.fps if cap.motion.fps > 0 else 30.0
+    keys = [0, data.animation_frames[0] - 1]
+    times = [(cap.motion.frame_index[k] - cap.motion.frame_index[0]) / fps for k in keys]
+    magenta = (1.0, 0.0, 1.0)  # a background no body pixel has
+    shots = []
+    with ThreeView(out / "avatar.glb", camera.width, camera.height, modules, magenta) as view:
+        for key, seconds in zip(keys, times):
+            img, info = view.show(seconds, camera)
+            assert info["skinned_meshes"] == 1 and info["bones"] == 2 and info["has_colour"], info
+            assert info["material"] == "MeshBasicMaterial", "KHR_materials_unlit: the colours are not lit again"
+            assert info["lowest_y"] == pytest.approx(pose_glb(data, 0, key)[:, 1].min(), abs=1e-4)
+            iou, diff, pixels = agreement(img, our_view(data, key, camera, magenta), magenta)
+            assert pixels > 100 and iou > 0.9 and diff.max() < 3.0, (iou, diff, pixels)
+            shots.append(img)
+    assert np.abs(shots[0].astype(float) - shots[1].astype(float)).mean() > 1.0, "the animation moves the body"
