@@ -93,6 +93,8 @@ def test_cli_errors_exit_non_zero_without_traceback(toy_fitted_project, tmp_path
 
     r = CliRunner().invoke(app, ["export", str(toy_fitted_project), "--poses", str(tmp_path / "missing.npz")])
     assert r.exit_code == 2 and "motion file not found" in r.output and "Traceback" not in r.output
+    r = CliRunner().invoke(app, ["export", str(toy_fitted_project), "--threshold", "high"])
+    assert r.exit_code == 2 and "--threshold 'high' is not a number" in r.output and "Traceback" not in r.output
     r = CliRunner().invoke(app, ["export", str(tmp_path / "nowhere")])
     assert r.exit_code != 0 and "Traceback" not in r.output
 

@@ -5,7 +5,8 @@ Steps:
    with the cVAE latent z = mu, novel ones with z = 0, as `render`) or a motion file (`--poses`, z = 0; any rig
    `render --poses` takes, retargeted onto the avatar's body model when made for another: `motion_for_avatar`);
 2. posed meshes (`--frames`, default the first training frame / the motion file's first frame): the density field
-   of the frame sampled on a grid over the node supports, marching cubes at `threshold`, vertex colours baked by
+   of the frame sampled on a grid over the node supports, marching cubes at `threshold` (default: a level from the
+   field's densities just inside the body model's skin, `export.mesh.body_level`), vertex colours baked by
    rendering each vertex head-on along its normal (`export.mesh`); written as GLB / PLY / OBJ;
 3. the animatable avatar `avatar.glb`: one mesh extracted the same way in the canonical (rest) pose
    (`export.mesh.rest_node_state`: M_j = identity, z = 0), skinning weights transferred from the body template
@@ -46,7 +47,7 @@ from avatarctl.project import check_name, now_iso
 from avatarctl.stages.common import StageProgress, ProgressFn, check_latent_mode, frame_node_state, latent_for, \
     load_fitted, motion_for_avatar, open_fitted
 
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2  # 2: threshold None = from the field; glb_frame; reload default_pose_max_m
 FORMATS = ("glb", "ply", "obj")
 CHECK_FRAMES = 8  # animation frames of the reload check
 
@@ -62,7 +63,7 @@ class ExportConfig:
     poses: str | None = None  # motion file: the posed frames and the animation; None = the project's frames
     formats: tuple[str, ...] = ("glb", "ply")  # posed mesh files: glb | ply | obj
     voxel: float = 0.008  # grid spacing, metres
-    threshold: float = 10.0  # density level of the surface, 1/metre (export.mesh.DEFAULT_THRESHOLD)
+    threshold: float | None = None  # density level of the surface, 1/metre; None = from the field (export.mesh.body_level)
     min_component: float = 0.01  # drop connected pieces with fewer than this fraction of the faces
     influences: int = 4  # skinning weights per vertex in avatar.glb: 4 (JOINTS_0) or 8 (+ JOINTS_1)
     latent: str = "auto"  # auto | mean | zero | sample (posed meshes; the rest mesh uses z = 0)
@@ -82,7 +83,7 @@ class ExportConfig:
                              fix=f"use a comma list of {', '.join(FORMATS)}")
         if not 0.001 <= self.voxel <= 0.1:
             raise InputError(f"--voxel {self.voxel} m outside [0.001, 0.1]", where="--voxel", fix="e.g. --voxel 0.008")
-        if not self.threshold > 0:
+        if self.threshold is not None and not self.threshold > 0:
             raise InputError(f"--threshold must be > 0 (1/metre), got {self.threshold}", where="--threshold",
                              fix="e.g. --threshold 10")
         if not 0.0 <= self.min_component < 1.0:
@@ -109,6 +110,7 @@ class ExportedMesh:
     files: dict[str, int]  # relative file -> bytes
     vertices: int
     faces: int
+    threshold: float  # the surface level used, 1/metre
     grid_points: int  # density evaluations (grid points inside a node support)
     seconds: float
 
@@ -132,6 +134,7 @@ class SkinnedExport:
     bytes: int
     vertices: int
     faces: int
+    threshold: float  # the surface level of the rest mesh, 1/metre
     joints: int
     animation_frames: int
     animation_source: str
@@ -206,10 +209,11 @@ def run(project_dir: str | Path, cfg: ExportConfig, progress: ProgressFn | None 
             one = motion.select(motion.rows_for([frame]))
             state = frame_node_state(avatar, one, frame, is_train, latent, cfg.seed)
             ts = time.perf_counter()
-            mesh, queried = _extract(avatar, state, cfg, f"frame {frame}")
+            body = avatar.body.pose(one).vertices[0].detach().float().cpu().numpy()
+            mesh, queried, level = _extract(avatar, state, cfg, f"frame {frame}", body)
             files = _write_posed(tmp, frame, mesh, cfg.formats, frame_glb)
             meshes.append(ExportedMesh(frame=frame, latent=latent, files=files, vertices=mesh.num_vertices,
-                                       faces=mesh.num_faces, grid_points=queried,
+                                       faces=mesh.num_faces, threshold=round(level, 4), grid_points=queried,
                                        seconds=round(time.perf_counter() - ts, 3)))
             if cfg.score:
                 scores += _score(avatar, one, state, mesh, frame, is_train, preview if not preview else None)
@@ -242,15 +246,23 @@ def _require(module: str, what: str, alternative: str = "") -> None:
                          fix=f"pip install 'avatarctl[export]' {alternative}".strip())
 
 
-def _extract(avatar: Any, state: Any, cfg: ExportConfig, what: str) -> tuple[Any, int]:
-    """The coloured mesh of frame slot 0 of `state` (export.mesh), a one-line error when there is no surface."""
-    from avatarctl.export.mesh import GridTooLargeError, NoSurfaceError, extract_mesh, slrf_density, slrf_ray_colour
+def _extract(avatar: Any, state: Any, cfg: ExportConfig, what: str, body: np.ndarray) -> tuple[Any, int, float]:
+    """The coloured mesh of frame slot 0 of `state` (export.mesh) -> (mesh, grid points queried, the level used);
+    body [V, 3]: the body model posed like `state` (the level's probes when `cfg.threshold` is None). A one-line
+    error when there is no surface."""
+    from avatarctl.export.mesh import (GridTooLargeError, NoSurfaceError, body_level, extract_mesh, slrf_density,
+                                       slrf_ray_colour)
 
     model = avatar.model
+    density = slrf_density(model, state)
     try:
-        return extract_mesh(slrf_density(model, state), slrf_ray_colour(model, state),
-                            state.centers[0].detach().float().cpu().numpy(), float(model.cfg.support_radius),
-                            cfg.voxel, cfg.threshold, cfg.min_component)
+        level = cfg.threshold if cfg.threshold is not None else body_level(
+            density, body, avatar.template.faces.cpu().numpy())
+        mesh, queried = extract_mesh(density, slrf_ray_colour(model, state),
+                                     state.centers[0].detach().float().cpu().numpy(),
+                                     float(model.cfg.support_radius), cfg.voxel, level, cfg.min_component,
+                                     background=tuple(float(c) for c in avatar.background))
+        return mesh, queried, level
     except NoSurfaceError as e:
         raise InputError(f"no surface to mesh for {what}: {e}", where="--threshold",
                          fix="lower --threshold (or fit longer)") from None
@@ -344,8 +356,9 @@ def _export_skinned(tmp: Path, avatar: Any, cfg: ExportConfig, motion: Any, sour
     from avatarctl.export.mesh import rest_node_state
 
     ts = time.perf_counter()
-    mesh, _ = _extract(avatar, rest_node_state(avatar.model), cfg, "the rest pose")
     tpl = avatar.template
+    mesh, _, level = _extract(avatar, rest_node_state(avatar.model), cfg, "the rest pose",
+                              tpl.vertices.cpu().numpy())
     dense = skinning.transfer_weights(mesh.vertices, tpl.vertices.cpu().numpy(), tpl.skin_weights.cpu().numpy())
     weights = skinning.sparsify(dense, cfg.influences)
     cap = avatar.capture
@@ -372,6 +385,7 @@ def _export_skinned(tmp: Path, avatar: Any, cfg: ExportConfig, motion: Any, sour
     seconds = time.perf_counter() - ts
     reload = _reload_check(tmp / "avatar.glb", mesh_y, weights, dense, M_y)
     return SkinnedExport(file="avatar.glb", bytes=len(data), vertices=mesh.num_vertices, faces=mesh.num_faces,
+                         threshold=round(level, 4),
                          joints=len(tpl.parents), animation_frames=len(times), animation_source=source,
                          seconds=round(seconds, 3), trs_residual=float(trs.residual),
                          weight_mass_dropped=round(weights.dense_residual, 6), reload=reload)
@@ -420,9 +434,12 @@ def _record(cfg: ExportConfig, avatar: Any, res: ExportResult, frame: np.ndarray
     mean = res.mean_psnr()
     return {"config": cfg.to_json(), "checkpoint": str(avatar.checkpoint) if avatar.checkpoint else None,
             "checkpoint_step": avatar.step, "motion_source": source, "retarget": retarget,
-            "surface": {"threshold_per_m": cfg.threshold, "voxel_m": cfg.voxel, "min_component": cfg.min_component,
-                        "colour": "volume render of a 4 cm ray segment (8 samples) looking at each vertex along -normal from "
-                                  "2 voxels outside, divided by its opacity (one view direction per vertex)"},
+            "surface": {"threshold_per_m": cfg.threshold if cfg.threshold is not None else
+                        "from the field: the 25 % quantile of the density 1 cm inside the body model's skin, at most 10 "
+                        "(per mesh: meshes[].threshold, avatar.threshold)",
+                        "voxel_m": cfg.voxel, "min_component": cfg.min_component,
+                        "colour": "volume render of a 30 cm ray (32 samples) looking at each vertex along -normal from 2 "
+                                  "voxels outside, composited over the fit's background (one view direction per vertex)"},
             "glb_frame": frame.tolist(), "glb_basis": frame[:3, :3].tolist(),
             "glb_origin": "on the ground (the lowest point of the body template over the motion) under the middle "
                           "of the body's footprint in the motion's first frame; +Y up",
