@@ -91,3 +91,25 @@ def test_rasterised_mesh_matches_the_sphere_silhouette():
     assert img.alpha[inside].all() and not img.alpha[outside].any()
     assert np.allclose(img.rgb[inside][:, 1:], [0.25, 0.75], atol=1e-3)
     assert isinstance(mesh, ColouredMesh)
+
+
+def test_bake_over_a_background_is_what_the_volume_shows():
+    """A half-transparent field (alpha 0.8): the colour baked over a background is the composite, not rgb / alpha."""
+    v, n = np.zeros((3, 3)), np.tile([0, 0, 1.0], (3, 1))
+    shown = bake_colours(colour_by_height, v, n, offset=0.01, background=(0.0, 0.0, 1.0))
+    rgb, alpha = colour_by_height(v + 0.01 * n, -n)
+    assert np.allclose(shown, rgb + 0.2 * np.array([0.0, 0.0, 1.0]), atol=1e-6)
+
+
+def test_body_level_from_the_density_inside_the_skin():
+    """The level is a quantile of the density 1 cm inside a body mesh (here a 20 cm sphere inside the 25 cm one:
+    100/m there), capped at the ceiling; an empty field is a NoSurfaceError."""
+    from avatarctl.export.mesh import body_level
+
+    trimesh = pytest.importorskip("trimesh")
+    body = trimesh.creation.icosphere(subdivisions=2, radius=0.2)
+    faint = lambda p: 0.04 * sphere_density(p)  # noqa: E731 - 4/m inside
+    assert body_level(faint, body.vertices, body.faces) == pytest.approx(4.0, rel=1e-3)
+    assert body_level(sphere_density, body.vertices, body.faces) == 10.0, "capped at the default level"
+    with pytest.raises(NoSurfaceError, match="inside the body is 0"):
+        body_level(lambda p: np.zeros(len(p)), body.vertices, body.faces)

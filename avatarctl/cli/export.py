@@ -29,8 +29,9 @@ def register(app: typer.Typer) -> None:
         skinned: bool = typer.Option(True, "--skinned/--no-skinned", help="Write avatar.glb (rest-pose mesh, "
                                      "skeleton, skinning weights, animation)."),
         voxel: float = typer.Option(0.008, "--voxel", help="Grid spacing of the density sampling, metres."),
-        threshold: float = typer.Option(10.0, "--threshold", help="Density level of the surface, 1/metre (lower: "
-                                        "fuller cloth, more haze; higher: holes in soft regions)."),
+        threshold: str = typer.Option("auto", "--threshold", help="Density level of the surface, 1/metre (lower: "
+                                      "fuller cloth, more haze; higher: holes in soft regions), or auto: from the "
+                                      "field's density just inside the body model's skin, at most 10."),
         influences: int = typer.Option(4, "--influences", help="Skinning weights per vertex in avatar.glb: 4 (every "
                                        "glTF viewer) or 8 (a second JOINTS_1 / WEIGHTS_1 set: closer to the body "
                                        "model, read by Blender, not by three.js)."),
@@ -54,10 +55,22 @@ def register(app: typer.Typer) -> None:
             cfg = ExportConfig(name=name, frames=frames, posed=posed, skinned=skinned,
                                poses=str(poses) if poses else None,
                                formats=tuple(f for f in formats.split(",") if f.strip()), voxel=voxel,
-                               threshold=threshold, influences=influences, latent=latent, seed=seed,
+                               threshold=_threshold(threshold), influences=influences, latent=latent, seed=seed,
                                recenter=recenter, score=score,
                                device=device, checkpoint=str(checkpoint) if checkpoint else None)
             _run(project, cfg, wait, console)
+
+
+def _threshold(text: str) -> float | None:
+    from avatarctl.errors import InputError
+
+    if text.strip().lower() == "auto":
+        return None
+    try:
+        return float(text)
+    except ValueError:
+        raise InputError(f"--threshold {text!r} is not a number", where="--threshold",
+                         fix="use auto or a density in 1/metre, e.g. --threshold 10") from None
 
 
 def _run(project: Path, cfg, wait: bool, console) -> None:
@@ -78,11 +91,11 @@ def _run(project: Path, cfg, wait: bool, console) -> None:
     t = Table(title="avatarctl export", show_header=False)
     t.add_row("output", str(res.out_dir))
     for m in res.meshes:
-        t.add_row(f"frame {m.frame}", f"{m.vertices:,} vertices, {m.faces:,} faces, {m.seconds:.1f} s: "
+        t.add_row(f"frame {m.frame}", f"{m.vertices:,} vertices, {m.faces:,} faces, level {m.threshold:.3g}/m, {m.seconds:.1f} s: "
                   + ", ".join(f"{f} ({b / 1e6:.1f} MB)" for f, b in m.files.items()))
     if res.avatar is not None:
         a = res.avatar
-        t.add_row("avatar", f"{a.file}: {a.vertices:,} vertices, {a.joints} joints, {a.animation_frames} animation "
+        t.add_row("avatar", f"{a.file}: {a.vertices:,} vertices (level {a.threshold:.3g}/m), {a.joints} joints, {a.animation_frames} animation "
                   f"frames ({a.animation_source}), {a.bytes / 1e6:.1f} MB, {a.seconds:.1f} s")
         r = a.reload
         t.add_row("reload check", f"max vertex error {r['vs_lbs_same_weights_max_m'] * 1000:.3g} mm vs our LBS "

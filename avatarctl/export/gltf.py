@@ -1,11 +1,15 @@
 """glTF 2.0 binary (.glb) writer for coloured meshes, skinned meshes and joint animations; numpy only.
 
 What a file holds (glTF 2.0 spec names):
-- one mesh primitive: POSITION, NORMAL (float32 VEC3), COLOR_0 (float32 VEC3, linear in [0, 1]), uint32 indices;
+- one mesh primitive: POSITION, NORMAL (float32 VEC3), COLOR_0 (float32 VEC3), uint32 indices;
+  COLOR_0 is linear light (glTF 2.0 spec 3.7.2.1: "vertex colors ... in linear space"): the mesh's colours are
+  display (sRGB-encoded) values, like the images the field was fitted to, and are decoded with `srgb_to_linear`;
+  a conforming viewer encodes them back for the screen and shows the volume render's colour. PLY / OBJ bytes stay
+  sRGB (what those formats' readers display as is);
   an unlit material (`KHR_materials_unlit`: the colours are baked radiance, a viewer must not light them again);
 - with a skin (`SkinnedMesh`): JOINTS_0 (uint16 VEC4), WEIGHTS_0 (float32 VEC4) (and JOINTS_1 / WEIGHTS_1 with 8
-  influences per vertex), one node per joint (rest TRS,
-  the joint tree as node children), `skins[0]` with `inverseBindMatrices` (float32 MAT4, column-major) and the
+  influences per vertex), one node per joint (its own TRS:
+  the pose a viewer shows without playing an animation; the joint tree as node children), `skins[0]` with `inverseBindMatrices` (float32 MAT4, column-major) and the
   mesh node that references it;
 - with an `Animation`: one LINEAR sampler per joint for translation and rotation (and scale when any differs from
   1), keyframe times in seconds.
@@ -28,6 +32,18 @@ from avatarctl.export.skinning import JointTrs, SkinWeights
 GENERATOR = "avatarctl export"
 
 
+def srgb_to_linear(c: np.ndarray) -> np.ndarray:
+    """sRGB-encoded values in [0, 1] -> linear light (IEC 61966-2-1, the piecewise curve, not a 2.2 power)."""
+    c = np.clip(np.asarray(c, np.float64), 0.0, 1.0)
+    return np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4)
+
+
+def linear_to_srgb(c: np.ndarray) -> np.ndarray:
+    """Linear light in [0, 1] -> sRGB-encoded values (the inverse of `srgb_to_linear`; what a viewer shows)."""
+    c = np.clip(np.asarray(c, np.float64), 0.0, 1.0)
+    return np.where(c <= 0.0031308, 12.92 * c, 1.055 * c ** (1 / 2.4) - 0.055)
+
+
 @dataclass(frozen=True)
 class SkinnedMesh:
     """What a skinned glTF needs besides the mesh (all in the file's frame)."""
@@ -35,7 +51,7 @@ class SkinnedMesh:
     weights: SkinWeights  # [verts, 4 | 8] joints / weights
     joint_names: tuple[str, ...]  # [J]
     parents: tuple[int, ...]  # [J], -1 = root; parents precede children
-    rest: JointTrs  # one frame: the bind pose (local TRS of each joint node)
+    pose: JointTrs  # one frame: the joint nodes' own local TRS (shown without animation; the bind pose, or a frame)
     inverse_bind: np.ndarray  # [J, 4, 4] B_j^-1 (row-major here, written column-major)
 
 
@@ -88,7 +104,7 @@ def glb_bytes(mesh: ColouredMesh, skin: SkinnedMesh | None = None, animations: t
     b = _Builder()
     attrs = {"POSITION": b.add(mesh.vertices.astype(np.float32), FLOAT, "VEC3", ARRAY_BUFFER, minmax=True),
              "NORMAL": b.add(mesh.normals.astype(np.float32), FLOAT, "VEC3", ARRAY_BUFFER),
-             "COLOR_0": b.add(np.clip(mesh.colours, 0, 1).astype(np.float32), FLOAT, "VEC3", ARRAY_BUFFER)}
+             "COLOR_0": b.add(srgb_to_linear(mesh.colours).astype(np.float32), FLOAT, "VEC3", ARRAY_BUFFER)}
     nodes: list[dict] = []
     scene_nodes: list[int] = []
     gltf: dict = {"asset": {"version": "2.0", "generator": GENERATOR},
@@ -114,10 +130,10 @@ def glb_bytes(mesh: ColouredMesh, skin: SkinnedMesh | None = None, animations: t
                 scene_nodes.append(j)
         for j in range(J):
             node = {"name": skin.joint_names[j],
-                    "translation": [float(x) for x in skin.rest.translation[0, j]],
-                    "rotation": [float(x) for x in skin.rest.rotation[0, j]]}
-            if not np.allclose(skin.rest.scale[0, j], 1.0, atol=1e-6):
-                node["scale"] = [float(x) for x in skin.rest.scale[0, j]]
+                    "translation": [float(x) for x in skin.pose.translation[0, j]],
+                    "rotation": [float(x) for x in skin.pose.rotation[0, j]]}
+            if not np.allclose(skin.pose.scale[0, j], 1.0, atol=1e-6):
+                node["scale"] = [float(x) for x in skin.pose.scale[0, j]]
             if children[j]:
                 node["children"] = children[j]
             nodes.append(node)

@@ -25,7 +25,7 @@ class GltfSkinned:
 
     positions: np.ndarray  # [verts, 3]
     faces: np.ndarray  # [faces, 3]
-    colours: np.ndarray | None  # [verts, 3|4]
+    colours: np.ndarray | None  # [verts, 3|4] COLOR_0 as stored: linear light (gltf.linear_to_srgb to display)
     joints: np.ndarray  # [verts, 4 | 8] indices into `skin_joints` (JOINTS_0, then JOINTS_1 when present)
     weights: np.ndarray  # [verts, 4 | 8]
     skin_joints: list[int]  # node index of each skin joint

@@ -12,13 +12,24 @@ Steps (`extract_mesh`):
    the "hard surface" levels of NeRF meshing because a fitted SLRF's cloth (a skirt) is soft: on synth small
    (10 min cpu fit, 8 mm grid, frame 0, 4 held-out views) levels 5 / 10 / 20 / 40 gave mesh PSNR
    21.01 / 21.26 / 18.13 / 16.28 dB (holes open in the skirt above 10; the volume render: 22.38 dB);
+   The default level is chosen per mesh from the field's own densities (`body_level`): the density just inside
+   the body model's skin (1 cm in along the template's normals, the body posed like the frame) is what the
+   surface must enclose; the level is its `BODY_QUANTILE` quantile, at most `DEFAULT_THRESHOLD`. A well-fitted
+   field (skin densities in the hundreds) keeps the level 10; a soft one (a short fit: the demo's tiny project,
+   533 steps, has a median skin density of 3.3 / m) gets a lower level, so thin parts (neck, thighs under a
+   skirt) stay inside the surface instead of falling apart;
 3. connected components with fewer than `min_component` of the faces (floaters of stray density) are dropped;
 4. vertex colours (`bake_colours`): each vertex is looked at head-on, with a ray from just outside the surface
-   (v + 2 voxels * n, n the outward normal) along -n, volume-rendered through the field over a short segment
-   (`slrf_ray_colour`: 4 cm, 8 samples, the compositing of an image); the colour is the composited colour divided
-   by its opacity (the colour of what is hit, independent of any background). One view direction per vertex: the
-   view dependence of the colour head (Eq. 7) is frozen into the colour seen along the normal. (On synth small,
-   16 samples over 5 cm gave the same mesh PSNR to 0.001 dB at twice the time.)
+   (v + 2 voxels * n, n the outward normal) along -n, volume-rendered through the field (`slrf_ray_colour`, the
+   compositing of an image) over `BAKE_LENGTH` = 30 cm, the body's thickness, with `BAKE_SAMPLES` = 32 samples,
+   over the fit's background: the colour is what the volume render shows where a camera looks at that surface
+   head-on. A soft field (a short fit) is partly transparent and its images are darker than its colour head's
+   output; the opaque mesh must show the composite, not the colour divided by the opacity: on the demo's tiny
+   project (frame 0, 2 held-out views) the divided 4 cm bake showed the olive top 35-53 levels too bright (mesh
+   17.31 dB vs volume 22.03 dB), the composite is within 5 levels (20.51 dB). For an opaque field the two agree.
+   One view direction per vertex: the view dependence of the colour head (Eq. 7) is frozen into the colour seen
+   along the normal. Without a background (`background=None`) the colour is the composite divided by its opacity
+   (the colour of what is hit).
 
 The field is passed as callables (`DensityFn`, `RayColourFn`) so the extraction is tested on an analytic sphere;
 `slrf_density` / `slrf_ray_colour` adapt a fitted `SlrfAvatar` and one frame of its `NodeState`.
@@ -38,6 +49,10 @@ if TYPE_CHECKING:
     from avatarctl.model.avatar import NodeState, SlrfAvatar
 
 DEFAULT_THRESHOLD = 10.0  # 1/metre, see the module docstring
+BODY_QUANTILE = 0.25  # `body_level`: the share of the skin probes allowed below the level
+BODY_DEPTH = 0.01  # metres: `body_level` probes this far inside the skin
+BAKE_LENGTH = 0.3  # metres of the head-on colour ray (module docstring, step 4)
+BAKE_SAMPLES = 32
 DEFAULT_VOXEL = 0.008  # metres
 DensityFn = Callable[[np.ndarray], np.ndarray]  # points [points, 3] -> sigma [points] (1/metre)
 RayColourFn = Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]  # (origins, dirs) [rays, 3] ->
@@ -51,7 +66,7 @@ class ColouredMesh:
     vertices: np.ndarray  # [verts, 3] float32, metres
     faces: np.ndarray  # [faces, 3] int32, counter-clockwise seen from outside
     normals: np.ndarray  # [verts, 3] float32 unit outward normals
-    colours: np.ndarray  # [verts, 3] float32 in [0, 1]
+    colours: np.ndarray  # [verts, 3] float32 in [0, 1], display (sRGB-encoded) values as the volume render gives
 
     def __post_init__(self) -> None:
         V = self.vertices.shape[0]
@@ -85,6 +100,35 @@ class NoSurfaceError(ValueError):
 
 class GridTooLargeError(ValueError):
     """The grid over the node supports would hold more points than allowed at this voxel size."""
+
+
+def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """[verts, 3] unit area-weighted vertex normals of a mesh wound counter-clockwise from outside."""
+    v = np.asarray(vertices, np.float64)
+    tri = v[np.asarray(faces)]
+    fn = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])  # [faces, 3], length = 2 * area
+    n = np.zeros_like(v)
+    for k in range(3):
+        np.add.at(n, np.asarray(faces)[:, k], fn)
+    return n / np.maximum(np.linalg.norm(n, axis=-1, keepdims=True), 1e-12)
+
+
+def body_level(density: DensityFn, body_vertices: np.ndarray, body_faces: np.ndarray,
+               quantile: float = BODY_QUANTILE, depth: float = BODY_DEPTH,
+               ceiling: float = DEFAULT_THRESHOLD) -> float:
+    """The surface level (1/metre) from the field's own densities (module docstring, step 2): the `quantile` of sigma
+    at the body model's vertices moved `depth` metres inside along their normals, at most `ceiling`.
+
+    body_vertices [V, 3] in the field's frame (the body posed like the field), body_faces [faces, 3]
+    counter-clockwise from outside. Raises `NoSurfaceError` when the field is empty at the body."""
+    v = np.asarray(body_vertices, np.float64)
+    probes = v - depth * vertex_normals(v, body_faces)
+    sigma = np.asarray(density(probes.astype(np.float32)), np.float64)
+    level = float(np.quantile(sigma, quantile))
+    if not level > 0:
+        raise NoSurfaceError(f"the density inside the body is 0 at {100 * quantile:g} % of it (max "
+                             f"{sigma.max():.3g}/m)")
+    return min(level, ceiling)
 
 
 def support_box(centers: np.ndarray, radius: float) -> tuple[np.ndarray, np.ndarray]:
@@ -220,23 +264,27 @@ def _drop_small_components(verts: np.ndarray, faces: np.ndarray, normals: np.nda
 
 
 def bake_colours(ray_colour: RayColourFn, vertices: np.ndarray, normals: np.ndarray, offset: float,
-                 chunk: int = 16384) -> np.ndarray:
+                 background: tuple[float, float, float] | None = None, chunk: int = 16384) -> np.ndarray:
     """Vertex colours [verts, 3] in [0, 1] seen head-on (module docstring, step 4): rays from v + offset * n along
-    -n; colour = composited rgb over black / alpha (black where nothing is hit)."""
+    -n; colour = composited rgb over `background` (rgb + (1 - alpha) background), or without one rgb / alpha
+    (black where nothing is hit)."""
     out = np.zeros((vertices.shape[0], 3), np.float32)
+    bg = None if background is None else np.asarray(background, np.float32)
     for s in range(0, vertices.shape[0], chunk):
         v, n = vertices[s:s + chunk].astype(np.float32), normals[s:s + chunk].astype(np.float32)
         rgb, alpha = ray_colour(v + offset * n, -n)
-        out[s:s + chunk] = np.clip(rgb / np.maximum(alpha, 1e-6)[:, None], 0.0, 1.0)
+        shown = rgb / np.maximum(alpha, 1e-6)[:, None] if bg is None else rgb + (1.0 - alpha)[:, None] * bg
+        out[s:s + chunk] = np.clip(shown, 0.0, 1.0)
     return out
 
 
 def extract_mesh(density: DensityFn, ray_colour: RayColourFn, centers: np.ndarray, radius: float, voxel: float,
-                 threshold: float = DEFAULT_THRESHOLD, min_component: float = 0.01) -> tuple[ColouredMesh, int]:
+                 threshold: float = DEFAULT_THRESHOLD, min_component: float = 0.01,
+                 background: tuple[float, float, float] | None = None) -> tuple[ColouredMesh, int]:
     """Steps 1-4 of the module docstring -> (the coloured mesh, grid points queried)."""
     grid = density_grid(density, centers, radius, voxel, level=threshold)
     verts, faces, normals = marching_cubes(grid, threshold, min_component)
-    colours = bake_colours(ray_colour, verts, normals, offset=2.0 * voxel)
+    colours = bake_colours(ray_colour, verts, normals, offset=2.0 * voxel, background=background)
     return ColouredMesh(vertices=verts, faces=faces, normals=normals, colours=colours), grid.queried
 
 
@@ -259,8 +307,8 @@ def slrf_density(model: "SlrfAvatar", state: "NodeState", slot: int = 0) -> Dens
     return density
 
 
-def slrf_ray_colour(model: "SlrfAvatar", state: "NodeState", slot: int = 0, length: float = 0.04,
-                    samples: int = 8) -> RayColourFn:
+def slrf_ray_colour(model: "SlrfAvatar", state: "NodeState", slot: int = 0, length: float = BAKE_LENGTH,
+                    samples: int = BAKE_SAMPLES) -> RayColourFn:
     """Volume-render ray segments [0, `length`] metres of frame `slot` over black with `samples` samples (the same
     compositing as an image, `render.volume.march`): (origins, dirs) [rays, 3] -> (rgb [rays, 3], alpha [rays])."""
     import torch

@@ -10,8 +10,10 @@ left by a polar decomposition when M_j is not rigid, reported in `JointTrs.resid
 skinning; a good pivot makes the local translations nearly constant (bones of fixed length in other tools): the
 export takes the joint centres of `body/joints.py` (the point M_j and its parent's M_p agree on over the frames).
 
-An optional axis change `basis` [3, 3] (e.g. the capture's z-up to glTF's +Y up) conjugates everything:
-v' = C v, M_j' = C M_j C^T.
+The file's frame (`glb_frame`): a rigid change A = [C | -C o] from the capture's world: the rotation C [3, 3] takes
+the capture's up to glTF's +Y, and the point o (world, metres) becomes the origin; the export puts o on the ground
+under the body (`ground_origin`). It conjugates everything: v' = A v, M_j' = A M_j A^-1 (so the root motion is
+relative to o).
 """
 
 from __future__ import annotations
@@ -28,7 +30,7 @@ INFLUENCES = (4, 8)  # (joint, weight) pairs per vertex: glTF JOINTS_0 / WEIGHTS
 class SkinWeights:
     """Sparse skinning weights of the exported vertices (glTF JOINTS_n / WEIGHTS_n, 4 per set)."""
 
-    joints: np.ndarray  # [verts, influences] uint16 joint indices, influences = 4 or 8
+    joints: np.ndarray  # [verts, influences] uint16 joint indices, influences = 4 or 8; 0 where the weight is 0
     weights: np.ndarray  # [verts, influences] float32, rows sum to 1 (zeros pad)
     dense_residual: float  # max over vertices of the weight mass dropped by keeping the largest `influences`
 
@@ -76,6 +78,7 @@ def sparsify(dense: np.ndarray, influences: int = 4) -> SkinWeights:
     joints = np.zeros((V, influences), np.uint16)
     weights = np.zeros((V, influences), np.float32)
     joints[:, :n], weights[:, :n] = idx, w
+    joints[weights == 0] = 0  # glTF: an unused influence has joint 0 (the validator warns otherwise)
     return SkinWeights(joints=joints, weights=weights, dense_residual=float(np.max(1.0 - kept)) if V else 0.0)
 
 
@@ -122,11 +125,41 @@ def quaternion_to_matrix(q: np.ndarray) -> np.ndarray:
                                                                                                   + (3, 3))
 
 
-def conjugate(joint_transforms: np.ndarray, basis: np.ndarray) -> np.ndarray:
-    """M' = C M C^T for [..., 4, 4] transforms and a [3, 3] rotation C (an axis change)."""
-    C = np.eye(4)
-    C[:3, :3] = basis
-    return C @ np.asarray(joint_transforms, np.float64) @ C.T
+def glb_frame(basis: np.ndarray, origin: np.ndarray | None = None) -> np.ndarray:
+    """[4, 4] A = [C | -C o]: world -> file frame, for a rotation `basis` C [3, 3] and the world point `origin` o [3]
+    that becomes the file's origin (module docstring)."""
+    A = np.eye(4)
+    A[:3, :3] = basis
+    if origin is not None:
+        A[:3, 3] = -np.asarray(basis, np.float64) @ np.asarray(origin, np.float64)
+    return A
+
+
+def to_frame(points: np.ndarray, frame: np.ndarray) -> np.ndarray:
+    """[..., 3] world points -> the file frame of `frame` (a [4, 4] `glb_frame` or a [3, 3] rotation)."""
+    A = frame if frame.shape == (4, 4) else glb_frame(frame)
+    return np.asarray(points, np.float64) @ A[:3, :3].T + A[:3, 3]
+
+
+def conjugate(joint_transforms: np.ndarray, frame: np.ndarray) -> np.ndarray:
+    """M' = A M A^-1 for [..., 4, 4] transforms and a rigid change of frame A ([4, 4] `glb_frame`, or a [3, 3]
+    rotation C: M' = C M C^T)."""
+    A = frame if frame.shape == (4, 4) else glb_frame(frame)
+    A_inv = np.eye(4)
+    A_inv[:3, :3] = A[:3, :3].T
+    A_inv[:3, 3] = -A[:3, :3].T @ A[:3, 3]
+    return A @ np.asarray(joint_transforms, np.float64) @ A_inv
+
+
+def ground_origin(first: np.ndarray, lowest_up: float, basis: np.ndarray) -> np.ndarray:
+    """The world point that becomes the file's origin: on the ground under the body. first [verts, 3]: the body's
+    vertices at the first frame (world); lowest_up: the lowest height along the up axis (`basis` row 1, metres)
+    that the feet reach over the motion. Horizontally the middle of the first frame's footprint (its bounding box
+    in the ground plane), vertically the ground."""
+    C = np.asarray(basis, np.float64)
+    v = np.asarray(first, np.float64) @ C.T  # [verts, 3] in the file's axes
+    mid = 0.5 * (v.min(0) + v.max(0))
+    return C.T @ np.array([mid[0], float(lowest_up), mid[2]])
 
 
 def joint_globals(joint_transforms: np.ndarray, pivots: np.ndarray) -> np.ndarray:

@@ -5,7 +5,8 @@ Steps:
    with the cVAE latent z = mu, novel ones with z = 0, as `render`) or a motion file (`--poses`, z = 0; any rig
    `render --poses` takes, retargeted onto the avatar's body model when made for another: `motion_for_avatar`);
 2. posed meshes (`--frames`, default the first training frame / the motion file's first frame): the density field
-   of the frame sampled on a grid over the node supports, marching cubes at `threshold`, vertex colours baked by
+   of the frame sampled on a grid over the node supports, marching cubes at `threshold` (default: a level from the
+   field's densities just inside the body model's skin, `export.mesh.body_level`), vertex colours baked by
    rendering each vertex head-on along its normal (`export.mesh`); written as GLB / PLY / OBJ;
 3. the animatable avatar `avatar.glb`: one mesh extracted the same way in the canonical (rest) pose
    (`export.mesh.rest_node_state`: M_j = identity, z = 0), skinning weights transferred from the body template
@@ -23,8 +24,12 @@ Steps:
    the first posed frame in the first held-out view) are written with the meshes into a temporary directory,
    renamed into place (`atomic_dir`), and the stage is recorded.
 
-Frames of the files: PLY / OBJ in the capture's world frame (metres, the cameras' frame); GLB files rotated so the
-capture's up (estimated from the cameras) is glTF's +Y (`export.json` "glb_basis" holds the 3x3 rotation).
+Frames of the files: PLY / OBJ in the capture's world frame (metres, the cameras' frame). GLB files (posed meshes and
+avatar.glb alike) in one frame that other tools expect (`export.skinning.glb_frame`): rotated so the capture's up
+(estimated from the cameras) is glTF's +Y, and moved so the origin is on the ground under the body: height 0 is the
+lowest point the body template's feet reach over the motion (the project's frames, or `--poses`), the horizontal
+origin the middle of the body's footprint in the motion's first frame; the root motion is relative to it
+(`export.json` "glb_frame": the 4x4 world -> file matrix, "glb_basis" its rotation).
 """
 
 from __future__ import annotations
@@ -42,7 +47,7 @@ from avatarctl.project import Project, check_name, now_iso
 from avatarctl.stages.common import StageProgress, ProgressFn, check_latent_mode, frame_node_state, latent_for, \
     load_fitted, motion_for_avatar, open_fitted, writing
 
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2  # 2: threshold None = from the field; glb_frame; reload default_pose_max_m
 MESH_FORMATS = ("glb", "ply", "obj")
 SPLAT_FORMATS = ("splat", "player")  # Gaussian-field avatars: per-frame 3DGS .ply, the HTML player (_splats)
 FORMATS = MESH_FORMATS + SPLAT_FORMATS
@@ -61,7 +66,7 @@ class ExportConfig:
     poses: str | None = None  # motion file: the posed frames and the animation; None = the project's frames
     formats: tuple[str, ...] = ("glb", "ply")  # posed mesh files: glb | ply | obj; Gaussian fields: splat | player
     voxel: float = 0.008  # grid spacing, metres
-    threshold: float = 10.0  # density level of the surface, 1/metre (export.mesh.DEFAULT_THRESHOLD)
+    threshold: float | None = None  # density level of the surface, 1/metre; None = from the field (export.mesh.body_level)
     min_component: float = 0.01  # drop connected pieces with fewer than this fraction of the faces
     influences: int = 4  # skinning weights per vertex in avatar.glb: 4 (JOINTS_0) or 8 (+ JOINTS_1)
     latent: str = "auto"  # auto | mean | zero | sample (posed meshes; the rest mesh uses z = 0)
@@ -81,7 +86,7 @@ class ExportConfig:
                              fix=f"use a comma list of {', '.join(FORMATS)}")
         if not 0.001 <= self.voxel <= 0.1:
             raise InputError(f"--voxel {self.voxel} m outside [0.001, 0.1]", where="--voxel", fix="e.g. --voxel 0.008")
-        if not self.threshold > 0:
+        if self.threshold is not None and not self.threshold > 0:
             raise InputError(f"--threshold must be > 0 (1/metre), got {self.threshold}", where="--threshold",
                              fix="e.g. --threshold 10")
         if not 0.0 <= self.min_component < 1.0:
@@ -108,6 +113,7 @@ class ExportedMesh:
     files: dict[str, int]  # relative file -> bytes
     vertices: int
     faces: int
+    threshold: float  # the surface level used, 1/metre
     grid_points: int  # density evaluations (grid points inside a node support)
     seconds: float
 
@@ -131,6 +137,7 @@ class SkinnedExport:
     bytes: int
     vertices: int
     faces: int
+    threshold: float  # the surface level of the rest mesh, 1/metre
     joints: int
     animation_frames: int
     animation_source: str
@@ -170,7 +177,7 @@ def _run(project_dir: str | Path, cfg: ExportConfig, progress: ProgressFn | None
     from avatarctl.atomic import atomic_dir, write_json
     from avatarctl.render.trajectories import up_from_cameras
 
-    from avatarctl.export.skinning import up_to_y_basis
+    from avatarctl.export.skinning import glb_frame, up_to_y_basis
 
     started = now_iso()
     t_start = time.perf_counter()
@@ -197,6 +204,7 @@ def _run(project_dir: str | Path, cfg: ExportConfig, progress: ProgressFn | None
                          fix="fit with --set model.field=gaussians, or export glb / ply / obj")
     if "player" in splat_formats and cfg.frames is None:
         default = pool[:PLAYER_FRAMES]
+    frame_glb = glb_frame(basis, _ground_origin(avatar, motion, basis))
     frames = (select_frames(cfg.frames, pool, train=cap.split.train_frames if cfg.poses is None else None,
                             test=cap.split.test_frames if cfg.poses is None else None)
               if cfg.frames is not None else default) if cfg.posed else []
@@ -227,10 +235,11 @@ def _run(project_dir: str | Path, cfg: ExportConfig, progress: ProgressFn | None
                 report("posed")
                 continue
             ts = time.perf_counter()
-            mesh, queried = _extract(avatar, state, cfg, f"frame {frame}")
-            files = _write_posed(tmp, frame, mesh, mesh_formats, basis)
+            body = avatar.body.pose(one).vertices[0].detach().float().cpu().numpy()
+            mesh, queried, level = _extract(avatar, state, cfg, f"frame {frame}", body)
+            files = _write_posed(tmp, frame, mesh, mesh_formats, frame_glb)
             meshes.append(ExportedMesh(frame=frame, latent=latent, files=files, vertices=mesh.num_vertices,
-                                       faces=mesh.num_faces, grid_points=queried,
+                                       faces=mesh.num_faces, threshold=round(level, 4), grid_points=queried,
                                        seconds=round(time.perf_counter() - ts, 3)))
             if cfg.score:
                 scores += _score(avatar, one, state, mesh, frame, is_train, preview if not preview else None)
@@ -246,7 +255,7 @@ def _run(project_dir: str | Path, cfg: ExportConfig, progress: ProgressFn | None
             write_player(tmp / "player.html", block, f"avatarctl player: {project.root.name}")
             splat_files["player.html"] = (tmp / "player.html").stat().st_size
         if cfg.skinned and mesh_formats:  # the skinned avatar is a mesh product: not with splat formats alone
-            skinned = _export_skinned(tmp, avatar, cfg, motion if cfg.poses else cap.motion, source, basis)
+            skinned = _export_skinned(tmp, avatar, cfg, motion, source, frame_glb)
             report("skinned")
         if preview:
             from avatarctl.render.images import write_png
@@ -255,7 +264,7 @@ def _run(project_dir: str | Path, cfg: ExportConfig, progress: ProgressFn | None
         result = ExportResult(out_dir=out_dir, meshes=meshes, avatar=skinned, scores=scores,
                               seconds=round(time.perf_counter() - t_start, 3), checkpoint_step=avatar.step,
                               splats=splat_files)
-        write_json(tmp / "export.json", _record(cfg, avatar, result, basis, source, retarget))
+        write_json(tmp / "export.json", _record(cfg, avatar, result, frame_glb, source, retarget))
     project.record("export", config=cfg.to_json(), outputs=[out_dir], started=started,
                    summary={"name": cfg.name, "meshes": len(meshes), "avatar": skinned.file if skinned else None,
                             "checkpoint_step": avatar.step, "motion": source,
@@ -290,15 +299,23 @@ def _require(module: str, what: str, alternative: str = "") -> None:
                          fix=f"pip install 'avatarctl[export]' {alternative}".strip())
 
 
-def _extract(avatar: Any, state: Any, cfg: ExportConfig, what: str) -> tuple[Any, int]:
-    """The coloured mesh of frame slot 0 of `state` (export.mesh), a one-line error when there is no surface."""
-    from avatarctl.export.mesh import GridTooLargeError, NoSurfaceError, extract_mesh, slrf_density, slrf_ray_colour
+def _extract(avatar: Any, state: Any, cfg: ExportConfig, what: str, body: np.ndarray) -> tuple[Any, int, float]:
+    """The coloured mesh of frame slot 0 of `state` (export.mesh) -> (mesh, grid points queried, the level used);
+    body [V, 3]: the body model posed like `state` (the level's probes when `cfg.threshold` is None). A one-line
+    error when there is no surface."""
+    from avatarctl.export.mesh import (GridTooLargeError, NoSurfaceError, body_level, extract_mesh, slrf_density,
+                                       slrf_ray_colour)
 
     model = avatar.model
+    density = slrf_density(model, state)
     try:
-        return extract_mesh(slrf_density(model, state), slrf_ray_colour(model, state),
-                            state.centers[0].detach().float().cpu().numpy(), float(model.cfg.support_radius),
-                            cfg.voxel, cfg.threshold, cfg.min_component)
+        level = cfg.threshold if cfg.threshold is not None else body_level(
+            density, body, avatar.template.faces.cpu().numpy())
+        mesh, queried = extract_mesh(density, slrf_ray_colour(model, state),
+                                     state.centers[0].detach().float().cpu().numpy(),
+                                     float(model.cfg.support_radius), cfg.voxel, level, cfg.min_component,
+                                     background=tuple(float(c) for c in avatar.background))
+        return mesh, queried, level
     except NoSurfaceError as e:
         raise InputError(f"no surface to mesh for {what}: {e}", where="--threshold",
                          fix="lower --threshold (or fit longer)") from None
@@ -306,21 +323,38 @@ def _extract(avatar: Any, state: Any, cfg: ExportConfig, what: str) -> tuple[Any
         raise InputError(str(e), where="--voxel", fix="use a larger --voxel") from None
 
 
-def _in_basis(mesh: Any, basis: np.ndarray) -> Any:
+def _ground_origin(avatar: Any, motion: Any, basis: np.ndarray, chunk: int = 64) -> np.ndarray:
+    """[3] world point that becomes the GLB files' origin (module docstring): the body template posed over `motion`,
+    its lowest point along the up axis over all frames, the middle of its first frame's footprint."""
+    from avatarctl.export.skinning import ground_origin
+
+    up = np.asarray(basis, np.float64)[1]
+    lowest, first = np.inf, None
+    for s in range(0, motion.num_frames, chunk):
+        v = avatar.body.pose(motion.select(slice(s, s + chunk))).vertices.detach().double().cpu().numpy()
+        first = v[0] if first is None else first
+        lowest = min(lowest, float((v @ up).min()))
+    return ground_origin(first, lowest, basis)
+
+
+def _in_frame(mesh: Any, frame: np.ndarray) -> Any:
+    """The mesh in the GLB files' frame (a [4, 4] `export.skinning.glb_frame`)."""
     from dataclasses import replace
 
-    C = basis.astype(np.float32)
-    return replace(mesh, vertices=mesh.vertices @ C.T, normals=mesh.normals @ C.T)
+    from avatarctl.export.skinning import to_frame
+
+    return replace(mesh, vertices=to_frame(mesh.vertices, frame).astype(np.float32),
+                   normals=(mesh.normals @ frame[:3, :3].T.astype(np.float32)).astype(np.float32))
 
 
-def _write_posed(tmp: Path, frame: int, mesh: Any, formats: tuple[str, ...], basis: np.ndarray) -> dict[str, int]:
+def _write_posed(tmp: Path, frame: int, mesh: Any, formats: tuple[str, ...], glb: np.ndarray) -> dict[str, int]:
     from avatarctl.export.gltf import write_mesh
 
     (tmp / "meshes").mkdir(exist_ok=True)
     files = {}
     for fmt in formats:
         rel = f"meshes/{frame:06d}.{fmt}"
-        write_mesh(tmp / rel, _in_basis(mesh, basis) if fmt == "glb" else mesh)
+        write_mesh(tmp / rel, _in_frame(mesh, glb) if fmt == "glb" else mesh)
         files[rel] = (tmp / rel).stat().st_size
     return files
 
@@ -365,7 +399,7 @@ def _score(avatar: Any, one: Any, state: Any, mesh: Any, frame: int, is_train: b
 
 
 def _export_skinned(tmp: Path, avatar: Any, cfg: ExportConfig, motion: Any, source: str,
-                    basis: np.ndarray) -> SkinnedExport:
+                    frame: np.ndarray) -> SkinnedExport:
     """Step 3 and 4: avatar.glb and its reload check."""
     import torch
 
@@ -375,8 +409,9 @@ def _export_skinned(tmp: Path, avatar: Any, cfg: ExportConfig, motion: Any, sour
     from avatarctl.export.mesh import rest_node_state
 
     ts = time.perf_counter()
-    mesh, _ = _extract(avatar, rest_node_state(avatar.model), cfg, "the rest pose")
     tpl = avatar.template
+    mesh, _, level = _extract(avatar, rest_node_state(avatar.model), cfg, "the rest pose",
+                              tpl.vertices.cpu().numpy())
     dense = skinning.transfer_weights(mesh.vertices, tpl.vertices.cpu().numpy(), tpl.skin_weights.cpu().numpy())
     weights = skinning.sparsify(dense, cfg.influences)
     cap = avatar.capture
@@ -384,9 +419,8 @@ def _export_skinned(tmp: Path, avatar: Any, cfg: ExportConfig, motion: Any, sour
     M = M_capture if motion is cap.motion else _joint_transforms(avatar, motion)
     fallback = skin_weighted_centroids(tpl.vertices.cpu(), tpl.skin_weights.cpu())
     pivots = joint_centres(torch.from_numpy(M_capture), tpl.parents, fallback).numpy()  # [J, 3] canonical
-    pivots_y = pivots @ basis.T
-    M_y = skinning.conjugate(M, basis)
-    rest = skinning.rest_trs(pivots_y, tpl.parents)
+    pivots_y = skinning.to_frame(pivots, frame)
+    M_y = skinning.conjugate(M, frame)
     ibm = np.tile(np.eye(4), (len(tpl.parents), 1, 1))
     ibm[:, :3, 3] = -pivots_y
     trs = skinning.local_trs(skinning.joint_globals(M_y, pivots_y), tpl.parents)
@@ -394,14 +428,17 @@ def _export_skinned(tmp: Path, avatar: Any, cfg: ExportConfig, motion: Any, sour
     times = (np.asarray(motion.frame_index, np.float64) - float(motion.frame_index[0])) / fps
     if len(times) > 1 and not np.all(np.diff(times) > 0):
         times = np.arange(len(times)) / fps
-    mesh_y = _in_basis(mesh, basis)
-    skin = SkinnedMesh(weights=weights, joint_names=tpl.joint_names, parents=tpl.parents, rest=rest, inverse_bind=ibm)
+    mesh_y = _in_frame(mesh, frame)
+    first = skinning.JointTrs(translation=trs.translation[:1], rotation=trs.rotation[:1], scale=trs.scale[:1],
+                              residual=trs.residual)  # the joints' own TRS: the first frame, standing on the floor
+    skin = SkinnedMesh(weights=weights, joint_names=tpl.joint_names, parents=tpl.parents, pose=first, inverse_bind=ibm)
     data = glb_bytes(mesh_y, skin, (Animation(name=Path(source).stem if source != "project" else "capture",
                                               times=times, trs=trs),))
     (tmp / "avatar.glb").write_bytes(data)
     seconds = time.perf_counter() - ts
     reload = _reload_check(tmp / "avatar.glb", mesh_y, weights, dense, M_y)
     return SkinnedExport(file="avatar.glb", bytes=len(data), vertices=mesh.num_vertices, faces=mesh.num_faces,
+                         threshold=round(level, 4),
                          joints=len(tpl.parents), animation_frames=len(times), animation_source=source,
                          seconds=round(seconds, 3), trs_residual=float(trs.residual),
                          weight_mass_dropped=round(weights.dense_residual, 6), reload=reload)
@@ -426,7 +463,6 @@ def _reload_check(path: Path, mesh_y: Any, weights: Any, dense: np.ndarray, M_y:
     from avatarctl.export.gltf_read import pose_glb, read_skinned_glb
 
     data = read_skinned_glb(path)
-    rest_err = float(np.abs(pose_glb(data) - mesh_y.vertices).max()) if len(mesh_y.vertices) else 0.0
     F = M_y.shape[0]
     sel = sorted(set(np.linspace(0, F - 1, min(CHECK_FRAMES, F)).round().astype(int).tolist()))
     v = torch.from_numpy(mesh_y.vertices.astype(np.float64))
@@ -435,26 +471,34 @@ def _reload_check(path: Path, mesh_y: Any, weights: Any, dense: np.ndarray, M_y:
     Ms = torch.from_numpy(M_y[sel])
     ours4, ours_dense = lbs(v, w4, Ms).numpy(), lbs(v, wd, Ms).numpy()  # [checked, verts, 3]
     theirs = np.stack([pose_glb(data, 0, f) for f in sel])
+    default_err = float(np.abs(pose_glb(data) - ours4[0]).max()) if len(mesh_y.vertices) else 0.0  # sel[0] = 0
     e4 = np.linalg.norm(theirs - ours4, axis=-1)
     ed = np.linalg.norm(theirs - ours_dense, axis=-1)
     return {"checked": True, "reader": "pygltflib + export.gltf_read (the glTF skinning equation on the file's data)",
-            "frames_checked": [int(f) for f in sel], "rest_max_m": rest_err,
+            "frames_checked": [int(f) for f in sel], "default_pose_max_m": default_err,
             "vs_lbs_same_weights_max_m": float(e4.max()), "vs_lbs_same_weights_mean_m": float(e4.mean()),
             "vs_lbs_dense_weights_max_m": float(ed.max()), "vs_lbs_dense_weights_mean_m": float(ed.mean())}
 
 
-def _record(cfg: ExportConfig, avatar: Any, res: ExportResult, basis: np.ndarray, source: str,
+def _record(cfg: ExportConfig, avatar: Any, res: ExportResult, frame: np.ndarray, source: str,
             retarget: str | None) -> dict[str, Any]:
     import torch
 
     mean = res.mean_psnr()
     return {"config": cfg.to_json(), "checkpoint": str(avatar.checkpoint) if avatar.checkpoint else None,
             "checkpoint_step": avatar.step, "motion_source": source, "retarget": retarget,
-            "surface": {"threshold_per_m": cfg.threshold, "voxel_m": cfg.voxel, "min_component": cfg.min_component,
-                        "colour": "volume render of a 4 cm ray segment (8 samples) looking at each vertex along -normal from "
-                                  "2 voxels outside, divided by its opacity (one view direction per vertex)"},
-            "glb_basis": basis.tolist(), "ply_obj_frame": "capture world (metres)",
-            "meshes": [asdict(m) for m in res.meshes], "splats": res.splats, "avatar": asdict(res.avatar) if res.avatar else None,
+            "surface": {"threshold_per_m": cfg.threshold if cfg.threshold is not None else
+                        "from the field: the 25 % quantile of the density 1 cm inside the body model's skin, at most 10 "
+                        "(per mesh: meshes[].threshold, avatar.threshold)",
+                        "voxel_m": cfg.voxel, "min_component": cfg.min_component,
+                        "colour": "volume render of a 30 cm ray (32 samples) looking at each vertex along -normal from 2 "
+                                  "voxels outside, composited over the fit's background (one view direction per vertex)"},
+            "glb_frame": frame.tolist(), "glb_basis": frame[:3, :3].tolist(),
+            "glb_origin": "on the ground (the lowest point of the body template over the motion) under the middle "
+                          "of the body's footprint in the motion's first frame; +Y up",
+            "ply_obj_frame": "capture world (metres)",
+            "meshes": [asdict(m) for m in res.meshes], "splats": res.splats,
+            "avatar": asdict(res.avatar) if res.avatar else None,
             "scores": [asdict(s) for s in res.scores],
             "score_mean": {"psnr_mesh": mean[0], "psnr_volume": mean[1], "protocol": "bbox (eval), held-out views",
                            "mesh_render": "unlit baked vertex colours, 1 ray per pixel"} if mean else None,
