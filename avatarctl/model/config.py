@@ -30,6 +30,8 @@ Choices beyond the paper text (documented, switchable):
   this many hops in the kinematic tree (see `deformer.pose_attention_map`).
 - `pe_anneal_steps` (off in every preset): coarse-to-fine gamma(p) of the MLP fields (model/encoding.py), measured
   no better than the plain encoding (docs/fit.md).
+- `field = "gaussians"`: structured local Gaussian fields (model/gaussian_field.py), K 3D Gaussians per node,
+  rasterized instead of ray-marched; its options live in `GaussianConfig` (`model.gaussians.*`), docs/fit.md.
 """
 
 from __future__ import annotations
