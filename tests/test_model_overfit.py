@@ -42,7 +42,8 @@ def _overfit() -> None:
     torch.manual_seed(0)
     g = torch.Generator().manual_seed(0)
     rb, target = sphere_scene()
-    model = SlrfAvatar(ModelConfig.preset("cpu").with_(num_nodes=32, samples_per_ray=32), sphere_template(400),
+    model = SlrfAvatar(ModelConfig.preset("cpu").with_(num_nodes=32, samples_per_ray=32, field="mlp"),
+                       sphere_template(400),
                        num_frames=1)
     M, feats = toy_joint_transforms(torch.zeros(1))
     cond = FrameConditioning(M, feats, torch.zeros(1), torch.zeros(1, dtype=torch.long))

@@ -9,7 +9,8 @@ Presets (see docs/fit.md):
 - "paper": the supplement's settings: model preset "paper" (N=128 nodes, 64 samples per ray), 2048 rays per step
   over a batch of 4 images (512 rays each), Adam lr 5e-4 (beta 0.9 / 0.999), lr x0.5 every 20k iterations, 300k
   iterations (the paper's ZJU-MoCap count; 100k PeopleSnapshot, 500k its own multi-view data).
-- "cpu": model preset "cpu" (narrow networks, hull nodes decided from the masks), 512 rays per step over 4 images, 20k iterations, validation on
+- "cpu": model preset "cpu" (the Gaussian local fields trained on 4 image crops per step since issue 28; with
+  `--set model.field=mlp` the narrow MLP fields; hull nodes decided from the masks), 512 rays per step over 4 images, 20k iterations, validation on
   half-size images every 1000 steps: sized for a 2-core CPU (512 rays gave more rays/s than 1024 there: ~530 vs
   ~360 on a shared 2-core machine; a full-size 256x256 validation of 2 views took minutes there).
 - "micro": a smoke-test size for CI (32 nodes, 16 samples per ray, 128 rays over 2 images, 50 iterations; no
@@ -47,7 +48,7 @@ ABLATIONS: dict[str, dict[str, Any]] = {
     "no-embedding": {"use_embedding": False},
     "deterministic": {"latent": "deterministic"},
     "per-frame-latent": {"latent": "per_frame"},
-    "lbs-baseline": {"variant": "lbs_baseline"},
+    "lbs-baseline": {"variant": "lbs_baseline", "field": "mlp"},  # the pose-only baseline is a canonical MLP
 }
 
 
@@ -69,7 +70,6 @@ class FitConfig:
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)  # target = rgb * mask + background * (1 - mask)
     # optimiser (paper: Adam lr 5e-4, betas 0.9 / 0.999, exponential decay every 20k iterations)
     lr: float = 5e-4
-    lr_grid: float = 1e-2  # learning rate of the feature grids of `model.field = "grid"` (unused by the MLP field)
     lr_pose: float = 3e-4  # rate of the pose-refinement corrections (`model.pose_refine`; 1e-3 until 2026-11-25)
     pose_refine_start: int = 0  # the corrections stay frozen (lr 0) before this step: the avatar takes shape first
     adam_beta1: float = 0.9
@@ -119,7 +119,6 @@ class FitConfig:
         need(len(self.background) == 3 and all(0.0 <= c <= 1.0 for c in self.background),
              f"background must be 3 values in [0, 1], got {self.background}")
         need(self.lr > 0 and math.isfinite(self.lr), f"lr must be > 0, got {self.lr}")
-        need(self.lr_grid > 0 and math.isfinite(self.lr_grid), f"lr_grid must be > 0, got {self.lr_grid}")
         need(self.lr_pose > 0 and math.isfinite(self.lr_pose), f"lr_pose must be > 0, got {self.lr_pose}")
         need(isinstance(self.pose_refine_start, int) and self.pose_refine_start >= 0,
              f"pose_refine_start must be an int >= 0, got {self.pose_refine_start!r}")
@@ -149,12 +148,15 @@ class FitConfig:
         if version != SCHEMA_VERSION:
             raise InputError(f"fit config schema_version {version} is not supported (expected {SCHEMA_VERSION})",
                              fix="re-run `avatarctl fit` with this avatarctl version")
+        d.pop("lr_grid", None)  # the grid field's rate, in configs written before issue 28 removed that field
         known = {f.name for f in fields(cls)}
         unknown = sorted(set(d) - known)
         if unknown:
             raise InputError(f"unknown fit config keys {unknown}", fix=f"known keys: {sorted(known)}")
         try:
-            model = ModelConfig.from_json(d.pop("model")) if "model" in d else ModelConfig.preset("cpu")
+            # configs written without a model section predate the Gaussian field: the cpu preset's MLP model
+            model = ModelConfig.from_json(d.pop("model")) if "model" in d else ModelConfig.preset("cpu").with_(
+                field="mlp")
         except ValueError as e:
             raise InputError(str(e), fix="check the model section of the fit config") from None
         d["background"] = tuple(d.get("background", (0.0, 0.0, 0.0)))
@@ -173,7 +175,8 @@ def preset(name: str) -> FitConfig:
     if name == "micro":
         return FitConfig(preset="micro", iters=50, rays_per_batch=128, images_per_batch=2, log_every=10,
                          checkpoint_every=50, val_every=0, val_pairs=1, val_scale=0.5,
-                         model=ModelConfig.preset("cpu").with_(num_nodes=32, samples_per_ray=16, hull_nodes=0))
+                         model=ModelConfig.preset("cpu").with_(num_nodes=32, samples_per_ray=16, hull_nodes=0,
+                                                                field="mlp"))
     raise InputError(f"unknown preset {name!r}", fix=f"use one of: {', '.join(PRESETS)}")
 
 
@@ -231,7 +234,7 @@ def _parse_value(key: str, text: str, current: Any) -> Any:
             return int(f)
         if isinstance(current, float):
             return float(t)
-        if isinstance(current, tuple):  # tuple of ints (e.g. model.grid_levels=8,16,32) or of floats
+        if isinstance(current, tuple):  # tuple of ints or of floats (e.g. snapshot_at_s=120,300)
             conv = int if current and all(isinstance(x, int) for x in current) else float
             return tuple(conv(x) for x in t.split(","))
         return t

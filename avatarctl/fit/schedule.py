@@ -24,18 +24,16 @@ def make_optimizer(cfg: FitConfig, params) -> torch.optim.Adam:
 
 
 def param_groups(cfg: FitConfig, model: torch.nn.Module) -> list[dict]:
-    """Adam param groups: the grid tables of the `grid` field backend at `cfg.lr_grid` (feature grids want a rate
-    ~20-100x an MLP's: DVGO, Instant-NGP), the pose-refinement corrections at `cfg.lr_pose`, everything else at
-    `cfg.lr`. All follow the same decay."""
+    """Adam param groups: the Gaussians' own parameters (`model.field = "gaussians"`) at 3DGS's rates
+    (`model.gaussians.lr_*`), the pose-refinement corrections at `cfg.lr_pose`, everything else at `cfg.lr`. All
+    follow the same decay."""
     fields = getattr(model, "fields", None)
-    grid = fields.grid_parameters() if hasattr(fields, "grid_parameters") else []
     refine = getattr(model, "pose_refine", None)
     pose = list(refine.parameters()) if refine is not None else []
-    # the Gaussians' own parameters (`model.field = "gaussians"`) at 3DGS's rates, `model.gaussians.lr_*`
     splats = fields.gaussian_parameters() if hasattr(fields, "gaussian_parameters") else {}
-    special = {id(p) for p in grid + pose + [q for ps in splats.values() for q in ps]}
+    special = {id(p) for p in pose + [q for ps in splats.values() for q in ps]}
     rest = [p for p in model.parameters() if id(p) not in special]
-    return [{"params": rest}] + ([{"params": grid, "lr": cfg.lr_grid}] if grid else []) \
+    return [{"params": rest}] \
         + [{"params": ps, "lr": getattr(cfg.model.gaussians, name), "name": name} for name, ps in splats.items()] \
         + ([{"params": pose, "lr": cfg.lr_pose, "name": "pose"}] if pose else [])
 

@@ -34,7 +34,6 @@ from avatarctl.model.deformer import (blending_weights, candidate_pairs, farthes
                                       node_transforms, pose_attention_map, posed_node_centers, ray_sphere_bounds)
 from avatarctl.model.field import (BlockPacking, CanonicalField, CoordinateEncoding, NodeFields, Packing,
                                    RadianceHeads, fuse_features, fuse_features_dense)
-from avatarctl.model.grid_field import NodeGridFields
 from avatarctl.model.occupancy import UNSEEN, cell_index, occupancy_estimate, select_samples, update_occupancy
 from avatarctl.model.losses import (LossTerms, embedding_loss, image_reconstruction_loss, kl_loss,
                                     reconstruction_loss, total_loss, translation_loss)
@@ -184,9 +183,6 @@ class SlrfAvatar(nn.Module):
                                                       cfg.gaussians.per_node, cfg.support_radius, seed, off_body)
                 self.fields = NodeGaussians(cfg.gaussians, cfg.num_nodes, cfg.embed_dim, means, log_scales,
                                             cfg.sigma)
-            elif cfg.field == "grid":
-                self.fields = NodeGridFields(cfg.num_nodes, cfg.grid_levels, cfg.grid_channels, cfg.embed_dim,
-                                             cfg.feature_dim, extent=self._node_extent())
             else:
                 self.fields = NodeFields(cfg.num_nodes, cfg.pe_coords, cfg.embed_dim, cfg.node_width,
                                          cfg.node_depth, cfg.feature_dim)
@@ -497,12 +493,7 @@ class SlrfAvatar(nn.Module):
         if cfg.occupancy:
             occ_pairs = (pi, cell_index(local, ni, self._node_extent(), cfg.occ_res))
         if cfg.variant == "slrf":
-            if cfg.field == "grid":  # affine F_i: fuse grid features and B_i e_i, decode once per point (Eq. 5)
-                g, wsum = fuse_features(self.fields.grid_features(local, ni), w, pi, P)
-                eb, _ = fuse_features(self.fields.embed_bias(state.embed)[fi, ni], w, pi, P)
-                f = self.fields.decode(g, eb)
-                width = slots = 0
-            elif cfg.pack_block > 0:
+            if cfg.pack_block > 0:
                 bp = BlockPacking.build(ni, N, cfg.pack_block)
                 o = bp.order
                 bias = self.fields.embed_bias(state.embed)[fi[o], ni[o]]  # [pairs, width] W_e e_i of each pair
@@ -541,13 +532,7 @@ class SlrfAvatar(nn.Module):
                 A_inv = torch.linalg.inv(state.transforms[..., :3, :3])[point_frame].transpose(0, 1)  # [N, P, 3, 3]
                 local = local_coordinates_centered(points[None], A_inv, centers) * self._local_scale()  # Eq. 4
             bias = self.fields.embed_bias(state.embed)[point_frame].transpose(0, 1)  # [N, P, width]
-            if cfg.field == "grid":
-                node = torch.arange(N, device=points.device)[:, None].expand(N, P)
-                g = self.fields.grid_features(local.reshape(-1, 3), node.reshape(-1)).reshape(N, P, -1)
-                gf, wsum = fuse_features_dense(g, w)  # Eq. 5 on the affine F_i
-                f = self.fields.decode(gf, fuse_features_dense(bias, w)[0])
-            else:
-                f, wsum = fuse_features_dense(self.fields(local, bias), w)  # Eq. 5
+            f, wsum = fuse_features_dense(self.fields(local, bias), w)  # Eq. 5
         else:
             wsum = w.sum(0)
             Tp = torch.einsum("np,npab->pab", w, state.transforms[point_frame].transpose(0, 1))

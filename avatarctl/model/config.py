@@ -10,7 +10,8 @@ our choice because the paper's architecture figure (supp. Fig. A) is not availab
   G(f, v) = Linear([f, gamma(v)], head_width) -> ReLU -> Linear(head_width // 2) -> ReLU -> Linear(3) -> sigmoid;
 - per-node cVAE encoder and decoder: two ReLU layers of `cvae_width` channels each.
 
-Presets: "paper" = the defaults; "cpu" = the same model with narrower networks (node 2 x 32 -> 32, heads 64,
+Presets: "paper" = the defaults; "cpu" = the Gaussian local fields (`field = "gaussians"`, since issue 28), and for
+the MLP fields (`--set model.field=mlp`) the same model with narrower networks (node 2 x 32 -> 32, heads 64,
 cVAE 32) so a training step with a few hundred rays takes well under a second on 2 CPU cores, and with empty-space
 skipping on (`occupancy`, model/occupancy.py: same images, ~20 % more steps per second, measured in docs/fit.md) and
 hull nodes decided from the masks (`hull_nodes = "auto"`, fit/hull_nodes.py: +0.4 dB on the skirt capture, the
@@ -42,9 +43,11 @@ from typing import Any
 SCHEMA_VERSION = 1
 LATENTS = ("cvae", "deterministic", "per_frame")
 VARIANTS = ("slrf", "lbs_baseline")
-# local fields F_i: the paper's per-node MLPs | per-node feature grids (model/grid_field.py) | per-node 3D Gaussians
-# rasterized instead of ray-marched (model/gaussian_field.py, options in `GaussianConfig`)
-FIELDS = ("mlp", "grid", "gaussians")
+# local fields F_i: the paper's per-node MLPs | per-node 3D Gaussians rasterized instead of ray-marched
+# (model/gaussian_field.py, options in `GaussianConfig`). The per-node feature grids ("grid") were removed in issue 28
+# (beaten by the Gaussians at equal wall time; figures in docs/fit.md, "Tried and removed").
+FIELDS = ("mlp", "gaussians")
+REMOVED_MODEL_KEYS = ("grid_levels", "grid_channels")  # in configs written before issue 28: dropped on reading
 REC_REDUCTIONS = ("sum", "mean")  # Eq. 12 as written (sum over rays) | plain MSE, see model/losses.py
 NOVEL_LATENTS = ("zero", "train_mean")  # z of novel poses: the paper's 0 | the mean of mu over the training frames
 HULL_AUTO = "auto"  # `hull_nodes`: decide from the training masks at fit start (fit/hull_nodes.py)
@@ -136,11 +139,9 @@ class ModelConfig:
     feature_dim: int = 128  # F_i output feature f (Eq. 5)
     head_width: int = 128  # G and H hidden channels (Eq. 7)
     cvae_width: int = 128  # per-node encoder / decoder hidden channels
-    # local-field backend (deviation when "grid", see model/grid_field.py and docs/fit.md)
-    field: str = "mlp"  # "mlp": the paper's F_i MLPs | "grid": per-node feature grids | "gaussians": see `gaussians`
+    # local-field backend (deviation when "gaussians", see model/gaussian_field.py and docs/fit.md)
+    field: str = "mlp"  # "mlp": the paper's F_i MLPs | "gaussians": per-node 3D Gaussians, see `gaussians`
     gaussians: GaussianConfig = GaussianConfig()  # options of field "gaussians" (model/gaussian_field.py)
-    grid_levels: tuple[int, ...] = (8, 16, 32)  # grid backend: vertices per side of each level over the node cube
-    grid_channels: int = 4  # grid backend: features per level
     # density head H (deviation when not 1 / 0, see model/field.py RadianceHeads)
     density_scale: float = 1.0  # sigma = density_scale * softplus(x + density_shift), 1/metre
     density_shift: float = 0.0
@@ -187,12 +188,6 @@ class ModelConfig:
             if not ok:
                 raise ValueError(f"ModelConfig: {msg}")
 
-        if isinstance(self.grid_levels, (list, int)):  # JSON lists; `--set model.grid_levels=16` gives one level
-            levels = [self.grid_levels] if isinstance(self.grid_levels, int) else self.grid_levels
-            object.__setattr__(self, "grid_levels", tuple(levels))
-        need(isinstance(self.grid_levels, tuple) and len(self.grid_levels) > 0
-             and all(isinstance(d, int) and not isinstance(d, bool) and 2 <= d <= 128 for d in self.grid_levels),
-             f"grid_levels must be ints in [2, 128], got {self.grid_levels!r}")
         need(self.field in FIELDS, f"field must be one of {FIELDS}, got {self.field!r}")
         if isinstance(self.gaussians, dict):  # JSON
             object.__setattr__(self, "gaussians", GaussianConfig.from_json(self.gaussians))
@@ -201,7 +196,7 @@ class ModelConfig:
              "pose-only baseline is the ray-marched canonical MLP)")
 
         for name in ("num_nodes", "embed_dim", "latent_dim", "node_width", "node_depth", "feature_dim",
-                     "head_width", "cvae_width", "samples_per_ray", "grid_channels", "occ_res"):
+                     "head_width", "cvae_width", "samples_per_ray", "occ_res"):
             v = getattr(self, name)
             need(isinstance(v, int) and not isinstance(v, bool) and v > 0, f"{name} must be a positive int, got {v!r}")
         for name in ("pe_coords", "pe_views", "pe_time", "pose_attention_hops", "occ_warmup", "pe_anneal_steps"):
@@ -271,7 +266,7 @@ class ModelConfig:
         return self.occupancy and self.ray_marched
 
     def to_json(self) -> dict[str, Any]:
-        return {"schema_version": SCHEMA_VERSION, **asdict(self), "grid_levels": list(self.grid_levels)}
+        return {"schema_version": SCHEMA_VERSION, **asdict(self)}
 
     @classmethod
     def from_json(cls, d: dict[str, Any]) -> "ModelConfig":
@@ -280,6 +275,11 @@ class ModelConfig:
         version = d.pop("schema_version", SCHEMA_VERSION)
         if version != SCHEMA_VERSION:
             raise ValueError(f"ModelConfig: schema_version {version} is not supported (expected {SCHEMA_VERSION})")
+        if d.get("field") == "grid":
+            raise ValueError("ModelConfig: field 'grid' (per-node feature grids) was removed in issue 28; this avatar "
+                             "needs avatarctl before that change (git commit e4ec5be), or a new fit")
+        for key in REMOVED_MODEL_KEYS:
+            d.pop(key, None)
         known = {f.name for f in fields(cls)}
         unknown = sorted(set(d) - known)
         if unknown:
@@ -290,14 +290,16 @@ class ModelConfig:
 
     @classmethod
     def preset(cls, name: str) -> "ModelConfig":
-        """"paper": the defaults. "cpu": narrower networks, empty-space skipping, hull nodes where the masks show
+        """"paper": the defaults. "cpu": the Gaussian local fields (`field = "gaussians"`, model/gaussian_field.py:
+        +0.7 dB box, +3 to +5 dB body at equal wall time on synth small, docs/fit.md), hull nodes where the masks show
         loose clothing (`hull_nodes = "auto"`, fit/hull_nodes.py) and the training frames' mean latent for novel poses
-        (`novel_latent = "train_mean"`, model/cvae.py; see module docstring)."""
+        (`novel_latent = "train_mean"`, model/cvae.py; see module docstring); for the MLP fields
+        (`--set model.field=mlp`) narrower networks and empty-space skipping."""
         if name == "paper":
             return cls()
         if name == "cpu":
             return cls(node_width=32, node_depth=2, feature_dim=32, head_width=64, cvae_width=32, occupancy=True,
-                       hull_nodes=HULL_AUTO, novel_latent="train_mean")
+                       hull_nodes=HULL_AUTO, novel_latent="train_mean", field="gaussians")
         raise ValueError(f"ModelConfig: unknown preset {name!r}; use 'paper' or 'cpu'")
 
     def with_(self, **changes: Any) -> "ModelConfig":
