@@ -190,6 +190,12 @@ def test_fit_render_eval_with_gaussian_fields_on_the_toy_body(tmp_path, monkeypa
     assert len(rr.images) == 2 and rr.video.is_file()
     er = evaluate.run(proj, EvalConfig(split="novel_view", device="cpu"))
     assert er.metrics.images == 6 and 0 < er.psnr < 100
+    # export: a posed mesh from the Gaussians' density and the splats of the same frame
+    from avatarctl.stages import export
+    from avatarctl.stages.export import ExportConfig
+
+    xr = export.run(proj, ExportConfig(frames="0", formats=("glb", "splat"), skinned=False, voxel=0.02, device="cpu"))
+    assert xr.meshes and xr.meshes[0].faces > 100 and (xr.out_dir / "splats").is_dir()
 
 
 def test_splat_ply_holds_the_posed_gaussians_in_the_world_frame(tmp_path):
