@@ -223,11 +223,11 @@ def test_config_defaults_presets_json_and_validation():
     assert ModelConfig.preset("paper") == c
     cpu = ModelConfig.preset("cpu")
     assert cpu.node_width < c.node_width and cpu.num_nodes == 128
-    assert ModelConfig.from_json(cpu.to_json()) == cpu and cpu.field == "gaussians"
+    assert ModelConfig.from_json(cpu.to_json()) == cpu and cpu.field == "mlp"
     # configs written before the grid field was removed (issue 28) still read; a grid avatar is a one-line error
     old = {**cpu.to_json(), "field": "mlp", "grid_levels": [8, 16, 32], "grid_channels": 4}
     old.pop("gaussians")
-    assert ModelConfig.from_json(old) == cpu.with_(field="mlp")
+    assert ModelConfig.from_json(old) == cpu
     with pytest.raises(ValueError, match="field 'grid' .* was removed"):
         ModelConfig.from_json({**old, "field": "grid"})
     with pytest.raises(ValueError, match="unknown keys"):

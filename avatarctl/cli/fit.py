@@ -7,8 +7,7 @@ from typing import Optional
 
 import typer
 
-PRESET_HELP = ("Sizes: 'cpu' (Gaussian local fields on 4 image crops/step, 20k it; --set model.field=mlp for the "
-               "narrow MLP fields; for a 2-core CPU), 'paper' (the supplement's MLP fields: "
+PRESET_HELP = ("Sizes: 'cpu' (narrow networks, 512 rays/step, 20k it; for a 2-core CPU), 'paper' (the supplement: "
                "2048 rays over 4 images, 64 samples, 300k it; for a GPU), 'micro' (CI smoke test). Default: cpu.")
 
 

@@ -9,8 +9,8 @@ Presets (see docs/fit.md):
 - "paper": the supplement's settings: model preset "paper" (N=128 nodes, 64 samples per ray), 2048 rays per step
   over a batch of 4 images (512 rays each), Adam lr 5e-4 (beta 0.9 / 0.999), lr x0.5 every 20k iterations, 300k
   iterations (the paper's ZJU-MoCap count; 100k PeopleSnapshot, 500k its own multi-view data).
-- "cpu": model preset "cpu" (the Gaussian local fields trained on 4 image crops per step since issue 28; with
-  `--set model.field=mlp` the narrow MLP fields; hull nodes decided from the masks), 512 rays per step over 4 images, 20k iterations, validation on
+- "cpu": model preset "cpu" (narrow networks, hull nodes decided from the masks; `--set model.field=gaussians` for
+  the Gaussian local fields on 4 image crops per step), 512 rays per step over 4 images, 20k iterations, validation on
   half-size images every 1000 steps: sized for a 2-core CPU (512 rays gave more rays/s than 1024 there: ~530 vs
   ~360 on a shared 2-core machine; a full-size 256x256 validation of 2 views took minutes there).
 - "micro": a smoke-test size for CI (32 nodes, 16 samples per ray, 128 rays over 2 images, 50 iterations; no
@@ -154,9 +154,7 @@ class FitConfig:
         if unknown:
             raise InputError(f"unknown fit config keys {unknown}", fix=f"known keys: {sorted(known)}")
         try:
-            # configs written without a model section predate the Gaussian field: the cpu preset's MLP model
-            model = ModelConfig.from_json(d.pop("model")) if "model" in d else ModelConfig.preset("cpu").with_(
-                field="mlp")
+            model = ModelConfig.from_json(d.pop("model")) if "model" in d else ModelConfig.preset("cpu")
         except ValueError as e:
             raise InputError(str(e), fix="check the model section of the fit config") from None
         d["background"] = tuple(d.get("background", (0.0, 0.0, 0.0)))
@@ -175,8 +173,7 @@ def preset(name: str) -> FitConfig:
     if name == "micro":
         return FitConfig(preset="micro", iters=50, rays_per_batch=128, images_per_batch=2, log_every=10,
                          checkpoint_every=50, val_every=0, val_pairs=1, val_scale=0.5,
-                         model=ModelConfig.preset("cpu").with_(num_nodes=32, samples_per_ray=16, hull_nodes=0,
-                                                                field="mlp"))
+                         model=ModelConfig.preset("cpu").with_(num_nodes=32, samples_per_ray=16, hull_nodes=0))
     raise InputError(f"unknown preset {name!r}", fix=f"use one of: {', '.join(PRESETS)}")
 
 

@@ -10,8 +10,7 @@ our choice because the paper's architecture figure (supp. Fig. A) is not availab
   G(f, v) = Linear([f, gamma(v)], head_width) -> ReLU -> Linear(head_width // 2) -> ReLU -> Linear(3) -> sigmoid;
 - per-node cVAE encoder and decoder: two ReLU layers of `cvae_width` channels each.
 
-Presets: "paper" = the defaults; "cpu" = the Gaussian local fields (`field = "gaussians"`, since issue 28), and for
-the MLP fields (`--set model.field=mlp`) the same model with narrower networks (node 2 x 32 -> 32, heads 64,
+Presets: "paper" = the defaults; "cpu" = the same model with narrower networks (node 2 x 32 -> 32, heads 64,
 cVAE 32) so a training step with a few hundred rays takes well under a second on 2 CPU cores, and with empty-space
 skipping on (`occupancy`, model/occupancy.py: same images, ~20 % more steps per second, measured in docs/fit.md) and
 hull nodes decided from the masks (`hull_nodes = "auto"`, fit/hull_nodes.py: +0.4 dB on the skirt capture, the
@@ -290,16 +289,16 @@ class ModelConfig:
 
     @classmethod
     def preset(cls, name: str) -> "ModelConfig":
-        """"paper": the defaults. "cpu": the Gaussian local fields (`field = "gaussians"`, model/gaussian_field.py:
-        +0.7 dB box, +3 to +5 dB body at equal wall time on synth small, docs/fit.md), hull nodes where the masks show
+        """"paper": the defaults. "cpu": narrower networks, empty-space skipping, hull nodes where the masks show
         loose clothing (`hull_nodes = "auto"`, fit/hull_nodes.py) and the training frames' mean latent for novel poses
-        (`novel_latent = "train_mean"`, model/cvae.py; see module docstring); for the MLP fields
-        (`--set model.field=mlp`) narrower networks and empty-space skipping."""
+        (`novel_latent = "train_mean"`, model/cvae.py; see module docstring). The Gaussian local fields
+        (`--set model.field=gaussians`) are not its default: better at equal wall time on synth small, but the demo's
+        novel-view PSNR and its exported mesh were lower with them (docs/fit.md)."""
         if name == "paper":
             return cls()
         if name == "cpu":
             return cls(node_width=32, node_depth=2, feature_dim=32, head_width=64, cvae_width=32, occupancy=True,
-                       hull_nodes=HULL_AUTO, novel_latent="train_mean", field="gaussians")
+                       hull_nodes=HULL_AUTO, novel_latent="train_mean")
         raise ValueError(f"ModelConfig: unknown preset {name!r}; use 'paper' or 'cpu'")
 
     def with_(self, **changes: Any) -> "ModelConfig":

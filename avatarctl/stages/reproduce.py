@@ -54,9 +54,7 @@ class ScaleSizes:
 
 SIZES: dict[str, ScaleSizes] = {
     "tiny": ScaleSizes(captures={"skirt": ("tiny", {}), "tight": ("tight", {}), "monocular": ("monocular", {})},
-                       # the paper's tables are about its MLP fields (the cpu preset's default is the Gaussian field)
-                       fit_preset="cpu", fit_overrides=("rays_per_batch=1024", "val_every=0", "model.field=mlp"),
-                       eval_every=4),
+                       fit_preset="cpu", fit_overrides=("rays_per_batch=1024", "val_every=0"), eval_every=4),
     "micro": ScaleSizes(captures={"skirt": ("micro", {}), "tight": ("micro", {"garment": "none"}),
                                   "monocular": ("micro", {"garment": "none", "motion": "turn", "train_views": 1})},
                         fit_preset="micro", fit_overrides=("val_every=0",), eval_every=2),
