@@ -93,6 +93,7 @@ def test_player_plays_in_headless_chromium(exported, tmp_path):
 
     if find_chromium() is None:
         pytest.skip("no chromium / chrome on this machine")
+    pytest.importorskip("websockets")  # the DevTools client (installed with the `view` extra, not with `test`)
     import cv2
 
     browser = Browser(480, 400)
