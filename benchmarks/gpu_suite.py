@@ -196,7 +196,7 @@ def part_render(device: str, quick: bool) -> dict:
     with torch.no_grad():
         posed = model.posed_gaussians(state)
         proj = project_gaussians(posed.means[0], posed.covars[0], scam)
-        colors = posed.colors(0, -(scam.R.T @ scam.T))
+        colors = posed.colors(0, scam.center)
         parts = {"pose_ms": _timed(lambda: model.posed_gaussians(state), device, reps),
                  "project_ms": _timed(lambda: project_gaussians(posed.means[0], posed.covars[0], scam), device, reps),
                  "bin_ms": _timed(lambda: bin_gaussians(proj, posed.opacities[0], size, size), device, reps),

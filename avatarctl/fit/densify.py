@@ -29,7 +29,7 @@ def relocate_dead(fields: NodeGaussians, optimizer: torch.optim.Optimizer, min_o
     if rows.numel() == 0:
         return 0
     gen = torch.Generator().manual_seed(int(seed) * 1_000_003 + int(step))
-    N, K = opacity.shape
+    K = opacity.shape[1]
     dev = opacity.device
     probs = (opacity * live)[rows].float().cpu()  # [n, K]
     draws = torch.multinomial(probs, K, replacement=True, generator=gen).to(dev)  # [n, K] sources per node

@@ -289,7 +289,7 @@ class SlrfAvatar(nn.Module):
         -> rgb [H, W, 3], alpha [H, W]."""
         from avatarctl.splat import render_gaussians
 
-        colors = posed.colors(slot, -(camera.R.T @ camera.T))  # camera centre, world
+        colors = posed.colors(slot, camera.center)
         out = render_gaussians(posed.means[slot], posed.covars[slot], colors, posed.opacities[slot], camera,
                                background.to(colors), backend=backend)
         return out.rgb, out.alpha
@@ -434,8 +434,7 @@ class SlrfAvatar(nn.Module):
         from avatarctl.model.gaussian_field import eval_sh
 
         posed = self.posed_gaussians(state)
-        B, G = posed.opacities.shape
-        N, K = self.cfg.num_nodes, posed.per_node
+        K = posed.per_node
         prec = torch.linalg.inv(posed.covars)  # [B, G, 3, 3]
         norm = posed.opacities / (math.sqrt(2 * math.pi) * torch.linalg.det(posed.covars).clamp(min=1e-30) ** (1 / 6))
         pi, ni = candidate_pairs(points, point_frame, state.centers, 1.5 * self.cfg.support_radius)

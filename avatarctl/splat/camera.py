@@ -29,6 +29,11 @@ class SplatCamera:
         if not (self.width > 0 and self.height > 0):
             raise ValueError(f"SplatCamera: image size must be positive, got {self.width}x{self.height}")
 
+    @property
+    def center(self) -> torch.Tensor:
+        """Camera centre in world coordinates, [3] (as `geometry.Camera.center`)."""
+        return -(self.R.T @ self.T)
+
     @staticmethod
     def from_camera(cam, device: torch.device | str | None = None) -> "SplatCamera":
         """From a calibrated `Camera` (numpy, float64) -> float32 tensors on `device`. A camera with lens distortion
