@@ -14,6 +14,8 @@ Parts (each timed, each a section of OUT/gpu_suite.json; a part that fails is re
    machine in a lease; the cost per image depends on the Gaussians' number and screen size, not on the body.
 5. `render`: ms per 512² render of that avatar in eval mode (`render.engine.render_view`, the path of render /
    eval / view), mean of 20 after 3 warm-ups.
+6. `profile`: torch.profiler over 5 such renders: the top operators by device and by host time, and the count of
+   host-device synchronisations per render.
 
 `--quick`: tiny sizes, so the script itself runs in the CPU test suite (tests/test_gpu_suite.py) and cannot rot.
 """
@@ -48,7 +50,7 @@ def _timed(fn: Callable[[], Any], device: str, repeats: int, warmup: int = 2) ->
     return (time.perf_counter() - t0) / repeats
 
 
-def _toy_avatar(device: str, per_node: int, nodes: int, seed: int = 0, frames: int = 4):
+def _toy_avatar(device: str, per_node: int, nodes: int, seed: int = 0, frames: int = 4, blend_nodes: int = 1):
     """A Gaussian-field avatar on a 1 m toy sphere, with its conditioning for `frames` training frames."""
     import torch
 
@@ -58,7 +60,7 @@ def _toy_avatar(device: str, per_node: int, nodes: int, seed: int = 0, frames: i
 
     template = sphere_template(num_vertices=max(4 * nodes, 400), radius=0.5)
     cfg = ModelConfig.preset("cpu").with_(field="gaussians", num_nodes=nodes, hull_nodes=0)
-    cfg = cfg.with_(gaussians=cfg.gaussians.__class__(per_node=per_node))
+    cfg = cfg.with_(gaussians=cfg.gaussians.__class__(per_node=per_node, blend_nodes=blend_nodes))
     torch.manual_seed(seed)
     model = SlrfAvatar(cfg, template, num_frames=frames, seed=seed)
     bend = torch.linspace(0.0, 0.6, frames)
@@ -143,8 +145,8 @@ def part_train(device: str, quick: bool) -> dict:
 
     size, per_node, nodes, steps = (48, 8, 16, 3) if quick else (512, 192, 128, 30)
     out: dict[str, Any] = {"image_size": size, "gaussians": nodes * per_node}
-    for batch in (4, 16):
-        model, cond = _toy_avatar(device, per_node, nodes, frames=batch)
+    for batch, blend in ((4, 1), (16, 1), (4, 4)):
+        model, cond = _toy_avatar(device, per_node, nodes, frames=batch, blend_nodes=blend)
         model.train()
         opt = torch.optim.Adam(model.parameters(), lr=5e-4)
         cam = SplatCamera.from_camera(_camera(size), device=device)
@@ -156,8 +158,8 @@ def part_train(device: str, quick: bool) -> dict:
         def step() -> None:
             state = model.node_state(cond, "posterior", generator=gen)
             posed = model.posed_gaussians(state)
-            outs = [model.render_image(posed, b, cam, bg) for b in range(batch)]
-            terms = model.image_losses([o[0] for o in outs], [o[1] for o in outs], target, mask, state)
+            rgb, alpha = model.render_images(posed, [cam] * batch, bg)  # as fit.distributed.render_crops
+            terms = model.image_losses(rgb, alpha, target, mask, state)
             opt.zero_grad(set_to_none=True)
             terms.total.backward()
             opt.step()
@@ -167,11 +169,23 @@ def part_train(device: str, quick: bool) -> dict:
         sec = _timed(step, device, steps)
         relocate_dead(model.fields, opt, 0.005, 0, 100)  # the density control runs on the device too
         _sync(device)
-        out[f"batch{batch}"] = {"seconds_per_step": sec, "images_per_s": batch / sec,
-                                "pixels_per_s": batch * size * size / sec,
-                                "peak_gpu_gb": torch.cuda.max_memory_allocated() / 2**30
-                                if device.startswith("cuda") else None}
+        name = f"batch{batch}" + (f"_blend{blend}" if blend > 1 else "")
+        out[name] = {"seconds_per_step": sec, "images_per_s": batch / sec, "pixels_per_s": batch * size * size / sec,
+                     "peak_gpu_gb": torch.cuda.max_memory_allocated() / 2**30 if device.startswith("cuda") else None}
     return out
+
+
+def _eval_avatar(device: str, quick: bool):
+    """(model in eval mode, its node state of frame 0 with the posterior mean, a camera): what `part_render` and
+    `part_profile` render (512² and 128 x 192 Gaussians; tiny with `quick`)."""
+    import torch
+
+    size, per_node, nodes = (48, 8, 16) if quick else (512, 192, 128)
+    model, cond = _toy_avatar(device, per_node, nodes)
+    model.eval()
+    with torch.no_grad():
+        state = model.node_state(cond, "mean")
+    return model, state, _camera(size)
 
 
 def part_render(device: str, quick: bool) -> dict:
@@ -179,13 +193,8 @@ def part_render(device: str, quick: bool) -> dict:
 
     from avatarctl.render.engine import render_view
 
-    size, per_node, nodes = (48, 8, 16) if quick else (512, 192, 128)
-    model, cond = _toy_avatar(device, per_node, nodes)
-    model.eval()
-    with torch.no_grad():
-        state = model.node_state(cond, "mean")
-    cam = _camera(size)
-    reps = 3 if quick else 20
+    model, state, cam = _eval_avatar(device, quick)
+    size, reps = cam.width, 3 if quick else 20
     sec = _timed(lambda: render_view(model, state, 0, cam, (0.0, 0.0, 0.0)), device, reps, 3)
     # where the time goes: posing (decoder, covariances), colours + projection + binning, the raster kernel
     from avatarctl.splat import SplatCamera, project_gaussians, rasterize
@@ -202,11 +211,42 @@ def part_render(device: str, quick: bool) -> dict:
                  "bin_ms": _timed(lambda: bin_gaussians(proj, posed.opacities[0], size, size), device, reps),
                  "raster_ms": _timed(lambda: rasterize(proj, colors, posed.opacities[0], size, size, bg), device,
                                      reps)}
-    return {"image_size": size, "gaussians": nodes * per_node, "ms_per_render": 1e3 * sec,
+    return {"image_size": size, "gaussians": int(posed.means.shape[1]), "ms_per_render": 1e3 * sec,
             **{k: 1e3 * v for k, v in parts.items()}}
 
 
-PARTS = {"env": part_env, "parity": part_parity, "raster": part_raster, "train": part_train, "render": part_render}
+def part_profile(device: str, quick: bool) -> dict:
+    """Where a render's time goes on the device: torch.profiler's top operators by self device time and by self host
+    time, and the count of host-device synchronisations (what keeps a small render from its kernels' speed)."""
+    from torch.profiler import ProfilerActivity, profile
+
+    from avatarctl.render.engine import render_view
+
+    model, state, cam = _eval_avatar(device, quick)
+    for _ in range(3):
+        render_view(model, state, 0, cam, (0.0, 0.0, 0.0))
+    _sync(device)
+    acts = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if device.startswith("cuda") else [])
+    with profile(activities=acts) as prof:
+        for _ in range(5):
+            render_view(model, state, 0, cam, (0.0, 0.0, 0.0))
+        _sync(device)
+    events = prof.key_averages()
+
+    def top(key: str, n: int = 25) -> list[dict]:
+        rows = sorted(events, key=lambda e: getattr(e, key, 0.0) or 0.0, reverse=True)[:n]
+        return [{"name": e.key, "count": e.count, "self_cpu_ms": e.self_cpu_time_total / 1e3 / 5,
+                 "self_device_ms": (getattr(e, "self_device_time_total", 0.0) or 0.0) / 1e3 / 5} for e in rows]
+
+    syncs = {e.key: e.count / 5 for e in events
+             if any(s in e.key for s in ("Synchronize", "Memcpy", "aten::item", "aten::_local_scalar_dense",
+                                         "aten::nonzero", "cudaLaunchKernel"))}
+    return {"per_render": {"by_device_time": top("self_device_time_total"), "by_cpu_time": top("self_cpu_time_total"),
+                           "sync_like_calls": syncs}}
+
+
+PARTS = {"env": part_env, "parity": part_parity, "raster": part_raster, "train": part_train, "render": part_render,
+         "profile": part_profile}
 
 
 def main(argv: list[str] | None = None) -> dict:

@@ -278,13 +278,9 @@ def render_crops(model: "SlrfAvatar", batch: "ImageBatch", state: "NodeState", b
     from avatarctl.splat import SplatCamera
 
     posed = model.posed_gaussians(state)
-    rgb, alpha = [], []
-    for b, crop in enumerate(batch.crops):
-        h, w = crop.mask.shape
-        cam = SplatCamera.from_camera(crop.camera, device=crop.target.device).crop(crop.x0, crop.y0, w, h)
-        c, a = model.render_image(posed, b, cam, background)
-        rgb.append(c)
-        alpha.append(a)
+    cams = [SplatCamera.from_camera(c.camera, device=c.target.device).crop(c.x0, c.y0, c.mask.shape[1], c.mask.shape[0])
+            for c in batch.crops]
+    rgb, alpha = model.render_images(posed, cams, background)
     return ImageOutputs(rgb=rgb, alpha=alpha, stats={"images": float(len(rgb)), "gaussians": float(
         posed.means.shape[1]), "pixels": float(batch.pixels)})
 

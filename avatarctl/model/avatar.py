@@ -281,7 +281,7 @@ class SlrfAvatar(nn.Module):
         if self.cfg.field != "gaussians":
             raise ValueError(f"posed_gaussians needs model.field = 'gaussians', this avatar's is {self.cfg.field!r}")
         with _float32_geometry(state.transforms.device):
-            return self.fields(state.transforms, state.centers, state.embed)
+            return self.fields(state.transforms, state.centers, state.embed, self.node_rest)
 
     def render_image(self, posed: "PosedGaussians", slot: int, camera: "SplatCamera", background: torch.Tensor,
                      backend: str = "auto") -> tuple[torch.Tensor, torch.Tensor]:
@@ -293,6 +293,20 @@ class SlrfAvatar(nn.Module):
         out = render_gaussians(posed.means[slot], posed.covars[slot], colors, posed.opacities[slot], camera,
                                background.to(colors), backend=backend)
         return out.rgb, out.alpha
+
+    def render_images(self, posed: "PosedGaussians", cameras: list["SplatCamera"], background: torch.Tensor,
+                      backend: str = "auto") -> tuple[list[torch.Tensor], list[torch.Tensor]]:
+        """Rasterize frame slot b of `posed` seen by cameras[b], for every b at once (`splat.render_gaussians_batch`:
+        one projection, one binning, one launch) -> rgb [[H_b, W_b, 3]], alpha [[H_b, W_b]]."""
+        from avatarctl.splat import render_gaussians_batch
+
+        B = len(cameras)
+        assert B == posed.means.shape[0], f"render_images: {B} cameras for {posed.means.shape[0]} frame slots"
+        centers = torch.stack([c.center for c in cameras])
+        colors = posed.colors_batch(list(range(B)), centers)
+        out = render_gaussians_batch(posed.means, posed.covars, colors, posed.opacities, cameras,
+                                     background.to(colors), backend=backend)
+        return [o[0] for o in out], [o[1] for o in out]
 
     def image_losses(self, rgb: list[torch.Tensor], alpha: list[torch.Tensor], target: list[torch.Tensor],
                      mask: list[torch.Tensor], state: NodeState) -> LossTerms:

@@ -16,8 +16,8 @@ from dataclasses import dataclass
 import torch
 
 from avatarctl.splat.camera import SplatCamera
-from avatarctl.splat.project import Projected, project_gaussians
-from avatarctl.splat.rasterizer import rasterize
+from avatarctl.splat.project import Projected, project_gaussians, project_gaussians_batch
+from avatarctl.splat.rasterizer import rasterize, rasterize_batch
 
 
 @dataclass
@@ -42,4 +42,17 @@ def render_gaussians(means: torch.Tensor,  # [G, 3] world, metres
     return SplatRender(rgb=rgb, alpha=alpha, radii=proj.radii, means2d=proj.means2d)
 
 
-__all__ = ["Projected", "SplatCamera", "SplatRender", "project_gaussians", "rasterize", "render_gaussians"]
+def render_gaussians_batch(means: torch.Tensor,  # [B, G, 3] world, metres: the Gaussians image b sees
+                           covars: torch.Tensor,  # [B, G, 3, 3]
+                           colors: torch.Tensor,  # [B, G, C]
+                           opacities: torch.Tensor,  # [B, G]
+                           cams: list[SplatCamera], background: torch.Tensor,  # [C]
+                           backend: str = "auto") -> list[tuple[torch.Tensor, torch.Tensor]]:
+    """`render_gaussians` of B images in one projection and one rasterization (`rasterize_batch`) -> [(rgb [H_b, W_b,
+    C], alpha [H_b, W_b])], image b of cams[b] (each its own window size)."""
+    proj = project_gaussians_batch(means, covars, cams)
+    return rasterize_batch(proj, colors, opacities, [(c.width, c.height) for c in cams], background, backend)
+
+
+__all__ = ["Projected", "SplatCamera", "SplatRender", "project_gaussians", "project_gaussians_batch", "rasterize",
+           "rasterize_batch", "render_gaussians", "render_gaussians_batch"]

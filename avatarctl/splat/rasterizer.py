@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import functools
 import threading
+from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
@@ -55,7 +56,11 @@ def reach(proj: Projected, opacities: torch.Tensor, width: int, height: int) -> 
     hi = torch.ceil(torch.clamp(m + ext + 1.0, -1e6, 1e6)).to(torch.int32)
     tight = torch.cat([torch.maximum(box[:, :2], lo), torch.minimum(box[:, 2:], hi)], -1)
     tight = torch.where(ok[:, None], tight, box)
-    return torch.where((r2 > 0)[:, None], tight, torch.tensor([0, 0, -1, -1], dtype=torch.int32, device=box.device))
+    tight = torch.where((r2 > 0)[:, None], tight, torch.tensor([0, 0, -1, -1], dtype=torch.int32, device=box.device))
+    if proj.bounds is None:
+        return tight
+    return torch.cat([torch.maximum(tight[:, :2], proj.bounds[:, :2]), torch.minimum(tight[:, 2:], proj.bounds[:, 2:])],
+                     -1)
 
 
 def bin_gaussians(proj: Projected, opacities: torch.Tensor, width: int, height: int) -> TileBins:
@@ -142,6 +147,42 @@ def rasterize(proj: Projected, colors: torch.Tensor,  # [G, C]
     bins = bin_gaussians(proj, opacities, width, height)
     return _RasterizeWarp.apply(proj.means2d, proj.conics, colors, opacities, background, bins, width, height,
                                 variant)
+
+
+def rasterize_batch(proj: Projected,  # fields with a leading [B]: `project.project_gaussians_batch`
+                    colors: torch.Tensor,  # [B, G, C]
+                    opacities: torch.Tensor,  # [B, G] in [0, 1]
+                    sizes: Sequence[tuple[int, int]],  # (width, height) of each image
+                    background: torch.Tensor,  # [C]
+                    backend: str = "auto") -> list[tuple[torch.Tensor, torch.Tensor]]:
+    """B images composited at once -> [(rgb [h_b, w_b, C], alpha [h_b, w_b])]: the images are stacked as rows of one
+    canvas (each starting on a tile row, so no tile holds two), every splat confined to its image's window
+    (`Projected.bounds`), then binned and composited by one `rasterize`. The same images as B `rasterize` calls up to
+    the float rounding of the shifted pixel rows; one set of launches and synchronisations instead of B (what bounds
+    small images on a GPU). backend "torch": B calls of the dense twin."""
+    B, G = proj.means2d.shape[:2]
+    assert len(sizes) == B and colors.shape[:2] == (B, G) and opacities.shape == (B, G), \
+        f"rasterize_batch: {len(sizes)} sizes, colors {list(colors.shape)}, opacities {list(opacities.shape)} for " \
+        f"means2d {list(proj.means2d.shape)}"
+    if backend == "torch":
+        return [rasterize(Projected(means2d=proj.means2d[b], conics=proj.conics[b], depths=proj.depths[b],
+                                    radii=proj.radii[b]), colors[b], opacities[b], w, h, background, backend)
+                for b, (w, h) in enumerate(sizes)]
+    tops = [0]
+    for _, h in sizes:
+        tops.append(tops[-1] + -(-int(h) // TILE) * TILE)
+    width = max(int(w) for w, _ in sizes)
+    dev = proj.means2d.device
+    top = torch.tensor(tops[:-1], dtype=proj.means2d.dtype, device=dev)  # [B]
+    shift = torch.stack([torch.zeros_like(top), top], -1)[:, None, :]  # [B, 1, 2]
+    bounds = torch.tensor([[0, t, int(w) - 1, t + int(h) - 1] for t, (w, h) in zip(tops, sizes)], dtype=torch.int32,
+                          device=dev)  # [B, 4]
+    flat = Projected(means2d=(proj.means2d + shift).reshape(B * G, 2), conics=proj.conics.reshape(B * G, 3),
+                     depths=proj.depths.reshape(B * G), radii=proj.radii.reshape(B * G),
+                     bounds=bounds[:, None, :].expand(B, G, 4).reshape(B * G, 4))
+    rgb, alpha = rasterize(flat, colors.reshape(B * G, -1), opacities.reshape(B * G), width, tops[-1], background,
+                           backend)
+    return [(rgb[t:t + int(h), :int(w)], alpha[t:t + int(h), :int(w)]) for t, (w, h) in zip(tops, sizes)]
 
 
 def _kernels():
