@@ -29,6 +29,7 @@ from avatarctl.errors import InputError, ProjectError
 from avatarctl.frames import select_frames
 from avatarctl.ingest.config import IngestConfig
 from avatarctl.ingest.estimate import EstimateReport
+from avatarctl.ingest.split import check_split_views
 from avatarctl.io.capture import CaptureSource, check_complete, fmt_list
 
 ProgressFn = Callable[[int, int, str], None]  # (done, total, part): part "detect" | "fit" | "frames"
@@ -179,6 +180,8 @@ def plan_ingest(cfg: IngestConfig) -> IngestPlan:
     _check_project_dest(cfg)
     src, reason = read_capture(cfg)
     cams = select_views(src, cfg.views)
+    if src.split is not None:
+        check_split_views(src.split, src.camera_names, where=str(src.root / "split.json"))
     cam_by_name = {c.name: c for c in src.cameras}
     check_cameras_metric([cam_by_name[c] for c in cams], where=str(src.root))
     available = sorted(set().union(*[src.image_frames.get(c, set()) for c in cams]))
