@@ -21,7 +21,6 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 
@@ -31,8 +30,8 @@ from avatarctl.ingest.config import IngestConfig
 from avatarctl.ingest.estimate import EstimateReport
 from avatarctl.ingest.split import check_split_views
 from avatarctl.io.capture import CaptureSource, check_complete, fmt_list
+from avatarctl.progress import ProgressFn, ProgressReport
 
-ProgressFn = Callable[[int, int, str], None]  # (done, total, part): part "detect" | "fit" | "frames"
 MIN_INSIDE = 0.90  # warn when fewer of the posed vertices than this project inside the masks
 POSE_CHUNK = 64  # frames posed at once
 MAX_FOREGROUND = 0.99  # a mask with more foreground than this is inverted or blank, not a person in the frame
@@ -261,7 +260,7 @@ def run_ingest(cfg: IngestConfig, progress: ProgressFn | None = None) -> IngestR
                     if want_tile:
                         tiles.append(Tile(c, frame, rgb, mask, sil, _detected_points(plan.detections, c, frame)))
                 if progress is not None:
-                    progress(s + k + 1, len(frames), "frames")
+                    progress(ProgressReport(done=s + k + 1, total=len(frames), part="frames"))
 
         cameras_out = [und[c].target for c in cams]
         save_cameras(proj.paths.cameras, cameras_out)

@@ -17,18 +17,17 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any, Callable, Protocol
+from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
 import torch
 
 from avatarctl.geometry.cameras import Camera
+from avatarctl.progress import ProgressFn, ProgressReport
 
 if TYPE_CHECKING:
     from avatarctl.geometry.rays import RayBatch
     from avatarctl.splat import SplatCamera
-
-ProgressFn = Callable[[int, int], None]  # (rays rendered so far, rays to render)
 
 
 class NodeFrames(Protocol):
@@ -107,7 +106,8 @@ def render_view(model: ViewModel, state: NodeFrames, slot: int, camera: Camera,
     """Render frame `slot` of `state` (a `NodeState` batched over frames) seen by `camera`.
 
     `pixel_mask` [H, W] bool restricts rendering to those pixels (e.g. the eval box); pixels outside it are
-    `background` with alpha 0. `progress(done, total)` is called after each chunk with ray counts.
+    `background` with alpha 0. `progress` gets a report after each chunk (`part` "rays": rays rendered of the rays
+    to render).
     """
     from avatarctl.geometry.rays import RayBatch, camera_rays, image_pixels
 
@@ -148,7 +148,7 @@ def render_view(model: ViewModel, state: NodeFrames, slot: int, camera: Camera,
             rgb[idx] = out.rgb.float().cpu().numpy()
             alpha[idx] = out.alpha.float().cpu().numpy()
             if progress is not None:
-                progress(e, total)
+                progress(ProgressReport(done=e, total=total, part="rays"))
     return ViewRender(rgb=np.clip(rgb, 0.0, 1.0).reshape(H, W, 3), alpha=alpha.reshape(H, W),
                       seconds=time.perf_counter() - t0, rays=total)
 
@@ -176,5 +176,5 @@ def _rasterize_view(model: ViewModel, state: NodeFrames, slot: int, camera: Came
         rgb[~keep] = np.asarray(background, dtype=np.float32)
         alpha[~keep] = 0.0
     if progress is not None:
-        progress(H * W, H * W)
+        progress(ProgressReport(done=H * W, total=H * W, part="rays"))
     return ViewRender(rgb=np.clip(rgb, 0.0, 1.0), alpha=alpha, seconds=time.perf_counter() - t0, rays=H * W)
