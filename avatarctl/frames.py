@@ -13,6 +13,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from avatarctl.errors import InputError
+from avatarctl.lists import split_list
 
 PARSE_FIX = "use all | train | test | a:b[:step] | a comma list of frame numbers"
 
@@ -46,7 +47,7 @@ def parse_frame_spec(spec: str | None, what: str = "--frames") -> FrameSpec:
             if step <= 0:
                 raise ValueError
             return FrameSpec("range", start=start, stop=stop, step=step)
-        frames = tuple(sorted(set(int(x) for x in s.split(",") if x.strip())))
+        frames = tuple(sorted(set(split_list(s, int))))
         if not frames:
             raise ValueError
         return FrameSpec("list", frames=frames)

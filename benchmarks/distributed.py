@@ -33,6 +33,8 @@ import shutil
 import tempfile
 from pathlib import Path
 
+from avatarctl.lists import split_list
+
 
 def ensure_project(cache: Path) -> Path:
     """A tiny synthetic project in `cache` (made once)."""
@@ -62,8 +64,8 @@ def fit_once(project: Path, work: Path, nproc: int, threads: int, seconds: float
     os.environ["OMP_NUM_THREADS"] = str(threads)  # the spawned ranks read it when they import torch
     torch.set_num_threads(threads)
     req = FitRequest(preset=preset, iters=1_000_000, device="cpu", nproc=nproc,
-                     overrides=(f"time_budget_s={seconds}", "val_every=0", "val_pairs=0", "log_every=10",
-                                "checkpoint_every=1000000"))
+                     settings={"time_budget_s": float(seconds), "val_every": 0, "val_pairs": 0, "log_every": 10,
+                               "checkpoint_every": 1000000})
     res = fit.run(dest, req, handle_sigint=False)
     steps = res.step
     return {"nproc": nproc, "threads_per_rank": threads, "steps": steps, "train_seconds": round(res.seconds, 2),
@@ -91,7 +93,7 @@ def cpu_per_step(project: Path, work: Path, nproc: int, steps: int, preset: str)
         shutil.copytree(project, dest, ignore=shutil.ignore_patterns("fit", "render", "eval"))
         r0, c0 = resource.getrusage(resource.RUSAGE_CHILDREN), time.process_time()
         fit.run(dest, FitRequest(preset=preset, iters=iters, device="cpu", nproc=nproc,
-                                 overrides=("val_every=0", "val_pairs=0", "log_every=10")), handle_sigint=False)
+                                 settings={"val_every": 0, "val_pairs": 0, "log_every": 10}), handle_sigint=False)
         r1, c1 = resource.getrusage(resource.RUSAGE_CHILDREN), time.process_time()
         used.append((c1 - c0) if nproc == 1 else (r1.ru_utime + r1.ru_stime - r0.ru_utime - r0.ru_stime))
     return (used[1] - used[0]) / steps
@@ -228,7 +230,7 @@ def main() -> None:
     work = args.cache / "runs"
     work.mkdir(parents=True, exist_ok=True)
     rows = []
-    parts = set(args.parts.split(","))
+    parts = set(split_list(args.parts))
     for nproc, threads in ((1, 1), (1, args.threads), (2, 1)) if "wall" in parts else ():
         row = fit_once(project, work, nproc, threads, args.seconds, args.preset)
         print(json.dumps(row), flush=True)

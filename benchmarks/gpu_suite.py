@@ -30,6 +30,8 @@ import traceback
 from pathlib import Path
 from typing import Any, Callable
 
+from avatarctl.lists import split_list
+
 
 def _sync(device: str) -> None:
     import torch
@@ -258,7 +260,7 @@ def main(argv: list[str] | None = None) -> dict:
     a = ap.parse_args(argv)
     a.out.mkdir(parents=True, exist_ok=True)
     results: dict[str, Any] = {"command": " ".join(["python -m benchmarks.gpu_suite"] + (argv or [])), "parts": {}}
-    for name in [p.strip() for p in a.parts.split(",") if p.strip()]:
+    for name in split_list(a.parts):
         t0 = time.perf_counter()
         try:
             fn = PARTS[name]

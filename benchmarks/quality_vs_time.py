@@ -25,6 +25,8 @@ import sys
 import time
 from pathlib import Path
 
+from avatarctl.lists import split_list
+
 
 def _run(cmd: list[str], threads: int, log: Path) -> subprocess.Popen:
     env = {**os.environ, "OMP_NUM_THREADS": str(threads), "MKL_NUM_THREADS": str(threads)}
@@ -112,7 +114,7 @@ def main(argv: list[str] | None = None) -> None:
                     help="keep backends whose OUT/NAME/project already holds a finished fit (no re-fit, no re-eval)")
     args = ap.parse_args(argv)
 
-    minutes = [float(m) for m in args.minutes.split(",")]
+    minutes = list(split_list(args.minutes, float))
     backends = []
     for spec in args.backend:
         name, _, sets = spec.partition("=")

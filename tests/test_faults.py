@@ -328,6 +328,8 @@ FAULTS = [
     Fault("ingest_frame_that_does_not_exist", "capture", None, ingest("--frames", "7,9"), "frame"),
     Fault("ingest_resize_out_of_range", "capture", None, ingest("--resize", "0"), "out of range"),
     Fault("ingest_unknown_view", "capture", None, ingest("--views", "cam09"), "unknown cameras"),
+    Fault("split_names_a_view_the_capture_lacks", "capture",
+          _json("split.json", lambda d: _put(d, "test_views", ["zz99"])), ingest(), "test_views names 'zz99', a view the capture lacks"),
     # -- untrusted pickles (the payload must never run)
     Fault("zju_annots_malicious_pickle", "capture", _malicious("annots.npy", npy=True), ingest("--format", "zju"),
           "not allowed", marker=True),

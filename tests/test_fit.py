@@ -296,3 +296,19 @@ def test_time_budget_stops_with_checkpoint_and_validation(project):
     assert res.stop_reason == "time_budget" and not res.interrupted and res.step == 0
     assert res.val is not None and np.isfinite(res.val.psnr)  # still validated
     assert torch.load(project.paths.latest_checkpoint, weights_only=True)["step"] == 0
+
+
+def test_a_chain_passes_typed_settings_not_strings(tmp_path):
+    """demo / reproduce set FitConfig values as typed `FitRequest.settings` (no "time_budget_s=…" string parsed
+    back); they give what the same `--set` strings give, and a resumed fit refuses them like `--set`."""
+    from fixtures.toy_capture import make_toy_project
+
+    from avatarctl.stages.fit import FitRequest, fit_config
+
+    _, proj = make_toy_project(tmp_path)
+    p = Project.open(proj)
+    typed = fit_config(p, FitRequest(preset="micro", settings={"time_budget_s": 12.5, "val_every": 0}))
+    assert typed.time_budget_s == 12.5 and typed.val_every == 0
+    assert typed == fit_config(p, FitRequest(preset="micro", overrides=("time_budget_s=12.5", "val_every=0")))
+    with pytest.raises(InputError, match="--set cannot change a fit being resumed"):
+        fit_config(p, FitRequest(resume=True, settings={"val_every": 0}))

@@ -1,8 +1,12 @@
-"""The import direction of docs/architecture.md, checked on the code (every `import`, also inside functions).
+"""The import direction of docs/architecture.md, checked on the code: every `import`, also inside functions and
+type-only ones (under `if TYPE_CHECKING:`), since a type-only import that runs up the layers is still a cycle of
+ideas a reader must untangle.
 
-    cli -> stages -> libraries (model, render, fit, evaluate, ingest, io, body, synth, export, viewer, splat) -> base (geometry, project, ...)
+    __main__ -> cli -> stages -> libraries -> base (geometry, project, ...)
 
-A lower layer never imports a higher one; the core model never imports io/, cli/ or project.py; a stage never
+and the libraries in strict levels of their own (LIBRARY_LEVEL): a library imports only libraries of a lower level,
+never one of its own level or above (render/ below model/: the engine renders any `render.engine.ViewModel`, while
+model/ composites with `render.volume`). The core model never imports io/, cli/ or project.py; a stage never
 imports another stage's module (the chains, demo and reproduce, excepted); the CLI imports no library.
 """
 
@@ -12,12 +16,18 @@ import ast
 from pathlib import Path
 
 PKG = Path(__file__).resolve().parents[1] / "avatarctl"
-LIBRARIES = {"model", "render", "fit", "evaluate", "ingest", "io", "body", "synth", "export", "viewer", "splat"}
+LIBRARY_LEVEL = {  # 1 = just above the base; docs/architecture.md "Layers" draws the same table
+    "splat": 1, "body": 1, "evaluate": 1,
+    "render": 2, "io": 2,
+    "model": 3, "ingest": 3, "synth": 3,
+    "fit": 4, "export": 4, "viewer": 4,
+}
 BASE = {"geometry", "project", "atomic", "lock", "errors", "device", "frames", "allocator", "safe_pickle", "dist",
-        "__init__"}
-LAYER = {"__main__": 4, "cli": 3, "stages": 2, **{lib: 1 for lib in LIBRARIES}, **{b: 0 for b in BASE}}
+        "progress", "lists", "__init__"}
+TOP = max(LIBRARY_LEVEL.values())
+LAYER = {"__main__": TOP + 3, "cli": TOP + 2, "stages": TOP + 1, **LIBRARY_LEVEL, **{b: 0 for b in BASE}}
 CHAINS = {"avatarctl.stages.demo", "avatarctl.stages.reproduce"}  # stages that run other stages
-CLI_MAY_IMPORT = {"cli", "stages", "project", "errors", "allocator", "__init__"}
+CLI_MAY_IMPORT = {"cli", "stages", "project", "errors", "allocator", "progress", "lists", "__init__"}
 
 
 def _room(module: str) -> str:
@@ -32,12 +42,13 @@ def _is_module(dotted: str) -> bool:
     return (PKG / rel).with_suffix(".py").is_file() or (PKG / rel / "__init__.py").is_file()
 
 
-def _imports(path: Path) -> list[tuple[int, str]]:
-    """(line, imported avatarctl module) for every import statement of the file."""
+def _imports(path: Path, source: str | None = None) -> list[tuple[int, str]]:
+    """(line, imported avatarctl module) for every import statement of the file (of `source` when given), at any
+    depth: module level, inside functions, under `if TYPE_CHECKING:`."""
     module = "avatarctl." + ".".join(path.relative_to(PKG).with_suffix("").parts)
     package = module if path.name == "__init__.py" else module.rsplit(".", 1)[0]
     out = []
-    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+    for node in ast.walk(ast.parse(path.read_text() if source is None else source, str(path))):
         if isinstance(node, ast.Import):
             out += [(node.lineno, a.name) for a in node.names]
         elif isinstance(node, ast.ImportFrom):
@@ -65,9 +76,18 @@ def test_every_room_has_a_layer():
     assert rooms <= set(LAYER), f"add {sorted(rooms - set(LAYER))} to a layer here and in docs/architecture.md"
 
 
-def test_no_lower_layer_imports_a_higher_one():
+def test_no_import_runs_up_or_sideways():
+    """Each import goes to a strictly lower layer (or stays in its own room): no two rooms share a level and import
+    each other, type-only imports included."""
+    bad = [f"{f}:{line} {src} (level {LAYER[_room(src)]}) imports {dst} (level {LAYER[_room(dst)]})"
+           for f, line, src, dst in _edges()
+           if _room(dst) != _room(src) and LAYER[_room(dst)] >= LAYER[_room(src)] and LAYER[_room(src)] > 0]
+    assert not bad, "\n".join(bad)
+
+
+def test_base_imports_nothing_above_it():
     bad = [f"{f}:{line} {src} imports {dst}" for f, line, src, dst in _edges()
-           if LAYER[_room(dst)] > LAYER[_room(src)]]
+           if LAYER[_room(src)] == 0 and LAYER[_room(dst)] > 0]
     assert not bad, "\n".join(bad)
 
 
@@ -96,6 +116,17 @@ def test_a_stage_borrows_nothing_from_another_stage():
 def test_the_checker_sees_imports_at_any_depth():
     """Not vacuous: module-level, function-level and `from avatarctl import x` imports are all found."""
     edges = {(src, dst) for _, _, src, dst in _edges()}
-    assert ("avatarctl.render.engine", "avatarctl.model.avatar") in edges  # module level
+    assert ("avatarctl.model.avatar", "avatarctl.render.volume") in edges  # module level
+    assert ("avatarctl.stages.common", "avatarctl.fit.checkpoint") in edges  # type-only, under TYPE_CHECKING
     assert ("avatarctl.cli.app", "avatarctl.cli.demo") in edges  # inside a function: from avatarctl.cli import demo
     assert ("avatarctl.cli.app", "avatarctl") in edges  # from avatarctl import __version__
+
+
+def test_a_type_only_import_running_up_is_caught():
+    """The old hole: `render/engine.py` importing `model/avatar.py` for types only, while model imports render."""
+    src = ("from typing import TYPE_CHECKING\n"
+           "if TYPE_CHECKING:\n"
+           "    from avatarctl.model.avatar import SlrfAvatar\n")
+    found = _imports(PKG / "render" / "engine.py", src)
+    assert found == [(3, "avatarctl.model.avatar")]
+    assert LAYER[_room("avatarctl.model.avatar")] > LAYER[_room("avatarctl.render.engine")]

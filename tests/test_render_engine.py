@@ -66,11 +66,11 @@ def test_render_view_respects_pixel_mask_and_chunking(scene):
     mask[SIZE // 2:, :] = True
     calls = []
     part = render_view(model, state, 1, cam, BG, max_rays_per_chunk=7, pixel_mask=mask,
-                       progress=lambda done, total: calls.append((done, total)))
+                       progress=lambda p: calls.append((p.done, p.total, p.part)))
     np.testing.assert_allclose(part.rgb[mask], whole.rgb[mask], atol=1e-6)
     np.testing.assert_allclose(part.rgb[~mask], np.broadcast_to(np.float32(BG), part.rgb[~mask].shape))
     assert (part.alpha[~mask] == 0).all() and part.rays < whole.rays
-    assert calls[-1] == (part.rays, part.rays) and len(calls) == -(-part.rays // 7)
+    assert calls[-1] == (part.rays, part.rays, "rays") and len(calls) == -(-part.rays // 7)
     with pytest.raises(ValueError, match="pixel_mask"):
         render_view(model, state, 1, cam, BG, pixel_mask=np.ones((3, 3), bool))
 

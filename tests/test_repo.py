@@ -47,3 +47,10 @@ def test_benchmarks_and_test_toys_live_outside_the_core_model():
 def test_no_licensed_model_files_in_repo():
     bad = [p for p in ROOT.rglob("*") if p.suffix.lower() in {".pkl"} and ".venv" not in p.parts]
     assert not bad, f"model/data pickles must not be committed: {bad}"
+
+
+def test_docs_hold_no_scripts():
+    """Nothing under docs/ that can break without a test noticing: an experiment's scripts leave the tree (its README
+    names the commit that holds them) or become a tested `benchmarks/` module."""
+    scripts = [str(p.relative_to(ROOT)) for p in (ROOT / "docs").rglob("*") if p.suffix in {".py", ".sh"}]
+    assert not scripts, f"move these into benchmarks/ with a test, or out of the tree: {scripts}"

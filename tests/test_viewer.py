@@ -133,12 +133,12 @@ def test_viewer_page_in_headless_chromium(toy_fitted_project, tmp_path):
     from avatarctl.stages import view
     from avatarctl.stages.view import ViewConfig
 
-    stop, urls, errors = threading.Event(), [], []
+    stop, urls, errors, results = threading.Event(), [], [], []
 
     def serve():
         try:
-            view.run(toy_fitted_project, ViewConfig(port=free_port(), resolution=128, device="cpu"), ready=urls.append,
-                     stop=stop)
+            results.append(view.run(toy_fitted_project, ViewConfig(port=free_port(), resolution=128, device="cpu"),
+                                    ready=urls.append, stop=stop))
         except BaseException as e:  # noqa: BLE001 - reported by the test
             errors.append(e)
 
@@ -171,6 +171,7 @@ def test_viewer_page_in_headless_chromium(toy_fitted_project, tmp_path):
         stop.set()
         th.join(10)
     assert not th.is_alive() and not errors, "the viewer stops cleanly"
+    assert results[0].url == urls[0] and results[0].frames > 0 and results[0].config.resolution == 128
 
 
 def test_cli_prints_the_url_and_stops_cleanly_on_ctrl_c(toy_fitted_project):

@@ -53,12 +53,13 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from dataclasses import replace
-from typing import Callable, Protocol
+from typing import Protocol
 
 import numpy as np
 import torch
 
 from avatarctl.body.motion import BodyMotion
+from avatarctl.progress import ProgressFn, ProgressReport
 
 FIT_BONES = ("spine05", "spine04", "spine03", "spine02", "spine01", "neck01", "neck02", "neck03", "head",
              "clavicle.L", "clavicle.R", "upperarm01.L", "upperarm01.R", "lowerarm01.L", "lowerarm01.R",
@@ -401,7 +402,7 @@ class SilhouetteTerm:
 
 
 def fit_keypoints(model: KeypointBody, targets: KeypointTargets, cfg: KeypointFitConfig = KeypointFitConfig(),
-                  progress: Callable[[int, int], None] | None = None,
+                  progress: ProgressFn | None = None,
                   silhouettes: SilhouetteTargets | None = None) -> KeypointFit:
     """Fit the body `model` (a `KeypointBody`, see `keypoint_body`) to `targets` (see the module docstring for the
     energy); target keypoints the model does not provide are left out. Every frame needs at least three observed
@@ -458,7 +459,7 @@ def fit_keypoints(model: KeypointBody, targets: KeypointTargets, cfg: KeypointFi
         loss.backward()
         opt.step()
         if progress is not None:
-            progress(it + 1, cfg.iters)
+            progress(ProgressReport(done=it + 1, total=cfg.iters, part="fit"))
     report = None
     with torch.no_grad():
         R = roma.rotvec_to_rotmat(root_rv)

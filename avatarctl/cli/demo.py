@@ -31,7 +31,7 @@ def _run(cfg, console) -> None:
     from rich.table import Table
 
     from avatarctl.stages import demo
-    from avatarctl.stages.common import StageProgress
+    from avatarctl.progress import ProgressReport
     from avatarctl.stages.demo import StageDone
 
     s = cfg.sizes
@@ -41,7 +41,7 @@ def _run(cfg, console) -> None:
                   console=console) as bar:
         tasks: dict[str, int] = {}
 
-        def progress(p: StageProgress) -> None:
+        def progress(p: ProgressReport) -> None:
             if p.stage not in tasks:
                 tasks[p.stage] = bar.add_task(p.stage, total=p.total)
             bar.update(tasks[p.stage], completed=p.done, total=p.total)

@@ -58,10 +58,11 @@ def register(app: typer.Typer) -> None:
             if len(projects) > 1:
                 raise InputError(f"{len(projects)} projects given", fix="pass one PROJECT, or add --compare to "
                                  "tabulate several")
+            from avatarctl.lists import split_list
             from avatarctl.stages.common import parse_knockout
             from avatarctl.stages.evaluate import EvalConfig
 
-            view_names = tuple(v.strip() for v in views.split(",") if v.strip()) if views else ()
+            view_names = split_list(views)
             cfg = EvalConfig(split=split or "novel_view", protocol=protocol or "bbox", name=name, frames=frames,
                              views=view_names, every=every, latent=latent, seed=seed, sheet_rows=sheet,
                              max_rays_per_chunk=max_rays, device=device,
@@ -76,12 +77,12 @@ def _run(project: Path, cfg, nproc: int, wait: bool, console) -> None:
 
     from avatarctl.cli.common import progress_bar
     from avatarctl.stages import evaluate
-    from avatarctl.stages.common import StageProgress
+    from avatarctl.progress import ProgressReport
 
     with progress_bar("eval", ("info",), out=console) as bar:
         task = bar.add_task("eval", total=None, info="loading avatar")
 
-        def progress(p: StageProgress) -> None:
+        def progress(p: ProgressReport) -> None:
             info = f"{p.done / max(p.seconds, 1e-9):.2f} images/s"
             if p.detail is not None:
                 info += f" | last {p.detail.psnr:.2f} dB"

@@ -50,11 +50,12 @@ def register(app: typer.Typer) -> None:
         from avatarctl.cli.common import console, user_errors
 
         with user_errors():
+            from avatarctl.lists import split_list
             from avatarctl.stages.export import ExportConfig
 
             cfg = ExportConfig(name=name, frames=frames, posed=posed, skinned=skinned,
                                poses=str(poses) if poses else None,
-                               formats=tuple(f for f in formats.split(",") if f.strip()), voxel=voxel,
+                               formats=split_list(formats), voxel=voxel,
                                threshold=_threshold(threshold), influences=influences, latent=latent, seed=seed,
                                recenter=recenter, score=score,
                                device=device, checkpoint=str(checkpoint) if checkpoint else None)
@@ -78,12 +79,12 @@ def _run(project: Path, cfg, wait: bool, console) -> None:
 
     from avatarctl.cli.common import progress_bar
     from avatarctl.stages import export
-    from avatarctl.stages.common import StageProgress
+    from avatarctl.progress import ProgressReport
 
     with progress_bar("export", ("part",), out=console) as bar:
         task = bar.add_task("export", total=None, part="loading avatar")
 
-        def progress(p: StageProgress) -> None:
+        def progress(p: ProgressReport) -> None:
             bar.update(task, total=p.total, completed=p.done, part=p.part)
 
         res = export.run(project, cfg, progress=progress, wait=wait)

@@ -48,20 +48,20 @@ def _run(project_dir: Path, iters, preset, resume, fresh, seed, device, override
 
     from avatarctl.cli.common import progress_bar
     from avatarctl.stages import fit
-    from avatarctl.stages.common import StageProgress
+    from avatarctl.progress import ProgressReport
 
-    req = fit.FitRequest(preset=preset, iters=iters, seed=seed, overrides=tuple(overrides), ablation=ablation,
+    cfg = fit.FitRequest(preset=preset, iters=iters, seed=seed, overrides=tuple(overrides), ablation=ablation,
                          device=device, resume=resume, fresh=fresh, nproc=nproc, shards=shards, wait=wait)
-    plan = fit.prepare(project_dir, req)  # option errors before the progress bar
+    plan = fit.prepare(project_dir, cfg)  # option errors before the progress bar
     project = plan.project
     if not fit.is_main_rank():  # a torchrun rank > 0: train quietly, rank 0 reports
-        fit.run(project_dir, req, plan=plan)
+        fit.run(project_dir, cfg, plan=plan)
         return
     with progress_bar("fit", ("speed", "info"), out=console, bar_width=24) as bar:
         task = bar.add_task("fit", total=None, speed="", info="setting up")
         state = {"last_t": None, "last_step": None}
 
-        def progress(p: StageProgress) -> None:
+        def progress(p: ProgressReport) -> None:
             import time
 
             rep = p.detail  # the loop's StepReport
@@ -76,7 +76,7 @@ def _run(project_dir: Path, iters, preset, resume, fresh, seed, device, override
                 info += f" | val {rep.val_psnr:.2f} dB"
             bar.update(task, completed=rep.step, speed=f"{it_s:.2f} it/s", info=info)
 
-        result = fit.run(project_dir, req, progress=progress, plan=plan)
+        result = fit.run(project_dir, cfg, progress=progress, plan=plan)
 
     table = Table(title="avatarctl fit", show_header=False)
     table.add_row("project", str(project.root))

@@ -46,6 +46,7 @@ def register(app: typer.Typer) -> None:
         from rich.table import Table
 
         from avatarctl.cli.common import console, progress_bar, user_errors
+        from avatarctl.lists import split_list
         from avatarctl.stages import ingest as stage
 
         with user_errors():
@@ -53,7 +54,7 @@ def register(app: typer.Typer) -> None:
                                body_model_path=body_model_path, masks=masks, fits=fits,
                                keypoint_fit_iters=keypoint_fit_iters, keypoint_silhouette=keypoint_silhouette,
                                frames=frames,
-                               views=None if views is None else tuple(views.split(",")), resize=resize,
+                               views=None if views is None else split_list(views), resize=resize,
                                contact_sheet=contact_sheet)
             if cfg.format == "auto":
                 fmt, reason = stage.detect(cfg.capture)

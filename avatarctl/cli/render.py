@@ -61,10 +61,11 @@ def register(app: typer.Typer) -> None:
         from avatarctl.cli.common import console, user_errors
 
         with user_errors():
+            from avatarctl.lists import split_list
             from avatarctl.stages.common import parse_knockout
             from avatarctl.stages.render import RenderConfig
 
-            view_names = tuple(v.strip() for v in views.split(",") if v.strip()) if views else ()
+            view_names = split_list(views)
             cfg = RenderConfig(name=name, poses=str(poses) if poses else None, frames=frames, views=view_names,
                                orbit=orbit, elevation=elevation, radius=radius, latent=latent, seed=seed,
                                resolution=resolution, background=background, fps=fps, recenter=recenter,
@@ -79,12 +80,12 @@ def _run(project: Path, cfg, nproc: int, wait: bool, console) -> None:
 
     from avatarctl.cli.common import progress_bar
     from avatarctl.stages import render
-    from avatarctl.stages.common import StageProgress
+    from avatarctl.progress import ProgressReport
 
     with progress_bar("render", ("speed",), out=console) as bar:
         task = bar.add_task("render", total=None, speed="loading avatar")
 
-        def progress(p: StageProgress) -> None:
+        def progress(p: ProgressReport) -> None:
             bar.update(task, total=p.total, completed=p.done, speed=f"{p.per_second:.2f} frames/s")
 
         res = render.run(project, cfg, progress=progress, nproc=nproc, wait=wait)

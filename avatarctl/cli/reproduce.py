@@ -40,7 +40,7 @@ def _run(out: Path, cfg, console) -> None:
     from rich.table import Table
 
     from avatarctl.stages import reproduce
-    from avatarctl.stages.common import StageProgress
+    from avatarctl.progress import ProgressReport
     from avatarctl.stages.reproduce import UnitDone
 
     console.print(f"[bold]avatarctl reproduce[/] scale {cfg.scale}, {cfg.budget_text()}, {cfg.seeds} seeds -> {out}")
@@ -48,7 +48,7 @@ def _run(out: Path, cfg, console) -> None:
                   console=console, transient=True) as bar:
         tasks: dict[str, int] = {}
 
-        def progress(p: StageProgress) -> None:
+        def progress(p: ProgressReport) -> None:
             if p.stage not in tasks:
                 tasks[p.stage] = bar.add_task(p.stage[:40], total=p.total)
             bar.update(tasks[p.stage], completed=p.done, total=p.total)

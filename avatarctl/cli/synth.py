@@ -38,7 +38,7 @@ def register(app: typer.Typer) -> None:
             from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
             from avatarctl.stages import synth as stage
-            from avatarctl.stages.common import StageProgress
+            from avatarctl.progress import ProgressReport
 
             overrides = {k: v for k, v in dict(views=views, train_frames=train_frames, test_frames=test_frames,
                                                 size=size, supersample=supersample).items() if v is not None}
@@ -52,7 +52,7 @@ def register(app: typer.Typer) -> None:
                           TimeElapsedColumn(), console=console, transient=False) as bar:
                 tasks: dict[str, int] = {}
 
-                def progress(p: StageProgress) -> None:
+                def progress(p: ProgressReport) -> None:
                     if p.part not in tasks:
                         tasks[p.part] = bar.add_task(p.part, total=p.total)
                     bar.update(tasks[p.part], completed=p.done)
@@ -78,9 +78,10 @@ def register(app: typer.Typer) -> None:
 
 def _fit_noise(spec: str) -> dict[str, float]:
     from avatarctl.errors import InputError
+    from avatarctl.lists import split_list
 
     try:
-        parts = [float(x) for x in spec.split(",")]
+        parts = list(split_list(spec, float))
         if len(parts) not in (2, 3):
             raise ValueError
     except ValueError:

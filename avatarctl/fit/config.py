@@ -37,6 +37,7 @@ from dataclasses import asdict, dataclass, field, fields, replace
 from typing import Any
 
 from avatarctl.errors import InputError
+from avatarctl.lists import split_list
 from avatarctl.model.config import HULL_AUTO, GaussianConfig, ModelConfig
 
 SCHEMA_VERSION = 1
@@ -181,7 +182,7 @@ def parse_ablations(spec: str | None) -> tuple[str, ...]:
     """'no-delta-n,no-embedding' -> ('no-delta-n', 'no-embedding'); unknown names are an `InputError`."""
     if not spec:
         return ()
-    names = tuple(s.strip() for s in spec.split(",") if s.strip())
+    names = split_list(spec)
     for n in names:
         if n not in ABLATIONS:
             close = difflib.get_close_matches(n, list(ABLATIONS), n=1)
@@ -233,7 +234,7 @@ def _parse_value(key: str, text: str, current: Any) -> Any:
             return float(t)
         if isinstance(current, tuple):  # tuple of ints or of floats (e.g. snapshot_at_s=120,300)
             conv = int if current and all(isinstance(x, int) for x in current) else float
-            return tuple(conv(x) for x in t.split(","))
+            return split_list(t, conv)
         return t
     except ValueError:
         kind = "int or auto" if key == "model.hull_nodes" else type(current).__name__

@@ -23,13 +23,13 @@ from typing import Callable
 import numpy as np
 
 from avatarctl.body.motion import BodyMotion
+from avatarctl.progress import ProgressFn, ProgressReport
 
 MIN_JOINTS = 8  # triangulated keypoints a frame needs to be fitted
 REPROJ_THRESHOLD = 0.02  # inlier threshold of the triangulation, as a fraction of the image's larger side
 MIN_THRESHOLD_PX = 4.0  # ... but at least this many pixels
 MIN_CONFIDENCE = 0.5  # MediaPipe visibility below which a 2D keypoint is not used
 
-PartProgress = Callable[[int, int, str], None]  # (done, total, part)
 ReadView = Callable[[str, int], np.ndarray]  # (camera, frame) -> undistorted RGB uint8 [H, W, 3]
 ReadMask = Callable[[str, int], np.ndarray]  # (camera, frame) -> undistorted person mask, bool [H, W]
 
@@ -68,7 +68,7 @@ class Detections:
 
 
 def detect_people(read_view: ReadView, cams: list[str], frames: list[int], masks: bool,
-                  progress: PartProgress | None = None) -> Detections:
+                  progress: ProgressFn | None = None) -> Detections:
     """Run the detector on every view (camera-major: one tracker per camera stream)."""
     import cv2
 
@@ -88,7 +88,7 @@ def detect_people(read_view: ReadView, cams: list[str], frames: list[int], masks
                     out.masks[(c, f)] = cv2.imencode(".png", d.mask.astype(np.uint8) * 255)[1].tobytes()
                 done += 1
                 if progress is not None:
-                    progress(done, total, "detect")
+                    progress(ProgressReport(done=done, total=total, part="detect"))
     return out
 
 
@@ -177,7 +177,7 @@ def silhouette_targets(cameras, cams: list[str], frames: list[int], read_mask: R
 
 
 def estimate_fits(det: Detections, cameras, body, fit_iters: int, fps: float,
-                  progress: PartProgress | None = None, read_mask: ReadMask | None = None,
+                  progress: ProgressFn | None = None, read_mask: ReadMask | None = None,
                   silhouette_weight: float | None = None, limit_weight: float | None = None) -> EstimatedFits:
     """Triangulate the detections with the pinhole `cameras` (order of `det.cams`) and fit `body` (an `AnnyBody`
     or `SmplBody`) to the frames with enough keypoints. With `read_mask` the fit has a silhouette term of weight
@@ -219,7 +219,7 @@ def estimate_fits(det: Detections, cameras, body, fit_iters: int, fps: float,
     if read_mask is not None and cfg.w_silhouette > 0:
         sil = silhouette_targets(cameras, det.cams, kept, read_mask)
     fit = fit_keypoints(keypoint_body(body, det.names), targets, cfg, silhouettes=sil,
-                        progress=None if progress is None else lambda d, t: progress(d, t, "fit"))
+                        progress=progress)
     wsum = (targets.select(fit.names).weight > 0).sum(1)
     err = float((fit.error_m * wsum).sum() / wsum.sum())
     if fit.silhouette is not None:

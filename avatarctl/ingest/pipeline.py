@@ -21,7 +21,6 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 
@@ -29,9 +28,10 @@ from avatarctl.errors import InputError, ProjectError
 from avatarctl.frames import select_frames
 from avatarctl.ingest.config import IngestConfig
 from avatarctl.ingest.estimate import EstimateReport
+from avatarctl.ingest.split import check_split_views
 from avatarctl.io.capture import CaptureSource, check_complete, fmt_list
+from avatarctl.progress import ProgressFn, ProgressReport
 
-ProgressFn = Callable[[int, int, str], None]  # (done, total, part): part "detect" | "fit" | "frames"
 MIN_INSIDE = 0.90  # warn when fewer of the posed vertices than this project inside the masks
 POSE_CHUNK = 64  # frames posed at once
 MAX_FOREGROUND = 0.99  # a mask with more foreground than this is inverted or blank, not a person in the frame
@@ -179,6 +179,8 @@ def plan_ingest(cfg: IngestConfig) -> IngestPlan:
     _check_project_dest(cfg)
     src, reason = read_capture(cfg)
     cams = select_views(src, cfg.views)
+    if src.split is not None:
+        check_split_views(src.split, src.camera_names, where=str(src.root / "split.json"))
     cam_by_name = {c.name: c for c in src.cameras}
     check_cameras_metric([cam_by_name[c] for c in cams], where=str(src.root))
     available = sorted(set().union(*[src.image_frames.get(c, set()) for c in cams]))
@@ -258,7 +260,7 @@ def run_ingest(cfg: IngestConfig, progress: ProgressFn | None = None) -> IngestR
                     if want_tile:
                         tiles.append(Tile(c, frame, rgb, mask, sil, _detected_points(plan.detections, c, frame)))
                 if progress is not None:
-                    progress(s + k + 1, len(frames), "frames")
+                    progress(ProgressReport(done=s + k + 1, total=len(frames), part="frames"))
 
         cameras_out = [und[c].target for c in cams]
         save_cameras(proj.paths.cameras, cameras_out)

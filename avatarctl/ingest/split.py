@@ -8,6 +8,7 @@ view; with fewer than 4 views the test views are all views (novel-pose evaluatio
 
 from __future__ import annotations
 
+from avatarctl.errors import InputError
 from avatarctl.io.project_io import Split
 
 
@@ -28,3 +29,16 @@ def restrict_split(split: Split, frames: list[int], views: list[str]) -> Split:
                  test_frames=[f for f in split.test_frames if f in fs],
                  train_views=[v for v in split.train_views if v in vs],
                  test_views=[v for v in split.test_views if v in vs])
+
+
+def check_split_views(split: Split, cameras: list[str], where: str) -> None:
+    """Refuse a capture `split.json` naming a view the capture lacks (a typo there would leave the project without
+    the held-out view it asks for). Views the capture has but `--views` left out are dropped later by
+    `restrict_split`, quietly."""
+    known = set(cameras)
+    for key, views in (("test_views", split.test_views), ("train_views", split.train_views)):
+        unknown = [v for v in views if v not in known]
+        if unknown:
+            names = ", ".join(repr(v) for v in unknown)
+            raise InputError(f"split.json {key} names {names}, a view the capture lacks", where=where,
+                             fix=f"the capture's cameras are: {', '.join(cameras)}; correct split.json")

@@ -83,6 +83,12 @@ class NodeState:
     def num_frames(self) -> int:
         return self.centers.shape[0]
 
+    def frame(self, slot: int) -> "NodeState":
+        """The nodes of frame `slot` alone, a batch of one (transforms, centres, Delta n, e; no cVAE statistics)."""
+        one = slice(slot, slot + 1)
+        return NodeState(transforms=self.transforms[one], centers=self.centers[one], delta_n=self.delta_n[one],
+                         embed=self.embed[one])
+
 
 @dataclass
 class RenderOutputs:

@@ -17,17 +17,53 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Callable
+from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
 import torch
 
 from avatarctl.geometry.cameras import Camera
+from avatarctl.progress import ProgressFn, ProgressReport
 
 if TYPE_CHECKING:
-    from avatarctl.model.avatar import NodeState, SlrfAvatar
+    from avatarctl.geometry.rays import RayBatch
+    from avatarctl.splat import SplatCamera
 
-ProgressFn = Callable[[int, int], None]  # (rays rendered so far, rays to render)
+
+class NodeFrames(Protocol):
+    """The posed nodes of a batch of frames, as the engine reads them (`model.avatar.NodeState` is one)."""
+
+    @property
+    def centers(self) -> torch.Tensor: ...  # [frames, nodes, 3] posed node positions n_i, world, metres
+
+    def frame(self, slot: int) -> "NodeFrames": ...  # the nodes of frame `slot` alone (a batch of one)
+
+
+class SupportConfig(Protocol):
+    """The two settings of a model's config the engine reads (`model.config.ModelConfig` is one)."""
+
+    @property
+    def support_radius(self) -> float: ...  # Eq. 6 support radius of a node, metres
+
+    @property
+    def ray_marched(self) -> bool: ...  # True: volume-rendered rays; False: rasterized Gaussians
+
+
+class ViewModel(Protocol):
+    """What `render_view` needs of a model (`model.avatar.SlrfAvatar` is one): rays rendered against the nodes of a
+    frame (ray-marched fields), or the posed Gaussians rasterized (Gaussian fields). The engine knows no more of the
+    model than this, so `render/` sits below `model/` (which composites with `render.volume`)."""
+
+    @property
+    def cfg(self) -> SupportConfig: ...
+
+    def render(self, rays: "RayBatch", state: Any, background: torch.Tensor, *, jitter: bool = False) -> Any: ...
+    # -> outputs with .rgb [rays, 3] and .alpha [rays]
+
+    def posed_gaussians(self, state: Any) -> Any: ...
+
+    def render_image(self, posed: Any, slot: int, camera: "SplatCamera", background: torch.Tensor
+                     ) -> tuple[torch.Tensor, torch.Tensor]: ...  # rgb [H, W, 3], alpha [H, W]
 
 
 @dataclass
@@ -40,7 +76,7 @@ class ViewRender:
     rays: int = 0  # rays actually rendered (pixels that can hit the node-influence region)
 
 
-def support_radius(model: "SlrfAvatar") -> float:
+def support_radius(model: ViewModel) -> float:
     """Eq. 6 support radius of a node, metres."""
     return float(model.cfg.support_radius)
 
@@ -64,13 +100,14 @@ def rays_hitting_spheres(origin: torch.Tensor, dirs: torch.Tensor, centers: torc
     return out
 
 
-def render_view(model: "SlrfAvatar", state: "NodeState", slot: int, camera: Camera,
+def render_view(model: ViewModel, state: NodeFrames, slot: int, camera: Camera,
                 background: tuple[float, float, float], max_rays_per_chunk: int = 8192,
                 pixel_mask: np.ndarray | None = None, progress: ProgressFn | None = None) -> ViewRender:
     """Render frame `slot` of `state` (a `NodeState` batched over frames) seen by `camera`.
 
     `pixel_mask` [H, W] bool restricts rendering to those pixels (e.g. the eval box); pixels outside it are
-    `background` with alpha 0. `progress(done, total)` is called after each chunk with ray counts.
+    `background` with alpha 0. `progress` gets a report after each chunk (`part` "rays": rays rendered of the rays
+    to render).
     """
     from avatarctl.geometry.rays import RayBatch, camera_rays, image_pixels
 
@@ -111,25 +148,22 @@ def render_view(model: "SlrfAvatar", state: "NodeState", slot: int, camera: Came
             rgb[idx] = out.rgb.float().cpu().numpy()
             alpha[idx] = out.alpha.float().cpu().numpy()
             if progress is not None:
-                progress(e, total)
+                progress(ProgressReport(done=e, total=total, part="rays"))
     return ViewRender(rgb=np.clip(rgb, 0.0, 1.0).reshape(H, W, 3), alpha=alpha.reshape(H, W),
                       seconds=time.perf_counter() - t0, rays=total)
 
 
-def _rasterize_view(model: "SlrfAvatar", state: "NodeState", slot: int, camera: Camera,
+def _rasterize_view(model: ViewModel, state: NodeFrames, slot: int, camera: Camera,
                     background: tuple[float, float, float], pixel_mask: np.ndarray | None,
                     progress: ProgressFn | None, t0: float) -> ViewRender:
     """`render_view` for the Gaussian local fields: the whole image rasterized at once (avatarctl/splat); pixels
     outside `pixel_mask` set to the background with alpha 0 afterwards. `rays` counts the pixels rendered."""
-    from avatarctl.model.avatar import NodeState
     from avatarctl.splat import SplatCamera
 
     H, W = int(camera.height), int(camera.width)
     if pixel_mask is not None and np.asarray(pixel_mask).shape != (H, W):
         raise ValueError(f"pixel_mask {np.asarray(pixel_mask).shape} does not match the camera's image ({H}, {W})")
-    one = slice(slot, slot + 1)
-    state = NodeState(transforms=state.transforms[one], centers=state.centers[one], delta_n=state.delta_n[one],
-                      embed=state.embed[one])
+    state = state.frame(slot)
     device = state.centers.device
     with torch.no_grad():
         posed = model.posed_gaussians(state)
@@ -142,5 +176,5 @@ def _rasterize_view(model: "SlrfAvatar", state: "NodeState", slot: int, camera: 
         rgb[~keep] = np.asarray(background, dtype=np.float32)
         alpha[~keep] = 0.0
     if progress is not None:
-        progress(H * W, H * W)
+        progress(ProgressReport(done=H * W, total=H * W, part="rays"))
     return ViewRender(rgb=np.clip(rgb, 0.0, 1.0), alpha=alpha, seconds=time.perf_counter() - t0, rays=H * W)

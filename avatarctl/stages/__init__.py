@@ -4,6 +4,6 @@
 
 A stage opens the project, resolves its config, calls the libraries below it (`ingest/`, `fit/`, `render/`,
 `evaluate/`, `synth/`, `model/`, `io/`, `body/`), writes its outputs atomically and records itself in the manifest.
-Every stage reports one `common.StageProgress` shape. What several stages share lives in `common.py`; a stage never
-imports another stage's module (the demo excepted: it is the chain). Only `avatarctl.cli` imports stages.
+Every stage reports one progress shape, `avatarctl.progress.ProgressReport` (the libraries send it too). What several
+stages share lives in `common.py`; a stage never imports another stage's module (the demo excepted: it is the chain). Only `avatarctl.cli` imports stages.
 """

@@ -1,20 +1,21 @@
-"""What several stages share, stated once: the progress report, view / latent selection, the sample-seed formula,
-the cheap pre-checks, loading a fitted avatar, making a motion file (`--poses`) drive it, running a stage on
-several ranks (`run_ranked`) and holding the lock of what a stage writes (`writing`).
+"""What several stages share, stated once: view / latent selection, the sample-seed formula, the cheap pre-checks,
+loading a fitted avatar, making a motion file (`--poses`) drive it, running a stage on several ranks (`run_ranked`)
+and holding the lock of what a stage writes (`writing`).
 
-Frame specs are `avatarctl.frames` (ingest uses them too); ground-truth compositing is
-`avatarctl.evaluate.protocols.ground_truth` (fit targets and validation use it too); devices are
-`avatarctl.device.resolve_device` (the fit loop uses it too).
+The progress report is `avatarctl.progress` (libraries send it too); comma lists are `avatarctl.lists`; frame specs
+are `avatarctl.frames` (ingest uses them too); ground-truth compositing is `avatarctl.evaluate.protocols.ground_truth`
+(fit targets and validation use it too); devices are `avatarctl.device.resolve_device` (the fit loop uses it too).
 """
 
 from __future__ import annotations
 
 import contextlib
-from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Callable, Iterator
 
 from avatarctl.errors import InputError
+from avatarctl.lists import split_list
+from avatarctl.progress import ProgressFn
 
 if TYPE_CHECKING:
     from avatarctl.body.motion import BodyMotion
@@ -27,36 +28,6 @@ LATENT_MODES = ("auto", "mean", "zero", "sample")
 KNOCKOUTS = ("delta-n", "embedding")
 """Render-time knockouts of a trained model (`render` / `eval --knockout`): that variable is set to zero when
 rendering (the paper's Fig. 3 and supp. Tab. B, the node-variable knock-out)."""
-
-
-@dataclass(frozen=True)
-class StageProgress:
-    """The one progress report every stage sends: `done` of `total` units of `stage` (of its `part`)."""
-
-    stage: str  # synth | ingest | fit | render | eval (the demo prefixes its own labels: "render orbit", ...)
-    done: int  # units done: frames, steps or images
-    total: int | None  # None while unknown
-    seconds: float  # since the stage started its units
-    part: str = ""  # a sub-step of the stage ("simulate" | "render" for synth), else ""
-    detail: Any = None  # the stage's own typed record: fit `StepReport`, eval `ImageScore`, else None
-
-    @property
-    def per_second(self) -> float:
-        return self.done / self.seconds if self.seconds > 0 else 0.0
-
-
-ProgressFn = Callable[[StageProgress], None]
-
-
-def relabel(progress: ProgressFn | None, stage: str) -> ProgressFn | None:
-    """`progress` with `stage` as the label of every report (a chain's "render orbit", "fit skirt-full-s0", ...)."""
-    if progress is None:
-        return None
-    from dataclasses import replace
-
-    def f(p: StageProgress) -> None:
-        progress(replace(p, stage=stage))
-    return f
 
 
 def check_latent_mode(mode: str) -> None:
@@ -75,7 +46,7 @@ def check_knockout(knockout: tuple[str, ...]) -> tuple[str, ...]:
 
 def parse_knockout(spec: str | None) -> tuple[str, ...]:
     """'delta-n,embedding' (the CLI's comma list) -> ("delta-n", "embedding"); None or '' -> ()."""
-    return tuple(k.strip() for k in spec.split(",") if k.strip()) if spec else ()
+    return split_list(spec)
 
 
 def knocked_out(avatar: "LoadedAvatar", state: "NodeState", knockout: tuple[str, ...]) -> "NodeState":

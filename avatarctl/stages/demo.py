@@ -3,7 +3,7 @@
     synth (OUT/capture) -> ingest (OUT/project) -> fit -> render orbit + novel poses -> eval novel view / novel pose
 
 Each stage is the same `run` its command calls (`avatarctl.stages.synth`, `.ingest`, `.fit`, `.render`,
-`.evaluate`); the demo only chooses sizes, and relabels their `StageProgress` ("render orbit", "eval novel_view", ...).
+`.evaluate`); the demo only chooses sizes, and relabels their `ProgressReport` ("render orbit", "eval novel_view", ...).
 Presets (`DEMO_PRESETS`):
 
 - `ci` (alias `micro`): synth "micro" (4 views, 6 + 4 frames, 64 px), fit "micro" preset for 20 steps. About a
@@ -25,7 +25,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, Callable
 
 from avatarctl.errors import InputError
-from avatarctl.stages.common import ProgressFn, relabel
+from avatarctl.progress import ProgressFn, relabel
 
 if TYPE_CHECKING:
     from avatarctl.evaluate.report import EvalMetrics
@@ -38,21 +38,21 @@ class DemoPreset:
     synth: str  # SynthConfig preset
     fit_preset: str  # FitConfig preset
     iters: int  # fit steps
-    fit_overrides: tuple[str, ...]  # `--set key=value` overrides of the fit preset
+    fit_settings: dict[str, Any]  # FitConfig values over the fit preset's
     orbit_views: int  # cameras of the orbit video (one turn)
     orbit_resolution: int  # orbit image side, pixels
     eval_every: int  # keep every N-th frame in eval
 
 
 DEMO_PRESETS: dict[str, DemoPreset] = {
-    "ci": DemoPreset(synth="micro", fit_preset="micro", iters=20, fit_overrides=(),
+    "ci": DemoPreset(synth="micro", fit_preset="micro", iters=20, fit_settings={},
                      orbit_views=4, orbit_resolution=48, eval_every=2),
     "tiny": DemoPreset(synth="tiny", fit_preset="cpu", iters=2000,
-                       fit_overrides=("rays_per_batch=1024", "val_every=500", "checkpoint_every=500",
-                                      "time_budget_s=330"),
+                       fit_settings={"rays_per_batch": 1024, "val_every": 500, "checkpoint_every": 500,
+                                     "time_budget_s": 330.0},
                        orbit_views=16, orbit_resolution=128, eval_every=2),
     "small": DemoPreset(synth="small", fit_preset="cpu", iters=3000,
-                        fit_overrides=("val_every=500", "checkpoint_every=500"),
+                        fit_settings={"val_every": 500, "checkpoint_every": 500},
                         orbit_views=36, orbit_resolution=256, eval_every=4),
 }
 ALIASES = {"micro": "ci"}
@@ -150,7 +150,7 @@ def run(out: str | Path, cfg: DemoConfig, progress: ProgressFn | None = None,
     # 3. fit
     t0 = time.perf_counter()
     fr = fit.run(project_dir, FitRequest(preset=sizes.fit_preset, iters=sizes.iters, seed=cfg.seed,
-                                         overrides=sizes.fit_overrides, device=cfg.device),
+                                         settings=sizes.fit_settings, device=cfg.device),
                  progress=progress, handle_sigint=False)
     fit_cfg = fr.config
     val = None if fr.val is None else fr.val.psnr

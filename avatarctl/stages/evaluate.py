@@ -40,7 +40,8 @@ from avatarctl.errors import InputError
 from avatarctl.evaluate.report import PSNR_CAP, SCHEMA_VERSION, EvalMetrics, ImageScore, ScoredModel
 from avatarctl.frames import select_frames
 from avatarctl.project import Project, check_name, now_iso
-from avatarctl.stages.common import StageProgress, ProgressFn, check_knockout, check_latent_mode, frame_node_state, \
+from avatarctl.progress import ProgressReport, ProgressFn
+from avatarctl.stages.common import check_knockout, check_latent_mode, frame_node_state, \
     knocked_out, latent_for, load_fitted, open_fitted, rank_device_name, run_ranked, select_views, writing
 
 SPLITS = ("novel_view", "novel_pose", "train")
@@ -208,8 +209,8 @@ def _run(env: Any, progress: ProgressFn | None, project_dir: str, cfg: EvalConfi
                 mine.append(_score_image(avatar, cfg, project, state, verts, frame, view, cams[view], latent,
                                          lpips_fn, geometry, k in sheet_at, tmp, k))
                 if progress is not None:
-                    progress(StageProgress(stage="eval", done=min(len(mine) * world, total), total=total,
-                                           seconds=time.perf_counter() - t0, detail=mine[-1].score))
+                    progress(ProgressReport(stage="eval", done=min(len(mine) * world, total), total=total,
+                                            seconds=time.perf_counter() - t0, detail=mine[-1].score))
         gathered = gather_to_main(mine, env)
         if not main:
             return None

@@ -44,7 +44,8 @@ import numpy as np
 from avatarctl.errors import InputError
 from avatarctl.frames import select_frames
 from avatarctl.project import Project, check_name, now_iso
-from avatarctl.stages.common import StageProgress, ProgressFn, check_latent_mode, frame_node_state, latent_for, \
+from avatarctl.progress import ProgressReport, ProgressFn
+from avatarctl.stages.common import check_latent_mode, frame_node_state, latent_for, \
     load_fitted, motion_for_avatar, open_fitted, writing
 
 SCHEMA_VERSION = 2  # 2: threshold None = from the field; glb_frame; reload default_pose_max_m
@@ -220,8 +221,8 @@ def _run(project_dir: str | Path, cfg: ExportConfig, progress: ProgressFn | None
 
     def report(part: str) -> None:
         if progress is not None:
-            progress(StageProgress(stage="export", done=len(meshes) + int(skinned is not None), total=total,
-                                   seconds=time.perf_counter() - t0, part=part))
+            progress(ProgressReport(stage="export", done=len(meshes) + int(skinned is not None), total=total,
+                                    seconds=time.perf_counter() - t0, part=part))
 
     with atomic_dir(out_dir) as tmp:
         for frame in frames:

@@ -1,5 +1,5 @@
 """The fit stage (`avatarctl fit PROJECT`): resolve the fit config from the options (or from the checkpoint being
-resumed), then train with `avatarctl.fit.loop.fit` and report each step as a `StageProgress`.
+resumed), then train with `avatarctl.fit.loop.fit` and report each step as a `ProgressReport` (`avatarctl.progress`).
 
 Resolution: a fresh fit takes `resolve_fit_config(preset, ablation, iters, seed, overrides)`; a resumed fit keeps
 the checkpoint's config and may only change `iters`.
@@ -14,13 +14,14 @@ from __future__ import annotations
 
 import signal
 import time
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from avatarctl.errors import InputError
 from avatarctl.project import Project
-from avatarctl.stages.common import StageProgress, ProgressFn, writing
+from avatarctl.progress import ProgressReport, ProgressFn
+from avatarctl.stages.common import writing
 
 if TYPE_CHECKING:
     from avatarctl.fit.config import FitConfig
@@ -37,7 +38,9 @@ class FitRequest:
     preset: str | None = None  # FitConfig preset; None = "cpu" (fresh fits only)
     iters: int | None = None  # total steps; None = the preset's (or the checkpoint's)
     seed: int | None = None
-    overrides: tuple[str, ...] = ()  # `--set key=value`
+    overrides: tuple[str, ...] = ()  # `--set key=value` (the CLI's strings)
+    settings: dict[str, Any] = field(default_factory=dict)  # typed FitConfig values of a caller in this process (a
+    # chain: {"time_budget_s": 330.0, "val_every": 0}), applied after `overrides`
     ablation: str | None = None  # comma list of --ablation switches
     device: str = "auto"  # auto | cpu | cuda
     resume: bool = False  # continue fit/checkpoints/latest.pt
@@ -48,6 +51,7 @@ class FitRequest:
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "overrides", tuple(self.overrides))
+        object.__setattr__(self, "settings", dict(self.settings))
         if self.nproc < 1:
             raise InputError(f"--nproc must be >= 1, got {self.nproc}", where="--nproc", fix="e.g. --nproc 2")
         if self.shards is not None and self.shards < 1:
@@ -59,42 +63,44 @@ class FitRequest:
         return "fit --resume" if self.resume else "fit --fresh" if self.fresh else "fit"
 
 
-def fit_config(project: Project, req: FitRequest) -> "FitConfig | None":
+def fit_config(project: Project, cfg: FitRequest) -> "FitConfig | None":
     """The config to train with; None = the checkpoint's unchanged (resume without --iters)."""
     from avatarctl.fit.config import FitConfig, resolve_fit_config
 
-    if req.resume and req.fresh:
+    if cfg.resume and cfg.fresh:
         raise InputError("--resume and --fresh contradict each other", fix="pass one of them")
-    if not req.resume:
-        cfg = resolve_fit_config(req.preset or "cpu", ablation=req.ablation, iters=req.iters, seed=req.seed,
-                                 overrides=list(req.overrides))
-        return _default_pose_refine(project, cfg, req)
-    given = [n for n, v in (("--preset", req.preset), ("--seed", req.seed), ("--ablation", req.ablation))
+    if not cfg.resume:
+        fit_cfg = resolve_fit_config(cfg.preset or "cpu", ablation=cfg.ablation, iters=cfg.iters, seed=cfg.seed,
+                                     overrides=list(cfg.overrides))
+        if cfg.settings:
+            fit_cfg = replace(fit_cfg, **cfg.settings)
+        return _default_pose_refine(project, fit_cfg, cfg)
+    given = [n for n, v in (("--preset", cfg.preset), ("--seed", cfg.seed), ("--ablation", cfg.ablation))
              if v is not None]
-    if req.overrides:
+    if cfg.overrides or cfg.settings:
         given.append("--set")
     if given:
         raise InputError(f"{', '.join(given)} cannot change a fit being resumed",
                          fix="resume with only --iters (or start over with --fresh)")
-    if req.iters is None:
+    if cfg.iters is None:
         return None
     from avatarctl.fit.checkpoint import read_checkpoint  # extend (or shorten) the resumed run
 
     saved = FitConfig.from_json(read_checkpoint(project.paths.latest_checkpoint)["fit_config"])
-    return replace(saved, iters=req.iters)
+    return replace(saved, iters=cfg.iters)
 
 
-def _default_pose_refine(project: Project, cfg: "FitConfig", req: FitRequest) -> "FitConfig":
+def _default_pose_refine(project: Project, fit_cfg: "FitConfig", cfg: FitRequest) -> "FitConfig":
     """Pose refinement (`model.pose_refine`, model/pose_refine.py) is on by default for captures whose body fits are
     not ground truth (real captures, synth with --fit-noise), except in the paper preset; `--set
     model.pose_refine=...` decides explicitly."""
     from avatarctl.io.gt_geometry import fits_are_ground_truth
 
-    explicit = any(o.split("=", 1)[0].strip() == "model.pose_refine" for o in req.overrides)
-    if explicit or (req.preset or "cpu") == "paper":
-        return cfg
+    explicit = any(o.split("=", 1)[0].strip() == "model.pose_refine" for o in cfg.overrides)
+    if explicit or (cfg.preset or "cpu") == "paper":
+        return fit_cfg
     on = not fits_are_ground_truth(project.manifest.source.path)
-    return replace(cfg, model=cfg.model.with_(pose_refine=on)) if on != cfg.model.pose_refine else cfg
+    return replace(fit_cfg, model=fit_cfg.model.with_(pose_refine=on)) if on != fit_cfg.model.pose_refine else fit_cfg
 
 
 @dataclass(frozen=True)
@@ -105,21 +111,21 @@ class FitPlan:
     config: "FitConfig | None"  # None = the resumed checkpoint's, unchanged
 
 
-def prepare(project_dir: str | Path, req: FitRequest) -> FitPlan:
+def prepare(project_dir: str | Path, cfg: FitRequest) -> FitPlan:
     from avatarctl.dist import DistEnv
 
-    if req.nproc > 1 and DistEnv.from_env() is not None:
+    if cfg.nproc > 1 and DistEnv.from_env() is not None:
         raise InputError("--nproc inside a torchrun launch", where="--nproc",
                          fix="let torchrun start the ranks (--nproc_per_node) and drop --nproc")
     project = Project.open(project_dir)
-    plan = FitPlan(project, fit_config(project, req))
-    if req.nproc > 1 and plan.config is not None and not req.resume:  # shard errors before the ranks start
+    plan = FitPlan(project, fit_config(project, cfg))
+    if cfg.nproc > 1 and plan.config is not None and not cfg.resume:  # shard errors before the ranks start
         from avatarctl.fit.distributed import check_shards
         from avatarctl.io.project_io import load_split
 
         project.require("ingest")
         split = load_split(project.paths.split)
-        check_shards(req.shards or req.nproc, req.nproc, plan.config.rays_per_batch, plan.config.images_per_batch,
+        check_shards(cfg.shards or cfg.nproc, cfg.nproc, plan.config.rays_per_batch, plan.config.images_per_batch,
                      len(split.train_frames) * len(split.train_views))
     return plan
 
@@ -132,62 +138,62 @@ def is_main_rank() -> bool:
     return env is None or env.is_main
 
 
-def run(project_dir: str | Path, req: FitRequest, progress: ProgressFn | None = None, *,
+def run(project_dir: str | Path, cfg: FitRequest, progress: ProgressFn | None = None, *,
         plan: FitPlan | None = None, stop: "StopFlag | None" = None, handle_sigint: bool = True) -> "FitResult":
     """Train (or resume) the project's avatar; `progress` gets every step (`detail`: the loop's `StepReport`).
-    `plan`: the result of `prepare(project_dir, req)` when the caller already has it. Holds the lock of the
-    project's `fit/` (another fit of it is refused with `BusyError`, or waited for with `req.wait`)."""
+    `plan`: the result of `prepare(project_dir, cfg)` when the caller already has it. Holds the lock of the
+    project's `fit/` (another fit of it is refused with `BusyError`, or waited for with `cfg.wait`)."""
     from avatarctl.atomic import remove_stale_temps
 
-    plan = plan or prepare(project_dir, req)
-    with writing(plan.project.paths.fit, req.command, req.wait) as held:
+    plan = plan or prepare(project_dir, cfg)
+    with writing(plan.project.paths.fit, cfg.command, cfg.wait) as held:
         if held:  # what a killed fit left in fit/ (its checkpoints' temporaries: the loop)
             remove_stale_temps(plan.project.paths.fit)
-        return _train(plan, req, progress, stop, handle_sigint)
+        return _train(plan, cfg, progress, stop, handle_sigint)
 
 
-def _train(plan: FitPlan, req: FitRequest, progress: ProgressFn | None, stop: "StopFlag | None",
+def _train(plan: FitPlan, cfg: FitRequest, progress: ProgressFn | None, stop: "StopFlag | None",
            handle_sigint: bool) -> "FitResult":
     from avatarctl.dist import DistEnv, launch, process_group, signals_request_stop
     from avatarctl.fit.loop import StepReport, StopFlag, fit
 
-    project, cfg = plan.project, plan.config
+    project, fit_cfg = plan.project, plan.config
     t0 = time.perf_counter()
 
     def on_step(rep: StepReport) -> None:
         if progress is not None:
-            progress(StageProgress(stage="fit", done=rep.step, total=rep.iters, seconds=time.perf_counter() - t0,
-                                   detail=rep))
+            progress(ProgressReport(stage="fit", done=rep.step, total=rep.iters, seconds=time.perf_counter() - t0,
+                                    detail=rep))
 
-    if req.nproc > 1:
-        return launch(_fit_rank, req.nproc, (str(project.root), req), on_progress=on_step, what="fit",
+    if cfg.nproc > 1:
+        return launch(_fit_rank, cfg.nproc, (str(project.root), cfg), on_progress=on_step, what="fit",
                       fix=f"the last checkpoint is intact: `avatarctl fit {project.root} --resume` "
                           f"(any --nproc dividing the ray shards)")
     env = DistEnv.from_env()
     if env is None:
-        return fit(project, cfg, device=req.device, resume=req.resume, fresh=req.fresh, progress=on_step, stop=stop,
-                   handle_sigint=handle_sigint, shards=req.shards)
+        return fit(project, fit_cfg, device=cfg.device, resume=cfg.resume, fresh=cfg.fresh, progress=on_step,
+                   stop=stop, handle_sigint=handle_sigint, shards=cfg.shards)
     stop = stop or StopFlag()  # a torchrun rank: Ctrl-C / SIGTERM ask for a stop the ranks agree on
-    with process_group(env, _device(req)), signals_request_stop(stop, _STOP_SIGNALS):
-        return fit(project, cfg, device=req.device, resume=req.resume, fresh=req.fresh,
+    with process_group(env, _device(cfg)), signals_request_stop(stop, _STOP_SIGNALS):
+        return fit(project, fit_cfg, device=cfg.device, resume=cfg.resume, fresh=cfg.fresh,
                    progress=on_step if env.is_main else None, stop=stop, handle_sigint=False, env=env,
-                   shards=req.shards)
+                   shards=cfg.shards)
 
 
-def _device(req: FitRequest):
+def _device(cfg: FitRequest):
     from avatarctl.device import resolve_device
 
-    return resolve_device(req.device)
+    return resolve_device(cfg.device)
 
 
-def _fit_rank(env, channel, project_dir: str, req: FitRequest) -> "FitResult":
+def _fit_rank(env, channel, project_dir: str, cfg: FitRequest) -> "FitResult":
     """One rank spawned by `run` (`dist.launch`): join the group, train, hand rank 0's result back."""
     from avatarctl.dist import process_group, signals_request_stop
     from avatarctl.fit.loop import fit, StopFlag
 
     stop = StopFlag(channel.stop)
-    with process_group(env, _device(req)), signals_request_stop(stop):
-        plan = prepare(project_dir, replace(req, nproc=1))
-        return fit(plan.project, plan.config, device=req.device, resume=req.resume, fresh=req.fresh,
+    with process_group(env, _device(cfg)), signals_request_stop(stop):
+        plan = prepare(project_dir, replace(cfg, nproc=1))
+        return fit(plan.project, plan.config, device=cfg.device, resume=cfg.resume, fresh=cfg.fresh,
                    progress=channel.send_progress if env.is_main else None, stop=stop, handle_sigint=False, env=env,
-                   shards=req.shards)
+                   shards=cfg.shards)

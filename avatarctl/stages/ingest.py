@@ -1,16 +1,17 @@
 """The ingest stage (`avatarctl ingest CAPTURE PROJECT`): a raw capture -> a project directory, through the ingest
 library (`avatarctl.ingest.pipeline.run_ingest`); every ingested frame (and, when fits or masks are estimated, every
-detected view and fit step) is reported as a `StageProgress` whose `part` is "frames", "detect" or "fit"."""
+detected view and fit step) is reported as a `ProgressReport` (`avatarctl.progress`) whose `part` is "frames",
+"detect" or "fit"."""
 
 from __future__ import annotations
 
-import time
 from dataclasses import replace
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 from avatarctl.ingest.config import IngestConfig
-from avatarctl.stages.common import StageProgress, ProgressFn, writing
+from avatarctl.progress import ProgressFn, for_stage
+from avatarctl.stages.common import writing
 
 if TYPE_CHECKING:
     from avatarctl.ingest.pipeline import IngestResult
@@ -31,12 +32,6 @@ def run(project_dir: str | Path, cfg: IngestConfig, progress: ProgressFn | None 
     path `project_dir` (another ingest into it is refused with `BusyError`, or waited for with `wait`)."""
     from avatarctl.ingest.pipeline import run_ingest
 
-    t0 = time.perf_counter()
-
-    def on_frame(done: int, total: int, part: str = "frames") -> None:
-        if progress is not None:
-            progress(StageProgress(stage="ingest", done=done, total=total, seconds=time.perf_counter() - t0,
-                                   part=part))
-
+    on_frame = for_stage(progress, "ingest")
     with writing(Path(project_dir), "ingest", wait):
         return run_ingest(replace(cfg, project=Path(project_dir)), progress=on_frame)

@@ -37,8 +37,10 @@ import numpy as np
 from avatarctl.errors import InputError
 from avatarctl.frames import select_frames
 from avatarctl.geometry.cameras import Camera
+from avatarctl.lists import split_list
 from avatarctl.project import Project, check_name, now_iso
-from avatarctl.stages.common import StageProgress, ProgressFn, check_knockout, check_latent_mode, frame_node_state, \
+from avatarctl.progress import ProgressReport, ProgressFn
+from avatarctl.stages.common import check_knockout, check_latent_mode, frame_node_state, \
     knocked_out, latent_for, load_fitted, motion_for_avatar, open_fitted, rank_device_name, run_ranked, select_views, \
     writing
 
@@ -58,7 +60,7 @@ def parse_background(spec: str, fit_background: tuple[float, float, float]) -> t
     if s == "transparent":
         return (0.0, 0.0, 0.0), True
     try:
-        vals = [float(v) for v in s.split(",")]
+        vals = list(split_list(s, float))
         if len(vals) != 3:
             raise ValueError
     except ValueError:
@@ -220,8 +222,8 @@ def _run(env: Any, progress: ProgressFn | None, project_dir: str, cfg: RenderCon
                     cfg.seed), cfg.knockout))
             image, rgb8 = _render_shot(avatar, state_cache[1], plan, i, background, transparent, cfg, tmp)
             if progress is not None:
-                progress(StageProgress(stage="render", done=min((n + 1) * world, total), total=total,
-                                       seconds=time.perf_counter() - t0))
+                progress(ProgressReport(stage="render", done=min((n + 1) * world, total), total=total,
+                                        seconds=time.perf_counter() - t0))
             yield i, image, rgb8
 
     def video_frames(rows: Any):

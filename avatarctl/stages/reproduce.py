@@ -36,7 +36,7 @@ from pathlib import Path
 from typing import Any, Callable
 
 from avatarctl.errors import InputError
-from avatarctl.stages.common import ProgressFn, relabel
+from avatarctl.progress import ProgressFn, relabel
 
 SCHEMA_VERSION = 1
 SCALES = ("tiny", "micro")  # tiny: the CPU-sized captures; micro: seconds, for tests (plumbing only)
@@ -48,16 +48,17 @@ class ScaleSizes:
 
     captures: dict[str, tuple[str, dict[str, Any]]]  # capture name -> (synth preset, field overrides)
     fit_preset: str
-    fit_overrides: tuple[str, ...]
+    fit_settings: dict[str, Any]  # FitConfig values over the fit preset's
     eval_every: int
 
 
 SIZES: dict[str, ScaleSizes] = {
     "tiny": ScaleSizes(captures={"skirt": ("tiny", {}), "tight": ("tight", {}), "monocular": ("monocular", {})},
-                       fit_preset="cpu", fit_overrides=("rays_per_batch=1024", "val_every=0"), eval_every=4),
+                       fit_preset="cpu", fit_settings={"rays_per_batch": 1024, "val_every": 0},
+                       eval_every=4),
     "micro": ScaleSizes(captures={"skirt": ("micro", {}), "tight": ("micro", {"garment": "none"}),
                                   "monocular": ("micro", {"garment": "none", "motion": "turn", "train_views": 1})},
-                        fit_preset="micro", fit_overrides=("val_every=0",), eval_every=2),
+                        fit_preset="micro", fit_settings={"val_every": 0}, eval_every=2),
 }
 
 # (capture, model name, --ablation) of every fit, per seed
@@ -262,13 +263,13 @@ def _fit(project: Path, cfg: ReproduceConfig, sizes: ScaleSizes, ablation: str |
     if rec is not None and rec.summary["stop_reason"] in ("done", "time_budget"):
         return None
     iters = cfg.budget_steps or 1_000_000
-    overrides = sizes.fit_overrides + (f"checkpoint_every={max(iters // 4, 25)}",)
+    settings = {**sizes.fit_settings, "checkpoint_every": max(iters // 4, 25)}
     if cfg.minutes is not None:
-        overrides += (f"time_budget_s={cfg.fit_seconds:.1f}",)
+        settings["time_budget_s"] = round(cfg.fit_seconds, 1)
     if proj.paths.latest_checkpoint.exists():  # killed earlier: continue it
         req = FitRequest(resume=True, device=cfg.device)
     else:
-        req = FitRequest(preset=sizes.fit_preset, iters=iters, seed=seed, ablation=ablation, overrides=overrides,
+        req = FitRequest(preset=sizes.fit_preset, iters=iters, seed=seed, ablation=ablation, settings=settings,
                          device=cfg.device)
     fr = fit.run(project, req, progress=progress, handle_sigint=False)
     return f"{fr.step} steps, {fr.seconds:.0f} s, {fr.rays_per_s:.0f} rays/s, stop: {fr.stop_reason}"

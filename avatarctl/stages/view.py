@@ -19,7 +19,7 @@ Steps:
 from __future__ import annotations
 
 import threading
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable
 
@@ -222,9 +222,20 @@ def _video_fn(project_dir: Path, cfg: ViewConfig) -> Callable[[str, str, str], R
     return start
 
 
+@dataclass(frozen=True)
+class ViewResult:
+    """What a viewer session served."""
+
+    url: str  # where it was served
+    frames: int  # frames of the project's motion it offered
+    gaussian: bool  # the avatar's field is the rasterized Gaussians (else ray-marched)
+    background: tuple[float, float, float]  # the fit background, RGB in [0, 1]
+    config: ViewConfig
+
+
 def run(project_dir: str | Path, cfg: ViewConfig, ready: Callable[[str], None] | None = None,
-        stop: threading.Event | None = None) -> dict[str, Any]:
-    """Serve the viewer until `stop` is set (or KeyboardInterrupt); returns a summary (frames, url, config)."""
+        stop: threading.Event | None = None) -> ViewResult:
+    """Serve the viewer until `stop` is set (or KeyboardInterrupt); returns what it served."""
     from avatarctl.viewer.server import ViewerServer, import_viser
 
     try:
@@ -250,5 +261,6 @@ def run(project_dir: str | Path, cfg: ViewConfig, ready: Callable[[str], None] |
             pass
     finally:
         server.stop()
-    return {"url": server.url, "frames": len(setup.session.frames), "config": asdict(cfg), "gaussian": gaussian,
-            "background": list(np.asarray(setup.avatar.background, float))}
+    r, g, b = (float(c) for c in np.asarray(setup.avatar.background, float))
+    return ViewResult(url=server.url, frames=len(setup.session.frames), gaussian=bool(gaussian), background=(r, g, b),
+                      config=cfg)

@@ -27,7 +27,6 @@ import json
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 
@@ -35,11 +34,10 @@ from avatarctl.atomic import write_image
 from avatarctl.errors import InputError
 from avatarctl.geometry.cameras import Camera, look_at
 from avatarctl.io.gt_geometry import GT_GEOMETRY, GT_MOTION
+from avatarctl.progress import ProgressFn, ProgressReport
 from avatarctl.synth.config import GENERATOR_VERSION, SynthConfig
 from avatarctl.synth.motion import PHENOTYPE_LABELS, ProceduralMotion, make_motion
 
-Progress = Callable[[str, int, int], None]
-"""progress(stage, done, total): called as frames are simulated ("simulate") and rendered ("render")."""
 
 
 @dataclass(frozen=True)
@@ -157,7 +155,7 @@ def _hem_pair(body: np.ndarray, hem: np.ndarray, frames: list[int]) -> dict | No
     return {"frames": [int(frames[i]), int(frames[j])], "body_rms_m": float(db[i, j]), "hem_rms_m": float(dh[i, j])}
 
 
-def simulate(config: SynthConfig, progress: Progress | None = None) -> tuple[Scene, ProceduralMotion, dict]:
+def simulate(config: SynthConfig, progress: ProgressFn | None = None) -> tuple[Scene, ProceduralMotion, dict]:
     """Motion, body and skirt for every written frame. Returns (scene, motion, stats incl. timings)."""
     from avatarctl.body.anny_model import AnnyBody
     from avatarctl.synth.garment import ClothParams, SkirtSimulator, build_skirt
@@ -198,7 +196,7 @@ def simulate(config: SynthConfig, progress: Progress | None = None) -> tuple[Sce
             skirt_x[written[r]] = x
             worst = max(worst, sim.count_penetrations())
         if progress:
-            progress("simulate", r, motion.rows - 1)
+            progress(ProgressReport(done=r, total=motion.rows - 1, part="simulate"))
     stats["simulate_s"] = time.perf_counter() - t0
     stats["simulate_s_per_frame"] = stats["simulate_s"] / max(motion.rows - 1, 1)
     stats["max_penetrating_particles"] = worst
@@ -348,7 +346,7 @@ def _to_u8(img: np.ndarray) -> np.ndarray:
     return np.clip(np.round(img * 255.0), 0, 255).astype(np.uint8)
 
 
-def synthesize(out: Path, config: SynthConfig, progress: Progress | None = None) -> SynthResult:
+def synthesize(out: Path, config: SynthConfig, progress: ProgressFn | None = None) -> SynthResult:
     """Generate the capture described by `config` into `out` (which must not exist or be empty).
 
     Deterministic in `config.seed`: the same seed gives byte-identical files (capture.json differs only in its
@@ -399,7 +397,7 @@ def synthesize(out: Path, config: SynthConfig, progress: Progress | None = None)
                 if k in sheet_frames:
                     sheet_tiles[(k, c)] = u8
             if progress:
-                progress("render", k + 1, len(frames))
+                progress(ProgressReport(done=k + 1, total=len(frames), part="render"))
         stats["render_s"] = time.perf_counter() - t0
 
         t0 = time.perf_counter()

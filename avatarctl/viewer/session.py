@@ -29,6 +29,7 @@ from typing import TYPE_CHECKING, Any, Callable
 import numpy as np
 
 from avatarctl.geometry.cameras import Camera
+from avatarctl.progress import ProgressReport
 from avatarctl.viewer.progressive import Cancelled, ViewRequest
 
 if TYPE_CHECKING:
@@ -180,7 +181,7 @@ class ViewerSession:
             t0 = time.perf_counter()
             state = self.state(req.frame, req.latent)
 
-            def progress(done: int, total: int) -> None:
+            def progress(report: ProgressReport) -> None:
                 if should_stop():
                     raise Cancelled()
 
