@@ -66,9 +66,9 @@ def test_initial_gaussians_start_on_the_surface_within_their_node():
     assert hull_scales[-1].exp().max() < 0.05
 
 
-def _fields(N: int = 3, K: int = 5, E: int = 4, sh_degree: int = 1, blend_nodes: int = 1) -> NodeGaussians:
+def _fields(N: int = 3, K: int = 5, E: int = 4, sh_degree: int = 1) -> NodeGaussians:
     torch.manual_seed(0)
-    cfg = GaussianConfig(per_node=K, feature_dim=6, decoder_width=8, sh_degree=sh_degree, blend_nodes=blend_nodes)
+    cfg = GaussianConfig(per_node=K, feature_dim=6, decoder_width=8, sh_degree=sh_degree)
     return NodeGaussians(cfg, N, E, 0.05 * torch.randn(N, K, 3), torch.full((N, K, 3), math.log(0.02)))
 
 
@@ -80,8 +80,7 @@ def test_posed_gaussians_follow_the_node_transforms():
     T = torch.eye(4).repeat(B, N, 1, 1)
     T[1, :, :3, :3] = rot
     centers = torch.randn(B, N, 3)
-    REST = torch.randn(N, 3)  # canonical nodes: unused by the rigid form (blend_nodes = 1)
-    posed = g(T, centers, torch.zeros(B, N, 4), REST)
+    posed = g(T, centers, torch.zeros(B, N, 4))
     assert posed.means.shape == (B, N * K, 3) and posed.covars.shape == (B, N * K, 3, 3)
     # x_ik = n_i + A_i mu_ik (Eq. 4 read backwards); Sigma = A R S^2 R^T A^T
     local = g.means.detach()
@@ -91,52 +90,11 @@ def test_posed_gaussians_follow_the_node_transforms():
     assert torch.allclose(posed.covars[0], torch.eye(3).expand(N * K, 3, 3) * 0.02 ** 2, atol=1e-9)
     # the decoder's last layer starts at zero: e_i changes nothing yet; once trained it does (the detail level)
     e = torch.randn(B, N, 4)
-    assert torch.allclose(g(T, centers, e, REST).opacities, posed.opacities)
+    assert torch.allclose(g(T, centers, e).opacities, posed.opacities)
     with torch.no_grad():
         g.decoder.layers[-1].weight.normal_()
-    a, b = g(T, centers, e, REST), g(T, centers, torch.zeros(B, N, 4), REST)
+    a, b = g(T, centers, e), g(T, centers, torch.zeros(B, N, 4))
     assert not torch.allclose(a.means, b.means) and not torch.allclose(a.opacities, b.opacities)
-
-
-def _rigid(rot: torch.Tensor, t: torch.Tensor, rest: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """T [1, N, 4, 4] and posed centres [1, N, 3] of nodes `rest` [N, 3] all moved by one rigid motion (rot, t)."""
-    N = rest.shape[0]
-    T = torch.eye(4).repeat(1, N, 1, 1)
-    T[0, :, :3, :3], T[0, :, :3, 3] = rot, t
-    return T, (rest @ rot.T + t)[None]
-
-
-def test_blended_gaussians_reduce_to_the_rigid_form():
-    """Embedded deformation (blend_nodes > 1): under one rigid motion of every node it places each Gaussian as the rigid
-    form does (the weights sum to one); with 1 node to blend it is the rigid form."""
-    rest = torch.tensor([[0.0, 0.0, 0.0], [0.08, 0.0, 0.0], [0.0, 0.1, 0.0], [0.3, 0.2, 0.1]])
-    rigid, blended = _fields(N=4, K=6), _fields(N=4, K=6, blend_nodes=3)
-    blended.load_state_dict(rigid.state_dict())
-    angle = 0.9
-    rot = torch.tensor([[math.cos(angle), 0, math.sin(angle)], [0, 1.0, 0], [-math.sin(angle), 0, math.cos(angle)]])
-    T, centers = _rigid(rot, torch.tensor([0.2, -1.0, 0.5]), rest)
-    e = torch.randn(1, 4, 4)
-    a, b = rigid(T, centers, e, rest), blended(T, centers, e, rest)
-    assert torch.allclose(a.means, b.means, atol=1e-6) and torch.allclose(a.covars, b.covars, atol=1e-8)
-    nbr, w = blended.blend_weights(rest)
-    assert nbr.shape == (4, 3) and torch.equal(nbr[:, 0], torch.arange(4)) and w.shape == (4, 6, 3)
-    assert torch.allclose(w.sum(-1), torch.ones(4, 6))
-
-
-def test_blended_gaussians_follow_the_nearer_node_and_stay_together_between_two():
-    """Two nodes 10 cm apart, the second moved 4 cm up: a Gaussian at the midpoint moves 2 cm whichever node owns it
-    (the rigid form moves it 0 or 4 cm: a tear), and one on top of its node moves (almost) with that node."""
-    N, K = 2, 2
-    g = _fields(N=N, K=K, blend_nodes=2)
-    rest = torch.tensor([[0.0, 0.0, 0.0], [0.1, 0.0, 0.0]])
-    with torch.no_grad():  # node 0's Gaussians: at the midpoint and on the node; node 1's: the midpoint and its node
-        g.means.copy_(torch.tensor([[[0.05, 0, 0], [0.0, 0, 0]], [[-0.05, 0, 0], [0.0, 0, 0]]]))
-    T, centers = _rigid(torch.eye(3), torch.zeros(3), rest)
-    centers = centers.clone()
-    centers[0, 1, 2] += 0.04
-    z = g(T, centers, torch.zeros(1, N, 4), rest).means[0, :, 2]  # [N K] heights: (mid, n0, mid, n1)
-    assert torch.allclose(z[[0, 2]], torch.tensor([0.02, 0.02]), atol=1e-6)
-    assert float(z[1].detach()) < 0.005 and float(z[3].detach()) > 0.035
 
 
 def test_view_dependent_colour_turns_with_the_node():
@@ -146,7 +104,7 @@ def test_view_dependent_colour_turns_with_the_node():
     rot = torch.tensor([[-1.0, 0, 0], [0, -1.0, 0], [0, 0, 1.0]])  # the node turned by 180 degrees about z
     T = torch.eye(4).repeat(2, 1, 1, 1)
     T[1, 0, :3, :3] = rot
-    posed = g(T, torch.zeros(2, 1, 3), torch.zeros(2, 1, 4), torch.zeros(1, 3))
+    posed = g(T, torch.zeros(2, 1, 3), torch.zeros(2, 1, 4))
     cam = posed.means[0, 0] + torch.tensor([5.0, 0, 0])
     cam1 = posed.means[1, 0] + torch.tensor([-5.0, 0, 0])  # the same side of the turned node
     assert torch.allclose(posed.colors(0, cam), posed.colors(1, cam1), atol=1e-5)
@@ -253,7 +211,7 @@ def test_splat_ply_holds_the_posed_gaussians_in_the_world_frame(tmp_path):
         g.quats.normal_()
     T = torch.eye(4).repeat(1, 2, 1, 1)
     T[0, 1, :3, :3] = quaternion_to_matrix(torch.tensor([0.8, 0.1, -0.5, 0.3]))
-    posed = g(T, torch.randn(1, 2, 3), torch.zeros(1, 2, 4), torch.zeros(2, 3))
+    posed = g(T, torch.randn(1, 2, 3), torch.zeros(1, 2, 4))
     cols = splat_arrays(posed.means[0], posed.covars[0], posed.sh[0], posed.opacities[0], T[0, :, :3, :3], 3)
     v = trimesh.load(write_splat_ply(tmp_path / "f.ply", cols)).metadata["_ply_raw"]["vertex"]["data"]
     col = lambda n: torch.tensor(v[n], dtype=torch.float64)  # noqa: E731

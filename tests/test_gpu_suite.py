@@ -15,7 +15,7 @@ def test_gpu_suite_runs_every_part_at_toy_scale(tmp_path):
     assert not bad, bad
     assert parts["parity"]["avatar_render_max_abs_diff"] == 0.0  # cpu against cpu: the same code, the same numbers
     assert parts["parity"]["raster_grad_means_max_abs"] > 0
-    assert all(parts["train"][k]["images_per_s"] > 0 for k in ("batch4", "batch16", "batch4_blend4"))
+    assert all(parts["train"][k]["images_per_s"] > 0 for k in ("batch4", "batch16"))
     assert parts["profile"]["per_render"]["by_cpu_time"]
     assert parts["render"]["ms_per_render"] > 0 and parts["render"]["raster_ms"] > 0
     assert parts["raster"]["table"]["rows"]

@@ -287,7 +287,7 @@ class SlrfAvatar(nn.Module):
         if self.cfg.field != "gaussians":
             raise ValueError(f"posed_gaussians needs model.field = 'gaussians', this avatar's is {self.cfg.field!r}")
         with _float32_geometry(state.transforms.device):
-            return self.fields(state.transforms, state.centers, state.embed, self.node_rest)
+            return self.fields(state.transforms, state.centers, state.embed)
 
     def render_image(self, posed: "PosedGaussians", slot: int, camera: "SplatCamera", background: torch.Tensor,
                      backend: str = "auto") -> tuple[torch.Tensor, torch.Tensor]:

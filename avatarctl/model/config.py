@@ -63,10 +63,6 @@ class GaussianConfig:
     sh_degree: int = 1  # spherical-harmonic degree of the colours (0: view-independent; at most 1)
     init_opacity: float = 0.3
     offset_scale: float = 0.02  # metres: the decoder's offset output is multiplied by this (detail motion)
-    # a Gaussian moves with a blend of its node's and the nearest other nodes' motions (embedded deformation; 1: with
-    # its own node alone, rigidly). Weights exp(-|x - n_j|^2 / 2 sigma^2) over the `blend_nodes` nodes nearest to its
-    # node, from its canonical position (Eq. 6's sigma)
-    blend_nodes: int = 1
     # losses (3DGS): (1 - lambda_ssim) L1 + lambda_ssim D-SSIM per image; lambda_mask |alpha - mask| (deviation)
     lambda_ssim: float = 0.2
     lambda_mask: float = 0.1
@@ -86,7 +82,7 @@ class GaussianConfig:
             if not ok:
                 raise ValueError(f"GaussianConfig: {msg}")
 
-        for name in ("per_node", "feature_dim", "decoder_width", "blend_nodes"):
+        for name in ("per_node", "feature_dim", "decoder_width"):
             v = getattr(self, name)
             need(isinstance(v, int) and not isinstance(v, bool) and v > 0, f"{name} must be a positive int, got {v!r}")
         need(self.sh_degree in (0, 1), f"sh_degree must be 0 or 1, got {self.sh_degree!r}")

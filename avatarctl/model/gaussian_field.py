@@ -13,13 +13,7 @@ MLP F_i. Motion is decomposed exactly as in the paper:
 A Gaussian k of node i lives in the node's local frame (Eq. 4 read backwards): its mean is
     x_ik = n_i + A_i (mu_ik + offset_ik)            (A_i: the 3x3 linear part of T_i)
 its covariance Sigma_ik = A_i R_ik S_ik^2 R_ik^T A_i^T (R from a unit quaternion (w, x, y, z), S = exp(log-scales),
-metres). With `GaussianConfig.blend_nodes` J > 1 (embedded deformation, as a deformation graph skins a mesh) the
-Gaussian follows a blend of the motions of node i and its J - 1 nearest nodes j (canonical distances) instead:
-    x_ik = sum_j w_ikj [n_j + A_j (n_bar_i - n_bar_j)] + A_ik (mu_ik + offset_ik),   A_ik = sum_j w_ikj A_j,
-w_ikj = softmax_j(-|n_bar_i + mu_ik - n_bar_j|^2 / 2 sigma^2) (Eq. 6's sigma; mu detached), and A_ik in place of A_i
-in its covariance; J = 1 is the rigid form above. Neighbouring nodes' Gaussians then move together where their nodes
-move apart (a loose garment's nodes each take their own Delta n_i), instead of tearing apart at the nodes' borders.
-Its opacity sigmoid(logit_ik + delta_ik), its colour c = 0.5 + SH(d_local) with the viewing direction
+metres), its opacity sigmoid(logit_ik + delta_ik), its colour c = 0.5 + SH(d_local) with the viewing direction
 d_local = A_i^-1 d (normalised) in the node's frame, so the view dependence turns with the body. The last decoder
 layer starts at zero: at initialisation every frame renders the same static Gaussians.
 
@@ -196,33 +190,9 @@ class NodeGaussians(nn.Module):
         return {"lr_means": [self.means], "lr_scales": [self.log_scales], "lr_quats": [self.quats],
                 "lr_opacity": [self.opacity_logits], "lr_colors": [self.sh, self.features]}
 
-    def blend_weights(self, rest: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """rest [N, 3] canonical nodes -> (neighbours [N, J] long: node i and its J - 1 nearest nodes, weights
-        [N, K, J]: each Gaussian's w_ikj of the module docstring, from its canonical position, without gradient)."""
-        J = min(self.cfg.blend_nodes, self.num_nodes)
-        rest = rest.detach().to(self.means)
-        nbr = torch.cdist(rest, rest).topk(J, dim=1, largest=False).indices  # [N, J], node i itself first
-        pos = rest[:, None, None, :] + self.means.detach()[:, :, None, :]  # [N, K, 1, 3]
-        d2 = ((pos - rest[nbr][:, None]) ** 2).sum(-1)  # [N, K, J]
-        return nbr, torch.softmax(-d2 * (0.5 * self.coord_scale ** 2), dim=-1)
-
-    def _blended_motion(self, A: torch.Tensor, centers: torch.Tensor, rest: torch.Tensor
-                        ) -> tuple[torch.Tensor, torch.Tensor]:
-        """A [B, N, 3, 3], centers [B, N, 3], rest [N, 3] -> each Gaussian's blended origin
-        sum_j w (n_j + A_j (n_bar_i - n_bar_j)) [B, N, K, 3] and linear part A_ik [B, N, K, 3, 3] (module docstring)."""
-        nbr, w = self.blend_weights(rest)
-        rest = rest.to(A)
-        lever = rest[:, None, :] - rest[nbr]  # [N, J, 3] n_bar_i - n_bar_j
-        A_j = A[:, nbr]  # [B, N, J, 3, 3]
-        origin_j = centers[:, nbr] + (A_j * lever[None, :, :, None, :]).sum(-1)  # [B, N, J, 3]
-        origin = torch.einsum("nkj,bnjd->bnkd", w, origin_j)
-        A_k = torch.einsum("nkj,bnjde->bnkde", w, A_j)
-        return origin, A_k
-
-    def forward(self, transforms: torch.Tensor, centers: torch.Tensor, embed: torch.Tensor,
-                rest: torch.Tensor) -> PosedGaussians:
-        """transforms [B, N, 4, 4] T_i (Eq. 1), centers [B, N, 3] posed nodes n_i (Eq. 3), embed [B, N, E] e_i,
-        rest [N, 3] canonical nodes n_bar_i -> the posed Gaussians of the B frames."""
+    def forward(self, transforms: torch.Tensor, centers: torch.Tensor, embed: torch.Tensor) -> PosedGaussians:
+        """transforms [B, N, 4, 4] T_i (Eq. 1), centers [B, N, 3] posed nodes n_i (Eq. 3), embed [B, N, E] e_i ->
+        the posed Gaussians of the B frames."""
         B, N, K, S = centers.shape[0], self.num_nodes, self.per_node, self.num_sh
         F = self.features.shape[-1]
         bias = self.embed(embed.transpose(0, 1))  # [N, B, width]
@@ -235,14 +205,9 @@ class NodeGaussians(nn.Module):
         opacity = torch.sigmoid(self.opacity_logits[None] + out[..., -1])  # [B, N, K]
         A = transforms[..., :3, :3]  # [B, N, 3, 3]
         local = self.means[None] + offset  # [B, N, K, 3]
+        means = centers[:, :, None, :] + (A[:, :, None] * local[..., None, :]).sum(-1)
         L = quaternion_to_matrix(self.quats) * self.log_scales.exp()[:, :, None, :]  # [N, K, 3, 3] R S
-        if self.cfg.blend_nodes == 1:
-            means = centers[:, :, None, :] + (A[:, :, None] * local[..., None, :]).sum(-1)
-            covars = gram(torch.einsum("bnij,nkjl->bnkil", A, L))  # [B, N, K, 3, 3] M M^T, M = A R S
-        else:
-            origin, A_k = self._blended_motion(A, centers, rest)  # [B, N, K, 3], [B, N, K, 3, 3]
-            means = origin + (A_k * local[..., None, :]).sum(-1)
-            covars = gram(A_k @ L[None])
+        covars = gram(torch.einsum("bnij,nkjl->bnkil", A, L))  # [B, N, K, 3, 3] M M^T, M = A R S
         return PosedGaussians(means=means.reshape(B, N * K, 3), covars=covars.reshape(B, N * K, 3, 3),
                               sh=sh.reshape(B, N * K, S, 3), opacities=opacity.reshape(B, N * K),
                               linear_inv=torch.linalg.inv(A), per_node=K)
