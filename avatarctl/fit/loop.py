@@ -39,8 +39,8 @@ from avatarctl.atomic import remove_stale_temps, write_json, write_text
 from avatarctl.device import resolve_device
 from avatarctl.dist import rank_device
 from avatarctl.errors import AvatarError, InputError, ProjectError
-from avatarctl.fit.config import FitConfig, config_summary
-from avatarctl.model.config import HULL_AUTO, ModelConfig
+from avatarctl.fit.config import MASK_DILATE_PX, FitConfig, config_summary
+from avatarctl.model.config import AUTO, ModelConfig
 from avatarctl.project import Project, now_iso
 
 if TYPE_CHECKING:
@@ -181,24 +181,37 @@ def _resume_config(cfg: FitConfig | None, saved: FitConfig) -> FitConfig:
 
 def _place_hull_nodes(model_cfg: ModelConfig, seed: int, capture, body, template, train_frames: list[int],
                       views: list[str]) -> "tuple[HullNodes | None, str]":
-    """`model.hull_nodes` = K or "auto" (fit/hull_nodes.py): survey the training masks, decide K for "auto", place
+    """`model.hull.nodes` = K or "auto" (fit/hull_nodes.py): survey the training masks, decide K for "auto", place
     the nodes. -> (the K hull nodes, or None for the paper's placement; the line for the log and the summary)."""
     from avatarctl.fit.hull_nodes import auto_hull_nodes, choose_hull_nodes, survey_hull
     from avatarctl.model.deformer import farthest_point_sampling
 
-    N, auto = model_cfg.num_nodes, model_cfg.hull_nodes == HULL_AUTO
-    k = model_cfg.hull_auto_nodes if auto else int(model_cfg.hull_nodes)
+    opts = model_cfg.hull
+    N, auto = model_cfg.num_nodes, opts.nodes == AUTO
+    k = model_cfg.hull_auto_nodes if auto else int(opts.nodes)
     surface = farthest_point_sampling(template.vertices, N - k, seed)
-    survey = survey_hull(capture, body, template, train_frames, views, surface, model_cfg.hull_min_dist)
+    survey = survey_hull(capture, body, template, train_frames, views, surface, opts.min_dist)
     if auto:
-        k = auto_hull_nodes(survey, k, model_cfg.hull_auto_min_volume)
+        k = auto_hull_nodes(survey, k, opts.auto_min_volume)
         if not k:
-            return None, (f"hull: {survey.describe()} < {100 * model_cfg.hull_auto_min_volume:g} % -> none "
+            return None, (f"hull: {survey.describe()} < {100 * opts.auto_min_volume:g} % -> none "
                           f"(hull_nodes=auto: all {N} nodes on the surface)")
     hull = choose_hull_nodes(survey, template, template.vertices.detach().float()[surface], k)
     more = f", {k - hull.off_body} more on the surface" if hull.off_body < k else ""
-    why = f" >= {100 * model_cfg.hull_auto_min_volume:g} % (hull_nodes=auto)" if auto else ""
+    why = f" >= {100 * opts.auto_min_volume:g} % (hull_nodes=auto)" if auto else ""
     return hull, f"hull: {survey.describe()}{why} -> {hull.off_body} of {N} nodes placed off the body{more}"
+
+
+def decide_auto(cfg: FitConfig, project: Project) -> FitConfig:
+    """`cfg` with `model.pose_refine.enabled = "auto"` decided from the project's capture: on when its body fits are
+    not ground truth (real captures, synth with --fit-noise). The saved config holds the decision."""
+    refine = cfg.model.pose_refine
+    if refine.enabled != AUTO:
+        return cfg
+    from avatarctl.io.gt_geometry import fits_are_ground_truth
+
+    decided = refine.resolved(fits_are_ground_truth(project.manifest.source.path))
+    return replace(cfg, model=cfg.model.with_(pose_refine=decided))
 
 
 def fit(project: Project, cfg: FitConfig | None = None, *, device: str = "auto", resume: bool = False,
@@ -232,7 +245,8 @@ def fit(project: Project, cfg: FitConfig | None = None, *, device: str = "auto",
             raise ProjectError(f"split names camera {v!r} that is not in cameras.json", where=str(paths.split),
                                fix="re-run `avatarctl ingest`")
     train_frames = sorted(int(f) for f in split.train_frames)
-
+    if cfg is not None:
+        cfg = decide_auto(cfg, project)
     ckpt = None
     if resume:
         ckpt = read_checkpoint(paths.latest_checkpoint)
@@ -262,7 +276,7 @@ def fit(project: Project, cfg: FitConfig | None = None, *, device: str = "auto",
     body = load_body_model(capture.body_model, capture.body_model_path)
     template = body.template(capture.motion)
     poses = build_pose_table(body, capture.motion, train_frames)
-    store = FrameStore(capture, poses, cfg.crop_pad, cfg.cache_mb * 2**20, cfg.mask_dilate_px)
+    store = FrameStore(capture, poses, cfg.crop_pad, cfg.cache_mb * 2**20, MASK_DILATE_PX)
     # the ray-marched fields learn from scattered rays, the rasterized one (model.field = "gaussians") from whole crops
     Sampler = RaySampler if cfg.model.ray_marched else ImageSampler
     replicas = Replicas(env, shards, lambda pairs, rays, images: Sampler(
@@ -272,7 +286,7 @@ def fit(project: Project, cfg: FitConfig | None = None, *, device: str = "auto",
     validator = Validator(capture, body, pairs, train_frames, cfg.background, cfg.val_scale) if pairs else None
 
     hull, hull_note = None, None
-    if cfg.model.hull_nodes and cfg.model.variant == "slrf" and ckpt is None:  # nodes off the body (fit/hull_nodes.py)
+    if cfg.model.hull.on and cfg.model.variant == "slrf" and ckpt is None:  # nodes off the body (fit/hull_nodes.py)
         hull, hull_note = _place_hull_nodes(cfg.model, cfg.seed, capture, body, template, train_frames,
                                             list(split.train_views))
     with torch.random.fork_rng(devices=[]):  # weights initialised from cfg.seed, global RNG left as it was
@@ -286,7 +300,7 @@ def fit(project: Project, cfg: FitConfig | None = None, *, device: str = "auto",
 
         model.pose_refine.set_centres(joint_centres(poses.joint_transforms, template.parents,
                                                     skin_weighted_centroids(template.vertices, template.skin_weights)))
-    if model.pose_refine is not None and cfg.model.lambda_pose_accel > 0:  # the sequence the smoothness term sees
+    if model.pose_refine is not None and cfg.model.pose_refine.lambda_accel > 0:  # the sequence the smoothness sees
         model.pose_refine.set_sequence(poses.joint_transforms, train_frames, capture.motion.fps)
     model.train()
     optimizer = make_optimizer(cfg, param_groups(cfg, model))
@@ -340,7 +354,6 @@ def fit(project: Project, cfg: FitConfig | None = None, *, device: str = "auto",
             if not replicas.distributed and cfg.time_budget_s and time.perf_counter() - t_run >= cfg.time_budget_s:
                 budget_hit = True
                 break
-            model.set_training_step(step)  # model.pe_anneal_steps: the coarse-to-fine level of gamma(p)
             occ_start = replicas.begin_step(model)
             with torch.autocast(device_type="cuda", dtype=torch.bfloat16) if use_amp else contextlib.nullcontext():
                 terms, out, step_rays = replicas.forward(model, background, cfg.jitter)

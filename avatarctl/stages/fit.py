@@ -2,7 +2,8 @@
 resumed), then train with `avatarctl.fit.loop.fit` and report each step as a `StageProgress`.
 
 Resolution: a fresh fit takes `resolve_fit_config(preset, ablation, iters, seed, overrides)`; a resumed fit keeps
-the checkpoint's config and may only change `iters`.
+the checkpoint's config and may only change `iters`. Defaults that depend on the capture ("auto" in the config) are
+decided by the loop at fit start (`fit.loop.decide_auto`) and saved decided.
 
 Ranks (`avatarctl.dist`): `nproc > 1` spawns that many ranks on this machine (`dist.launch`); a process started
 by torchrun (WORLD_SIZE in the environment) joins its group. Either way the loop trains data-parallel over ray
@@ -34,7 +35,7 @@ _STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
 class FitRequest:
     """What `avatarctl fit` was asked: the options that build (or keep) the `FitConfig`, and how to run."""
 
-    preset: str | None = None  # FitConfig preset; None = "cpu" (fresh fits only)
+    preset: str | None = None  # FitConfig preset; None = `fit.config.DEFAULT_PRESET` (fresh fits only)
     iters: int | None = None  # total steps; None = the preset's (or the checkpoint's)
     seed: int | None = None
     overrides: tuple[str, ...] = ()  # `--set key=value`
@@ -61,14 +62,13 @@ class FitRequest:
 
 def fit_config(project: Project, req: FitRequest) -> "FitConfig | None":
     """The config to train with; None = the checkpoint's unchanged (resume without --iters)."""
-    from avatarctl.fit.config import FitConfig, resolve_fit_config
+    from avatarctl.fit.config import DEFAULT_PRESET, FitConfig, resolve_fit_config
 
     if req.resume and req.fresh:
         raise InputError("--resume and --fresh contradict each other", fix="pass one of them")
     if not req.resume:
-        cfg = resolve_fit_config(req.preset or "cpu", ablation=req.ablation, iters=req.iters, seed=req.seed,
-                                 overrides=list(req.overrides))
-        return _default_pose_refine(project, cfg, req)
+        return resolve_fit_config(req.preset or DEFAULT_PRESET, ablation=req.ablation, iters=req.iters,
+                                  seed=req.seed, overrides=list(req.overrides))
     given = [n for n, v in (("--preset", req.preset), ("--seed", req.seed), ("--ablation", req.ablation))
              if v is not None]
     if req.overrides:
@@ -82,19 +82,6 @@ def fit_config(project: Project, req: FitRequest) -> "FitConfig | None":
 
     saved = FitConfig.from_json(read_checkpoint(project.paths.latest_checkpoint)["fit_config"])
     return replace(saved, iters=req.iters)
-
-
-def _default_pose_refine(project: Project, cfg: "FitConfig", req: FitRequest) -> "FitConfig":
-    """Pose refinement (`model.pose_refine`, model/pose_refine.py) is on by default for captures whose body fits are
-    not ground truth (real captures, synth with --fit-noise), except in the paper preset; `--set
-    model.pose_refine=...` decides explicitly."""
-    from avatarctl.io.gt_geometry import fits_are_ground_truth
-
-    explicit = any(o.split("=", 1)[0].strip() == "model.pose_refine" for o in req.overrides)
-    if explicit or (req.preset or "cpu") == "paper":
-        return cfg
-    on = not fits_are_ground_truth(project.manifest.source.path)
-    return replace(cfg, model=cfg.model.with_(pose_refine=on)) if on != cfg.model.pose_refine else cfg
 
 
 @dataclass(frozen=True)
@@ -122,6 +109,13 @@ def prepare(project_dir: str | Path, req: FitRequest) -> FitPlan:
         check_shards(req.shards or req.nproc, req.nproc, plan.config.rays_per_batch, plan.config.images_per_batch,
                      len(split.train_frames) * len(split.train_views))
     return plan
+
+
+def preset_help() -> str:
+    """`--preset`'s help, from the preset table (`fit.config.PRESETS`)."""
+    from avatarctl.fit.presets import preset_help as text  # plain data: no torch at start-up
+
+    return text()
 
 
 def is_main_rank() -> bool:
