@@ -1,8 +1,9 @@
 """`FitConfig`: everything that decides how an avatar is trained, resolved once and saved as `fit/config.json`.
 
 Resolution order (`resolve_fit_config`): preset -> `--ablation` switches -> `--iters` / `--seed` -> `--set key=value`
-overrides. Keys of `--set` are `FitConfig` field names or `model.<ModelConfig field>`; an unknown key is an
-`InputError` naming the closest known keys (a typo never silently falls back to a default).
+overrides. Keys of `--set` are `FitConfig` field names, `model.<ModelConfig field>` or `model.<group>.<field>`
+(`settable_keys`); an unknown key is an `InputError` naming the closest known keys (a typo never silently falls back
+to a default).
 
 Defaults, one rule for both configs: the class defaults of `FitConfig` and `ModelConfig` are the paper's
 (supplement) settings, so `FitConfig()` is the `paper` preset. Every other preset is a named set of changes from them,
@@ -38,6 +39,14 @@ from avatarctl.model.config import AUTO, LEGACY_KEYS, ModelConfig, nest_legacy_k
 
 SCHEMA_VERSION = 2  # 2: lr_pose / pose_refine_start moved into model.pose_refine (1: read by `from_json`)
 MASK_DILATE_PX = 4  # dilation (pixels) of the mask `mask_fraction` rays are drawn from (a knob until issue 30)
+# Knobs of configs of schema_version 1 that nothing set, now fixed (docs/fit.md "Tried and removed"), with the value
+# the code keeps; dropped on reading when they hold it (None: any value, an option of removed code), else an error.
+_REMOVED_KEYS: dict[str, Any] = {
+    "lr_grid": None,  # the grid field's rate (issue 28 removed that field)
+    "mask_dilate_px": MASK_DILATE_PX,
+    "jitter": True,  # stratified jitter of the training samples: always
+    "grad_clip": 0.0,  # no gradient clipping (the paper clips none)
+}
 
 
 
@@ -68,7 +77,6 @@ class FitConfig:
     # (0 in every preset; +0.26 dB at equal steps, 1.5x the time per step: docs/fit.md)
     mask_fraction: float = 0.0
     crop_pad: float = 0.25  # metres the posed body's 3D box is grown by, for the crop and the "inside" region
-    jitter: bool = True  # stratified jitter of the ray samples during training
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)  # target = rgb * mask + background * (1 - mask)
     # optimiser (paper: Adam lr 5e-4, betas 0.9 / 0.999, exponential decay every 20k iterations)
     lr: float = 5e-4
@@ -76,7 +84,6 @@ class FitConfig:
     adam_beta2: float = 0.999
     lr_decay_every: int = 20_000  # iterations per decay period
     lr_decay_factor: float = 0.5  # deviation: the factor is not given in the paper (1.0 switches decay off)
-    grad_clip: float = 0.0  # max gradient norm, 0 = off (paper: none)
     amp: bool = False  # bfloat16 autocast on CUDA (ignored on CPU)
     time_budget_s: float = 0.0  # stop (checkpoint, validate, record) after this many seconds of training; 0 = none
     snapshot_at_s: tuple[float, ...] = ()  # also save checkpoints/snapshot_<s>s.pt after these seconds of training
@@ -119,7 +126,6 @@ class FitConfig:
         need(self.lr > 0 and math.isfinite(self.lr), f"lr must be > 0, got {self.lr}")
         need(0.0 <= self.adam_beta1 < 1.0 and 0.0 <= self.adam_beta2 < 1.0, "adam betas must be in [0, 1)")
         need(0.0 < self.lr_decay_factor <= 1.0, f"lr_decay_factor must be in (0, 1], got {self.lr_decay_factor}")
-        need(self.grad_clip >= 0.0, f"grad_clip must be >= 0, got {self.grad_clip}")
         need(self.time_budget_s >= 0.0, f"time_budget_s must be >= 0 seconds, got {self.time_budget_s}")
         need(all(t > 0 for t in self.snapshot_at_s), f"snapshot_at_s must be > 0 seconds, got {self.snapshot_at_s}")
         need(0.0 < self.val_scale <= 1.0, f"val_scale must be in (0, 1], got {self.val_scale}")
@@ -145,10 +151,10 @@ class FitConfig:
             raise InputError(f"fit config schema_version {version} is not supported (expected {SCHEMA_VERSION})",
                              fix="re-run `avatarctl fit` with this avatarctl version")
         if version == 1:
-            d.pop("lr_grid", None)  # the grid field's rate, in configs written before issue 28 removed that field
-            if d.pop("mask_dilate_px", MASK_DILATE_PX) != MASK_DILATE_PX:  # a constant since issue 30
-                raise InputError("fit config: mask_dilate_px is the constant 4 since issue 30",
-                                 fix="fit again, or use avatarctl at commit 0081142")
+            for key, neutral in _REMOVED_KEYS.items():
+                if key in d and d.pop(key) != neutral and neutral is not None:
+                    raise InputError(f"fit config: {key} was removed in issue 30 (what it set is now fixed: "
+                                     f"{neutral!r})", fix="fit again, or use avatarctl at commit 0081142")
             moved = {LEGACY_KEYS[k][1]: d.pop(k) for k in ("lr_pose", "pose_refine_start") if k in d}
             if moved and "model" in d:  # into model.pose_refine (the model dict is version 1 too)
                 model = nest_legacy_keys(d["model"])

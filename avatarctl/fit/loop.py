@@ -415,22 +415,20 @@ class _Step:
 
 def _train_step(t: _Trainer, step: int, elapsed_s: Callable[[], float], stop: StopFlag,
                 next_snapshot_s: float | None) -> _Step:
-    """One optimisation step (paper Sec. 4): forward and loss on this rank's share of the batch, backward, the ranks'
-    synchronisation, Adam and the lr schedule; then the Gaussians' density control when due. `step`: the steps done
-    before this one."""
+    """One optimisation step (paper Sec. 4): forward and loss on this rank's share of the batch (samples jittered),
+    backward, the ranks' synchronisation, Adam (no gradient clipping, as the paper) and the lr schedule; then the
+    Gaussians' density control when due. `step`: the steps done before this one."""
     cfg, model = t.cfg, t.model
     occ_start = t.replicas.begin_step(model)
     use_amp = cfg.amp and t.dev.type == "cuda"
     with torch.autocast(device_type="cuda", dtype=torch.bfloat16) if use_amp else contextlib.nullcontext():
-        terms, out, step_rays = t.replicas.forward(model, t.background, cfg.jitter)
+        terms, out, step_rays = t.replicas.forward(model, t.background, jitter=True)
     t.optimizer.zero_grad(set_to_none=True)
     terms.total.backward()
     elapsed = elapsed_s()
     agreed = t.replicas.sync(model, terms, occ_start, stop=stop.is_set(),
                              budget=t.main and bool(cfg.time_budget_s) and elapsed >= cfg.time_budget_s,
                              snapshot=t.main and next_snapshot_s is not None and elapsed >= next_snapshot_s)
-    if cfg.grad_clip > 0:
-        torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.grad_clip)
     t.optimizer.step()
     t.scheduler.step()
     relocate_every = 0 if cfg.model.ray_marched else cfg.model.gaussians.relocate_every

@@ -439,7 +439,8 @@ class SlrfAvatar(nn.Module):
         return rgb / sigma.clamp(min=1e-12)[:, None], sigma
 
     def _local_scale(self) -> float:
-        return 1.0 / self.cfg.sigma if self.cfg.local_coords_in_sigma else 1.0
+        """Local coordinates are in units of sigma (module docstring of model/config.py)."""
+        return 1.0 / self.cfg.sigma
 
     def _node_extent(self) -> float:
         """Half side of a node's support cube in local-coordinate units (grid fields and occupancy grids)."""
@@ -461,7 +462,7 @@ class SlrfAvatar(nn.Module):
 
     def _local(self, points: torch.Tensor, pi: torch.Tensor, ni: torch.Tensor, fi: torch.Tensor,
                centers: torch.Tensor, state: NodeState) -> torch.Tensor:
-        """Eq. 4 local coordinates of each pair [pairs, 3] (in units of sigma with `local_coords_in_sigma`)."""
+        """Eq. 4 local coordinates of each pair [pairs, 3], in units of sigma."""
         with _float32_geometry(points.device):
             A_inv = torch.linalg.inv(state.transforms[..., :3, :3])  # [B, N, 3, 3]
             return local_coordinates_centered(points[pi], A_inv[fi, ni], centers) * self._local_scale()

@@ -19,9 +19,10 @@ per-frame body-pose refinement), `gaussians` (`GaussianConfig`, the Gaussian loc
 they existed (schema_version 1, flat keys such as `occ_res` or `hull_nodes`) are read through `LEGACY_KEYS`.
 
 Choices beyond the paper text (documented, switchable):
-- `local_coords_in_sigma`: local coordinates p_i (Eq. 4) are divided by sigma before the positional encoding, so
-  the node's support (radius sigma*sqrt(-2 ln eps) = 3.7 sigma) spans ~3.7 units and the highest frequency
-  2^(m-1) = 32 resolves ~1 cm; in metres (False) the same encoding would resolve only ~20 cm inside a node.
+- local coordinates p_i (Eq. 4) are divided by sigma before the positional encoding (not a switch: the knob
+  `local_coords_in_sigma` that could turn it off was set by nothing and went in issue 30), so the node's support
+  (radius sigma*sqrt(-2 ln eps) = 3.7 sigma) spans ~3.7 units and the highest frequency 2^(m-1) = 32 resolves
+  ~1 cm; in metres the same encoding would resolve only ~20 cm inside a node.
 - `pack_block` (speed, not maths): the supplement packs the valid pairs into one N x max_i(S_i) tensor, which is
   mostly padding when S_i varies a lot between nodes (39-59% fill measured on anny). With `pack_block` = b > 0 each
   node's pairs fill ceil(S_i / b) blocks of b rows and every block carries its node's weights (a gather), so
@@ -57,6 +58,7 @@ REMOVED_KEYS: dict[str, Any] = {
     "occ_stop_eps": 0.0,  # early ray termination from the occupancy grids' densities (issue 30, commit 0081142)
     "posterior_logvar_init": None,  # initial log-variance of the cVAE posterior (issue 30, commit 0081142)
     "density_scale": 1.0, "density_shift": 0.0,  # scaled / shifted softplus of the density head (issue 30, 0081142)
+    "local_coords_in_sigma": True,  # p_i in units of sigma: set by nothing, now always (issue 30, commit 0081142)
 }
 
 
@@ -286,7 +288,6 @@ class ModelConfig:
     pe_coords: int = 6
     pe_views: int = 4
     pe_time: int = 12
-    local_coords_in_sigma: bool = True  # p_i / sigma before gamma (our choice, see module docstring)
     # networks (our choice: the paper's architecture figure is unavailable)
     node_width: int = 128  # F_i hidden channels
     node_depth: int = 3  # F_i hidden ReLU layers
@@ -360,7 +361,7 @@ class ModelConfig:
         need(self.novel_latent in NOVEL_LATENTS, f"novel_latent must be one of {NOVEL_LATENTS}, got "
              f"{self.novel_latent!r}")
         need(self.variant in VARIANTS, f"variant must be one of {VARIANTS}, got {self.variant!r}")
-        for name in ("use_delta_n", "use_embedding", "sparse", "local_coords_in_sigma"):
+        for name in ("use_delta_n", "use_embedding", "sparse"):
             need(isinstance(getattr(self, name), bool), f"{name} must be a bool, got {getattr(self, name)!r}")
         for name in ("lambda_rec", "lambda_trans", "lambda_ebd", "lambda_kl"):
             need(getattr(self, name) >= 0, f"{name} must be >= 0, got {getattr(self, name)}")
