@@ -33,7 +33,7 @@ import torch
 
 from avatarctl.geometry.rays import RayBatch
 from avatarctl.model.avatar import FrameConditioning, SlrfAvatar
-from avatarctl.model.config import ModelConfig
+from avatarctl.fit.config import preset as fit_preset
 
 
 @dataclass
@@ -125,7 +125,7 @@ def peak_step_memory(model: SlrfAvatar, batch: Batch, device: torch.device) -> i
 
 
 def compare(preset: str, template, batch: Batch, device: torch.device, repeats: int) -> dict[str, Any]:
-    cfg = ModelConfig.preset(preset)
+    cfg = fit_preset(preset).model.with_(pose_refine={"enabled": False})
     torch.manual_seed(0)
     sparse = SlrfAvatar(cfg.with_(sparse=True), template, num_frames=4).to(device)
     dense = SlrfAvatar(cfg.with_(sparse=False), template, num_frames=4).to(device)
@@ -153,7 +153,7 @@ def compare(preset: str, template, batch: Batch, device: torch.device, repeats: 
 
 
 def throughput(template, batch: Batch, device: torch.device, steps: int) -> dict[str, Any]:
-    cfg = ModelConfig.preset("cpu")
+    cfg = fit_preset("cpu").model.with_(pose_refine={"enabled": False})
     torch.manual_seed(0)
     model = SlrfAvatar(cfg, template, num_frames=4).to(device)
     opt = torch.optim.Adam(model.parameters(), lr=5e-4)

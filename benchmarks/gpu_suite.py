@@ -58,10 +58,11 @@ def _toy_avatar(device: str, per_node: int, nodes: int, seed: int = 0, frames: i
 
     from avatarctl.body.toy import sphere_template, toy_joint_transforms
     from avatarctl.model.avatar import FrameConditioning, SlrfAvatar
-    from avatarctl.model.config import ModelConfig
+    from avatarctl.fit.config import preset
 
     template = sphere_template(num_vertices=max(4 * nodes, 400), radius=0.5)
-    cfg = ModelConfig.preset("cpu").with_(field="gaussians", num_nodes=nodes, hull_nodes=0)
+    cfg = preset("cpu").model.with_(field="gaussians", num_nodes=nodes, hull={"nodes": 0},
+                                    pose_refine={"enabled": False})
     cfg = cfg.with_(gaussians=cfg.gaussians.__class__(per_node=per_node))
     torch.manual_seed(seed)
     model = SlrfAvatar(cfg, template, num_frames=frames, seed=seed)

@@ -19,7 +19,7 @@ def main(argv: list[str] | None = None) -> None:
 
     from avatarctl.body.registry import load_body_model
     from avatarctl.fit.conditioning import build_pose_table
-    from avatarctl.fit.config import resolve_fit_config
+    from avatarctl.fit.config import MASK_DILATE_PX, resolve_fit_config
     from avatarctl.fit.data import FrameStore, ImageSampler, RaySampler
     from avatarctl.fit.distributed import Replicas
     from avatarctl.fit.schedule import make_optimizer, param_groups
@@ -33,7 +33,7 @@ def main(argv: list[str] | None = None) -> None:
     frames = sorted(int(f) for f in cap.split.train_frames)
     body = load_body_model(cap.body_model, cap.body_model_path)
     poses = build_pose_table(body, cap.motion, frames)
-    store = FrameStore(cap, poses, cfg.crop_pad, 2**31, cfg.mask_dilate_px)
+    store = FrameStore(cap, poses, cfg.crop_pad, 2**31, MASK_DILATE_PX)
     Sampler = RaySampler if cfg.model.ray_marched else ImageSampler
     views = list(cap.split.train_views)
     replicas = Replicas(None, 1, lambda pairs, rays, images: Sampler(

@@ -7,7 +7,7 @@ times a 512x512 render of the final model. Fits run `--parallel` at a time with 
 two 1-thread fits on the 2-core machine run under equal conditions (equal wall time, equal cores).
 
     python -m benchmarks.quality_vs_time PROJECT OUT --minutes 2,5,10 \
-        --backend mlp= --backend "grid=model.field=grid model.grid_levels=8,16,32" [--threads 1 --parallel 2]
+        --backend mlp= --backend "gaussians=model.field=gaussians" [--threads 1 --parallel 2]
 
 Writes OUT/results.csv, OUT/results.json and OUT/quality_vs_time.png (with matplotlib: `pip install -e .[bench]`).
 Every figure names the protocol; the command line is stored in results.json.

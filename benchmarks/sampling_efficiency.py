@@ -2,17 +2,16 @@
 
 For a checkpoint trained with `model.occupancy=true`, renders held-out views of training frames (bbox protocol, the
 eval's pixels) three ways on the same weights: every sample evaluated (occupancy off: the paper's 64 uniform
-samples), occupancy skipping, and skipping + early stop from the cached transmittance (`occ_stop_eps`). Reports,
+samples) and occupancy skipping (early stop from the cached transmittance was tried and removed, docs/fit.md). Reports,
 per way: evaluated samples and node-field evaluations ((point, node) pairs) per rendered ray, seconds per image,
 PSNR against the ground truth, and PSNR of the render against the all-samples render (how much skipping changes).
 
-    python -m benchmarks.sampling_efficiency PROJECT [--checkpoint FILE] [--images 4] [--stop-eps 1e-3]
+    python -m benchmarks.sampling_efficiency PROJECT [--checkpoint FILE] [--images 4]
 """
 
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import time
 from pathlib import Path
@@ -32,20 +31,17 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("project", type=Path)
     ap.add_argument("--checkpoint", type=Path, default=None)
     ap.add_argument("--images", type=int, default=4)
-    ap.add_argument("--stop-eps", type=float, default=1e-3)
     ap.add_argument("--out", type=Path, default=None, help="write the results as JSON here")
     args = ap.parse_args(argv)
 
     av = load_avatar(Project.open(args.project), device="cpu", checkpoint=args.checkpoint)
-    if not av.model_config.occupancy:
+    if not av.model_config.occupancy.enabled:
         raise SystemExit("this avatar was trained without model.occupancy=true: it has no occupancy grids")
     cap, model = av.capture, av.model
     views = list(cap.split.test_views)
     frames = av.train_frames[:: max(1, len(av.train_frames) // args.images)][: args.images]
     bg = np.asarray(av.fit_config.background, dtype=np.float32)
-    ways = {"all samples": dataclasses.replace(model.cfg, occupancy=False),
-            "occupancy": dataclasses.replace(model.cfg, occ_stop_eps=0.0),
-            f"occupancy + stop {args.stop_eps:g}": dataclasses.replace(model.cfg, occ_stop_eps=args.stop_eps)}
+    ways = {"all samples": model.cfg.with_(occupancy={"enabled": False}), "occupancy": model.cfg}
     stats = {name: {"samples": 0.0, "pairs": 0.0, "rays": 0, "seconds": 0.0, "psnr_gt": [], "psnr_vs_all": []}
              for name in ways}
     for k, frame in enumerate(frames):

@@ -8,6 +8,7 @@ import sys
 import pytest
 import torch
 
+from avatarctl.fit.config import preset
 from avatarctl.model.config import GaussianConfig, ModelConfig
 from avatarctl.model.gaussian_field import (NodeGaussians, eval_sh, initial_gaussians, quaternion_to_matrix,
                                             rgb_to_sh0)
@@ -236,8 +237,8 @@ def test_density_query_of_the_gaussians_for_mesh_export():
     from avatarctl.body.toy import sphere_template, toy_joint_transforms
     from avatarctl.model.avatar import FrameConditioning, SlrfAvatar
 
-    cfg = ModelConfig.preset("cpu").with_(field="gaussians", num_nodes=64, hull_nodes=0,
-                                          gaussians=GaussianConfig(per_node=16))
+    cfg = preset("cpu").model.with_(field="gaussians", num_nodes=64, hull={"nodes": 0}, pose_refine={"enabled": False},
+                                    gaussians=GaussianConfig(per_node=16))
     torch.manual_seed(0)
     model = SlrfAvatar(cfg, sphere_template(), num_frames=1)
     M, feats = toy_joint_transforms(torch.tensor([0.3]))

@@ -1,4 +1,4 @@
-"""Hull nodes (fit/hull_nodes.py, `model.hull_nodes`): carving, the persistence filter, placement, the model."""
+"""Hull nodes (fit/hull_nodes.py, `model.hull`): carving, the persistence filter, placement, the model."""
 
 from __future__ import annotations
 
@@ -10,6 +10,7 @@ from avatarctl.fit.hull_nodes import (HullSurvey, auto_hull_nodes, carve, mesh_v
                                       persistent_cells)
 from avatarctl.geometry.cameras import Camera, look_at
 from avatarctl.model import ModelConfig
+from avatarctl.model.config import HullConfig
 
 
 def _ring_cameras(n: int = 6, size: int = 96) -> list[Camera]:
@@ -76,7 +77,7 @@ def test_auto_rule_says_yes_from_a_tenth_of_the_body_volume(cells, k):
     """`hull_nodes = "auto"`: 32 of 128 nodes once the persistent off-body cells hold >= 10 % of the body volume
     (here 8 cells of 5 cm = 1 litre of a 10-litre body), else none."""
     survey = HullSurvey(cells=np.zeros((cells, 3)), cell=0.05, frames=6, body_volume=0.01)
-    assert auto_hull_nodes(survey, ModelConfig(hull_nodes="auto").hull_auto_nodes, min_volume=0.1) == k
+    assert auto_hull_nodes(survey, ModelConfig(hull=HullConfig(nodes="auto")).hull_auto_nodes, min_volume=0.1) == k
     assert ("8 persistent off-body cells" in survey.describe()) == (cells == 8)
 
 
@@ -117,7 +118,7 @@ def test_model_takes_hull_nodes_and_a_checkpoint_restores_them():
     from avatarctl.body.toy import sphere_template
     from avatarctl.model import SlrfAvatar
 
-    cfg = small_cfg(hull_nodes=4)
+    cfg = small_cfg(hull={"nodes": 4})
     tpl = sphere_template(300)
     rest = torch.tensor([[0.6, 0.0, 0.0], [-0.6, 0.0, 0.0], [0.0, 0.6, 0.0], [0.0, -0.6, 0.0]])
     model = SlrfAvatar(cfg, tpl, num_frames=2, seed=0, hull_nodes=(rest, torch.tensor([0, 1, 2, 3])))
@@ -132,35 +133,39 @@ def test_model_takes_hull_nodes_and_a_checkpoint_restores_them():
 
 
 def test_config_checks_hull_nodes():
-    with pytest.raises(ValueError, match="hull_nodes"):
-        ModelConfig(num_nodes=16, hull_nodes=16)
+    with pytest.raises(ValueError, match="hull.nodes"):
+        ModelConfig(num_nodes=16, hull=HullConfig(nodes=16))
     with pytest.raises(ValueError, match="slrf variant"):
-        ModelConfig(hull_nodes=8, variant="lbs_baseline")
+        ModelConfig(hull=HullConfig(nodes=8), variant="lbs_baseline")
 
 
 def test_config_takes_auto_and_says_how_to_fix_a_typo():
     from avatarctl.errors import InputError
     from avatarctl.fit.config import resolve_fit_config
 
-    assert ModelConfig(hull_nodes="auto").hull_nodes == "auto"
-    assert ModelConfig(hull_nodes="auto", variant="lbs_baseline").hull_nodes == "auto"  # no nodes: nothing to decide
-    assert ModelConfig.from_json(ModelConfig(hull_nodes="auto").to_json()).hull_nodes == "auto"
-    with pytest.raises(ValueError, match=r"hull_nodes must be an int in \[0, num_nodes=128\) or 'auto'"):
-        ModelConfig(hull_nodes="aut")
-    with pytest.raises(ValueError, match="hull_auto_fraction"):
-        ModelConfig(hull_auto_fraction=1.0)
-    assert ModelConfig(num_nodes=12, hull_nodes="auto").hull_auto_nodes == 3
+    from avatarctl.fit.config import preset
+
+    auto = HullConfig(nodes="auto")
+    assert ModelConfig(hull=auto).hull.nodes == "auto"
+    assert ModelConfig(hull=auto, variant="lbs_baseline").hull.nodes == "auto"  # no nodes: nothing to decide
+    assert ModelConfig.from_json(ModelConfig(hull=auto).to_json()).hull == auto
+    with pytest.raises(ValueError, match=r"nodes must be an int >= 0 or 'auto'"):
+        HullConfig(nodes="aut")
+    with pytest.raises(ValueError, match="auto_fraction"):
+        HullConfig(auto_fraction=1.0)
+    assert ModelConfig(num_nodes=12, hull=auto).hull_auto_nodes == 3
     with pytest.raises(ValueError, match="would place 1 of num_nodes=1 nodes off the body"):
-        ModelConfig(num_nodes=1, hull_nodes="auto")
-    assert ModelConfig.preset("paper").hull_nodes == 0  # the paper's placement (Sec. 3.1)
-    assert ModelConfig.preset("cpu").hull_nodes == "auto"
-    for text, value in (("auto", "auto"), ("AUTO", "auto"), ("32", 32), ("0", 0)):
-        assert resolve_fit_config("cpu", overrides=[f"model.hull_nodes={text}"]).model.hull_nodes == value
-    cfg = resolve_fit_config("cpu", overrides=["model.hull_nodes=auto"])
-    assert resolve_fit_config("cpu", overrides=["model.hull_nodes=auto", "model.hull_nodes=8"]).model.hull_nodes == 8
-    assert cfg.model.hull_nodes == "auto"
+        ModelConfig(num_nodes=1, hull=auto)
+    assert preset("paper").model.hull.nodes == 0  # the paper's placement (Sec. 3.1)
+    assert preset("cpu").model.hull.nodes == "auto"
+    for key in ("model.hull.nodes", "model.hull_nodes"):  # the flat key of older configs names the same field
+        for text, value in (("auto", "auto"), ("AUTO", "auto"), ("32", 32), ("0", 0)):
+            assert resolve_fit_config("cpu", overrides=[f"{key}={text}"]).model.hull.nodes == value
+    cfg = resolve_fit_config("cpu", overrides=["model.hull.nodes=auto"])
+    assert resolve_fit_config("cpu", overrides=["model.hull.nodes=auto", "model.hull.nodes=8"]).model.hull.nodes == 8
+    assert cfg.model.hull.nodes == "auto"
     with pytest.raises(InputError, match="as int or auto"):
-        resolve_fit_config("cpu", overrides=["model.hull_nodes=many"])
+        resolve_fit_config("cpu", overrides=["model.hull.nodes=many"])
 
 
 @pytest.mark.parametrize("skirt, setting, note", [
@@ -186,7 +191,7 @@ def test_fit_places_hull_nodes_where_the_capture_shows_a_skirt(tmp_path, skirt, 
     cap, proj = make_toy_capture(tmp_path / "cap", skirt=skirt), tmp_path / "proj"
     ingest.run(proj, IngestConfig(capture=cap, project=proj, contact_sheet=False))
     result = fit.run(proj, FitRequest(preset="micro", iters=2, device="cpu", overrides=(
-        f"model.hull_nodes={setting}", "val_every=0")), handle_sigint=False)
+        f"model.hull.nodes={setting}", "val_every=0")), handle_sigint=False)
     notes = [json.loads(line).get("note", "") for line in (proj / "fit" / "log.jsonl").read_text().splitlines()]
     logged = next(n for n in notes if n.startswith("hull: "))
     assert logged.endswith(note), logged
@@ -223,7 +228,7 @@ def test_resuming_an_auto_fit_keeps_its_nodes(tmp_path):
     cap, proj = make_toy_capture(tmp_path / "cap", skirt=0.5), tmp_path / "proj"
     ingest.run(proj, IngestConfig(capture=cap, project=proj, contact_sheet=False))
     first = fit.run(proj, FitRequest(preset="micro", iters=2, device="cpu", overrides=(
-        "model.hull_nodes=auto", "val_every=0")), handle_sigint=False)
+        "model.hull.nodes=auto", "val_every=0")), handle_sigint=False)
     rest = torch.load(first.checkpoint, map_location="cpu", weights_only=True)["model"]["node_rest"]
     again = fit.run(proj, FitRequest(iters=3, device="cpu", resume=True), handle_sigint=False)
     assert again.step == 3 and again.hull_nodes is None  # nothing placed this run

@@ -174,7 +174,7 @@ def test_node_transforms_follow_the_pose():
 def test_knock_out_zeroes_the_chosen_node_variables_only():
     import torch
 
-    m = make(small_cfg(occupancy=False)).eval()
+    m = make(small_cfg(occupancy={"enabled": False})).eval()
     with torch.no_grad():
         for p in m.parameters():  # a model whose decoder outputs are far from zero
             p.add_(0.05 * torch.randn_like(p))
@@ -187,7 +187,7 @@ def test_knock_out_zeroes_the_chosen_node_variables_only():
         skinned = m.knock_out(st, delta_n=True, embedding=True)
         assert skinned.embed.abs().max() == 0 and torch.equal(skinned.centers, no_dn.centers)
         # the same weights trained without Delta n / e (the ablation's forward pass) give the same nodes
-        abl = make(small_cfg(occupancy=False, use_delta_n=False, use_embedding=False)).eval()
+        abl = make(small_cfg(occupancy={"enabled": False}, use_delta_n=False, use_embedding=False)).eval()
         abl.load_state_dict(m.state_dict())
         ref = abl.node_state(conditioning(), mode="mean")
         assert torch.allclose(skinned.centers, ref.centers) and torch.equal(skinned.embed, ref.embed)
@@ -205,12 +205,12 @@ def test_novel_pose_latent_zero_or_the_mean_of_the_training_posterior_means():
 
     train = conditioning(bends=(0.0, 0.6, 0.3), times=(0.0, 1 / 3, 2 / 3), ids=(0, 1, 2))
     novel = conditioning(bends=(0.9, 0.1), times=(0.0, 0.0), ids=(-1, -1))
-    paper = make(small_cfg(posterior_logvar_init=-6.0, novel_latent="zero"))
+    paper = make(small_cfg(novel_latent="zero"))
     assert not hasattr(paper.latent, "latent_mean")
     paper.set_latent_mean(train)  # a no-op
     assert torch.equal(paper.node_state(novel, "novel").delta_n, paper.node_state(novel, "zero").delta_n)
 
-    m = make(small_cfg(posterior_logvar_init=-6.0, novel_latent="train_mean"))
+    m = make(small_cfg(novel_latent="train_mean"))
     assert torch.all(m.latent.latent_mean == 0)  # before it is set: z = 0 as in the paper
     assert torch.equal(m.node_state(novel, "novel").embed, m.node_state(novel, "zero").embed)
     m.set_latent_mean(train)
@@ -223,7 +223,7 @@ def test_novel_pose_latent_zero_or_the_mean_of_the_training_posterior_means():
     assert torch.allclose(got.delta_n, want[..., :3], atol=1e-6) and torch.allclose(got.embed, want[..., 3:], atol=1e-6)
     assert not torch.allclose(got.delta_n, m.node_state(novel, "zero").delta_n)
     # saved with the weights; a checkpoint from before the option loads with z = 0
-    again = make(small_cfg(posterior_logvar_init=-6.0, novel_latent="train_mean"))
+    again = make(small_cfg(novel_latent="train_mean"))
     again.load_state_dict(m.state_dict())
     assert torch.equal(again.latent.latent_mean, m.latent.latent_mean)
     old = {k: v for k, v in m.state_dict().items() if not k.endswith("latent_mean")}
@@ -234,46 +234,14 @@ def test_novel_pose_latent_zero_or_the_mean_of_the_training_posterior_means():
         small_cfg(novel_latent="mean")
 
 
-def test_coarse_to_fine_coordinate_encoding_opens_the_bands_over_the_anneal_steps():
-    """model.pe_anneal_steps (issue 18, a deviation): gamma(p) of the MLP fields opens from pe_anneal_start bands to
-    all pe_coords; the level is a buffer saved with the weights; at the full level (the default, and what an older
-    checkpoint loads with) the encoding is exactly the paper's gamma."""
-    from avatarctl.model.encoding import band_weights, positional_encoding
-
-    assert torch.equal(band_weights(6, 6.0), torch.ones(6)) and torch.equal(band_weights(6, 0.0), torch.zeros(6))
-    assert torch.allclose(band_weights(6, 3.0), torch.tensor([1.0, 1, 1, 0, 0, 0]))
-    assert torch.allclose(band_weights(6, 3.5), torch.tensor([1.0, 1, 1, 0.5, 0, 0]), atol=1e-6)
-    x = torch.randn(5, 3)
-    enc = positional_encoding(x, 4, band_weights(4, 2.0))  # (x, sin/cos of bands 0, 1, then zeros)
-    assert torch.equal(enc[:, :3 + 2 * 2 * 3], positional_encoding(x, 2)) and torch.all(enc[:, 3 + 12:] == 0)
-
-    m = make(small_cfg(pe_anneal_steps=100, pe_anneal_start=2.0))
-    field = m.fields
-    assert float(field.pe_level) == m.cfg.pe_coords  # until the fit sets it
-    pts = torch.randn(m.cfg.num_nodes, 7, 3)
-    bias = torch.zeros(m.cfg.num_nodes, 7, m.cfg.node_width)
-    full = field(pts, bias)
-    for step, level in ((0, 2.0), (50, 2.0 + 0.5 * (m.cfg.pe_coords - 2.0)), (100, m.cfg.pe_coords),
-                        (10_000, m.cfg.pe_coords)):
-        m.set_training_step(step)
-        assert float(field.pe_level) == pytest.approx(level)
-    m.set_training_step(0)
-    coarse = field(pts, bias)
-    want = field.mlp(positional_encoding(pts, m.cfg.pe_coords, band_weights(m.cfg.pe_coords, 2.0)), first_bias=bias)
-    assert torch.allclose(coarse, want) and not torch.allclose(coarse, full)
-    again = make(small_cfg(pe_anneal_steps=100, pe_anneal_start=2.0))
-    again.load_state_dict(m.state_dict())
-    assert float(again.fields.pe_level) == 2.0 and torch.allclose(again.fields(pts, bias), coarse)  # the level loaded
-    again.load_state_dict({k: v for k, v in m.state_dict().items() if not k.endswith("pe_level")})
-    assert float(again.fields.pe_level) == m.cfg.pe_coords and torch.allclose(again.fields(pts, bias), full)
-    # off (the default): a no-op; the pose-only baseline's canonical field anneals the same way
-    plain = make(small_cfg())
-    plain.set_training_step(0)
-    assert float(plain.fields.pe_level) == plain.cfg.pe_coords
-    base = make(small_cfg(variant="lbs_baseline", pe_anneal_steps=10, pe_anneal_start=1.0))
-    base.set_training_step(5)
-    assert float(base.canonical.pe_level) == pytest.approx(1.0 + 0.5 * (base.cfg.pe_coords - 1.0))
-    with pytest.raises(ValueError, match="pe_anneal_start"):
-        small_cfg(pe_anneal_start=small_cfg().pe_coords + 1.0)
-    with pytest.raises(ValueError, match="pe_anneal_steps"):
-        small_cfg(pe_anneal_steps=-1)
+def test_checkpoints_of_the_removed_coarse_to_fine_encoding_load_when_fully_open():
+    """The coarse-to-fine gamma(p) (`pe_anneal_steps`) was removed in issue 30; its level buffer, in checkpoints
+    written before, is dropped when fully open (the plain encoding), an error otherwise."""
+    m = make(small_cfg())
+    state = m.state_dict()
+    assert not any(k.endswith("pe_level") for k in state)
+    again = make(small_cfg())
+    again.load_state_dict({**state, "fields.pe_level": torch.tensor(float(m.cfg.pe_coords))})
+    assert all(torch.equal(a, b) for a, b in zip(again.state_dict().values(), state.values()))
+    with pytest.raises(ValueError, match="not fully open"):
+        again.load_state_dict({**state, "fields.pe_level": torch.tensor(2.0)})

@@ -9,6 +9,7 @@ import torch
 
 from avatarctl.body.lbs import axis_angle_to_matrix, make_transform
 from avatarctl.model.batched_mlp import BatchedLinear, BatchedMLP
+from avatarctl.fit.config import preset
 from avatarctl.model.config import ModelConfig
 from avatarctl.model.deformer import (blending_weights, candidate_pairs, farthest_point_sampling,
                                       kinematic_hop_distance, local_coordinates, local_coordinates_centered,
@@ -220,14 +221,15 @@ def test_config_defaults_presets_json_and_validation():
     assert (c.num_nodes, c.sigma, c.eps, c.embed_dim, c.latent_dim, c.samples_per_ray) == (128, 0.05, 0.001, 32, 8, 64)
     assert (c.lambda_rec, c.lambda_trans, c.lambda_ebd, c.lambda_kl) == (1.0, 0.02, 0.1, 1e-5)
     assert (c.pe_coords, c.pe_views, c.pe_time) == (6, 4, 12)
-    assert ModelConfig.preset("paper") == c
-    cpu = ModelConfig.preset("cpu")
+    cpu = preset("cpu").model
     assert cpu.node_width < c.node_width and cpu.num_nodes == 128
     assert ModelConfig.from_json(cpu.to_json()) == cpu and cpu.field == "mlp"
-    # configs written before the grid field was removed (issue 28) still read; a grid avatar is a one-line error
-    old = {**cpu.to_json(), "field": "mlp", "grid_levels": [8, 16, 32], "grid_channels": 4}
+    # configs written before the grid field was removed (issue 28, schema_version 1) still read; a grid avatar is a
+    # one-line error
+    old = {**ModelConfig().to_json(), "schema_version": 1, "field": "mlp", "grid_levels": [8, 16, 32],
+           "grid_channels": 4}
     old.pop("gaussians")
-    assert ModelConfig.from_json(old) == cpu
+    assert ModelConfig.from_json(old) == ModelConfig()
     with pytest.raises(ValueError, match="field 'grid' .* was removed"):
         ModelConfig.from_json({**old, "field": "grid"})
     with pytest.raises(ValueError, match="unknown keys"):
@@ -236,8 +238,6 @@ def test_config_defaults_presets_json_and_validation():
         ModelConfig(latent="vae")
     with pytest.raises(ValueError, match="eps"):
         ModelConfig(eps=1.5)
-    with pytest.raises(ValueError, match="preset"):
-        ModelConfig.preset("gpu")
 
 
 def test_reconstruction_loss_is_eq12_sum_at_the_reference_batch():

@@ -10,15 +10,11 @@ from fixtures.toy_model import conditioning, make, rays, small_cfg
 from avatarctl.model.occupancy import UNSEEN, occupancy_estimate, select_samples, update_occupancy
 
 
-def test_select_samples_threshold_unseen_and_transmittance():
+def test_select_samples_threshold_and_unseen():
     density = torch.tensor([[0.0, 0.1, 5.0, 100.0, 100.0, 2.0]])
     unseen = torch.tensor([[True, False, False, False, False, False]])
-    deltas = torch.full((1, 6), 0.1)
-    live = select_samples(density, unseen, deltas, threshold=0.5, stop_eps=0.0)
+    live = select_samples(density, unseen, threshold=0.5)
     assert live.tolist() == [[True, False, True, True, True, True]]
-    # transmittance before sample k: exp(-(0 + 0.01 + 0.5 + 10 ...)): after the first dense sample it is ~4e-5
-    live = select_samples(density, unseen, deltas, threshold=0.5, stop_eps=1e-3)
-    assert live.tolist() == [[True, False, True, True, False, False]]
 
 
 def test_estimate_takes_max_over_pairs_and_flags_unseen():
@@ -38,7 +34,7 @@ def test_update_is_decayed_max_and_fills_unseen():
 
 def _pair(**kw):
     plain = make(small_cfg(**kw))
-    occ = make(small_cfg(occupancy=True, **kw))
+    occ = make(small_cfg(occupancy={"enabled": True}, **kw))
     occ.load_state_dict(plain.state_dict(), strict=False)  # same weights; the occupancy buffer stays unseen
     return plain.eval(), occ.eval()
 
@@ -75,8 +71,8 @@ def test_training_warm_up_evaluates_everything_then_skips_empty_cells():
     st = occ.node_state(conditioning(), "mean")
     with torch.no_grad():
         warm = occ.render(rays(), st, torch.ones(3), generator=torch.Generator().manual_seed(0))
-        occ.occupancy_updates.fill_(occ.cfg.occ_warmup)
+        occ.occupancy_updates.fill_(occ.cfg.occupancy.warmup)
         after = occ.render(rays(), st, torch.ones(3), generator=torch.Generator().manual_seed(0))
     assert warm.stats["live_samples"] == warm.stats["samples"]
     # past the warm-up only the exploration share of the samples is evaluated
-    assert 0 < after.stats["live_samples"] < 3 * occ.cfg.occ_explore * after.stats["samples"]
+    assert 0 < after.stats["live_samples"] < 3 * occ.cfg.occupancy.explore * after.stats["samples"]

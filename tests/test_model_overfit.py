@@ -12,7 +12,8 @@ import math
 
 import torch
 
-from avatarctl.model import FrameConditioning, ModelConfig, SlrfAvatar
+from avatarctl.fit.config import preset
+from avatarctl.model import FrameConditioning, SlrfAvatar
 from avatarctl.body.toy import sphere_template, toy_joint_transforms
 from avatarctl.geometry.rays import RayBatch
 
@@ -42,7 +43,8 @@ def _overfit() -> None:
     torch.manual_seed(0)
     g = torch.Generator().manual_seed(0)
     rb, target = sphere_scene()
-    model = SlrfAvatar(ModelConfig.preset("cpu").with_(num_nodes=32, samples_per_ray=32, field="mlp"),
+    model = SlrfAvatar(preset("cpu").model.with_(num_nodes=32, samples_per_ray=32, field="mlp",
+                                                 pose_refine={"enabled": False}),
                        sphere_template(400),
                        num_frames=1)
     M, feats = toy_joint_transforms(torch.zeros(1))

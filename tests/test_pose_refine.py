@@ -124,7 +124,8 @@ def test_fit_with_pose_refinement_on_the_toy_chain(tmp_path):
     cap, proj = make_toy_capture(tmp_path / "cap"), tmp_path / "proj"
     ingest.run(proj, IngestConfig(capture=cap, project=proj))
     res = fit.run(proj, FitRequest(preset="micro", iters=6, device="cpu",
-                                   overrides=("model.pose_refine=true", "lr_pose=0.01", "val_every=0", "log_every=2")),
+                                   overrides=("model.pose_refine.enabled=true", "model.pose_refine.lr=0.01",
+                                              "val_every=0", "log_every=2")),
                   handle_sigint=False)
     assert "pose" in res.losses and "pose_accel" in res.losses  # the smoothness term is on by default
     r = res.refinement  # the toy body cannot invert its transforms: a summary, no motion file
@@ -144,25 +145,38 @@ def test_fit_with_pose_refinement_on_the_toy_chain(tmp_path):
 
 
 def test_pose_refinement_is_on_by_default_unless_the_fits_are_ground_truth(tmp_path):
+    """`model.pose_refine.enabled = "auto"` (cpu, micro): decided from the capture at fit start, saved decided."""
     import json
 
     from fixtures.toy_capture import make_toy_capture
 
+    from avatarctl.fit.config import FitConfig
+    from avatarctl.fit.loop import decide_auto
     from avatarctl.project import Project
-    from avatarctl.stages import ingest
+    from avatarctl.stages import fit, ingest
     from avatarctl.stages.fit import FitRequest, fit_config
     from avatarctl.stages.ingest import IngestConfig
 
     cap, proj = make_toy_capture(tmp_path / "cap"), tmp_path / "proj"
     ingest.run(proj, IngestConfig(capture=cap, project=proj))
     p = Project.open(proj)
-    assert fit_config(p, FitRequest()).model.pose_refine  # a capture without ground-truth fits
-    assert not fit_config(p, FitRequest(preset="paper")).model.pose_refine
-    assert not fit_config(p, FitRequest(overrides=("model.pose_refine=false",))).model.pose_refine
+
+    def decided(req: FitRequest) -> bool | str:
+        return decide_auto(fit_config(p, req), p).model.pose_refine.enabled
+
+    assert fit_config(p, FitRequest()).model.pose_refine.enabled == "auto"  # the config holds the rule
+    assert decided(FitRequest()) is True  # a capture without ground-truth fits
+    assert decided(FitRequest(preset="paper")) is False
+    assert decided(FitRequest(overrides=("model.pose_refine=false",))) is False  # the flat key of old configs
+    assert decided(FitRequest(preset="paper", overrides=("model.pose_refine.enabled=auto",))) is True
     (cap / "capture.json").write_text(json.dumps({"generator": "synth-1", "config": {"fit_noise_deg": 0.0}}))
-    assert not fit_config(p, FitRequest()).model.pose_refine  # synth with exact fits
+    assert decided(FitRequest()) is False  # synth with exact fits
     (cap / "capture.json").write_text(json.dumps({"generator": "synth-1", "config": {"fit_noise_deg": 2.0}}))
-    assert fit_config(p, FitRequest()).model.pose_refine
+    assert decided(FitRequest()) is True
+    res = fit.run(proj, FitRequest(preset="micro", iters=1, device="cpu", overrides=("val_every=0",)),
+                  handle_sigint=False)
+    saved = FitConfig.from_json(json.loads(p.paths.fit_config.read_text()))
+    assert saved.model.pose_refine.enabled is True and res.config == saved  # the decision, saved
 
 
 def test_pose_corrections_wait_for_pose_refine_start():
@@ -171,8 +185,8 @@ def test_pose_corrections_wait_for_pose_refine_start():
     from avatarctl.fit.config import FitConfig
     from avatarctl.fit.schedule import make_optimizer, make_scheduler, param_groups
 
-    model = make(small_cfg(pose_refine=True))
-    cfg = FitConfig(model=small_cfg(pose_refine=True), pose_refine_start=3)
+    model = make(small_cfg(pose_refine={"enabled": True}))
+    cfg = FitConfig(model=small_cfg(pose_refine={"enabled": True, "start": 3}))
     opt = make_optimizer(cfg, param_groups(cfg, model))
     sched = make_scheduler(cfg, opt)
     pose_lrs, rest_lrs = [], []
@@ -181,7 +195,7 @@ def test_pose_corrections_wait_for_pose_refine_start():
         rest_lrs.append(opt.param_groups[0]["lr"])
         opt.step()
         sched.step()
-    assert pose_lrs[:3] == [0.0] * 3 and pose_lrs[3] == pytest.approx(cfg.lr_pose, rel=1e-3)
+    assert pose_lrs[:3] == [0.0] * 3 and pose_lrs[3] == pytest.approx(cfg.model.pose_refine.lr, rel=1e-3)
     assert all(lr > 0 for lr in rest_lrs)
 
 

@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from avatarctl.model.avatar import FrameConditioning, SlrfAvatar
-from avatarctl.model.config import ModelConfig
+from avatarctl.fit.config import preset
 from avatarctl.body.toy import sphere_template, toy_joint_transforms
 from avatarctl.geometry.cameras import Camera, look_at
 from avatarctl.render.engine import rays_hitting_spheres, render_view
@@ -20,7 +20,7 @@ BG = (0.1, 0.5, 0.9)
 @pytest.fixture(scope="module")
 def scene():
     torch.manual_seed(0)
-    cfg = ModelConfig.preset("cpu").with_(num_nodes=12, samples_per_ray=8, field="mlp")
+    cfg = preset("cpu").model.with_(num_nodes=12, samples_per_ray=8, field="mlp", pose_refine={"enabled": False})
     model = SlrfAvatar(cfg, sphere_template(120, radius=0.2), num_frames=2, seed=0).eval()
     M, aa = toy_joint_transforms(torch.tensor([0.0, 0.6]))
     cond = FrameConditioning(M, aa, time=torch.tensor([0.0, 0.5]), frame_ids=torch.tensor([0, 1]))

@@ -7,25 +7,23 @@ from typing import Optional
 
 import typer
 
-PRESET_HELP = ("Sizes: 'cpu' (narrow networks, 512 rays/step, 20k it; for a 2-core CPU), 'paper' (the supplement: "
-               "2048 rays over 4 images, 64 samples, 300k it; for a GPU), 'micro' (CI smoke test). Default: cpu.")
-
-
 def register(app: typer.Typer) -> None:
     from avatarctl.cli.common import WAIT_HELP
+    from avatarctl.stages.fit import preset_help
 
     @app.command("fit", help="Train the avatar (structured local radiance fields + per-node cVAEs) on a project.")
     def _cmd(
         project: Path = typer.Argument(..., help="Project directory written by `avatarctl ingest`."),
         iters: Optional[int] = typer.Option(None, "--iters", help="Total optimisation steps (default: the preset's)."),
-        preset: Optional[str] = typer.Option(None, "--preset", help=PRESET_HELP),
+        preset: Optional[str] = typer.Option(None, "--preset", help=preset_help()),
         resume: bool = typer.Option(False, "--resume", help="Continue from fit/checkpoints/latest.pt (same config; "
                                                             "only --iters may change)."),
         fresh: bool = typer.Option(False, "--fresh", help="Discard an existing fit of this project and start over."),
         seed: Optional[int] = typer.Option(None, "--seed", help="Seed of the model init, ray sampling and noise."),
         device: str = typer.Option("auto", "--device", help="auto | cpu | cuda."),
         overrides: Optional[list[str]] = typer.Option(None, "--set", help="Override a config value: key=value "
-                                                      "(FitConfig field or model.<field>); repeatable."),
+                                                      "(FitConfig field, model.<field> or model.<group>.<field>); "
+                                                      "repeatable."),
         ablation: Optional[str] = typer.Option(None, "--ablation", help="Comma list of: no-delta-n, no-embedding, "
                                                "deterministic, per-frame-latent, lbs-baseline."),
         nproc: int = typer.Option(1, "--nproc", help="Train data-parallel on N ranks of this machine (gloo on CPU, "

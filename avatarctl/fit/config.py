@@ -1,20 +1,17 @@
 """`FitConfig`: everything that decides how an avatar is trained, resolved once and saved as `fit/config.json`.
 
 Resolution order (`resolve_fit_config`): preset -> `--ablation` switches -> `--iters` / `--seed` -> `--set key=value`
-overrides. Keys of `--set` are `FitConfig` field names or `model.<ModelConfig field>`; an unknown key is an
-`InputError` naming the closest known keys (a typo never silently falls back to a default).
+overrides. Keys of `--set` are `FitConfig` field names, `model.<ModelConfig field>` or `model.<group>.<field>`
+(`settable_keys`); an unknown key is an `InputError` naming the closest known keys (a typo never silently falls back
+to a default).
 
-Presets (see docs/fit.md):
-
-- "paper": the supplement's settings: model preset "paper" (N=128 nodes, 64 samples per ray), 2048 rays per step
-  over a batch of 4 images (512 rays each), Adam lr 5e-4 (beta 0.9 / 0.999), lr x0.5 every 20k iterations, 300k
-  iterations (the paper's ZJU-MoCap count; 100k PeopleSnapshot, 500k its own multi-view data).
-- "cpu": model preset "cpu" (narrow networks, hull nodes decided from the masks; `--set model.field=gaussians` for
-  the Gaussian local fields on 4 image crops per step), 512 rays per step over 4 images, 20k iterations, validation on
-  half-size images every 1000 steps: sized for a 2-core CPU (512 rays gave more rays/s than 1024 there: ~530 vs
-  ~360 on a shared 2-core machine; a full-size 256x256 validation of 2 views took minutes there).
-- "micro": a smoke-test size for CI (32 nodes, 16 samples per ray, 128 rays over 2 images, 50 iterations; no
-  hull-node survey, all nodes on the surface). It trains nothing useful.
+Defaults, one rule for both configs: the class defaults of `FitConfig` and `ModelConfig` are the paper's
+(supplement) settings, so `FitConfig()` is the `paper` preset. Every other preset is a named set of changes from them,
+stated once in `PRESETS` (avatarctl/fit/presets.py); `avatarctl fit --help` (`preset_help`) and the table in
+docs/fit.md (`presets_markdown`, checked by tests/test_fit.py) are made from it. The CLI's default preset is
+`DEFAULT_PRESET` ("cpu"). A default that depends on the capture is a value "auto" in the config (`model.hull.nodes`,
+`model.pose_refine.enabled`), decided at fit start; for pose refinement the decision replaces "auto" in the saved
+config.
 
 Training target (stated convention): real captures have real backgrounds, so the target of a ray is the masked
 image composited over a fixed `background` colour (black by default: rgb * mask + background * (1 - mask)), and
@@ -33,15 +30,27 @@ from __future__ import annotations
 
 import difflib
 import math
-from dataclasses import asdict, dataclass, field, fields, replace
+from dataclasses import asdict, dataclass, field, fields, is_dataclass, replace
 from typing import Any
 
 from avatarctl.errors import InputError
 from avatarctl.lists import split_list
-from avatarctl.model.config import HULL_AUTO, GaussianConfig, ModelConfig
+from avatarctl.fit.presets import DEFAULT_PRESET, PRESETS
+from avatarctl.model.config import AUTO, LEGACY_KEYS, ModelConfig, nest_legacy_keys
 
-SCHEMA_VERSION = 1
-PRESETS = ("cpu", "paper", "micro")
+SCHEMA_VERSION = 2  # 2: lr_pose / pose_refine_start moved into model.pose_refine (1: read by `from_json`)
+MASK_DILATE_PX = 4  # dilation (pixels) of the mask `mask_fraction` rays are drawn from (a knob until issue 30)
+# Knobs of configs of schema_version 1 that nothing set, now fixed (docs/fit.md "Tried and removed"), with the value
+# the code keeps; dropped on reading when they hold it (None: any value, an option of removed code), else an error.
+_REMOVED_KEYS: dict[str, Any] = {
+    "lr_grid": None,  # the grid field's rate (issue 28 removed that field)
+    "mask_dilate_px": MASK_DILATE_PX,
+    "jitter": True,  # stratified jitter of the training samples: always
+    "grad_clip": 0.0,  # no gradient clipping (the paper clips none)
+}
+
+
+
 
 # --ablation name -> ModelConfig changes (paper Sec. 5 ablations + the pose-only LBS baseline)
 ABLATIONS: dict[str, dict[str, Any]] = {
@@ -55,43 +64,41 @@ ABLATIONS: dict[str, dict[str, Any]] = {
 
 @dataclass(frozen=True)
 class FitConfig:
-    """How to train one avatar. Immutable; validated on construction; JSON round-trips (`to_json` / `from_json`)."""
+    """How to train one avatar. Immutable; validated on construction; JSON round-trips (`to_json` / `from_json`).
+    The defaults are the paper's settings (the `paper` preset); see `PRESETS`."""
 
-    preset: str = "cpu"  # the preset this config started from (informational)
-    iters: int = 20_000  # total optimisation steps
+    preset: str = "paper"  # the preset this config started from (informational)
+    iters: int = 300_000  # total optimisation steps (the paper's ZJU-MoCap count)
     seed: int = 0  # seeds the model initialisation, the ray sampler and the latent / jitter noise
     # batch (paper: 2048 rays per batch, batch size 4)
-    rays_per_batch: int = 512  # rays per step, over all images of the batch
+    rays_per_batch: int = 2048  # rays per step, over all images of the batch
     images_per_batch: int = 4  # (training frame, training view) images per step; each gets its own frame slot
     box_fraction: float = 0.9  # share of rays drawn inside the projected body box (the rest: whole image)
-    mask_fraction: float = 0.0  # focused sampling: share of rays drawn on the dilated foreground mask (before box)
-    mask_dilate_px: int = 4  # dilation of the mask for mask_fraction rays, pixels
+    # focused sampling: share of each image's rays drawn on the foreground mask dilated by 4 px, before the box split
+    # (0 in every preset; +0.26 dB at equal steps, 1.5x the time per step: docs/fit.md)
+    mask_fraction: float = 0.0
     crop_pad: float = 0.25  # metres the posed body's 3D box is grown by, for the crop and the "inside" region
-    jitter: bool = True  # stratified jitter of the ray samples during training
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)  # target = rgb * mask + background * (1 - mask)
     # optimiser (paper: Adam lr 5e-4, betas 0.9 / 0.999, exponential decay every 20k iterations)
     lr: float = 5e-4
-    lr_pose: float = 3e-4  # rate of the pose-refinement corrections (`model.pose_refine`; 1e-3 until 2026-11-25)
-    pose_refine_start: int = 0  # the corrections stay frozen (lr 0) before this step: the avatar takes shape first
     adam_beta1: float = 0.9
     adam_beta2: float = 0.999
     lr_decay_every: int = 20_000  # iterations per decay period
     lr_decay_factor: float = 0.5  # deviation: the factor is not given in the paper (1.0 switches decay off)
-    grad_clip: float = 0.0  # max gradient norm, 0 = off (paper: none)
     amp: bool = False  # bfloat16 autocast on CUDA (ignored on CPU)
     time_budget_s: float = 0.0  # stop (checkpoint, validate, record) after this many seconds of training; 0 = none
     snapshot_at_s: tuple[float, ...] = ()  # also save checkpoints/snapshot_<s>s.pt after these seconds of training
     # data loading
     cache_mb: int = 2048  # RAM budget of the LRU cache of cropped frames
     # bookkeeping
-    log_every: int = 25  # steps between fit/log.jsonl records
-    checkpoint_every: int = 1000  # steps between checkpoints (and always at the end / on Ctrl-C)
+    log_every: int = 100  # steps between fit/log.jsonl records
+    checkpoint_every: int = 5000  # steps between checkpoints (and always at the end / on Ctrl-C)
     keep_checkpoints: int = 3  # step_*.pt files kept (latest.pt always)
-    val_every: int = 1000  # steps between held-out-view validations, 0 = only at the end
+    val_every: int = 5000  # steps between held-out-view validations, 0 = only at the end
     val_pairs: int = 2  # fixed (held-out view, training frame) pairs rendered per validation, 0 = none
-    val_scale: float = 0.5  # image scale for validation renders (bbox-protocol PSNR on the scaled images)
+    val_scale: float = 1.0  # image scale for validation renders (bbox-protocol PSNR on the scaled images)
     ablations: tuple[str, ...] = ()  # informational: which --ablation switches made `model`
-    model: ModelConfig = field(default_factory=lambda: ModelConfig.preset("cpu"))
+    model: ModelConfig = field(default_factory=ModelConfig)
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "background", tuple(float(c) for c in self.background))
@@ -109,23 +116,17 @@ class FitConfig:
         for name in ("val_every", "val_pairs", "seed"):
             v = getattr(self, name)
             need(isinstance(v, int) and not isinstance(v, bool) and v >= 0, f"{name} must be an int >= 0, got {v!r}")
-        need(self.preset in PRESETS, f"preset must be one of {PRESETS}, got {self.preset!r}")
+        need(self.preset in PRESETS, f"preset must be one of {tuple(PRESETS)}, got {self.preset!r}")
         need(self.rays_per_batch >= self.images_per_batch,
              f"rays_per_batch ({self.rays_per_batch}) must be >= images_per_batch ({self.images_per_batch})")
         need(0.0 <= self.box_fraction <= 1.0, f"box_fraction must be in [0, 1], got {self.box_fraction}")
         need(0.0 <= self.mask_fraction <= 1.0, f"mask_fraction must be in [0, 1], got {self.mask_fraction}")
-        need(isinstance(self.mask_dilate_px, int) and 0 <= self.mask_dilate_px <= 64,
-             f"mask_dilate_px must be an int in [0, 64], got {self.mask_dilate_px!r}")
         need(self.crop_pad >= 0.0, f"crop_pad must be >= 0 metres, got {self.crop_pad}")
         need(len(self.background) == 3 and all(0.0 <= c <= 1.0 for c in self.background),
              f"background must be 3 values in [0, 1], got {self.background}")
         need(self.lr > 0 and math.isfinite(self.lr), f"lr must be > 0, got {self.lr}")
-        need(self.lr_pose > 0 and math.isfinite(self.lr_pose), f"lr_pose must be > 0, got {self.lr_pose}")
-        need(isinstance(self.pose_refine_start, int) and self.pose_refine_start >= 0,
-             f"pose_refine_start must be an int >= 0, got {self.pose_refine_start!r}")
         need(0.0 <= self.adam_beta1 < 1.0 and 0.0 <= self.adam_beta2 < 1.0, "adam betas must be in [0, 1)")
         need(0.0 < self.lr_decay_factor <= 1.0, f"lr_decay_factor must be in (0, 1], got {self.lr_decay_factor}")
-        need(self.grad_clip >= 0.0, f"grad_clip must be >= 0, got {self.grad_clip}")
         need(self.time_budget_s >= 0.0, f"time_budget_s must be >= 0 seconds, got {self.time_budget_s}")
         need(all(t > 0 for t in self.snapshot_at_s), f"snapshot_at_s must be > 0 seconds, got {self.snapshot_at_s}")
         need(0.0 < self.val_scale <= 1.0, f"val_scale must be in (0, 1], got {self.val_scale}")
@@ -143,19 +144,28 @@ class FitConfig:
 
     @classmethod
     def from_json(cls, d: dict[str, Any]) -> "FitConfig":
-        """Inverse of `to_json`; unknown keys are an error."""
+        """Inverse of `to_json`; unknown keys are an error. Reads schema_version 1 too (`lr_pose`,
+        `pose_refine_start` at the top; the model's flat keys: `ModelConfig.from_json`)."""
         d = dict(d)
         version = d.pop("schema_version", SCHEMA_VERSION)
-        if version != SCHEMA_VERSION:
+        if version not in (1, SCHEMA_VERSION):
             raise InputError(f"fit config schema_version {version} is not supported (expected {SCHEMA_VERSION})",
                              fix="re-run `avatarctl fit` with this avatarctl version")
-        d.pop("lr_grid", None)  # the grid field's rate, in configs written before issue 28 removed that field
+        if version == 1:
+            for key, neutral in _REMOVED_KEYS.items():
+                if key in d and d.pop(key) != neutral and neutral is not None:
+                    raise InputError(f"fit config: {key} was removed in issue 30 (what it set is now fixed: "
+                                     f"{neutral!r})", fix="fit again, or use avatarctl at commit 0081142")
+            moved = {LEGACY_KEYS[k][1]: d.pop(k) for k in ("lr_pose", "pose_refine_start") if k in d}
+            if moved and "model" in d:  # into model.pose_refine (the model dict is version 1 too)
+                model = nest_legacy_keys(d["model"])
+                d["model"] = {**model, "pose_refine": {**model.get("pose_refine", {}), **moved}}
         known = {f.name for f in fields(cls)}
         unknown = sorted(set(d) - known)
         if unknown:
             raise InputError(f"unknown fit config keys {unknown}", fix=f"known keys: {sorted(known)}")
         try:
-            model = ModelConfig.from_json(d.pop("model")) if "model" in d else ModelConfig.preset("cpu")
+            model = ModelConfig.from_json(d.pop("model")) if "model" in d else _OLDEST_MODEL
         except ValueError as e:
             raise InputError(str(e), fix="check the model section of the fit config") from None
         d["background"] = tuple(d.get("background", (0.0, 0.0, 0.0)))
@@ -165,17 +175,15 @@ class FitConfig:
 
 
 def preset(name: str) -> FitConfig:
-    """The named preset (see the module docstring)."""
-    if name == "paper":
-        return FitConfig(preset="paper", iters=300_000, rays_per_batch=2048, images_per_batch=4, log_every=100,
-                         checkpoint_every=5000, val_every=5000, val_scale=1.0, model=ModelConfig.preset("paper"))
-    if name == "cpu":
-        return FitConfig(preset="cpu", model=ModelConfig.preset("cpu"))  # the field defaults are the cpu preset
-    if name == "micro":
-        return FitConfig(preset="micro", iters=50, rays_per_batch=128, images_per_batch=2, log_every=10,
-                         checkpoint_every=50, val_every=0, val_pairs=1, val_scale=0.5,
-                         model=ModelConfig.preset("cpu").with_(num_nodes=32, samples_per_ray=16, hull_nodes=0))
-    raise InputError(f"unknown preset {name!r}", fix=f"use one of: {', '.join(PRESETS)}")
+    """The named preset (`PRESETS`)."""
+    if name not in PRESETS:
+        raise InputError(f"unknown preset {name!r}", fix=f"use one of: {', '.join(PRESETS)}")
+    p = PRESETS[name]
+    return FitConfig(preset=name, **p.fit, model=ModelConfig().with_(**p.model))
+
+
+# the model of fit configs written before they held one: the cpu preset of that time (no pose refinement)
+_OLDEST_MODEL = ModelConfig().with_(**{**PRESETS["cpu"].model, "pose_refine": {"enabled": False}})
 
 
 def parse_ablations(spec: str | None) -> tuple[str, ...]:
@@ -210,14 +218,19 @@ def _model_with(model: ModelConfig, changes: dict[str, Any]) -> ModelConfig:
 
 
 _NOT_SETTABLE = {"ablations": "use --ablation", "model": "use model.<field>=value", "preset": "use --preset"}
+_AUTO_KEYS = ("model.hull.nodes", "model.pose_refine.enabled")  # may be "auto": decided from the capture
 
 
 def _parse_value(key: str, text: str, current: Any) -> Any:
-    """Parse `text` to the type of the current value of `key` (bool, int, float, str or tuple of floats)."""
+    """Parse `text` to the type of the current value of `key` (bool, int, float, str or tuple of floats); the keys
+    of `_AUTO_KEYS` also take "auto"."""
     t = text.strip()
+    auto_kind = "bool" if key == "model.pose_refine.enabled" else "int"
     try:
-        if key == "model.hull_nodes" and t.lower() == HULL_AUTO:  # decided from the masks (fit/hull_nodes.py)
-            return HULL_AUTO
+        if key in _AUTO_KEYS:
+            if t.lower() == AUTO:
+                return AUTO
+            current = current if current != AUTO else (False if auto_kind == "bool" else 0)
         if isinstance(current, bool):
             low = t.lower()
             if low in ("1", "true", "yes", "on"):
@@ -225,7 +238,7 @@ def _parse_value(key: str, text: str, current: Any) -> Any:
             if low in ("0", "false", "no", "off"):
                 return False
             raise ValueError(t)
-        if isinstance(current, int) or key == "model.hull_nodes":
+        if isinstance(current, int):
             f = float(t)
             if not f.is_integer():
                 raise ValueError(t)
@@ -237,50 +250,65 @@ def _parse_value(key: str, text: str, current: Any) -> Any:
             return split_list(t, conv)
         return t
     except ValueError:
-        kind = "int or auto" if key == "model.hull_nodes" else type(current).__name__
+        kind = f"{auto_kind} or auto" if key in _AUTO_KEYS else type(current).__name__
         example = {"bool": "true|false", "int": "1000", "float": "0.0005", "tuple": "0,0,0",
-                   "int or auto": "32|auto"}.get(kind, "text")
+                   "int or auto": "32|auto", "bool or auto": "true|false|auto"}.get(kind, "text")
         raise InputError(f"cannot read {key}={text!r} as {kind}", where="--set", fix=f"write e.g. {key}={example}") \
             from None
 
 
+def settable_keys() -> list[str]:
+    """Every key `--set` takes: FitConfig fields, `model.<field>` and `model.<sub-config>.<field>`."""
+    keys = [f.name for f in fields(FitConfig) if f.name not in _NOT_SETTABLE]
+    for f in fields(ModelConfig):
+        sub = f.default if is_dataclass(f.default) else None
+        keys += [f"model.{f.name}.{g.name}" for g in fields(sub)] if sub is not None else [f"model.{f.name}"]
+    return keys
+
+
+def _canonical_key(key: str) -> str:
+    """A key of the flat config of schema_version 1 (`model.occ_res`, `lr_pose`, ...) -> its nested key."""
+    name = key.removeprefix("model.")
+    if name in LEGACY_KEYS and (key.startswith("model.") or name in ("lr_pose", "pose_refine_start")):
+        return "model." + ".".join(LEGACY_KEYS[name])
+    return key
+
+
 def apply_overrides(cfg: FitConfig, overrides: list[str]) -> FitConfig:
-    """Apply `key=value` overrides. Keys: `FitConfig` fields or `model.<ModelConfig field>`."""
-    fit_keys = [f.name for f in fields(FitConfig) if f.name not in _NOT_SETTABLE]
-    model_keys = [f"model.{f.name}" for f in fields(ModelConfig) if f.name != "gaussians"]
-    splat_keys = [f"model.gaussians.{f.name}" for f in fields(GaussianConfig)]  # the Gaussian field's own options
+    """Apply `key=value` overrides. Keys (`settable_keys`): `FitConfig` fields, `model.<ModelConfig field>` and
+    `model.<sub-config>.<field>` (e.g. `model.gaussians.per_node`, `model.occupancy.res`); the flat keys of older
+    configs (`model.occ_res`, `model.hull_nodes`, `lr_pose`, ...; `LEGACY_KEYS`) name the same fields."""
+    keys = settable_keys()
     fit_changes: dict[str, Any] = {}
     model_changes: dict[str, Any] = {}
-    splat_changes: dict[str, Any] = {}
+    sub_changes: dict[str, dict[str, Any]] = {}
     for item in overrides:
         if "=" not in item:
             raise InputError(f"override {item!r} is not key=value", where="--set", fix="write e.g. --set lr=1e-4")
-        key, text = (s.strip() for s in item.split("=", 1))
-        if key in _NOT_SETTABLE:
-            raise InputError(f"{key!r} cannot be set with --set", where="--set", fix=_NOT_SETTABLE[key])
-        if key in fit_keys:
-            fit_changes[key] = _parse_value(key, text, getattr(cfg, key))
-        elif key in model_keys:
-            name = key.split(".", 1)[1]
-            model_changes[name] = _parse_value(key, text, getattr(cfg.model, name))
-        elif key in splat_keys:
-            name = key.split(".", 2)[2]
-            splat_changes[name] = _parse_value(key, text, getattr(cfg.model.gaussians, name))
-        else:
-            close = difflib.get_close_matches(key, fit_keys + model_keys + splat_keys, n=3)
+        given, text = (s.strip() for s in item.split("=", 1))
+        if given in _NOT_SETTABLE:
+            raise InputError(f"{given!r} cannot be set with --set", where="--set", fix=_NOT_SETTABLE[given])
+        key = _canonical_key(given)
+        if key not in keys:
+            close = difflib.get_close_matches(given, keys, n=3)
             hint = f"did you mean {' or '.join(repr(c) for c in close)}? " if close else ""
-            raise InputError(f"unknown config key {key!r}", where="--set",
-                             fix=f"{hint}keys are FitConfig fields or model.<field> (see docs/fit.md)")
-    if splat_changes:
-        try:
-            model_changes["gaussians"] = replace(cfg.model.gaussians, **splat_changes)
-        except ValueError as e:
-            raise InputError(str(e), where="--set", fix="see docs/fit.md for valid model.gaussians values") from None
+            raise InputError(f"unknown config key {given!r}", where="--set",
+                             fix=f"{hint}keys are FitConfig fields, model.<field> or model.<group>.<field> (see "
+                                 f"docs/fit.md)")
+        parts = key.split(".")
+        if len(parts) == 1:
+            fit_changes[key] = _parse_value(key, text, getattr(cfg, key))
+        elif len(parts) == 2:
+            model_changes[parts[1]] = _parse_value(key, text, getattr(cfg.model, parts[1]))
+        else:
+            sub_changes.setdefault(parts[1], {})[parts[2]] = _parse_value(
+                key, text, getattr(getattr(cfg.model, parts[1]), parts[2]))
+    model_changes.update(sub_changes)  # dicts of sub-config fields (`ModelConfig.with_`)
     model = _model_with(cfg.model, model_changes) if model_changes else cfg.model
     return replace(cfg, **fit_changes, model=model)
 
 
-def resolve_fit_config(preset_name: str = "cpu", ablation: str | None = None, iters: int | None = None,
+def resolve_fit_config(preset_name: str = DEFAULT_PRESET, ablation: str | None = None, iters: int | None = None,
                        seed: int | None = None, overrides: list[str] | None = None) -> FitConfig:
     """preset -> ablations -> iters / seed -> `--set` overrides (see the module docstring)."""
     cfg = preset(preset_name)

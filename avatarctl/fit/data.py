@@ -8,9 +8,10 @@ memory (only the per-frame `PoseTable` is resident).
 Ray sampling per step (`RaySampler.sample`): `images_per_batch` images, each a (training frame, training view)
 pair drawn uniformly with replacement (from all pairs, or from the sampler's own `pairs`: a ray shard of a
 data-parallel fit, fit/distributed.py); the step's `rays_per_batch` rays are split evenly over them. Of an image's
-rays, `mask_fraction` are drawn uniformly among the foreground pixels of the mask dilated by `mask_dilate_px`
-(focused sampling, a deviation; 0 in the `paper` preset); of the others, `box_fraction` (default 90%) uniformly
-among the pixels inside the projected grown box (the crop's polygon), the rest uniformly over the whole image.
+rays, `mask_fraction` are drawn uniformly among the foreground pixels of the mask dilated by
+`fit.config.MASK_DILATE_PX` (focused sampling, a deviation; 0 in every preset, measured in docs/fit.md); of the
+others, `box_fraction` (default 90%) uniformly among the pixels inside the projected grown box (the crop's polygon),
+the rest uniformly over the whole image.
 Rays go through pixel centres (OpenCV convention).
 
 Target colour (stated convention): the masked image over the fixed background colour,

@@ -1,9 +1,9 @@
 """Hull nodes: put some of the N nodes where the masks show the subject beyond the body (a deviation from the paper,
-issue 18; `ModelConfig.hull_nodes`).
+issue 18; `ModelConfig.hull`, a `HullConfig`).
 
 The paper places all N nodes on the body surface (farthest point sampling, Sec. 3.1). A loose skirt reaches beyond
 every node's support (sigma sqrt(-2 ln eps) = 0.186 m) in a twirl: those rays return background and nothing pulls
-a node out there. With `hull_nodes = K > 0`, N - K nodes are sampled on the surface as before and K are placed from
+a node out there. With `hull.nodes = K > 0`, N - K nodes are sampled on the surface as before and K are placed from
 the training masks:
 
 1. for up to `max_frames` training frames, a voxel grid around the posed body (expanded by `margin`) is carved by
@@ -24,8 +24,8 @@ the training masks:
 
 The node then moves like that vertex (Eq. 3) plus its learned Delta n, like any other node.
 
-`hull_nodes = "auto"` decides from the same survey (`decide`): K = `hull_auto_fraction` N hull nodes when the
-persistent off-body cells hold at least `hull_auto_min_volume` of the body's volume (the template mesh's), else
+`hull.nodes = "auto"` decides from the same survey (`decide`): K = `hull.auto_fraction` N hull nodes when the
+persistent off-body cells hold at least `hull.auto_min_volume` of the body's volume (the template mesh's), else
 none (the paper's placement, bit for bit). Measured (docs/experiments/hull_auto_2026-11-25): synth small (skirt,
 8 views) 281 %, synth tiny (skirt, 4 views) 461 %, synth tight (4 views) and monocular (1 view) 0 %.
 """
@@ -61,7 +61,7 @@ class HullSurvey:
 
     @property
     def share(self) -> float:
-        """`volume` as a share of the body's volume (the figure `hull_nodes = "auto"` decides on)."""
+        """`volume` as a share of the body's volume (the figure `hull.nodes = "auto"` decides on)."""
         return self.volume / self.body_volume if self.body_volume > 0 else 0.0
 
     def describe(self) -> str:
@@ -194,7 +194,7 @@ def survey_hull(capture, body, template, frames: list[int], views: list[str], su
 
 
 def auto_hull_nodes(survey: HullSurvey, k: int, min_volume: float) -> int:
-    """`hull_nodes = "auto"`: `k` (`ModelConfig.hull_auto_nodes`) when the persistent off-body cells hold at least
+    """`hull.nodes = "auto"`: `k` (`ModelConfig.hull_auto_nodes`) when the persistent off-body cells hold at least
     `min_volume` of the body's volume, else 0 (the paper's placement)."""
     return k if survey.share >= min_volume and len(survey.cells) else 0
 

@@ -15,6 +15,11 @@ Interruption: Ctrl-C (SIGINT, first press) or `StopFlag.set()` ends the run afte
 checkpoint; a second Ctrl-C aborts immediately. `FitConfig.time_budget_s` ends a run the same way after that many
 seconds of training, but still validates (stop_reason "time_budget").
 
+The file reads in the order of a run: `_set_up` (`_open_run`: split checks, resume or fresh, `decide_auto`; the data,
+`_build_model`, optimiser, log), `_train_step` (one optimisation step), `_Books.after_step` (log, validation,
+checkpoints, snapshots, progress), the stop rule in `fit`, and `_finish` (last checkpoint, final validation, refined
+fits, project record).
+
 Several ranks (`env`, `avatarctl.dist`): data-parallel over ray shards (fit/distributed.py: `Replicas` samples,
 renders and synchronises); rank 0 alone writes the config, log, checkpoints and project record and validates; the
 ranks stop after the same step (docs/distributed.md).
@@ -39,13 +44,13 @@ from avatarctl.atomic import remove_stale_temps, write_json, write_text
 from avatarctl.device import resolve_device
 from avatarctl.dist import rank_device
 from avatarctl.errors import AvatarError, InputError, ProjectError
-from avatarctl.fit.config import FitConfig, config_summary
-from avatarctl.model.config import HULL_AUTO, ModelConfig
+from avatarctl.fit.config import MASK_DILATE_PX, FitConfig, config_summary
+from avatarctl.model.config import AUTO, ModelConfig
 from avatarctl.project import Project, now_iso
 
 if TYPE_CHECKING:
     from avatarctl.dist import DistEnv
-    from avatarctl.fit.distributed import Replicas
+    from avatarctl.fit.distributed import Replicas, StepSync
     from avatarctl.fit.hull_nodes import HullNodes
     from avatarctl.fit.refined import RefinementSummary
     from avatarctl.fit.validate import ValidationResult
@@ -181,47 +186,98 @@ def _resume_config(cfg: FitConfig | None, saved: FitConfig) -> FitConfig:
 
 def _place_hull_nodes(model_cfg: ModelConfig, seed: int, capture, body, template, train_frames: list[int],
                       views: list[str]) -> "tuple[HullNodes | None, str]":
-    """`model.hull_nodes` = K or "auto" (fit/hull_nodes.py): survey the training masks, decide K for "auto", place
+    """`model.hull.nodes` = K or "auto" (fit/hull_nodes.py): survey the training masks, decide K for "auto", place
     the nodes. -> (the K hull nodes, or None for the paper's placement; the line for the log and the summary)."""
     from avatarctl.fit.hull_nodes import auto_hull_nodes, choose_hull_nodes, survey_hull
     from avatarctl.model.deformer import farthest_point_sampling
 
-    N, auto = model_cfg.num_nodes, model_cfg.hull_nodes == HULL_AUTO
-    k = model_cfg.hull_auto_nodes if auto else int(model_cfg.hull_nodes)
+    opts = model_cfg.hull
+    N, auto = model_cfg.num_nodes, opts.nodes == AUTO
+    k = model_cfg.hull_auto_nodes if auto else int(opts.nodes)
     surface = farthest_point_sampling(template.vertices, N - k, seed)
-    survey = survey_hull(capture, body, template, train_frames, views, surface, model_cfg.hull_min_dist)
+    survey = survey_hull(capture, body, template, train_frames, views, surface, opts.min_dist)
     if auto:
-        k = auto_hull_nodes(survey, k, model_cfg.hull_auto_min_volume)
+        k = auto_hull_nodes(survey, k, opts.auto_min_volume)
         if not k:
-            return None, (f"hull: {survey.describe()} < {100 * model_cfg.hull_auto_min_volume:g} % -> none "
+            return None, (f"hull: {survey.describe()} < {100 * opts.auto_min_volume:g} % -> none "
                           f"(hull_nodes=auto: all {N} nodes on the surface)")
     hull = choose_hull_nodes(survey, template, template.vertices.detach().float()[surface], k)
     more = f", {k - hull.off_body} more on the surface" if hull.off_body < k else ""
-    why = f" >= {100 * model_cfg.hull_auto_min_volume:g} % (hull_nodes=auto)" if auto else ""
+    why = f" >= {100 * opts.auto_min_volume:g} % (hull_nodes=auto)" if auto else ""
     return hull, f"hull: {survey.describe()}{why} -> {hull.off_body} of {N} nodes placed off the body{more}"
 
 
-def fit(project: Project, cfg: FitConfig | None = None, *, device: str = "auto", resume: bool = False,
-        fresh: bool = False, progress: Callable[[StepReport], None] | None = None, stop: StopFlag | None = None,
-        handle_sigint: bool = True, env: "DistEnv | None" = None, shards: int | None = None) -> FitResult:
-    """Train (or resume training) the project's avatar; see the module docstring. `cfg` may be None on resume.
-    `env`: this process's rank in a started group (None: one process); `shards`: ray shards (fit/distributed.py;
-    None = the world size for a fresh fit, the checkpoint's on resume when the world size divides them)."""
-    from avatarctl.body.registry import load_body_model
-    from avatarctl.fit.checkpoint import read_checkpoint, save_checkpoint, save_snapshot
-    from avatarctl.fit.conditioning import build_pose_table, make_conditioning, time_stamps
-    from avatarctl.fit.data import FrameStore, ImageSampler, RaySampler
-    from avatarctl.fit.distributed import Replicas, saved_shards
-    from avatarctl.fit.schedule import make_optimizer, make_scheduler, param_groups
-    from avatarctl.fit.validate import Validator, choose_val_pairs
-    from avatarctl.io.project_io import load_project_capture
-    from avatarctl.model.avatar import SlrfAvatar
+def decide_auto(cfg: FitConfig, project: Project) -> FitConfig:
+    """`cfg` with `model.pose_refine.enabled = "auto"` decided from the project's capture: on when its body fits are
+    not ground truth (real captures, synth with --fit-noise). The saved config holds the decision."""
+    refine = cfg.model.pose_refine
+    if refine.enabled != AUTO:
+        return cfg
+    from avatarctl.io.gt_geometry import fits_are_ground_truth
 
-    t_setup = time.perf_counter()
-    started = now_iso()
+    decided = refine.resolved(fits_are_ground_truth(project.manifest.source.path))
+    return replace(cfg, model=cfg.model.with_(pose_refine=decided))
+
+
+# ---- set-up ------------------------------------------------------------------------------------------------------
+@dataclass
+class _Trainer:
+    """Everything set-up builds and every step uses: the data, the model and its optimiser, the ranks."""
+
+    project: Project
+    cfg: FitConfig
+    dev: torch.device
+    env: "DistEnv | None"
+    shards: int
+    capture: Any  # ProjectCapture
+    body: Any  # BodyModel
+    poses: Any  # PoseTable of the training frames
+    train_frames: list[int]
+    store: Any  # FrameStore (the cache the log reports)
+    replicas: "Replicas"
+    validator: "Any | None"  # Validator, None without held-out views (and on ranks > 0)
+    model: Any  # SlrfAvatar
+    optimizer: torch.optim.Optimizer
+    scheduler: Any
+    background: torch.Tensor  # [3]
+    all_frames: Any  # FrameConditioning of every training frame (the novel-pose latent's mean)
+    start_step: int
+    resumed: bool
+    hull_note: str | None  # what the hull survey decided (fresh fits with model.hull on)
+
+    @property
+    def main(self) -> bool:
+        return self.env is None or self.env.is_main
+
+    @property
+    def world(self) -> int:
+        return self.env.world_size if self.env is not None else 1
+
+    def payload(self, step: int) -> dict[str, Any]:
+        """A checkpoint's contents at `step` (every rank: the shards' generator states are gathered)."""
+        self.model.set_latent_mean(self.all_frames)  # model.novel_latent = "train_mean": z of novel poses
+        return {"step": step, "model": self.model.state_dict(), "optimizer": self.optimizer.state_dict(),
+                "scheduler": self.scheduler.state_dict(), "rng": _rng_state(self.replicas),
+                "model_config": self.cfg.model.to_json(), "fit_config": self.cfg.to_json(),
+                "train_frames": self.train_frames}
+
+    def checkpoint(self, step: int) -> Path:
+        """Save a checkpoint (rank 0 writes) -> its path."""
+        from avatarctl.fit.checkpoint import save_checkpoint
+
+        data = self.payload(step)
+        return save_checkpoint(self.project, data, keep=self.cfg.keep_checkpoints) if self.main \
+            else self.project.paths.checkpoint(step)
+
+
+def _open_run(project: Project, cfg: FitConfig | None, resume: bool, fresh: bool, main: bool
+              ) -> tuple[Any, list[int], FitConfig, "dict[str, Any] | None"]:
+    """Check the project's split, read the checkpoint being resumed (its config holds; only `iters` may change) or
+    clear the fit being replaced. -> (capture, training frames, config, checkpoint or None)."""
+    from avatarctl.fit.checkpoint import read_checkpoint
+    from avatarctl.io.project_io import load_project_capture
+
     paths = project.paths
-    dev = rank_device(env, resolve_device(device))
-    main = env is None or env.is_main
     capture = load_project_capture(project)
     split = capture.split
     if not split.train_frames or not split.train_views:
@@ -232,7 +288,8 @@ def fit(project: Project, cfg: FitConfig | None = None, *, device: str = "auto",
             raise ProjectError(f"split names camera {v!r} that is not in cameras.json", where=str(paths.split),
                                fix="re-run `avatarctl ingest`")
     train_frames = sorted(int(f) for f in split.train_frames)
-
+    if cfg is not None:
+        cfg = decide_auto(cfg, project)
     ckpt = None
     if resume:
         ckpt = read_checkpoint(paths.latest_checkpoint)
@@ -251,6 +308,53 @@ def fit(project: Project, cfg: FitConfig | None = None, *, device: str = "auto",
                 p.unlink(missing_ok=True)
     assert cfg is not None
     remove_stale_temps(paths.checkpoints)  # torn writes of a killed run (never `latest.pt` itself: renames are atomic)
+    return capture, train_frames, cfg, ckpt
+
+
+def _build_model(cfg: FitConfig, capture, body, template, poses, train_frames: list[int], *, fresh_fit: bool,
+                 dev: torch.device) -> "tuple[Any, str | None]":
+    """The avatar, initialised from `cfg.seed` (a fresh fit places its hull nodes and solves the pose refinement's
+    joint centres first; a resumed one gets both from the checkpoint), in training mode.
+    -> (model, the hull survey's line or None)."""
+    from avatarctl.model.avatar import SlrfAvatar
+
+    hull, hull_note = None, None
+    if cfg.model.hull.on and cfg.model.variant == "slrf" and fresh_fit:  # nodes off the body (fit/hull_nodes.py)
+        hull, hull_note = _place_hull_nodes(cfg.model, cfg.seed, capture, body, template, train_frames,
+                                            list(capture.split.train_views))
+    with torch.random.fork_rng(devices=[]):  # weights initialised from cfg.seed, global RNG left as it was
+        torch.manual_seed(cfg.seed)
+        model = SlrfAvatar(cfg.model, template, num_frames=len(train_frames), seed=cfg.seed,
+                           hull_nodes=None if hull is None else (hull.rest, hull.vertex),
+                           off_body=None if hull is None else (torch.from_numpy(hull.survey.cells), hull.survey.cell)
+                           ).to(dev)
+    if model.pose_refine is not None and fresh_fit:  # canonical joint centres from the training poses
+        from avatarctl.body.joints import joint_centres, skin_weighted_centroids
+
+        model.pose_refine.set_centres(joint_centres(poses.joint_transforms, template.parents,
+                                                    skin_weighted_centroids(template.vertices, template.skin_weights)))
+    if model.pose_refine is not None and cfg.model.pose_refine.lambda_accel > 0:  # the sequence the smoothness sees
+        model.pose_refine.set_sequence(poses.joint_transforms, train_frames, capture.motion.fps)
+    model.train()
+    return model, hull_note
+
+
+def _set_up(project: Project, cfg: FitConfig | None, device: str, resume: bool, fresh: bool,
+            env: "DistEnv | None", shards: int | None) -> "tuple[_Trainer, _Log | None]":
+    """Open the run, write the config, build the data, the model, the optimiser and the log (restored from the
+    checkpoint on resume)."""
+    from avatarctl.body.registry import load_body_model
+    from avatarctl.fit.conditioning import build_pose_table, make_conditioning, time_stamps
+    from avatarctl.fit.data import FrameStore, ImageSampler, RaySampler
+    from avatarctl.fit.distributed import Replicas, saved_shards
+    from avatarctl.fit.schedule import make_optimizer, make_scheduler, param_groups
+    from avatarctl.fit.validate import Validator, choose_val_pairs
+
+    paths = project.paths
+    dev = rank_device(env, resolve_device(device))
+    main = env is None or env.is_main
+    capture, train_frames, cfg, ckpt = _open_run(project, cfg, resume, fresh, main)
+    split = capture.split
     start_step = int(ckpt["step"]) if ckpt is not None else 0
     world = env.world_size if env is not None else 1
     if shards is None:
@@ -262,7 +366,7 @@ def fit(project: Project, cfg: FitConfig | None = None, *, device: str = "auto",
     body = load_body_model(capture.body_model, capture.body_model_path)
     template = body.template(capture.motion)
     poses = build_pose_table(body, capture.motion, train_frames)
-    store = FrameStore(capture, poses, cfg.crop_pad, cfg.cache_mb * 2**20, cfg.mask_dilate_px)
+    store = FrameStore(capture, poses, cfg.crop_pad, cfg.cache_mb * 2**20, MASK_DILATE_PX)
     # the ray-marched fields learn from scattered rays, the rasterized one (model.field = "gaussians") from whole crops
     Sampler = RaySampler if cfg.model.ray_marched else ImageSampler
     replicas = Replicas(env, shards, lambda pairs, rays, images: Sampler(
@@ -271,29 +375,11 @@ def fit(project: Project, cfg: FitConfig | None = None, *, device: str = "auto",
     pairs = choose_val_pairs(split.test_views, train_frames, cfg.val_pairs) if main else []
     validator = Validator(capture, body, pairs, train_frames, cfg.background, cfg.val_scale) if pairs else None
 
-    hull, hull_note = None, None
-    if cfg.model.hull_nodes and cfg.model.variant == "slrf" and ckpt is None:  # nodes off the body (fit/hull_nodes.py)
-        hull, hull_note = _place_hull_nodes(cfg.model, cfg.seed, capture, body, template, train_frames,
-                                            list(split.train_views))
-    with torch.random.fork_rng(devices=[]):  # weights initialised from cfg.seed, global RNG left as it was
-        torch.manual_seed(cfg.seed)
-        model = SlrfAvatar(cfg.model, template, num_frames=len(train_frames), seed=cfg.seed,
-                           hull_nodes=None if hull is None else (hull.rest, hull.vertex),
-                           off_body=None if hull is None else (torch.from_numpy(hull.survey.cells), hull.survey.cell)
-                           ).to(dev)
-    if model.pose_refine is not None and ckpt is None:  # canonical joint centres from the training poses
-        from avatarctl.body.joints import joint_centres, skin_weighted_centroids
-
-        model.pose_refine.set_centres(joint_centres(poses.joint_transforms, template.parents,
-                                                    skin_weighted_centroids(template.vertices, template.skin_weights)))
-    if model.pose_refine is not None and cfg.model.lambda_pose_accel > 0:  # the sequence the smoothness term sees
-        model.pose_refine.set_sequence(poses.joint_transforms, train_frames, capture.motion.fps)
-    model.train()
+    model, hull_note = _build_model(cfg, capture, body, template, poses, train_frames, fresh_fit=ckpt is None,
+                                    dev=dev)
     optimizer = make_optimizer(cfg, param_groups(cfg, model))
-    relocate_every = 0 if cfg.model.ray_marched else cfg.model.gaussians.relocate_every
-    if relocate_every:
-        from avatarctl.fit.densify import relocate_dead
     scheduler = make_scheduler(cfg, optimizer)
+    same_stream = True
     if ckpt is not None:
         model.load_state_dict(ckpt["model"])
         optimizer.load_state_dict(ckpt["optimizer"])
@@ -306,127 +392,192 @@ def fit(project: Project, cfg: FitConfig | None = None, *, device: str = "auto",
     if ckpt is not None and not same_stream and log is not None:
         log.append({"step": start_step, "note": f"resumed on {world} ranks: {saved_shards(ckpt['rng'])} ray shards "
                                                 f"resharded to {shards}, new sampling streams"})
-    background = torch.tensor(cfg.background, dtype=torch.float32, device=dev)
-    use_amp = cfg.amp and dev.type == "cuda"
-    stop = stop or StopFlag()
-
     all_frames = make_conditioning(poses.joint_transforms, poses.pose_features,
                                    *time_stamps(train_frames, train_frames, True), device=dev)
+    trainer = _Trainer(project=project, cfg=cfg, dev=dev, env=env, shards=shards, capture=capture, body=body,
+                       poses=poses, train_frames=train_frames, store=store, replicas=replicas, validator=validator,
+                       model=model, optimizer=optimizer, scheduler=scheduler,
+                       background=torch.tensor(cfg.background, dtype=torch.float32, device=dev),
+                       all_frames=all_frames, start_step=start_step, resumed=ckpt is not None, hull_note=hull_note)
+    return trainer, log
 
-    def payload(step: int) -> dict[str, Any]:
-        model.set_latent_mean(all_frames)  # model.novel_latent = "train_mean": z of novel poses (model/cvae.py)
-        return {"step": step, "model": model.state_dict(), "optimizer": optimizer.state_dict(),
-                "scheduler": scheduler.state_dict(), "rng": _rng_state(replicas),
-                "model_config": cfg.model.to_json(), "fit_config": cfg.to_json(), "train_frames": train_frames}
 
-    def checkpoint(step: int) -> Path:  # every rank (the shards' generator states are gathered), rank 0 writes
-        data = payload(step)
-        return save_checkpoint(project, data, keep=cfg.keep_checkpoints) if main else paths.checkpoint(step)
+# ---- one step ----------------------------------------------------------------------------------------------------
+@dataclass
+class _Step:
+    """What one optimisation step leaves for the bookkeeping."""
 
-    snapshots = list(cfg.snapshot_at_s)
+    terms: Any  # LossTerms
+    out: Any  # RenderOutputs (its stats go to the log)
+    rays: int  # rays (pixels) trained on
+    agreed: "StepSync"  # what the ranks agreed on after it
 
+
+def _train_step(t: _Trainer, step: int, elapsed_s: Callable[[], float], stop: StopFlag,
+                next_snapshot_s: float | None) -> _Step:
+    """One optimisation step (paper Sec. 4): forward and loss on this rank's share of the batch (samples jittered),
+    backward, the ranks' synchronisation, Adam (no gradient clipping, as the paper) and the lr schedule; then the
+    Gaussians' density control when due. `step`: the steps done before this one."""
+    cfg, model = t.cfg, t.model
+    occ_start = t.replicas.begin_step(model)
+    use_amp = cfg.amp and t.dev.type == "cuda"
+    with torch.autocast(device_type="cuda", dtype=torch.bfloat16) if use_amp else contextlib.nullcontext():
+        terms, out, step_rays = t.replicas.forward(model, t.background, jitter=True)
+    t.optimizer.zero_grad(set_to_none=True)
+    terms.total.backward()
+    elapsed = elapsed_s()
+    agreed = t.replicas.sync(model, terms, occ_start, stop=stop.is_set(),
+                             budget=t.main and bool(cfg.time_budget_s) and elapsed >= cfg.time_budget_s,
+                             snapshot=t.main and next_snapshot_s is not None and elapsed >= next_snapshot_s)
+    t.optimizer.step()
+    t.scheduler.step()
+    relocate_every = 0 if cfg.model.ray_marched else cfg.model.gaussians.relocate_every
+    if relocate_every and (step + 1) % relocate_every == 0:  # the Gaussians' density control (fit/densify.py)
+        from avatarctl.fit.densify import relocate_dead
+
+        relocate_dead(model.fields, t.optimizer, cfg.model.gaussians.min_opacity, cfg.seed, step + 1)
+    return _Step(terms, out, step_rays, agreed)
+
+
+# ---- bookkeeping -------------------------------------------------------------------------------------------------
+class _Books:
+    """After each step: the log record (losses, speed, cache, model stats), validation, checkpoints, time snapshots
+    and the progress report; it keeps what the result needs (latest losses, validation, checkpoint)."""
+
+    def __init__(self, t: _Trainer, log: "_Log | None", progress: Callable[[StepReport], None] | None):
+        self.t, self.log, self.progress = t, log, progress
+        self.t_run = time.perf_counter()
+        self.losses: dict[str, float] = {}
+        self.val: ValidationResult | None = None
+        self.last_ckpt: Path | None = t.project.paths.latest_checkpoint if t.resumed else None
+        self.saved_step = t.start_step if t.resumed else -1
+        self.window_t, self.window_rays, self.rays_per_s = time.perf_counter(), 0, 0.0
+        self.snapshots = list(t.cfg.snapshot_at_s)
+
+    def elapsed(self) -> float:
+        """Seconds of training in this run."""
+        return time.perf_counter() - self.t_run
+
+    @property
+    def next_snapshot_s(self) -> float | None:
+        return self.snapshots[0] if self.snapshots else None
+
+    def after_step(self, step: int, s: _Step) -> None:
+        """`step`: the steps done, this one included."""
+        t, cfg = self.t, self.t.cfg
+        self.window_rays += s.rays
+        record: dict[str, Any] = {}
+        if step % cfg.log_every == 0 or step == cfg.iters:
+            self.losses = s.agreed.losses or s.terms.as_floats()
+            if not all(math.isfinite(v) for v in self.losses.values()):
+                raise AvatarError(f"training diverged: non-finite loss at step {step} ({self.losses})",
+                                  where=str(t.project.paths.fit),
+                                  fix="resume from the last checkpoint with a lower lr (--fresh --set lr=...)")
+            now = time.perf_counter()
+            self.rays_per_s = self.window_rays / max(now - self.window_t, 1e-9)
+            self.window_t, self.window_rays = now, 0
+            record = {"lr": t.optimizer.param_groups[0]["lr"], "loss": self.losses,
+                      "rays_per_s": round(self.rays_per_s, 1),
+                      "cache": {"images": len(t.store), "mb": round(t.store.cached_bytes / 2**20, 1),
+                                "hits": t.store.hits, "misses": t.store.misses},
+                      "stats": {k: float(v) for k, v in s.out.stats.items()}}
+        if t.validator is not None and cfg.val_every and step % cfg.val_every == 0:
+            self.val = t.validator.score(t.model)
+            record["val"] = _val_record(self.val)
+        if record and self.log is not None:
+            self.log.append({"step": step, "time": round(self.elapsed(), 3), **record})
+        if step % cfg.checkpoint_every == 0:
+            self.last_ckpt, self.saved_step = t.checkpoint(step), step
+        self._snapshots(step, s.agreed.snapshot)
+        if self.progress is not None:
+            self.progress(StepReport(step=step, iters=cfg.iters, start_step=t.start_step, losses=self.losses,
+                                     lr=t.optimizer.param_groups[0]["lr"], rays_per_s=self.rays_per_s,
+                                     val_psnr=None if self.val is None else self.val.psnr))
+
+    def _snapshots(self, step: int, agreed: bool) -> None:
+        """checkpoints/snapshot_<s>s.pt for each `snapshot_at_s` time passed (several ranks: when they agreed)."""
+        from avatarctl.fit.checkpoint import save_snapshot
+
+        t = self.t
+        while self.snapshots and (agreed if t.replicas.distributed else self.elapsed() >= self.snapshots[0]):
+            data = t.payload(step)
+            if t.main:
+                save_snapshot(t.project, data, self.snapshots[0])
+            self.snapshots.pop(0)
+            agreed = False
+
+
+# ---- the loop and its stop ---------------------------------------------------------------------------------------
+def fit(project: Project, cfg: FitConfig | None = None, *, device: str = "auto", resume: bool = False,
+        fresh: bool = False, progress: Callable[[StepReport], None] | None = None, stop: StopFlag | None = None,
+        handle_sigint: bool = True, env: "DistEnv | None" = None, shards: int | None = None) -> FitResult:
+    """Train (or resume training) the project's avatar; see the module docstring. `cfg` may be None on resume.
+    `env`: this process's rank in a started group (None: one process); `shards`: ray shards (fit/distributed.py;
+    None = the world size for a fresh fit, the checkpoint's on resume when the world size divides them). The stop
+    rule: before a step, a stop asked for (one process: the local flag; ranks: the flag they agreed on after the last
+    step) or the time budget spent; after a step, the budget the ranks agreed on."""
+    t_setup = time.perf_counter()
+    started = now_iso()
+    t, log = _set_up(project, cfg, device, resume, fresh, env, shards)
+    stop = stop or StopFlag()
     setup_seconds = time.perf_counter() - t_setup
-    step = start_step
-    losses: dict[str, float] = {}
-    val: ValidationResult | None = None
-    last_ckpt: Path | None = paths.latest_checkpoint if ckpt is not None else None
-    saved_step = start_step if ckpt is not None else -1
-    window_t, window_rays, rays_per_s = time.perf_counter(), 0, 0.0
-    t_run = time.perf_counter()
-    sig = _sigint_sets(stop) if handle_sigint else contextlib.nullcontext()
-    with sig:
-        budget_hit = agreed_stop = False  # several ranks stop on the flags they agreed on, never on a local one
-        while step < cfg.iters and not (agreed_stop if replicas.distributed else stop.is_set()):
-            if not replicas.distributed and cfg.time_budget_s and time.perf_counter() - t_run >= cfg.time_budget_s:
+    books = _Books(t, log, progress)
+    step, last, budget_hit = t.start_step, None, False
+    with _sigint_sets(stop) if handle_sigint else contextlib.nullcontext():
+        agreed_stop = False  # several ranks stop on the flags they agreed on, never on a local one
+        while step < t.cfg.iters and not (agreed_stop if t.replicas.distributed else stop.is_set()):
+            if not t.replicas.distributed and t.cfg.time_budget_s and books.elapsed() >= t.cfg.time_budget_s:
                 budget_hit = True
                 break
-            model.set_training_step(step)  # model.pe_anneal_steps: the coarse-to-fine level of gamma(p)
-            occ_start = replicas.begin_step(model)
-            with torch.autocast(device_type="cuda", dtype=torch.bfloat16) if use_amp else contextlib.nullcontext():
-                terms, out, step_rays = replicas.forward(model, background, cfg.jitter)
-            optimizer.zero_grad(set_to_none=True)
-            terms.total.backward()
-            elapsed = time.perf_counter() - t_run
-            agreed = replicas.sync(model, terms, occ_start, stop=stop.is_set(),
-                                   budget=main and bool(cfg.time_budget_s) and elapsed >= cfg.time_budget_s,
-                                   snapshot=main and bool(snapshots) and elapsed >= snapshots[0])
-            if cfg.grad_clip > 0:
-                torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.grad_clip)
-            optimizer.step()
-            scheduler.step()
+            last = _train_step(t, step, books.elapsed, stop, books.next_snapshot_s)
             step += 1
-            if relocate_every and step % relocate_every == 0:  # the Gaussians' density control (fit/densify.py)
-                relocate_dead(model.fields, optimizer, cfg.model.gaussians.min_opacity, cfg.seed, step)
-            window_rays += step_rays
-
-            record: dict[str, Any] = {}
-            if step % cfg.log_every == 0 or step == cfg.iters:
-                losses = agreed.losses or terms.as_floats()
-                if not all(math.isfinite(v) for v in losses.values()):
-                    raise AvatarError(f"training diverged: non-finite loss at step {step} ({losses})",
-                                      where=str(paths.fit),
-                                      fix="resume from the last checkpoint with a lower lr (--fresh --set lr=...)")
-                now = time.perf_counter()
-                rays_per_s = window_rays / max(now - window_t, 1e-9)
-                window_t, window_rays = now, 0
-                record = {"lr": optimizer.param_groups[0]["lr"], "loss": losses, "rays_per_s": round(rays_per_s, 1),
-                          "cache": {"images": len(store), "mb": round(store.cached_bytes / 2**20, 1),
-                                    "hits": store.hits, "misses": store.misses},
-                          "stats": {k: float(v) for k, v in out.stats.items()}}
-            if validator is not None and cfg.val_every and step % cfg.val_every == 0:
-                val = validator.score(model)
-                record["val"] = _val_record(val)
-            if record and log is not None:
-                log.append({"step": step, "time": round(time.perf_counter() - t_run, 3), **record})
-            if step % cfg.checkpoint_every == 0:
-                last_ckpt, saved_step = checkpoint(step), step
-            while snapshots and (agreed.snapshot if replicas.distributed else
-                                 time.perf_counter() - t_run >= snapshots[0]):
-                data = payload(step)
-                if main:
-                    save_snapshot(project, data, snapshots[0])
-                snapshots.pop(0)
-                agreed = replace(agreed, snapshot=False)
-            if progress is not None:
-                progress(StepReport(step=step, iters=cfg.iters, start_step=start_step, losses=losses,
-                                    lr=optimizer.param_groups[0]["lr"], rays_per_s=rays_per_s,
-                                    val_psnr=None if val is None else val.psnr))
-            if agreed.stop:
-                agreed_stop = True
-            if agreed.budget:
+            books.after_step(step, last)
+            agreed_stop = agreed_stop or last.agreed.stop
+            if last.agreed.budget:
                 budget_hit = True
                 break
-    seconds = time.perf_counter() - t_run
-    if step > start_step and step % cfg.log_every:  # stopped between log steps: report the last step's losses
-        losses = agreed.losses or terms.as_floats()
+    return _finish(t, books, step, last, budget_hit, resume, started, setup_seconds)
+
+
+def _finish(t: _Trainer, books: _Books, step: int, last: _Step | None, budget_hit: bool, resume: bool,
+            started: str, setup_seconds: float) -> FitResult:
+    """After the last step: a checkpoint of it, the final validation (not when interrupted), the refined fits, the
+    project record."""
+    cfg, paths = t.cfg, t.project.paths
+    seconds = books.elapsed()
+    if last is not None and step % cfg.log_every:  # stopped between log steps: report the last step's losses
+        books.losses = last.agreed.losses or last.terms.as_floats()
     interrupted = step < cfg.iters and not budget_hit
     stop_reason = "interrupted" if interrupted else ("time_budget" if budget_hit else "done")
-    if saved_step != step:
-        last_ckpt = checkpoint(step)
-    if validator is not None and not interrupted and (val is None or not cfg.val_every or step % cfg.val_every):
-        val = validator.score(model)
-        assert log is not None
-        log.append({"step": step, "time": round(time.perf_counter() - t_run, 3), "val": _val_record(val)})
-    assert last_ckpt is not None
+    if books.saved_step != step:
+        books.last_ckpt = t.checkpoint(step)
+    val = books.val
+    if t.validator is not None and not interrupted and (val is None or not cfg.val_every or step % cfg.val_every):
+        val = t.validator.score(t.model)
+        assert books.log is not None
+        books.log.append({"step": step, "time": round(books.elapsed(), 3), "val": _val_record(val)})
+    assert books.last_ckpt is not None
     refinement = None
-    if main and model.pose_refine is not None:  # the refined fits as a motion file (fit/refined.py)
+    if t.main and t.model.pose_refine is not None:  # the refined fits as a motion file (fit/refined.py)
         from avatarctl.fit.refined import write_refined_fits
 
-        refinement = write_refined_fits(paths.fit, body, capture.motion, poses, model.pose_refine)
-    summary = {"step": step, "iters": cfg.iters, "start_step": start_step, "interrupted": interrupted,
+        refinement = write_refined_fits(paths.fit, t.body, t.capture.motion, t.poses, t.model.pose_refine)
+    losses, rays_per_s = books.losses, books.rays_per_s
+    summary = {"step": step, "iters": cfg.iters, "start_step": t.start_step, "interrupted": interrupted,
                "stop_reason": stop_reason,
                "seconds": round(seconds, 2), "setup_seconds": round(setup_seconds, 2), "losses": losses,
-               "rays_per_s": round(rays_per_s, 1), "device": str(dev),
+               "rays_per_s": round(rays_per_s, 1), "device": str(t.dev),
                "val_psnr_bbox": None if val is None else val.psnr,
-               "val_pairs": None if val is None else val.to_json()["pairs"], "ranks": world, "ray_shards": shards,
-               "pose_refinement": None if refinement is None else refinement.to_json(), "hull_nodes": hull_note,
+               "val_pairs": None if val is None else val.to_json()["pairs"], "ranks": t.world, "ray_shards": t.shards,
+               "pose_refinement": None if refinement is None else refinement.to_json(), "hull_nodes": t.hull_note,
                **config_summary(cfg)}
-    if main:
-        project.record("fit", {"fit": cfg.to_json(), "device": str(dev), "resume": resume, "ranks": world,
-                               "ray_shards": shards},
-                       [paths.fit_config, paths.fit_log, paths.latest_checkpoint]
-                       + ([refinement.path] if refinement is not None and refinement.path else []), started, summary)
+    if t.main:
+        t.project.record("fit", {"fit": cfg.to_json(), "device": str(t.dev), "resume": resume, "ranks": t.world,
+                                 "ray_shards": t.shards},
+                         [paths.fit_config, paths.fit_log, paths.latest_checkpoint]
+                         + ([refinement.path] if refinement is not None and refinement.path else []), started,
+                         summary)
     return FitResult(step=step, iters=cfg.iters, interrupted=interrupted, stop_reason=stop_reason,
-                     checkpoint=last_ckpt, seconds=seconds,
-                     setup_seconds=setup_seconds, losses=losses, val=val, rays_per_s=rays_per_s, device=str(dev),
-                     config=cfg, refinement=refinement, hull_nodes=hull_note)
+                     checkpoint=books.last_ckpt, seconds=seconds,
+                     setup_seconds=setup_seconds, losses=losses, val=val, rays_per_s=rays_per_s, device=str(t.dev),
+                     config=cfg, refinement=refinement, hull_nodes=t.hull_note)

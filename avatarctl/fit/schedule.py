@@ -25,8 +25,8 @@ def make_optimizer(cfg: FitConfig, params) -> torch.optim.Adam:
 
 def param_groups(cfg: FitConfig, model: torch.nn.Module) -> list[dict]:
     """Adam param groups: the Gaussians' own parameters (`model.field = "gaussians"`) at 3DGS's rates
-    (`model.gaussians.lr_*`), the pose-refinement corrections at `cfg.lr_pose`, everything else at `cfg.lr`. All
-    follow the same decay."""
+    (`model.gaussians.lr_*`), the pose-refinement corrections at `cfg.model.pose_refine.lr`, everything else at
+    `cfg.lr`. All follow the same decay."""
     fields = getattr(model, "fields", None)
     refine = getattr(model, "pose_refine", None)
     pose = list(refine.parameters()) if refine is not None else []
@@ -35,13 +35,13 @@ def param_groups(cfg: FitConfig, model: torch.nn.Module) -> list[dict]:
     rest = [p for p in model.parameters() if id(p) not in special]
     return [{"params": rest}] \
         + [{"params": ps, "lr": getattr(cfg.model.gaussians, name), "name": name} for name, ps in splats.items()] \
-        + ([{"params": pose, "lr": cfg.lr_pose, "name": "pose"}] if pose else [])
+        + ([{"params": pose, "lr": cfg.model.pose_refine.lr, "name": "pose"}] if pose else [])
 
 
 def make_scheduler(cfg: FitConfig, optimizer: torch.optim.Optimizer) -> torch.optim.lr_scheduler.LambdaLR:
     """Multiplies the base lr by factor ** (step / every); call `.step()` once per optimisation step. The
-    pose-refinement group (named "pose" by `param_groups`) is 0 before `cfg.pose_refine_start`."""
-    factor, every, start = cfg.lr_decay_factor, cfg.lr_decay_every, cfg.pose_refine_start
+    pose-refinement group (named "pose" by `param_groups`) is 0 before `cfg.model.pose_refine.start`."""
+    factor, every, start = cfg.lr_decay_factor, cfg.lr_decay_every, cfg.model.pose_refine.start
 
     def decay(step: int) -> float:
         return factor ** (step / every)

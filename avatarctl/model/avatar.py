@@ -27,18 +27,18 @@ import torch
 from torch import nn
 
 from avatarctl.body.base import BodyTemplate
-from avatarctl.model.config import HULL_AUTO, ModelConfig
+from avatarctl.model.config import AUTO, ModelConfig
 from avatarctl.model.cvae import MODES, NodeCVAE
 from avatarctl.model.deformer import (blending_weights, candidate_pairs, farthest_point_sampling,
                                       local_coordinates_centered, node_pose_attention, node_pose_condition,
                                       node_transforms, pose_attention_map, posed_node_centers, ray_sphere_bounds)
-from avatarctl.model.field import (BlockPacking, CanonicalField, CoordinateEncoding, NodeFields, Packing,
+from avatarctl.model.field import (BlockPacking, CanonicalField, NodeFields, Packing,
                                    RadianceHeads, fuse_features, fuse_features_dense)
 from avatarctl.model.occupancy import UNSEEN, cell_index, occupancy_estimate, select_samples, update_occupancy
 from avatarctl.model.losses import (LossTerms, embedding_loss, image_reconstruction_loss, kl_loss,
                                     reconstruction_loss, total_loss, translation_loss)
 from avatarctl.geometry.rays import RayBatch
-from avatarctl.render.volume import composite, march, sample_deltas, uniform_samples
+from avatarctl.render.volume import composite, march, uniform_samples
 
 if TYPE_CHECKING:
     from avatarctl.model.gaussian_field import PosedGaussians
@@ -132,7 +132,7 @@ class SlrfAvatar(nn.Module):
     def __init__(self, cfg: ModelConfig, template: BodyTemplate, num_frames: int, seed: int = 0,
                  hull_nodes: tuple[torch.Tensor, torch.Tensor] | None = None,
                  off_body: tuple[torch.Tensor, float] | None = None):
-        """`hull_nodes` (with `cfg.hull_nodes` = K > 0 or "auto", a deviation: fit/hull_nodes.py): the K off-body
+        """`hull_nodes` (with `cfg.hull.nodes` = K > 0 or "auto", a deviation: fit/hull_nodes.py): the K off-body
         nodes as (canonical positions [K, 3], nearest template vertex [K]); the other N - K nodes are sampled on the
         surface. None: all N on the surface, the paper's placement (for K > 0 or "auto", placeholders that a
         checkpoint's buffers replace when loading). `off_body` (field "gaussians"): the hull survey's off-body cells
@@ -142,13 +142,13 @@ class SlrfAvatar(nn.Module):
         V, J = template.skin_weights.shape
         if cfg.num_nodes > V:
             raise ValueError(f"num_nodes={cfg.num_nodes} exceeds the template's {V} vertices")
-        K = cfg.hull_nodes
+        K = cfg.hull.nodes
         if hull_nodes is not None:
-            if K == HULL_AUTO:  # the fit decided K from the masks
+            if K == AUTO:  # the fit decided K from the masks
                 K = int(hull_nodes[0].shape[0])
             if not 0 < K < cfg.num_nodes or hull_nodes[0].shape != (K, 3) or hull_nodes[1].shape != (K,):
                 raise ValueError(f"hull_nodes must be ([{K}, 3], [{K}]) with 0 < K < num_nodes for "
-                                 f"model.hull_nodes={cfg.hull_nodes!r}, got {tuple(hull_nodes[0].shape)}, "
+                                 f"model.hull.nodes={cfg.hull.nodes!r}, got {tuple(hull_nodes[0].shape)}, "
                                  f"{tuple(hull_nodes[1].shape)}")
         if num_frames < 0 or (cfg.latent == "per_frame" and num_frames < 1):
             raise ValueError(f"num_frames must be >= 0 (>= 1 for latent 'per_frame'), got {num_frames}")
@@ -170,14 +170,14 @@ class SlrfAvatar(nn.Module):
         self.register_buffer("pose_attention", node_pose_attention(  # [N, J] (W . omega_i), Eq. 8
             weights[idx], pose_attention_map(template.parents, cfg.pose_attention_hops)))
         self.pose_refine = None
-        if cfg.pose_refine and num_frames > 0:
+        if cfg.pose_refine.on and num_frames > 0:
             from avatarctl.body.joints import skin_weighted_centroids
             from avatarctl.model.pose_refine import PoseRefinement
 
             from avatarctl.model.pose_refine import subtree_share
 
             self.pose_refine = PoseRefinement(num_frames, template.parents, active=subtree_share(
-                weights, template.parents) >= cfg.pose_refine_min_share)
+                weights, template.parents) >= cfg.pose_refine.min_share)
             # a rough start; the fit replaces it with centres solved from the training poses (set_centres)
             self.pose_refine.set_centres(skin_weighted_centroids(template.vertices.detach().float(), weights))
         if cfg.variant == "slrf":
@@ -196,17 +196,16 @@ class SlrfAvatar(nn.Module):
             # one canonical network of comparable total capacity: twice as wide and two layers deeper than an F_i
             self.canonical = CanonicalField(cfg.pe_coords, 2 * cfg.node_width, cfg.node_depth + 2, cfg.feature_dim)
         if cfg.ray_marched:
-            self.heads = RadianceHeads(cfg.feature_dim, cfg.head_width, cfg.pe_views, cfg.density_scale,
-                                       cfg.density_shift)
-        if cfg.uses_occupancy:  # [N * occ_res^3] per-node occupancy grids (model/occupancy.py), saved with the weights
-            self.register_buffer("occupancy", torch.full((cfg.num_nodes * cfg.occ_res ** 3,), UNSEEN))
+            self.heads = RadianceHeads(cfg.feature_dim, cfg.head_width, cfg.pe_views)
+        if cfg.uses_occupancy:  # [N * res^3] per-node occupancy grids (model/occupancy.py), saved with the weights
+            self.register_buffer("occupancy", torch.full((cfg.num_nodes * cfg.occupancy.res ** 3,), UNSEEN))
             self.register_buffer("occupancy_updates", torch.zeros((), dtype=torch.long))  # training steps seen
 
     def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):
         # checkpoints written before `occupancy_updates` existed: their grids are past any warm-up
         key = prefix + "occupancy_updates"
         if self.cfg.uses_occupancy and prefix + "occupancy" in state_dict and key not in state_dict:
-            state_dict[key] = torch.tensor(self.cfg.occ_warmup, dtype=torch.long)
+            state_dict[key] = torch.tensor(self.cfg.occupancy.warmup, dtype=torch.long)
         super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
 
     # ---- step 1: nodes ------------------------------------------------------------------------------------------
@@ -258,18 +257,6 @@ class SlrfAvatar(nn.Module):
         dev, dt = self.node_rest.device, self.node_rest.dtype
         theta_i = node_pose_condition(cond.pose_features.to(dev, dt), self.pose_attention)  # [T, N, 3J]  Eq. 8
         self.latent.set_latent_mean(theta_i, cond.time.to(dev, dt), cond.frame_ids.to(dev))
-
-    def set_training_step(self, step: int) -> None:
-        """With `cfg.pe_anneal_steps` > 0: the coarse-to-fine level of the MLP fields' gamma(p) for training step
-        `step` (0-based), pe_anneal_start + (pe_coords - pe_anneal_start) * min(1, step / pe_anneal_steps). The fit
-        calls it before every step; the level is saved with the weights, so a render uses the one trained last.
-        A no-op otherwise (and for the grid field, which has no gamma(p))."""
-        cfg = self.cfg
-        field = self.fields if cfg.variant == "slrf" else self.canonical
-        if cfg.pe_anneal_steps <= 0 or not isinstance(field, CoordinateEncoding):
-            return
-        a = cfg.pe_anneal_start + (cfg.pe_coords - cfg.pe_anneal_start) * min(1.0, step / cfg.pe_anneal_steps)
-        field.set_level(a)
 
     def knock_out(self, state: NodeState, delta_n: bool = False, embedding: bool = False) -> NodeState:
         """`state` with Delta n_i and/or e_i set to zero at render time (the paper's render-time knockout of a
@@ -356,7 +343,7 @@ class SlrfAvatar(nn.Module):
         if hit_idx.numel() == 0:
             return RenderOutputs(rgb=rgb.clone(), alpha=alpha, depth=depth, stats=stats)
         frame_pts = rays.frame_slot[hit_idx][:, None].expand(-1, S).reshape(-1)  # [hit * S]
-        if self.cfg.occupancy and self.cfg.sparse:
+        if self.cfg.occupancy.enabled and self.cfg.sparse:
             rgb_h, alpha_h, depth_h = self._march_occupied(rays, hit_idx, near, far, frame_pts, state, bg, jitter,
                                                            generator, stats)
             return RenderOutputs(rgb=rgb.index_copy(0, hit_idx, rgb_h), alpha=alpha.index_copy(0, hit_idx, alpha_h),
@@ -376,24 +363,23 @@ class SlrfAvatar(nn.Module):
                         frame_pts: torch.Tensor, state: NodeState, bg: torch.Tensor, jitter: bool,
                         generator: torch.Generator | None, stats: dict[str, float]):
         """`march` with empty-space skipping (model/occupancy.py): the same samples, but the field runs only at the
-        samples the occupancy grids call live (plus, in training, a random `occ_explore` share of the others);
+        samples the occupancy grids call live (plus, in training, a random `occupancy.explore` share of the others);
         skipped samples have density 0. -> rgb [hit, 3], alpha [hit], depth [hit]."""
-        cfg, S = self.cfg, self.cfg.samples_per_ray
+        occ, S = self.cfg.occupancy, self.cfg.samples_per_ray
         o, d = rays.origins[hit_idx], rays.dirs[hit_idx]
         t = uniform_samples(near[hit_idx], far[hit_idx], S, jitter, generator)  # [hit, S]
         pts = (o[:, None, :] + t[..., None] * d[:, None, :]).reshape(-1, 3)  # [hit * S, 3]
         with torch.no_grad():
             pi, ni, fi, _, centers = self._pairs(pts, frame_pts, state)
             cells = cell_index(self._local(pts, pi, ni, fi, centers, state), ni,
-                               self._node_extent(), cfg.occ_res)
+                               self._node_extent(), occ.res)
             dens, unseen = occupancy_estimate(self.occupancy, cells, pi, pts.shape[0])
-            live = select_samples(dens.reshape(t.shape), unseen.reshape(t.shape), sample_deltas(t),
-                                  cfg.occ_threshold, cfg.occ_stop_eps).reshape(-1)
-            if self.training and int(self.occupancy_updates) < cfg.occ_warmup:
+            live = select_samples(dens.reshape(t.shape), unseen.reshape(t.shape), occ.threshold).reshape(-1)
+            if self.training and int(self.occupancy_updates) < occ.warmup:
                 live = torch.ones_like(live)  # warm-up: evaluate everything while the grids fill
-            elif self.training and cfg.occ_explore > 0:
+            elif self.training and occ.explore > 0:
                 dev = generator.device if generator is not None else pts.device
-                live |= (torch.rand(live.shape[0], generator=generator, device=dev) < cfg.occ_explore).to(pts.device)
+                live |= (torch.rand(live.shape[0], generator=generator, device=dev) < occ.explore).to(pts.device)
             keep = live[pi]  # the live samples' pairs, renumbered: query need not search them again
             candidates = ((torch.cumsum(live, 0) - 1)[pi[keep]], ni[keep])
         idx = live.nonzero(as_tuple=True)[0]
@@ -417,7 +403,7 @@ class SlrfAvatar(nn.Module):
 
         points [P, 3] world, dirs [P, 3] unit viewing directions, point_frame [P] long (frame slot of each point)
         -> rgb [P, 3], sigma [P] (1/metre; exactly 0 where no node is in range), stats. In training with
-        `cfg.occupancy`, the densities found update the occupancy grids (model/occupancy.py). `candidates`
+        `cfg.occupancy.enabled`, the densities found update the occupancy grids (model/occupancy.py). `candidates`
         (point_idx, node_idx) [pairs]: the pairs in range, already found (sparse path only).
         """
         if not self.cfg.ray_marched:
@@ -432,7 +418,7 @@ class SlrfAvatar(nn.Module):
             rgb = points.new_zeros(points.shape[0], 3).index_copy(0, valid,
                                                                   self.heads.color(fv, dirs[valid]).to(points.dtype))
             if occ_pairs is not None and self.training and torch.is_grad_enabled():
-                update_occupancy(self.occupancy, occ_pairs[1], sigma.detach()[occ_pairs[0]], self.cfg.occ_decay)
+                update_occupancy(self.occupancy, occ_pairs[1], sigma.detach()[occ_pairs[0]], self.cfg.occupancy.decay)
                 self.occupancy_updates += 1
         else:
             f, wsum, stats = self._features_dense(points, point_frame, state)
@@ -473,7 +459,8 @@ class SlrfAvatar(nn.Module):
         return rgb / sigma.clamp(min=1e-12)[:, None], sigma
 
     def _local_scale(self) -> float:
-        return 1.0 / self.cfg.sigma if self.cfg.local_coords_in_sigma else 1.0
+        """Local coordinates are in units of sigma (module docstring of model/config.py)."""
+        return 1.0 / self.cfg.sigma
 
     def _node_extent(self) -> float:
         """Half side of a node's support cube in local-coordinate units (grid fields and occupancy grids)."""
@@ -495,7 +482,7 @@ class SlrfAvatar(nn.Module):
 
     def _local(self, points: torch.Tensor, pi: torch.Tensor, ni: torch.Tensor, fi: torch.Tensor,
                centers: torch.Tensor, state: NodeState) -> torch.Tensor:
-        """Eq. 4 local coordinates of each pair [pairs, 3] (in units of sigma with `local_coords_in_sigma`)."""
+        """Eq. 4 local coordinates of each pair [pairs, 3], in units of sigma."""
         with _float32_geometry(points.device):
             A_inv = torch.linalg.inv(state.transforms[..., :3, :3])  # [B, N, 3, 3]
             return local_coordinates_centered(points[pi], A_inv[fi, ni], centers) * self._local_scale()
@@ -504,13 +491,14 @@ class SlrfAvatar(nn.Module):
                          candidates: tuple[torch.Tensor, torch.Tensor] | None = None):
         """Supplement Sec. C.2: evaluate only pairs with w_i > 0, packed per node ([N, max_i S_i, C], or blocks of
         `cfg.pack_block` rows per node, see `ModelConfig.pack_block`).
-        -> f [P, F], wsum [P], stats, and with `cfg.occupancy` (point_idx, cells) of the pairs, else None."""
+        -> f [P, F], wsum [P], stats, and with `cfg.occupancy.enabled` (point_idx, cells) of the pairs, else None."""
         cfg, N, P = self.cfg, self.cfg.num_nodes, points.shape[0]
         pi, ni, fi, w, centers = self._pairs(points, point_frame, state, candidates)
-        local = self._local(points, pi, ni, fi, centers, state) if cfg.variant == "slrf" or cfg.occupancy else None
+        on_nodes = cfg.variant == "slrf" or cfg.occupancy.enabled
+        local = self._local(points, pi, ni, fi, centers, state) if on_nodes else None
         occ_pairs = None
-        if cfg.occupancy:
-            occ_pairs = (pi, cell_index(local, ni, self._node_extent(), cfg.occ_res))
+        if cfg.occupancy.enabled:
+            occ_pairs = (pi, cell_index(local, ni, self._node_extent(), cfg.occupancy.res))
         if cfg.variant == "slrf":
             if cfg.pack_block > 0:
                 bp = BlockPacking.build(ni, N, cfg.pack_block)
@@ -579,15 +567,15 @@ class SlrfAvatar(nn.Module):
 
     def _with_regularisers(self, rec: torch.Tensor, mse: torch.Tensor, state: NodeState) -> LossTerms:
         """Eq. 11: the reconstruction term plus Eq. 13-15 (and the pose-refinement terms when on)."""
-        c = self.cfg
+        c, refine = self.cfg, self.cfg.pose_refine
         zero = rec.new_zeros(())
         kl = kl_loss(state.mu, state.logvar) if state.mu is not None and state.logvar is not None else zero
         # over all training frames, once per step (not per frame of the batch): the same on every rank
-        accel = self.pose_refine.acceleration() if self.pose_refine is not None and c.lambda_pose_accel > 0 else None
+        accel = self.pose_refine.acceleration() if self.pose_refine is not None and refine.lambda_accel > 0 else None
         return total_loss(rec, translation_loss(state.delta_n), embedding_loss(state.embed), kl,
                           c.lambda_rec, c.lambda_trans, c.lambda_ebd, c.lambda_kl, mse=mse,
-                          pose=state.pose_penalty, lambda_pose=c.lambda_pose, pose_accel=accel,
-                          lambda_pose_accel=c.lambda_pose_accel)
+                          pose=state.pose_penalty, lambda_pose=refine.lambda_pose, pose_accel=accel,
+                          lambda_pose_accel=refine.lambda_accel)
 
 
 def _float32_geometry(device: torch.device):

@@ -10,26 +10,25 @@ our choice because the paper's architecture figure (supp. Fig. A) is not availab
   G(f, v) = Linear([f, gamma(v)], head_width) -> ReLU -> Linear(head_width // 2) -> ReLU -> Linear(3) -> sigmoid;
 - per-node cVAE encoder and decoder: two ReLU layers of `cvae_width` channels each.
 
-Presets: "paper" = the defaults; "cpu" = the same model with narrower networks (node 2 x 32 -> 32, heads 64,
-cVAE 32) so a training step with a few hundred rays takes well under a second on 2 CPU cores, and with empty-space
-skipping on (`occupancy`, model/occupancy.py: same images, ~20 % more steps per second, measured in docs/fit.md) and
-hull nodes decided from the masks (`hull_nodes = "auto"`, fit/hull_nodes.py: +0.4 dB on the skirt capture, the
-paper's placement on tight clothing; docs/experiments/hull_auto_2026-11-25) and z of novel poses = the mean posterior
-mean of the training frames (`novel_latent = "train_mean"`, model/cvae.py: +0.08 / +0.15 dB box and +0.3 / +0.4 dB
-body on synth small's novel poses, training frames unchanged; docs/experiments/garment_latent_2026-11-26).
+The class defaults are the paper's (supplement) settings, here and in `FitConfig`; the presets (`cpu`, `micro`)
+are named sets of changes from them, stated once in `avatarctl/fit/presets.py` (`PRESETS`).
+
+The options of one part that only matter when it is used sit in small frozen sub-configs: `hull` (`HullConfig`,
+nodes off the body), `occupancy` (`OccupancyConfig`, empty-space skipping), `pose_refine` (`PoseRefineConfig`,
+per-frame body-pose refinement), `gaussians` (`GaussianConfig`, the Gaussian local fields). Configs written before
+they existed (schema_version 1, flat keys such as `occ_res` or `hull_nodes`) are read through `LEGACY_KEYS`.
 
 Choices beyond the paper text (documented, switchable):
-- `local_coords_in_sigma`: local coordinates p_i (Eq. 4) are divided by sigma before the positional encoding, so
-  the node's support (radius sigma*sqrt(-2 ln eps) = 3.7 sigma) spans ~3.7 units and the highest frequency
-  2^(m-1) = 32 resolves ~1 cm; in metres (False) the same encoding would resolve only ~20 cm inside a node.
+- local coordinates p_i (Eq. 4) are divided by sigma before the positional encoding (not a switch: the knob
+  `local_coords_in_sigma` that could turn it off was set by nothing and went in issue 30), so the node's support
+  (radius sigma*sqrt(-2 ln eps) = 3.7 sigma) spans ~3.7 units and the highest frequency 2^(m-1) = 32 resolves
+  ~1 cm; in metres the same encoding would resolve only ~20 cm inside a node.
 - `pack_block` (speed, not maths): the supplement packs the valid pairs into one N x max_i(S_i) tensor, which is
   mostly padding when S_i varies a lot between nodes (39-59% fill measured on anny). With `pack_block` = b > 0 each
   node's pairs fill ceil(S_i / b) blocks of b rows and every block carries its node's weights (a gather), so
   padding is < b rows per node. Same outputs and gradients; `pack_block = 0` is the supplement's layout.
 - `pose_attention_hops`: the SCANimate-style attention map W (Eq. 8) lets joint k attend to every joint within
   this many hops in the kinematic tree (see `deformer.pose_attention_map`).
-- `pe_anneal_steps` (off in every preset): coarse-to-fine gamma(p) of the MLP fields (model/encoding.py), measured
-  no better than the plain encoding (docs/fit.md).
 - `field = "gaussians"`: structured local Gaussian fields (model/gaussian_field.py), K 3D Gaussians per node,
   rasterized instead of ray-marched; its options live in `GaussianConfig` (`model.gaussians.*`), docs/fit.md.
 """
@@ -39,17 +38,180 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass, fields, replace
 from typing import Any
 
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2  # 2: hull / occupancy / pose refinement as sub-configs (1: flat keys, read via LEGACY_KEYS)
 LATENTS = ("cvae", "deterministic", "per_frame")
 VARIANTS = ("slrf", "lbs_baseline")
 # local fields F_i: the paper's per-node MLPs | per-node 3D Gaussians rasterized instead of ray-marched
 # (model/gaussian_field.py, options in `GaussianConfig`). The per-node feature grids ("grid") were removed in issue 28
 # (beaten by the Gaussians at equal wall time; figures in docs/fit.md, "Tried and removed").
 FIELDS = ("mlp", "gaussians")
-REMOVED_MODEL_KEYS = ("grid_levels", "grid_channels")  # in configs written before issue 28: dropped on reading
 REC_REDUCTIONS = ("sum", "mean")  # Eq. 12 as written (sum over rays) | plain MSE, see model/losses.py
 NOVEL_LATENTS = ("zero", "train_mean")  # z of novel poses: the paper's 0 | the mean of mu over the training frames
-HULL_AUTO = "auto"  # `hull_nodes`: decide from the training masks at fit start (fit/hull_nodes.py)
+AUTO = "auto"  # `hull.nodes` / `pose_refine.enabled`: decided from the capture at fit start
+
+# Switches removed after measuring them (docs/fit.md, "Tried and removed"; code at the commit named there). A saved
+# config may still hold one: it is dropped on reading when it holds the value the code now has built in (None: any
+# value, the key only shaped the initialisation or an option of removed code), else it is a one-line error.
+REMOVED_KEYS: dict[str, Any] = {
+    "grid_levels": None, "grid_channels": None,  # the grid field (issue 28, commit 7a07028)
+    "pe_anneal_steps": 0, "pe_anneal_start": None,  # coarse-to-fine gamma(p) (issue 30, commit 0081142)
+    "occ_stop_eps": 0.0,  # early ray termination from the occupancy grids' densities (issue 30, commit 0081142)
+    "posterior_logvar_init": None,  # initial log-variance of the cVAE posterior (issue 30, commit 0081142)
+    "density_scale": 1.0, "density_shift": 0.0,  # scaled / shifted softplus of the density head (issue 30, 0081142)
+    "local_coords_in_sigma": True,  # p_i in units of sigma: set by nothing, now always (issue 30, commit 0081142)
+}
+
+
+def _check_removed(owner: str, d: dict[str, Any]) -> None:
+    """Drop the keys of `REMOVED_KEYS` from `d` (a config read from JSON), or raise when one holds a value that
+    changed what the avatar computes."""
+    for key, neutral in REMOVED_KEYS.items():
+        if key in d:
+            value = d.pop(key)
+            if neutral is not None and value != neutral:
+                raise ValueError(f"{owner}: {key}={value!r} was removed in issue 30 (docs/fit.md, \"Tried and "
+                                 f"removed\"); this avatar needs avatarctl at commit 0081142, or a new fit")
+
+
+def _need_int(owner: str, name: str, v: Any, minimum: int) -> None:
+    if not (isinstance(v, int) and not isinstance(v, bool) and v >= minimum):
+        raise ValueError(f"{owner}: {name} must be an int >= {minimum}, got {v!r}")
+
+
+class _SubConfig:
+    """Shared by the small frozen sub-configs: JSON with unknown keys rejected, and no truth value (write
+    `cfg.occupancy.enabled`, never `if cfg.occupancy`)."""
+
+    def __bool__(self) -> bool:
+        raise TypeError(f"{type(self).__name__} has no truth value; test its switch field")
+
+    @classmethod
+    def from_json(cls, d: dict[str, Any]):
+        known = {f.name for f in fields(cls)}
+        unknown = sorted(set(d) - known)
+        if unknown:
+            raise ValueError(f"{cls.__name__}: unknown keys {unknown}; known keys are {sorted(known)}")
+        return cls(**d)
+
+
+@dataclass(frozen=True)
+class HullConfig(_SubConfig):
+    """Nodes off the body (a deviation, fit/hull_nodes.py; docs/fit.md "hull nodes"): K of the N nodes placed where
+    the training masks' visual hull keeps showing the subject beyond the body (loose clothing)."""
+
+    nodes: int | str = 0  # K (0: all N on the surface, Sec. 3.1) | "auto": decided from the masks at fit start
+    min_dist: float = 0.14  # hull points farther than this (metres) from every surface node are off-body
+    auto_fraction: float = 0.25  # "auto" says yes: this share of the N nodes goes off the body (32 of 128)
+    auto_min_volume: float = 0.1  # "auto" says yes when the persistent off-body cells hold >= this x body volume
+
+    def __post_init__(self) -> None:
+        def need(ok: bool, msg: str) -> None:
+            if not ok:
+                raise ValueError(f"HullConfig: {msg}")
+
+        need(self.nodes == AUTO or (isinstance(self.nodes, int) and not isinstance(self.nodes, bool)
+                                    and self.nodes >= 0), f"nodes must be an int >= 0 or {AUTO!r}, got "
+                                                          f"{self.nodes!r}")
+        need(self.min_dist > 0, f"min_dist must be > 0 (metres), got {self.min_dist}")
+        need(0 < self.auto_fraction < 1, f"auto_fraction must be in (0, 1), got {self.auto_fraction}")
+        need(self.auto_min_volume >= 0, f"auto_min_volume must be >= 0 (a share of the body volume), got "
+             f"{self.auto_min_volume}")
+
+    @property
+    def on(self) -> bool:
+        """Some nodes may go off the body (K > 0 or "auto")."""
+        return self.nodes != 0
+
+
+@dataclass(frozen=True)
+class OccupancyConfig(_SubConfig):
+    """Empty-space skipping (a deviation when on, model/occupancy.py; docs/fit.md): per-node occupancy grids, only
+    the samples in occupied (or unseen) cells are evaluated."""
+
+    enabled: bool = False
+    res: int = 16  # cells per side of each node's occupancy grid
+    threshold: float = 0.5  # density (1/metre) at or above which a cell is occupied
+    decay: float = 0.95  # EMA-max decay of a cell's density at each observation
+    explore: float = 0.05  # training: share of skipped samples evaluated anyway (so cells can re-open)
+    warmup: int = 256  # training: grid updates (steps) during which every sample is evaluated
+
+    def __post_init__(self) -> None:
+        def need(ok: bool, msg: str) -> None:
+            if not ok:
+                raise ValueError(f"OccupancyConfig: {msg}")
+
+        need(isinstance(self.enabled, bool), f"enabled must be a bool, got {self.enabled!r}")
+        _need_int("OccupancyConfig", "res", self.res, 1)
+        _need_int("OccupancyConfig", "warmup", self.warmup, 0)
+        need(self.threshold >= 0, f"threshold must be >= 0 (density, 1/metre), got {self.threshold}")
+        need(0.0 <= self.decay <= 1.0, f"decay must be in [0, 1], got {self.decay}")
+        need(0.0 <= self.explore <= 1.0, f"explore must be in [0, 1], got {self.explore}")
+
+
+@dataclass(frozen=True)
+class PoseRefineConfig(_SubConfig):
+    """Per-frame body-pose refinement (a deviation when on, model/pose_refine.py; issue 13, docs/fit.md "Pose
+    refinement"): per-training-frame joint rotations / root translation optimised with the avatar."""
+
+    # True | False | "auto": on when the capture's body fits are not ground truth (real captures, synth with
+    # --fit-noise), decided at fit start; the saved config holds the decision
+    enabled: bool | str = False
+    lambda_pose: float = 100.0  # weight of the penalty sum over joints of |delta|^2 + |tau / 0.1 m|^2
+    lambda_accel: float = 2e-3  # temporal smoothness of the refined poses, per (m/s^2)^2 (0: off)
+    min_share: float = 0.04  # refine joints whose subtree carries >= this share of the skinning weight
+    lr: float = 3e-4  # Adam rate of the corrections (1e-3 until 2026-11-25); the networks use FitConfig.lr
+    start: int = 0  # the corrections stay frozen (lr 0) before this step: the avatar takes shape first
+
+    def __post_init__(self) -> None:
+        def need(ok: bool, msg: str) -> None:
+            if not ok:
+                raise ValueError(f"PoseRefineConfig: {msg}")
+
+        need(isinstance(self.enabled, bool) or self.enabled == AUTO,
+             f"enabled must be true, false or {AUTO!r}, got {self.enabled!r}")
+        need(self.lambda_pose >= 0, f"lambda_pose must be >= 0, got {self.lambda_pose}")
+        need(self.lambda_accel >= 0, f"lambda_accel must be >= 0, got {self.lambda_accel}")
+        need(0.0 <= self.min_share < 1.0, f"min_share must be in [0, 1), got {self.min_share}")
+        need(self.lr > 0 and self.lr != float("inf"), f"lr must be > 0, got {self.lr}")
+        _need_int("PoseRefineConfig", "start", self.start, 0)
+
+    @property
+    def on(self) -> bool:
+        """Refinement is on; "auto" must have been decided (`resolved`) before a model is built."""
+        if self.enabled == AUTO:
+            raise ValueError("model.pose_refine.enabled='auto' is decided from the capture at fit start "
+                             "(`PoseRefineConfig.resolved`); pass true or false to build a model directly")
+        return bool(self.enabled)
+
+    def resolved(self, fits_are_ground_truth: bool) -> "PoseRefineConfig":
+        """"auto" decided: on when the body fits are not ground truth; true / false unchanged."""
+        if self.enabled != AUTO:
+            return self
+        return replace(self, enabled=not fits_are_ground_truth)
+
+
+# Flat keys of configs written before the sub-configs (schema_version 1) -> (sub-config, field). `--set` accepts
+# them too, so the commands recorded in docs/ keep working.
+LEGACY_KEYS: dict[str, tuple[str, str]] = {
+    "hull_nodes": ("hull", "nodes"), "hull_min_dist": ("hull", "min_dist"),
+    "hull_auto_fraction": ("hull", "auto_fraction"), "hull_auto_min_volume": ("hull", "auto_min_volume"),
+    "occupancy": ("occupancy", "enabled"), "occ_res": ("occupancy", "res"), "occ_threshold": ("occupancy", "threshold"),
+    "occ_decay": ("occupancy", "decay"), "occ_explore": ("occupancy", "explore"), "occ_warmup": ("occupancy", "warmup"),
+    "pose_refine": ("pose_refine", "enabled"), "lambda_pose": ("pose_refine", "lambda_pose"),
+    "lambda_pose_accel": ("pose_refine", "lambda_accel"), "pose_refine_min_share": ("pose_refine", "min_share"),
+    # FitConfig's, before they moved into model.pose_refine
+    "lr_pose": ("pose_refine", "lr"), "pose_refine_start": ("pose_refine", "start"),
+}
+
+
+def nest_legacy_keys(d: dict[str, Any]) -> dict[str, Any]:
+    """A model config dict with flat legacy keys (`LEGACY_KEYS`) -> the nested form (a new dict)."""
+    d = dict(d)
+    flat = {k: d.pop(k) for k in list(d) if k in LEGACY_KEYS and not isinstance(d[k], dict)}
+    for key, value in flat.items():
+        group, name = LEGACY_KEYS[key]
+        d[group] = {**(d.get(group) or {}), name: value}
+    return d
 
 
 @dataclass(frozen=True)
@@ -106,18 +268,18 @@ class GaussianConfig:
         return cls(**d)
 
 
+_SUB_CONFIGS = {"hull": HullConfig, "occupancy": OccupancyConfig, "pose_refine": PoseRefineConfig,
+                "gaussians": GaussianConfig}
+
+
 @dataclass(frozen=True)
 class ModelConfig:
-    """Hyperparameters of `SlrfAvatar`. Immutable; validated on construction; JSON round-trips."""
+    """Hyperparameters of `SlrfAvatar`. Immutable; validated on construction; JSON round-trips. The defaults are the
+    paper's (the `paper` preset); the other presets are in avatarctl/fit/presets.py (`PRESETS`)."""
 
     # representation (Eq. 1-6)
     num_nodes: int = 128  # N, nodes by farthest point sampling on the canonical surface
-    # K of the N placed off the body from the masks' visual hull (deviation, fit/hull_nodes.py); "auto": decided
-    # from the masks at fit start (hull_auto_fraction N nodes or none)
-    hull_nodes: int | str = 0
-    hull_min_dist: float = 0.14  # hull points farther than this (metres) from every surface node are off-body
-    hull_auto_fraction: float = 0.25  # "auto" says yes: this share of the N nodes goes off the body (32 of 128)
-    hull_auto_min_volume: float = 0.1  # "auto" says yes when the persistent off-body cells hold >= this x body volume
+    hull: HullConfig = HullConfig()  # K of the N nodes off the body (deviation when on, fit/hull_nodes.py)
     sigma: float = 0.05  # Eq. 6 Gaussian width, metres
     eps: float = 0.001  # Eq. 6 truncation; support radius sigma*sqrt(-2 ln eps) = 0.186 m
     embed_dim: int = 32  # dim e_i, dynamic detail embedding
@@ -126,12 +288,6 @@ class ModelConfig:
     pe_coords: int = 6
     pe_views: int = 4
     pe_time: int = 12
-    local_coords_in_sigma: bool = True  # p_i / sigma before gamma (our choice, see module docstring)
-    # coarse-to-fine gamma(p) (deviation when > 0, see model/encoding.py `band_weights`): the coordinate encoding of
-    # the MLP fields opens from `pe_anneal_start` frequency bands to all `pe_coords` over the first `pe_anneal_steps`
-    # training steps (0: all bands from the start, the paper)
-    pe_anneal_steps: int = 0
-    pe_anneal_start: float = 3.0
     # networks (our choice: the paper's architecture figure is unavailable)
     node_width: int = 128  # F_i hidden channels
     node_depth: int = 3  # F_i hidden ReLU layers
@@ -141,30 +297,14 @@ class ModelConfig:
     # local-field backend (deviation when "gaussians", see model/gaussian_field.py and docs/fit.md)
     field: str = "mlp"  # "mlp": the paper's F_i MLPs | "gaussians": per-node 3D Gaussians, see `gaussians`
     gaussians: GaussianConfig = GaussianConfig()  # options of field "gaussians" (model/gaussian_field.py)
-    # density head H (deviation when not 1 / 0, see model/field.py RadianceHeads)
-    density_scale: float = 1.0  # sigma = density_scale * softplus(x + density_shift), 1/metre
-    density_shift: float = 0.0
     # rendering
     samples_per_ray: int = 64  # uniform samples between the ray's entry/exit of the node spheres
-    # empty-space skipping (deviation when on, see model/occupancy.py and docs/fit.md)
-    occupancy: bool = False  # evaluate only samples in occupied cells of the per-node occupancy grids
-    occ_res: int = 16  # cells per side of each node's occupancy grid
-    occ_threshold: float = 0.5  # density (1/metre) at or above which a cell is occupied
-    occ_decay: float = 0.95  # EMA-max decay of a cell's density at each observation
-    occ_explore: float = 0.05  # training: share of skipped samples evaluated anyway (so cells can re-open)
-    occ_warmup: int = 256  # training: grid updates (steps) during which every sample is evaluated
-    occ_stop_eps: float = 0.0  # skip samples whose transmittance estimated from the cached densities is below this
-    # cVAE posterior (deviation when != 0): initial log-variance of q(z | t, theta) (issue 18, hypothesis 1)
-    posterior_logvar_init: float = 0.0  # 0: the encoder's plain init (sigma ~ 1); e.g. -6 starts sigma ~ 0.05
+    occupancy: OccupancyConfig = OccupancyConfig()  # empty-space skipping (deviation when on, model/occupancy.py)
     # z of novel poses (deviation when "train_mean", see model/cvae.py): "zero" (paper Sec. 4.1) | "train_mean": the
     # mean over the training frames of the posterior means mu_i, per node (the decoder is trained on z ~ N(mu, sigma)
     # and never sees z = 0; issue 18, docs/experiments/garment_latent_2026-11-26)
     novel_latent: str = "zero"
-    # per-frame body-pose refinement (deviation when on, see model/pose_refine.py; issue 13)
-    pose_refine: bool = False  # optimise per-training-frame joint rotations / root translation with the avatar
-    lambda_pose: float = 100.0  # weight of the refinement penalty (sum over joints of |delta|^2 + |tau / 0.1 m|^2)
-    pose_refine_min_share: float = 0.04  # refine joints whose subtree carries >= this share of the skinning weight
-    lambda_pose_accel: float = 2e-3  # temporal smoothness of the refined poses, per (m/s^2)^2 (0: off; pose_refine.py)
+    pose_refine: PoseRefineConfig = PoseRefineConfig()  # per-frame body-pose refinement (deviation when on)
     # pose condition (Eq. 8)
     pose_attention_hops: int = 2
     # ablations
@@ -187,37 +327,32 @@ class ModelConfig:
             if not ok:
                 raise ValueError(f"ModelConfig: {msg}")
 
+        for name, cls in _SUB_CONFIGS.items():  # JSON: a dict of the sub-config's fields
+            if isinstance(getattr(self, name), dict):
+                object.__setattr__(self, name, cls.from_json(getattr(self, name)))
+            need(isinstance(getattr(self, name), cls), f"{name} must be a {cls.__name__}")
         need(self.field in FIELDS, f"field must be one of {FIELDS}, got {self.field!r}")
-        if isinstance(self.gaussians, dict):  # JSON
-            object.__setattr__(self, "gaussians", GaussianConfig.from_json(self.gaussians))
-        need(isinstance(self.gaussians, GaussianConfig), "gaussians must be a GaussianConfig")
         need(self.field != "gaussians" or self.variant == "slrf", "field 'gaussians' needs the slrf variant (the "
              "pose-only baseline is the ray-marched canonical MLP)")
 
         for name in ("num_nodes", "embed_dim", "latent_dim", "node_width", "node_depth", "feature_dim",
-                     "head_width", "cvae_width", "samples_per_ray", "occ_res"):
+                     "head_width", "cvae_width", "samples_per_ray"):
             v = getattr(self, name)
             need(isinstance(v, int) and not isinstance(v, bool) and v > 0, f"{name} must be a positive int, got {v!r}")
-        for name in ("pe_coords", "pe_views", "pe_time", "pose_attention_hops", "occ_warmup", "pe_anneal_steps"):
+        for name in ("pe_coords", "pe_views", "pe_time", "pose_attention_hops"):
             v = getattr(self, name)
             need(isinstance(v, int) and not isinstance(v, bool) and v >= 0, f"{name} must be an int >= 0, got {v!r}")
         need(isinstance(self.pack_block, int) and self.pack_block >= 0, f"pack_block must be an int >= 0, got "
              f"{self.pack_block!r}")
-        need(self.hull_nodes == HULL_AUTO or (isinstance(self.hull_nodes, int) and not isinstance(self.hull_nodes, bool)
-                                              and 0 <= self.hull_nodes < self.num_nodes),
-             f"hull_nodes must be an int in [0, num_nodes={self.num_nodes}) or {HULL_AUTO!r} (decide from the "
-             f"masks), got {self.hull_nodes!r}")
-        need(self.hull_min_dist > 0, f"hull_min_dist must be > 0 (metres), got {self.hull_min_dist}")
-        need(0 < self.hull_auto_fraction < 1, f"hull_auto_fraction must be in (0, 1), got {self.hull_auto_fraction}")
-        need(self.hull_nodes != HULL_AUTO or self.hull_auto_nodes < self.num_nodes,
-             f"hull_nodes='auto' would place {self.hull_auto_nodes} of num_nodes={self.num_nodes} nodes off the "
-             f"body; use more nodes or a smaller hull_auto_fraction")
-        need(self.hull_auto_min_volume >= 0, f"hull_auto_min_volume must be >= 0 (a share of the body volume), got "
-             f"{self.hull_auto_min_volume}")
-        need(self.hull_nodes in (0, HULL_AUTO) or self.variant == "slrf", "hull_nodes needs the slrf variant (the pose-only "
+        hull = self.hull
+        need(hull.nodes == AUTO or hull.nodes < self.num_nodes,
+             f"hull.nodes must be an int in [0, num_nodes={self.num_nodes}) or {AUTO!r} (decide from the "
+             f"masks), got {hull.nodes!r}")
+        need(hull.nodes != AUTO or self.hull_auto_nodes < self.num_nodes,
+             f"hull.nodes='auto' would place {self.hull_auto_nodes} of num_nodes={self.num_nodes} nodes off the "
+             f"body; use more nodes or a smaller hull.auto_fraction")
+        need(hull.nodes in (0, AUTO) or self.variant == "slrf", "hull.nodes needs the slrf variant (the pose-only "
              "baseline has no nodes)")
-        need(0.0 <= self.pe_anneal_start <= self.pe_coords, f"pe_anneal_start must be in [0, pe_coords="
-             f"{self.pe_coords}] (frequency bands open at the first step), got {self.pe_anneal_start}")
         need(self.samples_per_ray >= 2, f"samples_per_ray must be >= 2, got {self.samples_per_ray}")
         need(self.head_width >= 2, f"head_width must be >= 2, got {self.head_width}")
         need(self.sigma > 0, f"sigma must be > 0 (metres), got {self.sigma}")
@@ -226,16 +361,9 @@ class ModelConfig:
         need(self.novel_latent in NOVEL_LATENTS, f"novel_latent must be one of {NOVEL_LATENTS}, got "
              f"{self.novel_latent!r}")
         need(self.variant in VARIANTS, f"variant must be one of {VARIANTS}, got {self.variant!r}")
-        need(self.density_scale > 0, f"density_scale must be > 0, got {self.density_scale}")
-        need(0.0 <= self.pose_refine_min_share < 1.0,
-             f"pose_refine_min_share must be in [0, 1), got {self.pose_refine_min_share}")
-        need(self.occ_threshold >= 0, f"occ_threshold must be >= 0 (density, 1/metre), got {self.occ_threshold}")
-        need(0.0 <= self.occ_decay <= 1.0, f"occ_decay must be in [0, 1], got {self.occ_decay}")
-        need(0.0 <= self.occ_explore <= 1.0, f"occ_explore must be in [0, 1], got {self.occ_explore}")
-        need(0.0 <= self.occ_stop_eps < 1.0, f"occ_stop_eps must be in [0, 1), got {self.occ_stop_eps}")
-        for name in ("use_delta_n", "use_embedding", "sparse", "local_coords_in_sigma", "occupancy", "pose_refine"):
+        for name in ("use_delta_n", "use_embedding", "sparse"):
             need(isinstance(getattr(self, name), bool), f"{name} must be a bool, got {getattr(self, name)!r}")
-        for name in ("lambda_rec", "lambda_trans", "lambda_ebd", "lambda_kl", "lambda_pose", "lambda_pose_accel"):
+        for name in ("lambda_rec", "lambda_trans", "lambda_ebd", "lambda_kl"):
             need(getattr(self, name) >= 0, f"{name} must be >= 0, got {getattr(self, name)}")
         need(self.rec_reduction in REC_REDUCTIONS,
              f"rec_reduction must be one of {REC_REDUCTIONS}, got {self.rec_reduction!r}")
@@ -244,8 +372,8 @@ class ModelConfig:
 
     @property
     def hull_auto_nodes(self) -> int:
-        """K when `hull_nodes = "auto"` decides for hull nodes: round(hull_auto_fraction N), at least 1."""
-        return max(1, round(self.hull_auto_fraction * self.num_nodes))
+        """K when `hull.nodes = "auto"` decides for hull nodes: round(hull.auto_fraction N), at least 1."""
+        return max(1, round(self.hull.auto_fraction * self.num_nodes))
 
     @property
     def support_radius(self) -> float:
@@ -256,29 +384,32 @@ class ModelConfig:
 
     @property
     def ray_marched(self) -> bool:
-        """The field is ray-marched (mlp, grid), not rasterized (gaussians): the options of ray marching (samples,
+        """The field is ray-marched (mlp), not rasterized (gaussians): the options of ray marching (samples,
         occupancy grids, packing) apply."""
         return self.field != "gaussians"
 
     @property
     def uses_occupancy(self) -> bool:
-        return self.occupancy and self.ray_marched
+        return self.occupancy.enabled and self.ray_marched
 
     def to_json(self) -> dict[str, Any]:
         return {"schema_version": SCHEMA_VERSION, **asdict(self)}
 
     @classmethod
     def from_json(cls, d: dict[str, Any]) -> "ModelConfig":
-        """Inverse of `to_json`. Unknown keys are an error (a typo never silently falls back to a default)."""
+        """Inverse of `to_json`. Unknown keys are an error (a typo never silently falls back to a default). Reads
+        schema_version 1 too: its flat keys are nested (`LEGACY_KEYS`), its removed switches dropped
+        (`REMOVED_KEYS`)."""
         d = dict(d)
         version = d.pop("schema_version", SCHEMA_VERSION)
-        if version != SCHEMA_VERSION:
+        if version not in (1, SCHEMA_VERSION):
             raise ValueError(f"ModelConfig: schema_version {version} is not supported (expected {SCHEMA_VERSION})")
         if d.get("field") == "grid":
             raise ValueError("ModelConfig: field 'grid' (per-node feature grids) was removed in issue 28; this avatar "
                              "needs avatarctl before that change (git commit e4ec5be), or a new fit")
-        for key in REMOVED_MODEL_KEYS:
-            d.pop(key, None)
+        if version == 1:
+            _check_removed("ModelConfig", d)
+            d = nest_legacy_keys(d)
         known = {f.name for f in fields(cls)}
         unknown = sorted(set(d) - known)
         if unknown:
@@ -287,20 +418,10 @@ class ModelConfig:
             d["rec_reduction"] = "mean"
         return cls(**d)
 
-    @classmethod
-    def preset(cls, name: str) -> "ModelConfig":
-        """"paper": the defaults. "cpu": narrower networks, empty-space skipping, hull nodes where the masks show
-        loose clothing (`hull_nodes = "auto"`, fit/hull_nodes.py) and the training frames' mean latent for novel poses
-        (`novel_latent = "train_mean"`, model/cvae.py; see module docstring). The Gaussian local fields
-        (`--set model.field=gaussians`) are not its default: better at equal wall time on synth small, but the demo's
-        novel-view PSNR and its exported mesh were lower with them (docs/fit.md)."""
-        if name == "paper":
-            return cls()
-        if name == "cpu":
-            return cls(node_width=32, node_depth=2, feature_dim=32, head_width=64, cvae_width=32, occupancy=True,
-                       hull_nodes=HULL_AUTO, novel_latent="train_mean")
-        raise ValueError(f"ModelConfig: unknown preset {name!r}; use 'paper' or 'cpu'")
-
     def with_(self, **changes: Any) -> "ModelConfig":
-        """A validated copy with some fields changed (e.g. `cfg.with_(sparse=False)`)."""
+        """A validated copy with some fields changed (e.g. `cfg.with_(sparse=False)`). A sub-config may be given as
+        a dict of the fields to change in it: `cfg.with_(occupancy={"enabled": False})`."""
+        for name, value in list(changes.items()):
+            if name in _SUB_CONFIGS and isinstance(value, dict):
+                changes[name] = replace(getattr(self, name), **value)
         return replace(self, **changes)

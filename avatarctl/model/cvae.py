@@ -54,9 +54,6 @@ class NodeCVAE(nn.Module):
         else:
             self.encoder = None
             dec_in = cond
-        if cfg.posterior_logvar_init != 0.0 and self.encoder is not None:
-            with torch.no_grad():  # start the posterior narrow: per-frame mu is not drowned by sigma ~ 1 noise
-                self.encoder.layers[-1].bias[..., Z:] += cfg.posterior_logvar_init
         if cfg.novel_latent == "train_mean" and self.encoder is not None:
             self.register_buffer("latent_mean", torch.zeros(N, Z))  # [N, Z] mean of mu_i over the training frames
         # small initial outputs: nodes start on the body (Delta n ~ 1e-3 m) with near-zero embeddings

@@ -13,7 +13,7 @@ import torch
 from torch import nn
 
 from avatarctl.model.batched_mlp import BatchedLinear, BatchedMLP
-from avatarctl.model.encoding import band_weights, encoded_dim, positional_encoding
+from avatarctl.model.encoding import encoded_dim, positional_encoding
 
 
 # ---- Eq. 5 -------------------------------------------------------------------------------------------------------
@@ -114,29 +114,24 @@ class BlockPacking:
 
 # ---- networks ----------------------------------------------------------------------------------------------------
 class CoordinateEncoding(nn.Module):
-    """gamma(p) of the MLP fields' input coordinates (m = pe_coords), with the coarse-to-fine level `pe_level`
-    (a buffer, saved with the weights: `ModelConfig.pe_anneal_steps`, model/encoding.py `band_weights`). At the
-    full level m, the default and what a checkpoint without the buffer loads with, it is exactly gamma(p). The level
-    is mirrored in a Python float so that a forward pass never reads the buffer back from the device."""
+    """gamma(p) of the MLP fields' input coordinates (m = pe_coords)."""
 
     def __init__(self, pe_coords: int):
         super().__init__()
         self.pe_coords = pe_coords
-        self.register_buffer("pe_level", torch.tensor(float(pe_coords)))
-        self._level = float(pe_coords)
-
-    def set_level(self, level: float) -> None:
-        self.pe_level.fill_(level)
-        self._level = float(level)
 
     def encode(self, coords: torch.Tensor) -> torch.Tensor:
-        weights = None if self._level >= self.pe_coords else band_weights(self.pe_coords, self._level)
-        return positional_encoding(coords, self.pe_coords, weights)
+        return positional_encoding(coords, self.pe_coords)
 
     def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):
-        level = state_dict.setdefault(prefix + "pe_level", torch.tensor(float(self.pe_coords)))  # older checkpoints
+        # checkpoints written before issue 30 carry the coarse-to-fine level of gamma(p) (removed, docs/fit.md "Tried
+        # and removed"); a fully open level is the plain encoding
+        level = state_dict.pop(prefix + "pe_level", None)
+        if level is not None and float(level) < self.pe_coords:
+            raise ValueError(f"this checkpoint's gamma(p) is not fully open ({float(level):g} of {self.pe_coords} "
+                             f"bands): coarse-to-fine encoding was removed in issue 30; use avatarctl at commit "
+                             f"0081142")
         super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
-        self._level = float(level)
 
 
 class NodeFields(CoordinateEncoding):
@@ -179,30 +174,22 @@ class CanonicalField(CoordinateEncoding):
 class RadianceHeads(nn.Module):
     """Eq. 7: Density(p) = H(f), Colour(p) = G(f, v).
 
-    H: Linear(F, head_width) -> ReLU -> Linear(1) -> softplus (1/metre), optionally shifted and scaled (a named
-    deviation, `ModelConfig.density_scale`: Adam moves a pre-activation by ~lr per step, so reaching an opaque
-    surface's 100-1000 /m through a plain softplus takes thousands of steps).
+    H: Linear(F, head_width) -> ReLU -> Linear(1) -> softplus (1/metre; the paper does not name the activation: our
+    choice. A scaled / shifted softplus was tried and removed, docs/fit.md "Tried and removed").
     G: Linear([f, gamma(v)], head_width) -> ReLU -> Linear(head_width // 2) -> ReLU -> Linear(3) -> sigmoid.
     v is the unit viewing direction in world space (m = pe_views).
     """
 
-    def __init__(self, feature_dim: int, width: int, pe_views: int, density_scale: float = 1.0,
-                 density_shift: float = 0.0):
+    def __init__(self, feature_dim: int, width: int, pe_views: int):
         super().__init__()
         self.pe_views = pe_views
-        self.density_scale, self.density_shift = float(density_scale), float(density_shift)
         self.density_net = nn.Sequential(nn.Linear(feature_dim, width), nn.ReLU(), nn.Linear(width, 1))
         self.color_net = nn.Sequential(nn.Linear(feature_dim + encoded_dim(3, pe_views), width), nn.ReLU(),
                                        nn.Linear(width, width // 2), nn.ReLU(), nn.Linear(width // 2, 3))
 
     def density(self, f: torch.Tensor) -> torch.Tensor:
-        """H(f): [points, F] -> [points] >= 0 (1/metre): density_scale * softplus(net(f) + density_shift); the
-        paper's plain softplus is scale 1, shift 0 (`ModelConfig.density_scale`)."""
-        x = self.density_net(f)[..., 0]
-        if self.density_shift:
-            x = x + self.density_shift
-        out = nn.functional.softplus(x)
-        return out * self.density_scale if self.density_scale != 1.0 else out
+        """H(f): [points, F] -> [points] >= 0 (1/metre): softplus(net(f))."""
+        return nn.functional.softplus(self.density_net(f)[..., 0])
 
     def color(self, f: torch.Tensor, view_dirs: torch.Tensor) -> torch.Tensor:
         """G(f, v): [points, F], [points, 3] -> [points, 3] in (0, 1)."""

@@ -1,14 +1,12 @@
 """Empty-space skipping with a learned occupancy grid per node, in node-local coordinates (a named deviation,
-docs/fit.md; `ModelConfig.occupancy`).
+docs/fit.md; `ModelConfig.occupancy`, an `OccupancyConfig`).
 
 Most of the 64 samples of a ray through the union of node spheres land where the density is ~0 (air between the
 limbs, in front of and behind the body). Each node i keeps a coarse grid O_i [res^3] over its support cube in
 node-local coordinates (Eq. 4), so it moves and deforms with the node (pose, Delta n) like the field itself:
 
 - a sample is *live* when any node in range (Eq. 6 weight > 0) has its cell marked occupied: O_i[cell] >= threshold
-  (density, 1/metre) or O_i[cell] < 0 (never observed: occupied until seen); with `stop_eps` > 0, a sample is
-  also skipped when the transmittance estimated from the cached densities in front of it is below `stop_eps`
-  (early ray termination, for training and rendering alike);
+  (density, 1/metre) or O_i[cell] < 0 (never observed: occupied until seen);
 - only live samples (and, in training, a random `explore` share of the others, so emptied cells can come back)
   are evaluated; the others get density 0;
 - every evaluated sample updates the cells of all its pairs: O_i[cell] = max(decay * O_i[cell], density)
@@ -49,20 +47,11 @@ def occupancy_estimate(occ: torch.Tensor, cells: torch.Tensor, point_idx: torch.
     return density, unseen
 
 
-def select_samples(density: torch.Tensor, unseen: torch.Tensor, deltas: torch.Tensor, threshold: float,
-                   stop_eps: float) -> torch.Tensor:
-    """Which samples to evaluate. density, unseen, deltas [rays, samples] -> live [rays, samples] bool.
-
-    A sample is live when its cached density is >= `threshold` or one of its cells is unseen; with `stop_eps` > 0
-    also only while the transmittance estimated from the cached densities, exp(-sum_{l<k} density_l delta_l), is
-    above `stop_eps` (samples behind an opaque surface are skipped: early ray termination from the cache).
-    """
-    live = (density >= threshold) | unseen
-    if stop_eps > 0:
-        tau = density * deltas
-        trans = torch.exp(-(torch.cumsum(tau, dim=-1) - tau))
-        live &= trans > stop_eps
-    return live
+def select_samples(density: torch.Tensor, unseen: torch.Tensor, threshold: float) -> torch.Tensor:
+    """Which samples to evaluate. density, unseen [rays, samples] -> live [rays, samples] bool: the cached density
+    is >= `threshold` or one of the sample's cells is unseen. (Early ray termination from the cached densities was
+    tried and removed, docs/fit.md "Tried and removed".)"""
+    return (density >= threshold) | unseen
 
 
 def update_occupancy(occ: torch.Tensor, cells: torch.Tensor, density: torch.Tensor, decay: float) -> None:

@@ -13,18 +13,18 @@ so rotating a joint moves everything below it, like a change of that joint's ang
 radians) and tau [T, 3] (metres) start at zero for each of the T training frames and are pulled towards zero by
 L_pose = lambda_pose * (sum_j |delta_j|^2 + |tau / 0.1 m|^2), averaged over the batch's frames. Frames the avatar
 was not trained on (frame id -1) are left as they are. Only joints whose subtree (the joint and its descendants)
-carries at least `ModelConfig.pose_refine_min_share` of the template's skinning weight are refined (anny's fingers,
+carries at least `model.pose_refine.min_share` of the template's skinning weight are refined (anny's fingers,
 toes and face bones are too small in the images to correct and only drift); the others keep delta = 0. The
 corrections live in the model's state, so `render` / `eval` of training frames use the refined poses.
 
-Temporal smoothness (`ModelConfig.lambda_pose_accel` > 0): fits from per-frame estimates jitter from frame to frame,
+Temporal smoothness (`model.pose_refine.lambda_accel` > 0): fits from per-frame estimates jitter from frame to frame,
 and the prior above pulls each frame towards its own jittered fit. With the unrefined M_j of every training frame and
 the frames' times (`set_sequence`), the acceleration of the refined joint centres x'_j = M'_j c_j over each triple
 of training frames equally spaced in time (dt seconds apart),
 
     L_accel = mean over triples (t-1, t, t+1) of sum_j |x'_j(t-1) - 2 x'_j(t) + x'_j(t+1)|^2 / dt^4   ((m/s^2)^2)
 
-is added once per step with weight lambda_pose_accel, so every frame's correction gets a gradient every step. In
+is added once per step with weight lambda_accel, so every frame's correction gets a gradient every step. In
 physical units, a true motion costs the same at any frame rate while jitter of a given size costs more the denser the
 frames: at 6 frames per second the term is weak, as it should be (it cannot tell jitter from motion there). The images
 decide where the motion really is fast; a triple across a gap in the training frames is not penalised.

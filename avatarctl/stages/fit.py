@@ -2,7 +2,8 @@
 resumed), then train with `avatarctl.fit.loop.fit` and report each step as a `ProgressReport` (`avatarctl.progress`).
 
 Resolution: a fresh fit takes `resolve_fit_config(preset, ablation, iters, seed, overrides)`; a resumed fit keeps
-the checkpoint's config and may only change `iters`.
+the checkpoint's config and may only change `iters`. Defaults that depend on the capture ("auto" in the config) are
+decided by the loop at fit start (`fit.loop.decide_auto`) and saved decided.
 
 Ranks (`avatarctl.dist`): `nproc > 1` spawns that many ranks on this machine (`dist.launch`); a process started
 by torchrun (WORLD_SIZE in the environment) joins its group. Either way the loop trains data-parallel over ray
@@ -35,7 +36,7 @@ _STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
 class FitRequest:
     """What `avatarctl fit` was asked: the options that build (or keep) the `FitConfig`, and how to run."""
 
-    preset: str | None = None  # FitConfig preset; None = "cpu" (fresh fits only)
+    preset: str | None = None  # FitConfig preset; None = `fit.config.DEFAULT_PRESET` (fresh fits only)
     iters: int | None = None  # total steps; None = the preset's (or the checkpoint's)
     seed: int | None = None
     overrides: tuple[str, ...] = ()  # `--set key=value` (the CLI's strings)
@@ -65,16 +66,14 @@ class FitRequest:
 
 def fit_config(project: Project, cfg: FitRequest) -> "FitConfig | None":
     """The config to train with; None = the checkpoint's unchanged (resume without --iters)."""
-    from avatarctl.fit.config import FitConfig, resolve_fit_config
+    from avatarctl.fit.config import DEFAULT_PRESET, FitConfig, resolve_fit_config
 
     if cfg.resume and cfg.fresh:
         raise InputError("--resume and --fresh contradict each other", fix="pass one of them")
     if not cfg.resume:
-        fit_cfg = resolve_fit_config(cfg.preset or "cpu", ablation=cfg.ablation, iters=cfg.iters, seed=cfg.seed,
-                                     overrides=list(cfg.overrides))
-        if cfg.settings:
-            fit_cfg = replace(fit_cfg, **cfg.settings)
-        return _default_pose_refine(project, fit_cfg, cfg)
+        fit_cfg = resolve_fit_config(cfg.preset or DEFAULT_PRESET, ablation=cfg.ablation, iters=cfg.iters,
+                                     seed=cfg.seed, overrides=list(cfg.overrides))
+        return replace(fit_cfg, **cfg.settings) if cfg.settings else fit_cfg
     given = [n for n, v in (("--preset", cfg.preset), ("--seed", cfg.seed), ("--ablation", cfg.ablation))
              if v is not None]
     if cfg.overrides or cfg.settings:
@@ -88,19 +87,6 @@ def fit_config(project: Project, cfg: FitRequest) -> "FitConfig | None":
 
     saved = FitConfig.from_json(read_checkpoint(project.paths.latest_checkpoint)["fit_config"])
     return replace(saved, iters=cfg.iters)
-
-
-def _default_pose_refine(project: Project, fit_cfg: "FitConfig", cfg: FitRequest) -> "FitConfig":
-    """Pose refinement (`model.pose_refine`, model/pose_refine.py) is on by default for captures whose body fits are
-    not ground truth (real captures, synth with --fit-noise), except in the paper preset; `--set
-    model.pose_refine=...` decides explicitly."""
-    from avatarctl.io.gt_geometry import fits_are_ground_truth
-
-    explicit = any(o.split("=", 1)[0].strip() == "model.pose_refine" for o in cfg.overrides)
-    if explicit or (cfg.preset or "cpu") == "paper":
-        return fit_cfg
-    on = not fits_are_ground_truth(project.manifest.source.path)
-    return replace(fit_cfg, model=fit_cfg.model.with_(pose_refine=on)) if on != fit_cfg.model.pose_refine else fit_cfg
 
 
 @dataclass(frozen=True)
@@ -128,6 +114,13 @@ def prepare(project_dir: str | Path, cfg: FitRequest) -> FitPlan:
         check_shards(cfg.shards or cfg.nproc, cfg.nproc, plan.config.rays_per_batch, plan.config.images_per_batch,
                      len(split.train_frames) * len(split.train_views))
     return plan
+
+
+def preset_help() -> str:
+    """`--preset`'s help, from the preset table (`fit.config.PRESETS`)."""
+    from avatarctl.fit.presets import preset_help as text  # plain data: no torch at start-up
+
+    return text()
 
 
 def is_main_rank() -> bool:
