@@ -259,3 +259,52 @@ def test_ingest_one_synthetic_phone_video_as_a_user_would(tmp_path):
             for f in est.frame_index]
     assert np.mean(ious) > 0.88, np.mean(ious)
     shutil.rmtree(proj)
+
+
+def test_smpl_goes_through_the_same_monocular_fit(tmp_path):
+    """`estimate_monocular` with an SMPL model file (random arrays, T-pose rest joints: tests/fixtures/smpl.py):
+    the same energy, no joint limits; exact 2D keypoints of a known pose -> the pose back."""
+    import torch
+
+    from avatarctl.body import rigs
+    from avatarctl.body.lbs import axis_angle_to_matrix
+    from avatarctl.body.registry import load_body_model
+    from avatarctl.body.smpl_keypoints import FIT_JOINTS, SmplKeypoints
+    from avatarctl.geometry.align import aligned_errors
+    from avatarctl.geometry.cameras import Camera
+    from avatarctl.ingest.estimate import Detections, estimate_monocular
+    from avatarctl.ingest.keypoints import KEYPOINT_NAMES
+    from fixtures.smpl import write_random_smpl_npz
+
+    rest = np.array([rigs.GENERIC_T_POSE[n] for n in rigs.SMPL_NAMES]) * 1.05
+    rest[:, 1] += 0.25
+    body = load_body_model("smpl", write_random_smpl_npz(tmp_path / "SMPL_NEUTRAL.npz", "smpl", seed=3,
+                                                         rest_joints=rest))
+    kp = SmplKeypoints(body, KEYPOINT_NAMES)
+    frames = 4
+    rot = 0.1 * torch.randn(frames, len(FIT_JOINTS), 3, generator=torch.Generator().manual_seed(0),
+                            dtype=torch.float64)
+    for n in ("left_wrist", "right_wrist", "left_collar", "right_collar", "left_foot", "right_foot"):
+        rot[:, FIT_JOINTS.index(n)] = 0.0
+    R = axis_angle_to_matrix(torch.tensor([[np.pi, 0.0, 0.0]] * frames, dtype=torch.float64))  # y up -> y down
+    t = torch.tensor([[0.0, 0.1, 3.0]] * frames, dtype=torch.float64)
+    with torch.no_grad():
+        K, _ = kp.keypoints(rot, R, t, torch.zeros(kp.num_shape, dtype=torch.float64))
+    cam = Camera(name="cam00", K=np.array([[400.0, 0, 143.5], [0, 400.0, 255.5], [0, 0, 1]]), R=np.eye(3),
+                 T=np.zeros(3), width=288, height=512)
+    uv = cam.project(K.numpy().reshape(-1, 3)).reshape(frames, -1, 2)
+    kpts = np.full((frames, 1, len(KEYPOINT_NAMES), 2), np.nan)
+    conf = np.zeros((frames, 1, len(KEYPOINT_NAMES)))
+    for j, n in enumerate(kp.names):
+        kpts[:, 0, KEYPOINT_NAMES.index(n)] = uv[:, j]
+        conf[:, 0, KEYPOINT_NAMES.index(n)] = 1.0
+    det = Detections(cams=["cam00"], frames=list(range(frames)), names=KEYPOINT_NAMES, keypoints=kpts,
+                     confidence=conf)
+    est = estimate_monocular(det, cam, body, 150, 30.0, np.ones(frames, bool), height_m=None,
+                             silhouette_weight=0.0)
+    assert est.motion.body_model == "smpl" and est.kept == list(range(frames)) and est.report.monocular
+    assert est.report.mean_reprojection_px < 3.0, est.report.mean_reprojection_px
+    with torch.no_grad():
+        K_fit = body.joints(est.motion).double().numpy()  # SMPL's joints of the fitted motion
+        K_true = body.joints(kp.to_motion(rot, R, t, torch.zeros(kp.num_shape, dtype=torch.float64))).double().numpy()
+    assert aligned_errors(K_fit[:, :22], K_true[:, :22])[0].mean() < 0.05
