@@ -395,6 +395,9 @@ FAULTS = [
     Fault("video_several_people", "video",
           _video(lambda p: [np.concatenate([f, f[:, ::-1]], axis=1) for f in p["person"]] * 3), video(),
           "several people", needs="mediapipe"),
+    Fault("video_camera_moves", "video",
+          _video(lambda p: [np.roll(p["person"][k % 4], 8 * k - 48, axis=1) for k in range(12)]), video(),
+          "the camera moves", needs="mediapipe"),
     Fault("video_height_out_of_range", "video", _video(_plain(12)), video("--height", "17.5"), "--height"),
     Fault("focal_px_for_a_calibrated_capture", "capture", None, ingest("--focal-px", "500"), "for one video"),
     # -- project

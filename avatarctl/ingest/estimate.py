@@ -16,8 +16,9 @@ One video (`estimate_monocular`, one static camera): no triangulation; the body 
 and their confidences directly (`avatarctl.body.fit_keypoints`'s monocular energy: reprojection, the subject's
 height as the scale prior, ground contact where the feet are seen, root smoothness, joint limits, the silhouette
 term on MediaPipe's masks). Before it, `check_monocular` refuses a video without a person, with the person out of
-frame in most frames, or with several people (`several_people`: MediaPipe Pose tracks one person, so each sampled
-frame is searched again with that person painted out).
+frame in most frames, with several people (`several_people`: MediaPipe Pose tracks one person, so each sampled
+frame is searched again with that person painted out), or from a moving camera (`camera_shift_px`: the background's
+shift between frames by phase correlation).
 
 Each step's figures land in `EstimateReport` (shown in the ingest summary and saved in the manifest).
 """
@@ -39,10 +40,14 @@ DEFAULT_HEIGHT_M = 1.70  # the monocular fit's height prior when the user gives 
 MONO_SILHOUETTE_WEIGHT = 10.0  # the monocular fit's silhouette weight (one view: the masks constrain depth-blind limbs)
 MONO_GROUND_WEIGHT = 1.0  # λ_ground of the monocular fit
 MONO_ROOT_SMOOTH = 1e-3  # λ_root of the monocular fit
+MONO_POSE_WEIGHT = 3e-3  # λ_pose of the monocular fit (the 3D fit's 1e-5 leaves a limb's depth free; measured on the
+# synthetic phone video, 13 frames, 200 steps: 1e-5 4.72, 1e-4 4.82, 1e-3 3.96, 3e-3 3.80, 1e-2 3.62 cm joint error
+# while the reprojection error grows 2.65 -> 4.78 px: docs/experiments/phone_video_2026-11-27)
 MIN_IN_VIEW = 0.5  # share of the frames in which the person must be usable (in frame, enough keypoints)
 MIN_VIDEO_FRAMES = 10  # a video needs this many frames (after --frames): 2/3 train, 1/3 held out
 PEOPLE_SAMPLES = 6  # frames searched for a second person
 SECOND_PERSON_SHARE = 0.5  # ... a second person in at least this share of them -> several people
+MAX_CAMERA_SHIFT = 0.03  # background shift, as a fraction of the image diagonal, above which the camera moves
 
 PartProgress = Callable[[int, int, str], None]  # (done, total, part)
 ReadView = Callable[[str, int], np.ndarray]  # (camera, frame) -> undistorted RGB uint8 [H, W, 3]
@@ -147,7 +152,7 @@ class EstimateReport:
             out.append(("height", f"{self.height_m:.2f} m fitted ({self.height_prior})"))
             out.append(("floor", "feet not seen: no ground contact" if self.ground is None else
                         f"normal ({self.ground[0]:+.2f}, {self.ground[1]:+.2f}, {self.ground[2]:+.2f}), "
-                        f"{self.ground[3]:.2f} m from the camera (world = camera frame, +y down)"))
+                        f"camera {-self.ground[3]:.2f} m above it (world = camera frame, +y down)"))
         elif fitted:
             out.append(("triangulation", f"{self.mean_reprojection_px:.2f} px mean reprojection error, "
                                          f"{100 * self.views_rejected:.1f}% of 2D keypoints rejected as outliers, "
@@ -304,9 +309,33 @@ def several_people(read_view: Callable[[int], np.ndarray], det: Detections) -> i
     return hits if len(picks) and hits >= SECOND_PERSON_SHARE * len(picks) else 0
 
 
+def camera_shift_px(read_view: Callable[[int], np.ndarray], det: Detections) -> float:
+    """The largest shift (pixels) of the background between the first frame with a person and up to
+    `PEOPLE_SAMPLES` later ones: phase correlation (`cv2.phaseCorrelate`, Hann window) of the grey images with the
+    person (its dilated mask) filled by the background's mean. A static camera gives ~0; a pan or a walk does not."""
+    import cv2
+
+    found = np.nonzero(det.found[:, 0])[0]
+    if len(found) < 2 or not det.masks:
+        return 0.0
+    picks = found[np.unique(np.linspace(0, len(found) - 1, min(PEOPLE_SAMPLES + 1, len(found))).round().astype(int))]
+
+    def grey(fi: int) -> np.ndarray:
+        g = cv2.cvtColor(read_view(det.frames[fi]), cv2.COLOR_RGB2GRAY).astype(np.float32)
+        m = det.mask(det.cams[0], det.frames[fi]).astype(np.uint8)
+        k = max(3, g.shape[0] // 30)
+        m = cv2.dilate(m, np.ones((k, k), np.uint8)) > 0
+        g[m] = g[~m].mean() if (~m).any() else 0.0
+        return g
+
+    first = grey(picks[0])
+    window = cv2.createHanningWindow(first.shape[::-1], cv2.CV_32F)
+    return max(float(np.hypot(*cv2.phaseCorrelate(first, grey(fi), window)[0])) for fi in picks[1:])
+
+
 def check_monocular(det: Detections, read_view: Callable[[int], np.ndarray], where: str) -> np.ndarray:
     """One-line errors for a video that cannot make an avatar (no person; the person out of frame, or too small,
-    in most frames; several people). Returns `usable_frames`."""
+    in most frames; several people; a moving camera). Returns `usable_frames`."""
     from avatarctl.errors import InputError
 
     n = len(det.frames)
@@ -322,6 +351,11 @@ def check_monocular(det: Detections, read_view: Callable[[int], np.ndarray], whe
     if hits:
         raise InputError(f"several people in the video (a second person in {hits} of the frames checked)",
                          where=where, fix="film one person alone, or crop the video to one person")
+    h, w = det.mask(det.cams[0], det.frames[int(np.argmax(det.found[:, 0]))]).shape
+    shift = camera_shift_px(read_view, det)
+    if shift > MAX_CAMERA_SHIFT * np.hypot(w, h):
+        raise InputError(f"the camera moves: the background shifts by {shift:.0f} px between frames", where=where,
+                         fix="put the phone on a tripod or lean it against something; only the person may move")
     return usable
 
 
@@ -347,7 +381,7 @@ def estimate_monocular(det: Detections, camera, body, fit_iters: int, fps: float
              f"default {DEFAULT_HEIGHT_M:.2f} m; pass --height")
     height = DEFAULT_HEIGHT_M if height_m is None else float(height_m)
     cfg = KeypointFitConfig(iters=fit_iters, w_silhouette=w_sil, height_m=height, w_ground=MONO_GROUND_WEIGHT,
-                            w_root_smooth=MONO_ROOT_SMOOTH)
+                            w_root_smooth=MONO_ROOT_SMOOTH, w_pose=MONO_POSE_WEIGHT)
     sil = silhouette_targets([camera], det.cams, kept, read_mask) if read_mask is not None and w_sil > 0 else None
     fit = fit_keypoints(keypoint_body(body, det.names), targets, cfg, silhouettes=sil,
                         progress=None if progress is None else lambda d, t: progress(d, t, "fit"))
