@@ -308,3 +308,18 @@ def test_smpl_goes_through_the_same_monocular_fit(tmp_path):
         K_fit = body.joints(est.motion).double().numpy()  # SMPL's joints of the fitted motion
         K_true = body.joints(kp.to_motion(rot, R, t, torch.zeros(kp.num_shape, dtype=torch.float64))).double().numpy()
     assert aligned_errors(K_fit[:, :22], K_true[:, :22])[0].mean() < 0.05
+
+
+def test_one_camera_contact_sheet_puts_the_frames_side_by_side(tmp_path):
+    import cv2
+
+    from avatarctl.ingest.contact_sheet import Tile, write_contact_sheet
+
+    rgb = np.full((64, 32, 3), 90, np.uint8)
+    body = np.zeros((64, 32), bool)
+    body[10:50, 8:24] = True
+    tiles = [Tile("cam00", f, rgb, body, body) for f in (0, 5, 9)]
+    write_contact_sheet(tmp_path / "s.png", tiles, ["cam00"], [0, 5, 9], width=40)
+    sheet = cv2.imread(str(tmp_path / "s.png"))
+    assert sheet.shape == (80, 120, 3)
+    assert sheet[40, 20, 2] > sheet[40, 2, 2]  # the body is tinted red (BGR)
