@@ -323,3 +323,12 @@ def test_one_camera_contact_sheet_puts_the_frames_side_by_side(tmp_path):
     sheet = cv2.imread(str(tmp_path / "s.png"))
     assert sheet.shape == (80, 120, 3)
     assert sheet[40, 20, 2] > sheet[40, 2, 2]  # the body is tinted red (BGR)
+
+
+def test_one_video_without_the_capture_extra_is_one_line(tmp_path, monkeypatch):
+    monkeypatch.setitem(sys.modules, "mediapipe", None)  # import mediapipe -> ImportError, installed or not
+    _write_video(tmp_path / "clip.mp4", [np.full((48, 32, 3), 60, np.uint8)] * 12)
+    res = CliRunner().invoke(app, ["ingest", str(tmp_path / "clip.mp4"), str(tmp_path / "P")])
+    err = res.stderr.strip()
+    assert res.exit_code == 2 and len(err.splitlines()) == 1 and "avatarctl[capture]" in err, err
+    assert not (tmp_path / "P").exists()
