@@ -49,6 +49,20 @@ def base(tmp_path_factory) -> dict[str, Path]:
     return {"capture": cap, "project": proj, "fitted": fitted}
 
 
+@pytest.fixture(scope="module")
+def person_frames(tmp_path_factory) -> dict[str, np.ndarray]:
+    """Frames of a synthetic person (the `phone` preset at 96x160: big enough for MediaPipe) and the empty scene."""
+    import cv2
+
+    from avatarctl.synth import SynthConfig, synthesize
+
+    out = tmp_path_factory.mktemp("faults_person") / "phone"
+    synthesize(out, SynthConfig.preset("phone", size=160, width=96, train_frames=3, test_frames=1, supersample=1))
+    cap = out / "gt" / "capture"
+    person = [cv2.imread(str(p))[..., ::-1] for p in sorted((cap / "images" / "cam00").iterdir())]
+    return {"person": np.stack(person), "empty": cv2.imread(str(cap / "background" / "cam00.jpg"))[..., ::-1]}
+
+
 # ---- corruption helpers -------------------------------------------------------------------------------------------
 def _rewrite_calib(path: Path, change: dict[str, object]) -> None:
     """Rewrite an OpenCV FileStorage YAML file with some top-level entries replaced (None: removed)."""
@@ -206,6 +220,28 @@ def _toy_motion_file(rel: str, change: Callable[[dict[str, np.ndarray]], None]) 
     return corrupt
 
 
+def _video(frames: Callable[[dict], list[np.ndarray]], name: str = "clip.mp4") -> Callable[[Path, dict], None]:
+    """Write `name` from `frames(person_frames)` (RGB uint8 [H, W, 3] each) into the copied folder."""
+    def corrupt(root: Path, person: dict) -> None:
+        import imageio_ffmpeg
+
+        fr = frames(person)
+        gen = imageio_ffmpeg.write_frames(str(root / name), (fr[0].shape[1], fr[0].shape[0]), fps=10, quality=9,
+                                          macro_block_size=1)
+        gen.send(None)
+        for f in fr:
+            gen.send(np.ascontiguousarray(f))
+        gen.close()
+    return corrupt
+
+
+def _plain(n: int) -> Callable[[dict], list[np.ndarray]]:
+    """n frames of a smooth random texture: no person."""
+    rng = np.random.default_rng(0)
+    img = np.kron(rng.integers(40, 220, (10, 6, 3)), np.ones((16, 16, 1))).astype(np.uint8)
+    return lambda person: [img] * n
+
+
 def _no_space(monkeypatch) -> None:
     """The disk is full: every file rename that would publish a finished output fails with ENOSPC (what the
     temporary-file writes of `avatarctl.atomic` end with; the writes before it are in the page cache)."""
@@ -232,8 +268,9 @@ def _read_only(monkeypatch) -> None:
 @dataclass(frozen=True)
 class Fault:
     name: str
-    on: str  # "capture" (ingest) | "project" (ingested, no fit) | "fitted" (ingested + 2-step fit)
-    corrupt: Callable[[Path], None] | None  # applied to the copied `on` tree
+    on: str  # "capture" (ingest) | "project" (ingested, no fit) | "fitted" (ingested + 2-step fit) | "video" (an
+    #          empty folder: ingest of the clip.mp4 that `corrupt` writes into it)
+    corrupt: Callable[[Path], None] | None  # applied to the copied `on` tree (video: (folder, person_frames))
     args: Callable[[Path, Path], list[str]]  # (source, out) -> CLI args; out = where ingest writes
     expect: str  # fragment of the one-line message
     patch: Callable[[pytest.MonkeyPatch], None] | None = None  # environment faults (disk)
@@ -241,6 +278,7 @@ class Fault:
     code: int = 2  # exit code: 2 an AvatarError (bad input / project), 74 the system refused a write, 75 busy
     busy: tuple[Callable[[Path, Path], Path], str] | None = None  # an output ((source, out) -> path) and the command
     #                                                                 holding its lock during this one
+    needs: str | None = None  # a module the fault needs (skipped without it: MediaPipe, the capture extra)
 
 
 def busy(rel: str | None, command: str = "fit") -> dict:
@@ -253,6 +291,10 @@ def busy(rel: str | None, command: str = "fit") -> dict:
 
 def ingest(*extra: str) -> Callable[[Path, Path], list[str]]:
     return lambda src, out: ["ingest", str(src), str(out), "--no-contact-sheet", *extra]
+
+
+def video(*extra: str) -> Callable[[Path, Path], list[str]]:
+    return lambda src, out: ["ingest", str(src / "clip.mp4"), str(out), "--no-contact-sheet", *extra]
 
 
 def fit(*extra: str) -> Callable[[Path, Path], list[str]]:
@@ -346,6 +388,20 @@ FAULTS = [
           lambda c: _write("camera.pkl", pickle.dumps({"camera_f": [50.0, 50.0], "width": 32})[:20])(c),
           ingest("--format", "peoplesnapshot"), "camera.pkl"),
     Fault("colmap_model_garbage", "capture", _colmap_garbage, ingest("--format", "colmap"), "COLMAP"),
+    # -- one phone video (issue 31); "video" is an empty folder the fault writes clip.mp4 into, from frames of a
+    #    synthetic person (`person_frames`)
+    Fault("video_too_short", "video", _video(_plain(4)), video(), "video too short"),
+    Fault("video_no_person", "video", _video(_plain(12)), video(), "no person found", needs="mediapipe"),
+    Fault("video_person_out_of_frame_most_of_the_time", "video",
+          _video(lambda p: [p["empty"]] * 9 + list(p["person"][:3])), video(), "out of frame", needs="mediapipe"),
+    Fault("video_several_people", "video",
+          _video(lambda p: [np.concatenate([f, f[:, ::-1]], axis=1) for f in p["person"]] * 3), video(),
+          "several people", needs="mediapipe"),
+    Fault("video_camera_moves", "video",
+          _video(lambda p: [np.roll(p["person"][k % 4], 8 * k - 48, axis=1) for k in range(12)]), video(),
+          "the camera moves", needs="mediapipe"),
+    Fault("video_height_out_of_range", "video", _video(_plain(12)), video("--height", "17.5"), "--height"),
+    Fault("focal_px_for_a_calibrated_capture", "capture", None, ingest("--focal-px", "500"), "for one video"),
     # -- project
     Fault("project_newer_schema", "project", _json("project.json", lambda d: _put(d, "schema_version", 99)), fit(),
           "schema_version 99"),
@@ -399,14 +455,21 @@ FAULTS = [
 
 
 @pytest.mark.parametrize("fault", FAULTS, ids=[f.name for f in FAULTS])
-def test_fault_is_refused_cleanly(fault: Fault, base, tmp_path, monkeypatch):
+def test_fault_is_refused_cleanly(fault: Fault, base, tmp_path, monkeypatch, request):
+    if fault.needs:
+        pytest.importorskip(fault.needs)
     work = tmp_path / "w"
     src = work / fault.on
-    shutil.copytree(base[fault.on], src)
-    if fault.on != "capture":  # the project records its capture's path: keep one beside it
+    if fault.on == "video":
+        src.mkdir(parents=True)
+    else:
+        shutil.copytree(base[fault.on], src)
+    if fault.on not in ("capture", "video"):  # the project records its capture's path: keep one beside it
         shutil.copytree(base["capture"], work / "capture")
     out = work / "out_project"
-    if fault.corrupt is not None:
+    if fault.on == "video":
+        fault.corrupt(src, request.getfixturevalue("person_frames") if fault.needs else {})
+    elif fault.corrupt is not None:
         fault.corrupt(src)
     before = hash_tree(work)
     monkeypatch.delenv("AVATARCTL_DEBUG", raising=False)

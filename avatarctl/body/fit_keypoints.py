@@ -24,6 +24,19 @@ instead of 2D data):
       + λ_limit  · mean_f L(θ_f)                  joint limits of the hinge joints (0 where the body model has none)
       + λ_sil    · mean_fcv ρ_s(D_fc(π_c(v)) z_fcv / f_c)    silhouette term (optional, from step s_0 on)
 
+Monocular fits (one video, `ImageKeypointTargets`: 2D keypoints with confidences in one or more pinhole views)
+replace the 3D data term with a reprojection term and add what one view cannot see:
+
+    E_2D     = Σ_fcj w_fcj ρ(‖π_c(K_fj) − x_fcj‖ z_fcj / f_c) / Σ w    reprojection error in metres at the subject
+      + λ_height · (h(s) − H)²                    the subject's standing height h(s) (reference pose, extent along
+                                                  the body's up axis) near the given H: fixes the scale
+      + λ_ground · mean_f∈G (min_j∈feet n·K_fj − d)²   ground contact: in the frames G where the feet are seen, the
+                                                  lowest foot keypoint lies on one floor plane (n, d), fitted too
+      + λ_root   · mean_f ‖R_f+1 − R_f‖²_F        root rotation smoothness (a turning subject)
+
+The root starts from `initial_root_2d` (depth from the torso's size in the image, the heading chosen among 24
+candidates by reprojection error and made temporally consistent by dynamic programming).
+
 ρ(r) = σ² r² / (r² + σ²) (Geman & McClure 1987): quadratic for r ≪ σ, bounded for outliers. w_fj is the target's
 weight times the body model's relative weight of keypoint j (SMPL's hips: `smpl_keypoints.HIP_WEIGHT`).
 
@@ -88,9 +101,15 @@ class KeypointFitConfig:
     silhouette_scale_m: float = 0.05  # σ of the silhouette term's Geman-McClure (metres at the subject)
     silhouette_start: float = 0.5  # the silhouette term is on from this fraction of `iters` on
     silhouette_vertices: int = 2000  # posed vertices projected per frame (an even spread of anny's 13,718)
+    height_m: float | None = None  # H of the height prior (metres); None: no height prior
+    w_height: float = 1.0  # λ_height (used only with `height_m`)
+    w_ground: float = 0.0  # λ_ground (monocular fits; 0: off)
+    w_root_smooth: float = 0.0  # λ_root (monocular fits; 0: off)
 
     def __post_init__(self) -> None:
-        if self.iters < 0 or self.lr <= 0 or self.robust_scale_m <= 0 or not self.w_limits >= 0:
+        if self.iters < 0 or self.lr <= 0 or self.robust_scale_m <= 0 or not self.w_limits >= 0 \
+                or not (self.w_height >= 0 and self.w_ground >= 0 and self.w_root_smooth >= 0) \
+                or (self.height_m is not None and not 0.5 <= self.height_m <= 2.5):
             raise ValueError(f"bad keypoint-fit settings {self}")
         if not (self.w_silhouette >= 0 and self.silhouette_scale_m > 0 and 0 <= self.silhouette_start < 1
                 and self.silhouette_vertices > 0):
@@ -117,6 +136,35 @@ class KeypointTargets:
         """The columns of `names` (each must be one of `self.names`), in that order."""
         idx = [self.names.index(n) for n in names]
         return KeypointTargets(names=tuple(names), points=self.points[:, idx], weight=self.weight[:, idx])
+
+
+@dataclass(frozen=True)
+class ImageKeypointTargets:
+    """2D keypoints seen by pinhole cameras (a monocular video: one camera), one row per frame."""
+
+    names: tuple[str, ...]  # [joints] keypoint names
+    P: np.ndarray  # [cams, 3, 4] projection matrices K [R | T] of the undistorted cameras, world metres
+    focal_px: np.ndarray  # [cams] mean focal length, pixels
+    points: np.ndarray  # [frames, cams, joints, 2] pixels (anything where weight is 0)
+    weight: np.ndarray  # [frames, cams, joints] >= 0 (the detector's confidence; 0: not observed)
+
+    def __post_init__(self) -> None:
+        f, c, j = self.weight.shape
+        if (self.points.shape != (f, c, j, 2) or len(self.names) != j or self.P.shape != (c, 3, 4)
+                or self.focal_px.shape != (c,)):
+            raise ValueError(f"image targets: points {self.points.shape}, weight {self.weight.shape}, P "
+                             f"{self.P.shape}, focal {self.focal_px.shape}, {len(self.names)} names disagree")
+
+    def select(self, names: tuple[str, ...]) -> "ImageKeypointTargets":
+        idx = [self.names.index(n) for n in names]
+        return replace(self, names=tuple(names), points=self.points[:, :, idx], weight=self.weight[:, :, idx])
+
+    def project(self, X: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """world points [frames, n, 3] -> (pixels [frames, cams, n, 2], depth [frames, cams, n])."""
+        P = torch.as_tensor(self.P, dtype=X.dtype)
+        x = torch.einsum("cij,fnj->fcni", P[..., :3], X) + P[None, :, None, :, 3]
+        z = x[..., 2].clamp_min(1e-3)
+        return x[..., :2] / z[..., None], z
 
 
 @dataclass(frozen=True)
@@ -181,6 +229,9 @@ class KeypointFit:
     error_m: np.ndarray  # [frames] weighted mean distance of the fitted keypoints to the targets (metres)
     seconds: float
     silhouette: SilhouetteReport | None = None  # None when the term was off (no silhouettes or weight 0)
+    error_px: np.ndarray | None = None  # [frames] 2D targets: weighted mean reprojection error (pixels)
+    height_m: float = float("nan")  # the fitted subject's standing height (reference pose), metres
+    ground: np.ndarray | None = None  # [4] the fitted floor plane (n [3] unit up, d): n·x = d (ground term only)
 
     def to_motion(self, frame_index, fps: float = 30.0) -> BodyMotion:
         return replace(self.motion, frame_index=np.asarray(frame_index), fps=fps)
@@ -360,6 +411,93 @@ def initial_root(rest: np.ndarray, targets: KeypointTargets) -> tuple[np.ndarray
     return np.stack(Rs), np.stack(ts)
 
 
+FEET = ("left_heel", "right_heel", "left_big_toe", "right_big_toe")
+HEADING_CANDIDATES = 24  # headings tried per frame by `initial_root_2d` (every 15 degrees)
+HEADING_STEP_COST = 5e-4  # DP cost of a change of heading by one candidate step between frames (the
+# frame cost is the mean squared reprojection error over the squared torso length: a 15-degree error costs ~1e-3)
+
+
+def body_up(rest: np.ndarray, names: tuple[str, ...]) -> np.ndarray:
+    """[3] unit up axis of a reference pose's keypoints [joints, 3]: mid-hips -> mid-shoulders."""
+    j = {n: rest[i] for i, n in enumerate(names)}
+    up = (j["left_shoulder"] + j["right_shoulder"]) / 2 - (j["left_hip"] + j["right_hip"]) / 2
+    return up / np.linalg.norm(up)
+
+
+def _axis_rotation(axis: np.ndarray, angle: float) -> np.ndarray:
+    K = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    return np.eye(3) + np.sin(angle) * K + (1 - np.cos(angle)) * (K @ K)
+
+
+def back_project(P: np.ndarray, x: np.ndarray, depth: float) -> np.ndarray:
+    """World points [n, 3] at `depth` (metres along the camera's z) on the rays of pixels x [n, 2], P [3, 4]."""
+    M, p4 = P[:, :3], P[:, 3]
+    h = np.concatenate([x, np.ones((x.shape[0], 1))], axis=1) * depth  # [n, 3]
+    return np.linalg.solve(M, (h - p4).T).T
+
+
+def initial_root_2d(rest: np.ndarray, targets: ImageKeypointTargets, scale: float = 1.0
+                    ) -> tuple[np.ndarray, np.ndarray]:
+    """Per-frame root (R [frames, 3, 3], t [frames, 3]) from 2D keypoints in the first view of `targets`; `rest`
+    [joints, 3] the reference pose's keypoints (names of `targets`), `scale` the subject's size over the reference
+    pose's. Depth: the torso (shoulder-hip) length in the image against the reference pose's (heading-invariant for
+    an upright body); the torso points are back-projected to that depth and aligned (Kabsch); then the heading about
+    the body's up axis is chosen among `HEADING_CANDIDATES` by the reprojection error of every keypoint, made
+    consistent over frames by dynamic programming (a change of k steps costs k² `HEADING_STEP_COST`)."""
+    names = targets.names
+    P = targets.P[0]
+    x, w = targets.points[:, 0], targets.weight[:, 0]  # [frames, joints, 2], [frames, joints]
+    idx = {n: names.index(n) for n in TORSO}
+    sides = (("left_shoulder", "left_hip"), ("right_shoulder", "right_hip"))
+    rest_len = scale * np.mean([np.linalg.norm(rest[idx[a]] - rest[idx[b]]) for a, b in sides])
+    up = body_up(rest, names)
+    torso = np.array([n in TORSO for n in names])
+    f_px = float(targets.focal_px[0])
+    frames = x.shape[0]
+    depth = np.full(frames, np.nan)
+    for f in range(frames):
+        lens = [np.linalg.norm(x[f, idx[a]] - x[f, idx[b]]) for a, b in sides if w[f, idx[a]] > 0 and w[f, idx[b]] > 0]
+        if lens and max(lens) > 1:
+            depth[f] = f_px * rest_len / max(lens)  # the longer side: foreshortening only shortens
+    fill = np.nanmedian(depth) if np.isfinite(depth).any() else 3.0
+    depth = np.where(np.isfinite(depth), depth, fill)
+    n_k = HEADING_CANDIDATES
+    Rs = np.zeros((frames, n_k, 3, 3))
+    ts = np.zeros((frames, n_k, 3))
+    cost = np.zeros((frames, n_k))
+    for f in range(frames):
+        wt = w[f] * torso
+        if (wt > 0).sum() < 3:
+            wt = w[f]
+        X = back_project(P, np.nan_to_num(x[f]), depth[f])
+        R0, _ = kabsch(rest * scale, X, wt)
+        wn = wt / wt.sum()
+        c_dst = (wn[:, None] * X).sum(0)
+        c_src = (wn[:, None] * rest * scale).sum(0)
+        for k in range(n_k):
+            R = R0 @ _axis_rotation(up, 2 * np.pi * k / n_k)
+            t = c_dst - R @ c_src
+            Y = (rest * scale) @ R.T + t
+            h = Y @ P[:, :3].T + P[:, 3]
+            uv = h[:, :2] / np.maximum(h[:, 2:], 1e-3)
+            err = ((uv - x[f]) ** 2).sum(-1) * (w[f] > 0)
+            norm = max((f_px * rest_len / depth[f]) ** 2, 1e-9)
+            cost[f, k] = (w[f] * np.nan_to_num(err)).sum() / max(w[f].sum(), 1e-9) / norm
+            Rs[f, k], ts[f, k] = R, c_dst - R @ (c_src / scale)  # the average subject, centred on the torso
+    steps = np.abs(np.arange(n_k)[:, None] - np.arange(n_k)[None])
+    trans = HEADING_STEP_COST * np.minimum(steps, n_k - steps) ** 2  # [k_prev, k]
+    acc, back = cost[0].copy(), np.zeros((frames, n_k), dtype=np.int64)
+    for f in range(1, frames):
+        tot = acc[:, None] + trans
+        back[f] = tot.argmin(0)
+        acc = tot.min(0) + cost[f]
+    best = np.zeros(frames, dtype=np.int64)
+    best[-1] = int(acc.argmin())
+    for f in range(frames - 1, 0, -1):
+        best[f - 1] = back[f, best[f]]
+    return Rs[np.arange(frames), best], ts[np.arange(frames), best]
+
+
 class SilhouetteTerm:
     """The silhouette term's data as tensors, and the term itself (see the module docstring)."""
 
@@ -401,30 +539,45 @@ class SilhouetteTerm:
             return float((self.weight * share).sum() / self.weight.sum().clamp_min(1e-9))
 
 
-def fit_keypoints(model: KeypointBody, targets: KeypointTargets, cfg: KeypointFitConfig = KeypointFitConfig(),
-                  progress: ProgressFn | None = None,
+def fit_keypoints(model: KeypointBody, targets: KeypointTargets | ImageKeypointTargets,
+                  cfg: KeypointFitConfig = KeypointFitConfig(), progress: ProgressFn | None = None,
                   silhouettes: SilhouetteTargets | None = None) -> KeypointFit:
-    """Fit the body `model` (a `KeypointBody`, see `keypoint_body`) to `targets` (see the module docstring for the
-    energy); target keypoints the model does not provide are left out. Every frame needs at least three observed
-    keypoints (the caller drops frames without a person). With `silhouettes` (rows = the targets' frames) and
-    `cfg.w_silhouette` > 0 the silhouette term joins from step `cfg.silhouette_start * iters`."""
+    """Fit the body `model` (a `KeypointBody`, see `keypoint_body`) to `targets`, 3D keypoints or 2D keypoints in
+    pinhole views (`ImageKeypointTargets`, the monocular energy); see the module docstring for the energy. Target
+    keypoints the model does not provide are left out. Every frame needs at least three observed keypoints (the
+    caller drops frames without a person). With `silhouettes` (rows = the targets' frames) and `cfg.w_silhouette`
+    > 0 the silhouette term joins from step `cfg.silhouette_start * iters`."""
     import time
 
     import roma
 
     t0 = time.perf_counter()
+    image = isinstance(targets, ImageKeypointTargets)
     targets = targets.select(model.names)
-    if (np.asarray(targets.weight) > 0).sum(axis=1).min(initial=3) < 3:
+    seen = (np.asarray(targets.weight) > 0).any(axis=1) if image else np.asarray(targets.weight) > 0
+    if seen.sum(axis=1).min(initial=3) < 3:
         raise ValueError("every frame needs at least three observed keypoints")
     dt = model.dtype
     f = targets.points.shape[0]
     X = torch.as_tensor(np.nan_to_num(targets.points), dtype=dt)
-    W_obs = torch.as_tensor(targets.weight, dtype=dt)  # [frames, joints] the targets' own weights
+    W_obs = torch.as_tensor(targets.weight, dtype=dt)  # [frames, (cams,) joints] the targets' own weights
     W = W_obs * torch.as_tensor(model.weight, dtype=dt)  # ... times the model's relative weights
+    zero_pose = (torch.zeros(1, model.num_rotations, 3, dtype=dt), torch.eye(3, dtype=dt)[None],
+                 torch.zeros(1, 3, dtype=dt))
     with torch.no_grad():
-        rest = model.keypoints(torch.zeros(1, model.num_rotations, 3, dtype=dt), torch.eye(3, dtype=dt)[None],
-                               torch.zeros(1, 3, dtype=dt), torch.zeros(model.num_shape, dtype=dt))[0][0].numpy()
-    R0, t0_root = initial_root(rest, targets)
+        rest, rest_v = (a[0].numpy() for a in model.keypoints(*zero_pose, torch.zeros(model.num_shape, dtype=dt)))
+    up = body_up(rest, model.names)
+    up_t = torch.as_tensor(up, dtype=dt)
+
+    def height(shape: torch.Tensor) -> torch.Tensor:
+        h = model.keypoints(*zero_pose, shape)[1][0] @ up_t
+        return h.max() - h.min()
+
+    if image:
+        scale = 1.0 if cfg.height_m is None else cfg.height_m / float(np.ptp(rest_v @ up))
+        R0, t0_root = initial_root_2d(rest, targets, scale)
+    else:
+        R0, t0_root = initial_root(rest, targets)
     root_rv = torch.tensor(roma.rotmat_to_rotvec(torch.as_tensor(R0)).numpy(), dtype=dt, requires_grad=True)
     root_t = torch.tensor(t0_root, dtype=dt, requires_grad=True)
     rotvecs = torch.zeros(f, model.num_rotations, 3, dtype=dt, requires_grad=True)
@@ -439,11 +592,44 @@ def fit_keypoints(model: KeypointBody, targets: KeypointTargets, cfg: KeypointFi
     sil_start = int(cfg.silhouette_start * cfg.iters)
     sub = None  # [n] the term's vertices, chosen on the first forward pass
     inside_before = float("nan")
+    focal = torch.as_tensor(targets.focal_px, dtype=dt)[None, :, None] if image else None
+    feet = [model.names.index(n) for n in FEET if n in model.names]
+    feet_seen = np.zeros(f, dtype=bool)
+    if feet:
+        w_feet = np.asarray(targets.weight)[..., feet]
+        feet_seen = ((w_feet.max(axis=1) if image else w_feet) > 0).sum(-1) >= 2
+    ground_on = cfg.w_ground > 0 and len(feet) >= 2 and feet_seen.any()
+    ground_n = torch.tensor(R0.mean(0) @ up, dtype=dt, requires_grad=True)  # the body's mean up: the floor normal
+    ground_d = torch.zeros((), dtype=dt, requires_grad=True)
+    if ground_on:
+        with torch.no_grad():
+            K0, _ = model.keypoints(rotvecs, torch.as_tensor(R0, dtype=dt), root_t, shape)
+            n0 = ground_n / ground_n.norm()
+            ground_d.fill_((K0[feet_seen][:, feet] @ n0).min(-1).values.median())
+        opt.add_param_group({"params": [ground_n, ground_d], "lr": cfg.lr})
+    feet_rows = torch.as_tensor(np.nonzero(feet_seen)[0])
+
+    def data_term(K: torch.Tensor) -> torch.Tensor:
+        if not image:
+            r2 = ((K - X) ** 2).sum(-1)
+        else:  # reprojection error in metres at the subject: pixels x depth / focal
+            uv, z = targets.project(K)
+            r2 = ((uv - X) ** 2).sum(-1) * (z / focal) ** 2
+        return (W * s2 * r2 / (r2 + s2)).sum() / wsum
+
     for it in range(cfg.iters):
         opt.zero_grad()
-        K, V = model.keypoints(rotvecs, roma.rotvec_to_rotmat(root_rv), root_t, shape)
-        r2 = ((K - X) ** 2).sum(-1)
-        loss = (W * s2 * r2 / (r2 + s2)).sum() / wsum
+        R_root = roma.rotvec_to_rotmat(root_rv)
+        K, V = model.keypoints(rotvecs, R_root, root_t, shape)
+        loss = data_term(K)
+        if cfg.height_m is not None and cfg.w_height > 0:
+            loss = loss + cfg.w_height * (height(shape) - cfg.height_m) ** 2
+        if ground_on:
+            n = ground_n / ground_n.norm()
+            lowest = (K[feet_rows][:, feet] @ n).min(-1).values  # [frames with feet]
+            loss = loss + cfg.w_ground * ((lowest - ground_d) ** 2).mean()
+        if cfg.w_root_smooth > 0 and f > 1:
+            loss = loss + cfg.w_root_smooth * ((R_root[1:] - R_root[:-1]) ** 2).sum((1, 2)).mean()
         if sil is not None and it >= sil_start:
             if sub is None:
                 sub = spread_indices(V.shape[1], cfg.silhouette_vertices)
@@ -460,12 +646,24 @@ def fit_keypoints(model: KeypointBody, targets: KeypointTargets, cfg: KeypointFi
         opt.step()
         if progress is not None:
             progress(ProgressReport(done=it + 1, total=cfg.iters, part="fit"))
-    report = None
+    report, err_px = None, None
     with torch.no_grad():
         R = roma.rotvec_to_rotmat(root_rv)
         K, V = model.keypoints(rotvecs, R, root_t, shape)
-        d = (K - X).norm(dim=-1)
-        err = ((W_obs * d).sum(1) / W_obs.sum(1).clamp_min(1e-9)).numpy()
+        if image:
+            uv, z = targets.project(K)
+            d_px = (uv - X).norm(dim=-1)  # [frames, cams, joints]
+            wsum_f = W_obs.sum((1, 2)).clamp_min(1e-9)
+            err_px = ((W_obs * d_px).sum((1, 2)) / wsum_f).numpy()
+            err = ((W_obs * d_px * z / focal).sum((1, 2)) / wsum_f).numpy()
+        else:
+            d = (K - X).norm(dim=-1)
+            err = ((W_obs * d).sum(1) / W_obs.sum(1).clamp_min(1e-9)).numpy()
+        fitted_height = float(height(shape))
+        ground = None
+        if ground_on:
+            n = ground_n / ground_n.norm()
+            ground = np.concatenate([n.numpy(), [float(ground_d)]])
         if sil is not None:
             sub = spread_indices(V.shape[1], cfg.silhouette_vertices) if sub is None else sub
             after = sil.inside(V[:, sub])
@@ -473,7 +671,7 @@ def fit_keypoints(model: KeypointBody, targets: KeypointTargets, cfg: KeypointFi
                                       inside_after=after)
         motion = model.to_motion(rotvecs, R, root_t, shape)
     return KeypointFit(motion=motion, names=model.names, error_m=err, seconds=time.perf_counter() - t0,
-                       silhouette=report)
+                       silhouette=report, error_px=err_px, height_m=fitted_height, ground=ground)
 
 
 def spread_indices(total: int, n: int) -> torch.Tensor:

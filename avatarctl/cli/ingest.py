@@ -14,10 +14,11 @@ def register(app: typer.Typer) -> None:
     @app.command("ingest", help="Turn a raw capture (frames, cameras, masks, body fits) into a project directory.")
     def ingest(
         capture: Path = typer.Argument(..., help="Capture folder (EasyMocap, ZJU-MoCap, THuman4.0, PeopleSnapshot, "
-                                                 "COLMAP, or `avatarctl synth` output). Never modified."),
+                                                 "COLMAP, or `avatarctl synth` output), or ONE video file (or a "
+                                                 "folder of its frames) from a static phone. Never modified."),
         project: Path = typer.Argument(..., help="Project directory to create (must not exist or be empty)."),
         format: str = typer.Option("auto", "--format",
-                                   help="auto | easymocap | zju | thuman4 | peoplesnapshot | colmap"),
+                                   help="auto | easymocap | zju | thuman4 | peoplesnapshot | colmap | video"),
         body_model: Optional[str] = typer.Option(None, "--body-model",
                                                  help="anny | smpl | smplx (default: what the capture's fits are; "
                                                       "anny for --fits keypoints)"),
@@ -41,6 +42,13 @@ def register(app: typer.Typer) -> None:
         resize: float = typer.Option(1.0, "--resize", help="Scale factor after undistortion, e.g. 0.5."),
         contact_sheet: bool = typer.Option(True, "--contact-sheet/--no-contact-sheet",
                                            help="Write ingest/contact_sheet.png (frames with the body overlaid)."),
+        focal_px: Optional[float] = typer.Option(None, "--focal-px", help="One video: focal length in pixels of "
+                                                 "its frames (default: the video's metadata, else a phone's main "
+                                                 "camera, 26 mm equivalent)."),
+        fov_deg: Optional[float] = typer.Option(None, "--fov-deg", help="One video: diagonal field of view in "
+                                                "degrees (instead of --focal-px)."),
+        height: Optional[float] = typer.Option(None, "--height", help="One video: the person's height in metres, "
+                                               "the body fit's scale prior (default 1.70)."),
         wait: bool = typer.Option(False, "--wait", help=WAIT_HELP),
     ) -> None:
         from rich.table import Table
@@ -55,7 +63,7 @@ def register(app: typer.Typer) -> None:
                                keypoint_fit_iters=keypoint_fit_iters, keypoint_silhouette=keypoint_silhouette,
                                frames=frames,
                                views=None if views is None else split_list(views), resize=resize,
-                               contact_sheet=contact_sheet)
+                               contact_sheet=contact_sheet, focal_px=focal_px, fov_deg=fov_deg, height_m=height)
             if cfg.format == "auto":
                 fmt, reason = stage.detect(cfg.capture)
                 console.print(f"detected format [bold]{fmt}[/]: {reason}")
@@ -72,6 +80,9 @@ def register(app: typer.Typer) -> None:
             t.add_row("cameras", f"{len(res.cameras)} ({shown})")
             t.add_row("frames", f"{len(res.frames)} ({res.frames[0]}..{res.frames[-1]})")
             t.add_row("resolution", f"{res.resolution[0]}x{res.resolution[1]} (undistorted, pinhole)")
+            for n in res.notes:
+                if n.startswith("intrinsics: "):
+                    t.add_row("intrinsics", n.removeprefix("intrinsics: "))
             t.add_row("body model", res.body_model)
             t.add_row("masks", res.masks_source)
             t.add_row("body fits", res.fits_source)
@@ -82,6 +93,7 @@ def register(app: typer.Typer) -> None:
             t.add_row("time", f"{res.seconds:.1f} s")
             console.print(t)
             for n in res.notes:
-                console.print(f"note: {n}")
+                if not n.startswith("intrinsics: "):
+                    console.print(f"note: {n}")
             for w in res.warnings:
                 console.print(f"[yellow]warning:[/] {w}")

@@ -17,13 +17,17 @@ def register(app: typer.Typer) -> None:
                                    "small (12 views, 80+40, 256px), standard (20 views, 300+150, 512px); "
                                    "micro (4 views, 6+4, 64px) for tests; the paper's other settings at tiny "
                                    "sizes: monocular (1 training camera + 3 evaluation-only ones, the subject "
-                                   "turning in an A-pose, no skirt; 24+8) and tight (tiny without the skirt)."),
+                                   "turning in an A-pose, no skirt; 24+8) and tight (tiny without the skirt); "
+                                   "phone: the monocular scene as ONE portrait video (288x512, 40+12 frames), "
+                                   "OUT/video.mp4, the truth under OUT/gt/."),
         seed: int = typer.Option(0, "--seed", help="Seed of every random choice; same seed, same files."),
         views: Optional[int] = typer.Option(None, "--views", help="Override the number of cameras.", hidden=True),
         train_frames: Optional[int] = typer.Option(None, "--train-frames", help="Override training frames.",
                                                    hidden=True),
         test_frames: Optional[int] = typer.Option(None, "--test-frames", help="Override test frames.", hidden=True),
         size: Optional[int] = typer.Option(None, "--size", help="Override the image size (pixels).", hidden=True),
+        width: Optional[int] = typer.Option(None, "--width", help="Override the image width (pixels; 0: square).",
+                                            hidden=True),
         supersample: Optional[int] = typer.Option(None, "--supersample", help="Rays per pixel along each axis, "
                                                   "1-4 (box-filtered: the pixel integrates its area, as a camera "
                                                   "sensor does); default: the preset's."),
@@ -41,12 +45,13 @@ def register(app: typer.Typer) -> None:
             from avatarctl.progress import ProgressReport
 
             overrides = {k: v for k, v in dict(views=views, train_frames=train_frames, test_frames=test_frames,
-                                                size=size, supersample=supersample).items() if v is not None}
+                                                size=size, width=width, supersample=supersample).items()
+                         if v is not None}
             if fit_noise is not None:
                 overrides.update(_fit_noise(fit_noise))
             config = stage.SynthConfig.preset(preset, seed, **overrides)
             console.print(f"synth [bold]{preset}[/] seed {seed}: {config.views} views, {config.train_frames}+"
-                          f"{config.test_frames} frames, {config.size}px, {config.supersample}x"
+                          f"{config.test_frames} frames, {config.image_width}x{config.size}px, {config.supersample}x"
                           f"{config.supersample} rays per pixel -> {out}")
             with Progress(TextColumn("{task.description:<9}"), BarColumn(), MofNCompleteColumn(),
                           TimeElapsedColumn(), console=console, transient=False) as bar:
@@ -62,6 +67,9 @@ def register(app: typer.Typer) -> None:
             console.print(f"[green]wrote[/] {res.out}: {len(res.cameras)} cameras "
                           f"(train {', '.join(res.train_views)}; test {', '.join(res.test_views)}), "
                           f"{len(res.train_frames)} train + {len(res.test_frames)} test frames")
+            if config.layout == "video":
+                console.print(f"  one video: {res.out / 'video.mp4'} (camera {res.cameras[0].name}); the truth "
+                              f"(calibration, masks, fits of every camera): {res.out / 'gt' / 'capture'}")
             if config.garment == "skirt":
                 console.print(f"  skirt hem radius {res.hem_radius_range[0]:.2f}-{res.hem_radius_range[1]:.2f} m, "
                               f"max particles inside the body {res.max_penetrating_particles}")
@@ -73,7 +81,7 @@ def register(app: typer.Typer) -> None:
                               f"(body {hp['body_rms_m'] * 1000:.2f} mm RMS apart, hem {hp['hem_rms_m']:.3f} m)")
             console.print(f"  time: anny {t['anny_s']:.1f} s, simulate {t['simulate_s']:.1f} s "
                           f"({t['simulate_s_per_frame']:.3f} s/frame), render {t['render_s']:.1f} s, "
-                          f"total {t['total_s']:.1f} s; contact sheet {res.out / 'contact_sheet.png'}")
+                          f"total {t['total_s']:.1f} s; contact sheet {res.sheet}")
 
 
 def _fit_noise(spec: str) -> dict[str, float]:

@@ -11,7 +11,7 @@ from avatarctl.errors import InputError
 from avatarctl.frames import parse_frame_spec
 
 SCHEMA_VERSION = 1
-FORMAT_CHOICES = ("auto", "easymocap", "zju", "thuman4", "peoplesnapshot", "colmap")
+FORMAT_CHOICES = ("auto", "easymocap", "zju", "thuman4", "peoplesnapshot", "colmap", "video")
 BODY_MODEL_CHOICES = ("anny", "smpl", "smplx", "toy")
 MASK_CHOICES = ("auto", "files", "background", "mediapipe")
 FITS_CHOICES = ("auto", "files", "keypoints")
@@ -34,6 +34,9 @@ class IngestConfig:
     views: tuple[str, ...] | None = None  # camera names to ingest; None: every calibrated camera
     resize: float = 1.0  # scale factor applied after undistortion (e.g. 0.5)
     contact_sheet: bool = True  # write ingest/contact_sheet.png
+    focal_px: float | None = None  # one video: the focal length in pixels of the video's frames (avatarctl.io.monocular)
+    fov_deg: float | None = None  # one video: the diagonal field of view in degrees (instead of --focal-px)
+    height_m: float | None = None  # one video: the subject's height in metres, the fit's scale prior (None: default)
     schema_version: int = SCHEMA_VERSION
 
     def __post_init__(self) -> None:
@@ -63,6 +66,16 @@ class IngestConfig:
             if not views:
                 raise InputError("--views is empty", fix="pass camera names separated by commas, e.g. 00,01")
             object.__setattr__(self, "views", views)
+        if self.focal_px is not None and self.fov_deg is not None:
+            raise InputError("--focal-px and --fov-deg both given", fix="give one of them")
+        if self.focal_px is not None and not (math.isfinite(self.focal_px) and self.focal_px > 0):
+            raise InputError(f"--focal-px {self.focal_px} must be a positive number of pixels", fix="e.g. 1500")
+        if self.fov_deg is not None and not (math.isfinite(self.fov_deg) and 10 <= self.fov_deg <= 150):
+            raise InputError(f"--fov-deg {self.fov_deg} is out of range", fix="give the diagonal field of view in "
+                                                                               "degrees, in [10, 150], e.g. 78")
+        if self.height_m is not None and not (math.isfinite(self.height_m) and 0.5 <= self.height_m <= 2.5):
+            raise InputError(f"--height {self.height_m} is out of range", fix="give the person's height in metres, "
+                                                                               "e.g. 1.75")
         if self.frames is not None:
             parse_frame_spec(self.frames)  # syntax check now; membership is checked against the capture later
 
@@ -73,4 +86,5 @@ class IngestConfig:
                 "masks": self.masks, "fits": self.fits, "keypoint_fit_iters": self.keypoint_fit_iters,
                 "keypoint_silhouette": self.keypoint_silhouette,
                 "frames": self.frames, "views": None if self.views is None else list(self.views),
-                "resize": self.resize, "contact_sheet": self.contact_sheet}
+                "resize": self.resize, "contact_sheet": self.contact_sheet, "focal_px": self.focal_px,
+                "fov_deg": self.fov_deg, "height_m": self.height_m}

@@ -1,7 +1,7 @@
 """``ingest/contact_sheet.png``: undistorted frames with the posed body mesh overlaid, to check alignment by eye.
 
 Each tile: the undistorted frame, the projected body mesh silhouette tinted red (35 %), the mask outline in green,
-the detected 2D keypoints in yellow (when ingest estimated the fits or masks), labelled ``<camera> f<frame>``. Rows are frames, columns cameras.
+the detected 2D keypoints in yellow (when ingest estimated the fits or masks), labelled ``<camera> f<frame>``. Rows are frames, columns cameras (one camera, a video: the frames in one row).
 """
 
 from __future__ import annotations
@@ -51,15 +51,17 @@ def render_tile(t: Tile, width: int) -> np.ndarray:
 
 
 def write_contact_sheet(path, tiles: list[Tile], cams: list[str], frames: list[int], width: int = 256) -> None:
-    """Grid of tiles (rows = frames, columns = cams); missing cells stay black. Written atomically."""
+    """Grid of tiles (rows = frames, columns = cams; one camera: the frames side by side); missing cells stay black.
+    Written atomically."""
     import cv2
 
     by = {(t.cam, t.frame): render_tile(t, width) for t in tiles}
     h = max(im.shape[0] for im in by.values())
-    sheet = np.zeros((h * len(frames), width * len(cams), 3), np.uint8)
-    for r, f in enumerate(frames):
-        for c, cam in enumerate(cams):
-            im = by.get((cam, f))
+    cells = [[(c, f) for c in cams] for f in frames] if len(cams) > 1 else [[(cams[0], f) for f in frames]]
+    sheet = np.zeros((h * len(cells), width * len(cells[0]), 3), np.uint8)
+    for r, row in enumerate(cells):
+        for c, key in enumerate(row):
+            im = by.get(key)
             if im is not None:
                 sheet[r * h:r * h + im.shape[0], c * width:(c + 1) * width] = im
     write_image(path, cv2.cvtColor(sheet, cv2.COLOR_RGB2BGR))

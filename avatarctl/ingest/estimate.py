@@ -12,6 +12,14 @@ undistortion):
    silhouette term when person masks are at hand (`silhouette_targets`: the capture's mask files or MediaPipe's
    person segmentation) that keeps the projected body inside them.
 
+One video (`estimate_monocular`, one static camera): no triangulation; the body model is fitted to the 2D keypoints
+and their confidences directly (`avatarctl.body.fit_keypoints`'s monocular energy: reprojection, the subject's
+height as the scale prior, ground contact where the feet are seen, root smoothness, joint limits, the silhouette
+term on MediaPipe's masks). Before it, `check_monocular` refuses a video without a person, with the person out of
+frame in most frames, with several people (`several_people`: MediaPipe Pose tracks one person, so each sampled
+frame is searched again with that person painted out), or from a moving camera (`camera_shift_px`: the background's
+shift between frames by phase correlation).
+
 Each step's figures land in `EstimateReport` (shown in the ingest summary and saved in the manifest).
 """
 
@@ -29,6 +37,18 @@ MIN_JOINTS = 8  # triangulated keypoints a frame needs to be fitted
 REPROJ_THRESHOLD = 0.02  # inlier threshold of the triangulation, as a fraction of the image's larger side
 MIN_THRESHOLD_PX = 4.0  # ... but at least this many pixels
 MIN_CONFIDENCE = 0.5  # MediaPipe visibility below which a 2D keypoint is not used
+DEFAULT_HEIGHT_M = 1.70  # the monocular fit's height prior when the user gives none (an adult's average, both sexes)
+MONO_SILHOUETTE_WEIGHT = 10.0  # the monocular fit's silhouette weight (one view: the masks constrain depth-blind limbs)
+MONO_GROUND_WEIGHT = 1.0  # λ_ground of the monocular fit
+MONO_ROOT_SMOOTH = 1e-3  # λ_root of the monocular fit
+MONO_POSE_WEIGHT = 3e-3  # λ_pose of the monocular fit (the 3D fit's 1e-5 leaves a limb's depth free; measured on the
+# synthetic phone video, 13 frames, 200 steps: 1e-5 4.72, 1e-4 4.82, 1e-3 3.96, 3e-3 3.80, 1e-2 3.62 cm joint error
+# while the reprojection error grows 2.65 -> 4.78 px: docs/experiments/phone_video_2026-11-27)
+MIN_IN_VIEW = 0.5  # share of the frames in which the person must be usable (in frame, enough keypoints)
+MIN_VIDEO_FRAMES = 10  # a video needs this many frames (after --frames): 2/3 train, 1/3 held out
+PEOPLE_SAMPLES = 6  # frames searched for a second person
+SECOND_PERSON_SHARE = 0.5  # ... a second person in at least this share of them -> several people
+MAX_CAMERA_SHIFT = 0.03  # background shift, as a fraction of the image diagonal, above which the camera moves
 
 ReadView = Callable[[str, int], np.ndarray]  # (camera, frame) -> undistorted RGB uint8 [H, W, 3]
 ReadMask = Callable[[str, int], np.ndarray]  # (camera, frame) -> undistorted person mask, bool [H, W]
@@ -107,13 +127,18 @@ class EstimateReport:
     fit_seconds: float
     body_model: str = "anny"  # the body model fitted
     frames_no_mask: list[int] = field(default_factory=list)  # frames where a view had no person mask (masks mediapipe)
+    monocular: bool = False  # one video: fitted to the 2D keypoints (no triangulation)
+    height_m: float = float("nan")  # monocular: the fitted subject's height (metres)
+    height_prior: str = ""  # monocular: the height prior and where it came from
+    ground: list[float] | None = None  # monocular: the fitted floor plane n·x = d, [nx, ny, nz, d] (world = camera)
     silhouette_inside_before: float = float("nan")  # share of projected vertices inside the masks when the
     silhouette_inside_after: float = float("nan")  # silhouette term switched on / at the end (NaN: term off)
 
     def rows(self, fitted: bool) -> list[tuple[str, str]]:
         """(item, value) lines for the ingest summary; `fitted`: the fits were estimated (else masks only)."""
-        out = [("person detected", f"{self.frames_detected}/{self.frames_total} frames (2+ views), "
-                                   f"{100 * self.views_with_person:.1f}% of views")]
+        out = [("person detected", f"{self.frames_detected}/{self.frames_total} frames" if self.monocular else
+                f"{self.frames_detected}/{self.frames_total} frames (2+ views), "
+                f"{100 * self.views_with_person:.1f}% of views")]
         if self.frames_skipped:
             n_fit = len(self.frames_skipped) - len(self.frames_no_mask)
             why = ([f"{n_fit} without a person or enough keypoints"] if n_fit else []) + \
@@ -121,7 +146,14 @@ class EstimateReport:
             shown = ", ".join(str(f) for f in self.frames_skipped[:8])
             shown += " …" if len(self.frames_skipped) > 8 else ""
             out.append(("frames skipped", f"{'; '.join(why)}: {shown}"))
-        if fitted:
+        if fitted and self.monocular:
+            out.append((f"{self.body_model} fit (monocular)", f"{self.mean_reprojection_px:.2f} px mean reprojection "
+                                                              f"error ({self.fit_seconds:.0f} s)"))
+            out.append(("height", f"{self.height_m:.2f} m fitted ({self.height_prior})"))
+            out.append(("floor", "feet not seen: no ground contact" if self.ground is None else
+                        f"normal ({self.ground[0]:+.2f}, {self.ground[1]:+.2f}, {self.ground[2]:+.2f}), "
+                        f"camera {-self.ground[3]:.2f} m above it (world = camera frame, +y down)"))
+        elif fitted:
             out.append(("triangulation", f"{self.mean_reprojection_px:.2f} px mean reprojection error, "
                                          f"{100 * self.views_rejected:.1f}% of 2D keypoints rejected as outliers, "
                                          f"{100 * self.keypoints_triangulated:.1f}% of keypoints triangulated"))
@@ -146,7 +178,9 @@ class EstimateReport:
                 "fit_error_cm": num(self.fit_error_cm, 3), "fit_seconds": num(self.fit_seconds, 1),
                 "body_model": self.body_model,
                 "silhouette_inside_before": num(self.silhouette_inside_before, 4),
-                "silhouette_inside_after": num(self.silhouette_inside_after, 4)}
+                "silhouette_inside_after": num(self.silhouette_inside_after, 4),
+                "monocular": self.monocular, "height_m": num(self.height_m, 3), "height_prior": self.height_prior,
+                "ground": None if self.ground is None else [round(float(g), 4) for g in self.ground]}
 
 
 @dataclass(frozen=True)
@@ -227,3 +261,138 @@ def estimate_fits(det: Detections, cameras, body, fit_iters: int, fps: float,
                       silhouette_inside_after=fit.silhouette.inside_after)
     return EstimatedFits(fit.to_motion(kept, fps=fps), kept,
                          EstimateReport(**report, fit_error_cm=100 * err, fit_seconds=fit.seconds))
+
+
+def usable_frames(det: Detections) -> np.ndarray:
+    """[frames] bool: the first camera sees the person with `MIN_JOINTS` confident keypoints, 3 of them torso."""
+    from avatarctl.body.fit_keypoints import TORSO
+
+    conf = det.confidence[:, 0] >= MIN_CONFIDENCE  # [frames, joints]
+    torso = np.array([n in TORSO for n in det.names])
+    return (conf.sum(1) >= MIN_JOINTS) & (conf[:, torso].sum(1) >= 3)
+
+
+def several_people(read_view: Callable[[int], np.ndarray], det: Detections) -> int:
+    """How many of up to `PEOPLE_SAMPLES` frames with a person show a second one: the tracked person's mask
+    (dilated) is painted grey and a fresh, static MediaPipe Pose searches the image again; a second person counts
+    when its torso is confident, 80 % of its confident keypoints lie outside the painted region and it is at least
+    half as tall as the first."""
+    import cv2
+
+    from avatarctl.ingest.keypoints import PoseDetector
+
+    found = np.nonzero(det.found[:, 0])[0]
+    picks = found[np.unique(np.linspace(0, len(found) - 1, min(PEOPLE_SAMPLES, len(found))).round().astype(int))] \
+        if len(found) else []
+    hits = 0
+    torso = [det.names.index(n) for n in ("left_shoulder", "right_shoulder", "left_hip", "right_hip")]
+    with PoseDetector(masks=False, static=True) as again:
+        for fi in picks:
+            rgb = read_view(det.frames[fi]).copy()
+            m = det.mask(det.cams[0], det.frames[fi]) if det.masks else np.zeros(rgb.shape[:2], bool)
+            pts = det.keypoints[fi, 0][np.isfinite(det.keypoints[fi, 0]).all(-1)]
+            if not m.any():  # no mask: the keypoints' bounding box, padded
+                x0, y0 = pts.min(0) - 0.15 * np.ptp(pts, 0)
+                x1, y1 = pts.max(0) + 0.15 * np.ptp(pts, 0)
+                m[max(int(y0), 0):max(int(y1), 0), max(int(x0), 0):max(int(x1), 0)] = True
+            k = max(3, rgb.shape[0] // 40)
+            m = cv2.dilate(m.astype(np.uint8), np.ones((k, k), np.uint8)) > 0
+            rgb[m] = 127
+            d = again(rgb)
+            if not d.found or (d.confidence[torso] >= 0.7).sum() < 3:
+                continue
+            other = d.keypoints[d.confidence >= MIN_CONFIDENCE]
+            ij = np.clip(np.round(other).astype(int), 0, [m.shape[1] - 1, m.shape[0] - 1])
+            outside = ~m[ij[:, 1], ij[:, 0]]  # a phantom found in the painted-out person is no second person
+            if outside.mean() >= 0.8 and np.ptp(other[:, 1]) >= 0.5 * np.ptp(pts[:, 1]):
+                hits += 1
+    return hits if len(picks) and hits >= SECOND_PERSON_SHARE * len(picks) else 0
+
+
+def camera_shift_px(read_view: Callable[[int], np.ndarray], det: Detections) -> float:
+    """The largest shift (pixels) of the background between the first frame with a person and up to
+    `PEOPLE_SAMPLES` later ones: phase correlation (`cv2.phaseCorrelate`, Hann window) of the grey images with the
+    person (its dilated mask) filled by the background's mean. A static camera gives ~0; a pan or a walk does not."""
+    import cv2
+
+    found = np.nonzero(det.found[:, 0])[0]
+    if len(found) < 2 or not det.masks:
+        return 0.0
+    picks = found[np.unique(np.linspace(0, len(found) - 1, min(PEOPLE_SAMPLES + 1, len(found))).round().astype(int))]
+
+    def grey(fi: int) -> np.ndarray:
+        g = cv2.cvtColor(read_view(det.frames[fi]), cv2.COLOR_RGB2GRAY).astype(np.float32)
+        m = det.mask(det.cams[0], det.frames[fi]).astype(np.uint8)
+        k = max(3, g.shape[0] // 30)
+        m = cv2.dilate(m, np.ones((k, k), np.uint8)) > 0
+        g[m] = g[~m].mean() if (~m).any() else 0.0
+        return g
+
+    first = grey(picks[0])
+    window = cv2.createHanningWindow(first.shape[::-1], cv2.CV_32F)
+    return max(float(np.hypot(*cv2.phaseCorrelate(first, grey(fi), window)[0])) for fi in picks[1:])
+
+
+def check_monocular(det: Detections, read_view: Callable[[int], np.ndarray], where: str) -> np.ndarray:
+    """One-line errors for a video that cannot make an avatar (no person; the person out of frame, or too small,
+    in most frames; several people; a moving camera). Returns `usable_frames`."""
+    from avatarctl.errors import InputError
+
+    n = len(det.frames)
+    usable = usable_frames(det)
+    if not det.found.any():
+        raise InputError(f"no person found in the video ({n} frames searched)", where=where,
+                         fix="film one person, whole body in frame and at least ~100 px tall (docs/own_capture.md)")
+    if usable.sum() < MIN_IN_VIEW * n:
+        raise InputError(f"the person is out of frame (or too small) in most of the video: usable in "
+                         f"{int(usable.sum())} of {n} frames", where=where,
+                         fix="keep the whole body in frame all the time, or select the good part with --frames")
+    hits = several_people(read_view, det)
+    if hits:
+        raise InputError(f"several people in the video (a second person in {hits} of the frames checked)",
+                         where=where, fix="film one person alone, or crop the video to one person")
+    h, w = det.mask(det.cams[0], det.frames[int(np.argmax(det.found[:, 0]))]).shape
+    shift = camera_shift_px(read_view, det)
+    if shift > MAX_CAMERA_SHIFT * np.hypot(w, h):
+        raise InputError(f"the camera moves: the background shifts by {shift:.0f} px between frames", where=where,
+                         fix="put the phone on a tripod or lean it against something; only the person may move")
+    return usable
+
+
+def estimate_monocular(det: Detections, camera, body, fit_iters: int, fps: float, usable: np.ndarray,
+                       height_m: float | None = None, progress: ProgressFn | None = None,
+                       read_mask: ReadMask | None = None, silhouette_weight: float | None = None) -> EstimatedFits:
+    """Fit `body` to the 2D keypoints of ONE camera (`det.cams == [camera.name]`, pinhole `camera`) in the
+    `usable` frames; `height_m`: the subject's height (None: `DEFAULT_HEIGHT_M`). See the module docstring."""
+    from avatarctl.body.fit_keypoints import (ImageKeypointTargets, KeypointFitConfig, fit_keypoints,
+                                              keypoint_body)
+    from avatarctl.geometry.triangulate import projection_matrices
+    from avatarctl.ingest.keypoints import KEYPOINT_WEIGHTS
+
+    kept = [f for f, u in zip(det.frames, usable) if u]
+    rows = np.nonzero(usable)[0]
+    conf = det.confidence[rows]  # [kept, 1, joints]
+    w = np.where(conf >= MIN_CONFIDENCE, conf, 0.0) * KEYPOINT_WEIGHTS[None, None]
+    targets = ImageKeypointTargets(names=det.names, P=projection_matrices([camera]),
+                                   focal_px=np.array([(camera.K[0, 0] + camera.K[1, 1]) / 2]),
+                                   points=np.nan_to_num(det.keypoints[rows]), weight=w)
+    w_sil = MONO_SILHOUETTE_WEIGHT if silhouette_weight is None else float(silhouette_weight)
+    prior = ("given with --height" if height_m is not None else
+             f"default {DEFAULT_HEIGHT_M:.2f} m; pass --height")
+    height = DEFAULT_HEIGHT_M if height_m is None else float(height_m)
+    cfg = KeypointFitConfig(iters=fit_iters, w_silhouette=w_sil, height_m=height, w_ground=MONO_GROUND_WEIGHT,
+                            w_root_smooth=MONO_ROOT_SMOOTH, w_pose=MONO_POSE_WEIGHT)
+    sil = silhouette_targets([camera], det.cams, kept, read_mask) if read_mask is not None and w_sil > 0 else None
+    fit = fit_keypoints(keypoint_body(body, det.names), targets, cfg, silhouettes=sil, progress=progress)
+    n = len(det.frames)
+    report = EstimateReport(
+        frames_detected=int(det.found[:, 0].sum()), frames_total=n, views_with_person=float(det.found.mean()),
+        frames_skipped=[f for f, u in zip(det.frames, usable) if not u],
+        mean_reprojection_px=float(np.mean(fit.error_px)), views_rejected=float("nan"),
+        keypoints_triangulated=float("nan"), fit_error_cm=100 * float(np.mean(fit.error_m)),
+        fit_seconds=fit.seconds, body_model=body.name, monocular=True, height_m=fit.height_m,
+        height_prior=f"{height:.2f} m, {prior}",
+        ground=None if fit.ground is None else [float(g) for g in fit.ground],
+        silhouette_inside_before=fit.silhouette.inside_before if fit.silhouette else float("nan"),
+        silhouette_inside_after=fit.silhouette.inside_after if fit.silhouette else float("nan"))
+    return EstimatedFits(fit.to_motion(kept, fps=fps), kept, report)

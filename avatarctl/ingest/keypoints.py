@@ -12,12 +12,25 @@ stands in for the big toe, so its weight `KEYPOINT_WEIGHTS` is lower.
 
 Pixel convention: OpenCV (pixel centres at integer coordinates). MediaPipe's normalised x, y (0 = left / top
 edge, 1 = right / bottom edge) become ``x * W - 0.5``.
+
+MediaPipe's native code (TFLite, absl logging) prints warnings straight to the process's stderr (``W0000 …
+inference_feedback_manager.cc:114] …``, ``landmark_projection_calculator.cc``, "Created TensorFlow Lite XNNPACK
+delegate"), and no environment variable silences them in this build (GLOG_minloglevel, TF_CPP_MIN_LOG_LEVEL and
+ABSL_MIN_LOG_LEVEL were tried). `native_log_filter` therefore filters file descriptor 2 while a detector is open:
+absl INFO / WARNING lines and the two TFLite banners are dropped, everything else (absl ERROR / FATAL lines, Python
+output) is passed through at once.
 """
 
 from __future__ import annotations
 
+import os
+import re
+import sys
+import threading
+from contextlib import contextmanager
 from dataclasses import dataclass
 from types import ModuleType
+from typing import Iterator
 
 import numpy as np
 
@@ -35,6 +48,54 @@ KEYPOINT_WEIGHTS = np.array([0.5 if n.endswith("big_toe") else 1.0 for n in KEYP
 CAPTURE_FIX = "pip install 'avatarctl[capture]' (MediaPipe)"
 MASK_THRESHOLD = 0.5  # MediaPipe's segmentation probability above which a pixel is the person
 MIN_COMPONENT = 0.2  # mask components smaller than this fraction of the largest one are dropped
+
+
+NATIVE_NOISE = re.compile(rb"^(?:[IW]\d{4} \S+ +\d+ \S+:\d+\] |INFO: Created TensorFlow Lite |"
+                          rb"WARNING: All log messages before absl::InitializeLog\(\) is called)")
+_filter_lock = threading.Lock()
+_filter_depth = 0
+
+
+def _pump(read_fd: int, write_fd: int) -> None:
+    """Copy lines from `read_fd` to `write_fd`, dropping `NATIVE_NOISE`; closes `read_fd` at end of file."""
+    with os.fdopen(read_fd, "rb", buffering=0) as r:
+        pending = b""
+        while chunk := r.read(65536):
+            pending += chunk
+            *lines, pending = pending.split(b"\n")
+            for line in lines:
+                if not NATIVE_NOISE.match(line):
+                    os.write(write_fd, line + b"\n")
+        if pending and not NATIVE_NOISE.match(pending):
+            os.write(write_fd, pending)
+
+
+@contextmanager
+def native_log_filter() -> Iterator[None]:
+    """Filter the process's stderr (file descriptor 2) while the block runs (see the module docstring); re-entrant.
+    Python writes to `sys.stderr` pass through it too, unchanged."""
+    global _filter_depth
+    with _filter_lock:
+        _filter_depth += 1
+        start = _filter_depth == 1
+        if start:
+            sys.stderr.flush()
+            saved = os.dup(2)
+            r, w = os.pipe()
+            os.dup2(w, 2)
+            os.close(w)
+            pump = threading.Thread(target=_pump, args=(r, saved), daemon=True, name="mediapipe-log-filter")
+            pump.start()
+    try:
+        yield
+    finally:
+        with _filter_lock:
+            _filter_depth -= 1
+            if start:
+                sys.stderr.flush()
+                os.dup2(saved, 2)  # closes the pipe's last write end: the pump reads to the end and stops
+                pump.join(timeout=5)
+                os.close(saved)
 
 
 def require_mediapipe(why: str, alternative: str = "") -> ModuleType:
@@ -66,12 +127,18 @@ class PoseDetector:
 
     Use as a context manager; call with RGB uint8 [H, W, 3] images."""
 
-    def __init__(self, masks: bool = True, min_detection_confidence: float = 0.5):
+    def __init__(self, masks: bool = True, min_detection_confidence: float = 0.5, static: bool = False):
         mp = require_mediapipe("estimating keypoints or masks")
         self.masks = masks
-        self._pose = mp.solutions.pose.Pose(static_image_mode=False, model_complexity=1,
-                                            enable_segmentation=masks,
-                                            min_detection_confidence=min_detection_confidence)
+        self._quiet = native_log_filter()
+        self._quiet.__enter__()
+        try:
+            self._pose = mp.solutions.pose.Pose(static_image_mode=static, model_complexity=1,
+                                                enable_segmentation=masks,
+                                                min_detection_confidence=min_detection_confidence)
+        except BaseException:
+            self._quiet.__exit__(None, None, None)
+            raise
         self._index = np.array([MEDIAPIPE_INDEX[n] for n in KEYPOINT_NAMES])
 
     def __enter__(self) -> "PoseDetector":
@@ -81,7 +148,12 @@ class PoseDetector:
         self.close()
 
     def close(self) -> None:
-        self._pose.close()
+        if self._quiet is not None:
+            try:
+                self._pose.close()
+            finally:
+                self._quiet.__exit__(None, None, None)
+                self._quiet = None
 
     def __call__(self, rgb: np.ndarray) -> PersonDetection:
         H, W = rgb.shape[:2]

@@ -70,7 +70,17 @@ def read_capture(cfg: IngestConfig) -> tuple[CaptureSource, str]:
     """(source, how the format was chosen)."""
     from avatarctl.ingest.readers import reader_for
     from avatarctl.io.detect import detect_format
+    from avatarctl.io.monocular import is_monocular_source, read_monocular
 
+    if cfg.format == "video" or (cfg.format == "auto" and is_monocular_source(cfg.capture)):
+        if not cfg.capture.exists():
+            raise InputError("video not found", where=str(cfg.capture), fix="pass a video file or a folder of frames")
+        reason = "given with --format" if cfg.format == "video" else \
+            ("a video file" if cfg.capture.is_file() else "a folder of frames without calibration")
+        return read_monocular(cfg.capture, cfg.focal_px, cfg.fov_deg), reason + ": one static camera"
+    if cfg.focal_px is not None or cfg.fov_deg is not None:
+        raise InputError("--focal-px / --fov-deg are for one video; this capture has its calibration",
+                         where=str(cfg.capture), fix="drop the option (or pass a video file or a folder of frames)")
     if not cfg.capture.is_dir():
         raise InputError("capture folder not found", where=str(cfg.capture), fix="pass the folder of the capture")
     if cfg.format == "auto":
@@ -189,6 +199,16 @@ def plan_ingest(cfg: IngestConfig) -> IngestPlan:
                          fix="check the capture layout (docs/formats.md)")
     frames = select_frames(cfg.frames, available)
     check_complete(src.image_frames, cams, frames, "images", src.root)
+    if src.format == "video":
+        from avatarctl.ingest.estimate import MIN_VIDEO_FRAMES
+
+        if len(frames) < MIN_VIDEO_FRAMES:
+            raise InputError(f"video too short: {len(frames)} frames, an avatar needs at least {MIN_VIDEO_FRAMES} "
+                             "(2/3 train, 1/3 held out)", where=str(src.root),
+                             fix="film longer (a slow turn of ~10 s) or select more frames with --frames")
+    elif cfg.height_m is not None:
+        raise InputError("--height is for one video (the monocular fit's scale prior)", where=str(src.root),
+                         fix="drop --height")
     fits_mode = resolve_fits(cfg, src)
     masks_mode = resolve_masks(cfg, src, cams, frames)
     if fits_mode == "keypoints":
@@ -223,14 +243,14 @@ def run_ingest(cfg: IngestConfig, progress: ProgressFn | None = None) -> IngestR
     from avatarctl.ingest.split import default_split, restrict_split
     from avatarctl.ingest.undistort import Undistorter
     from avatarctl.io.project_io import save_cameras, save_split, write_frame, write_mask
-    from avatarctl.project import BodyModelRef, Project, SourceRef, hash_tree, now_iso
+    from avatarctl.project import BodyModelRef, Project, SourceRef, hash_tree, now_iso, sha256_file
 
     t0 = time.perf_counter()
     started = now_iso()
     plan = plan_ingest(cfg)
     src = plan.source
     cam_by_name = {c.name: c for c in src.cameras}
-    source_hash, n_files = hash_tree(src.root)
+    source_hash, n_files = (sha256_file(src.root), 1) if src.root.is_file() else hash_tree(src.root)
     und = {c: Undistorter.for_camera(cam_by_name[c], cfg.resize) for c in plan.cams}
     estimate = None
     if plan.fits_mode == "keypoints" or plan.masks_mode == "mediapipe":
@@ -238,7 +258,7 @@ def run_ingest(cfg: IngestConfig, progress: ProgressFn | None = None) -> IngestR
     cams, frames, motion = plan.cams, plan.frames, plan.motion
     plates = _undistorted_plates(src, und) if plan.masks_mode == "background" else {}
     split = restrict_split(src.split, frames, cams) if src.split is not None else default_split(frames, cams)
-    sheet_cams, sheet_frames = pick(cams, 4), pick(frames, 3)
+    sheet_cams, sheet_frames = pick(cams, 4), pick(frames, 6 if len(cams) == 1 else 3)
     tiles: list[Tile] = []
     inside: list[float] = []
     bm_path = str(cfg.body_model_path.resolve()) if cfg.body_model_path and needs_model_file(plan.body_model) else None
@@ -284,6 +304,11 @@ def run_ingest(cfg: IngestConfig, progress: ProgressFn | None = None) -> IngestR
                    "fits": plan.fits_mode}
         if estimate is not None:
             summary["estimate"] = estimate.to_json()
+        if src.format == "video":
+            K = cameras_out[0].K
+            summary["camera"] = {"focal_px": round(float(K[0, 0]), 2), "intrinsics": src.notes[0],
+                                 "world": "the camera's frame (OpenCV: +x right, +y down, +z forward; camera at the "
+                                          "origin; up is -y for a level phone)"}
         config = cfg.to_json() | {"resolved": {"format": src.format, "body_model": plan.body_model,
                                                "masks": plan.masks_mode, "fits": plan.fits_mode,
                                                "frames": len(frames), "views": cams}}
@@ -317,9 +342,19 @@ def _estimate(cfg: IngestConfig, plan: IngestPlan, und: dict, progress: Progress
     # the silhouette term's masks: the capture's mask files, else MediaPipe's (also with background plates: the
     # plate matting needs the fitted body as its seed)
     det = detect_people(read_view, cams, frames, progress=progress,
-                        masks=plan.masks_mode == "mediapipe" or (silhouette and plan.masks_mode == "background"))
+                        masks=plan.masks_mode == "mediapipe" or (silhouette and plan.masks_mode == "background")
+                        or src.format == "video")
     motion, kept = plan.motion, list(frames)
-    if plan.fits_mode == "keypoints":
+    if src.format == "video" and plan.fits_mode == "keypoints":
+        from avatarctl.ingest.estimate import check_monocular, estimate_monocular
+
+        usable = check_monocular(det, lambda f: read_view(cams[0], f), str(src.root))
+        est = estimate_monocular(det, und[cams[0]].target, plan.body, cfg.keypoint_fit_iters, src.fps or 30.0,
+                                 usable, cfg.height_m, progress,
+                                 read_mask=(lambda c, f: det.mask(c, f)) if plan.masks_mode == "mediapipe" else None,
+                                 silhouette_weight=cfg.keypoint_silhouette)
+        report, motion, kept = est.report, est.motion, est.kept
+    elif plan.fits_mode == "keypoints":
         def read_mask(c: str, f: int) -> np.ndarray:
             if plan.masks_mode == "files":
                 m = src.masks.read(c, f)

@@ -6,6 +6,8 @@ thuman4                   ``calibration.json``
 peoplesnapshot            ``camera.pkl`` (and ``masks.hdf5``)
 easymocap                 ``intri.yml`` + ``extri.yml`` (also what ``avatarctl synth`` writes)
 colmap                    ``sparse/0/cameras.bin|txt``, ``sparse/cameras.*`` or ``cameras.*``
+video                     a video file, or a folder of image files with no calibration (checked first;
+                          ``avatarctl.io.monocular``: one static camera)
 ========================  =====================================================================
 """
 
@@ -20,7 +22,12 @@ FORMATS = ("easymocap", "zju", "thuman4", "peoplesnapshot", "colmap")
 
 def detect_format(root: str | Path) -> tuple[str, str]:
     """(format, reason) for the capture folder `root`; InputError if it is not a known layout."""
+    from avatarctl.io.monocular import is_monocular_source
+
     root = Path(root)
+    if is_monocular_source(root):
+        return "video", ("a video file" if root.is_file() else "a folder of frames without calibration") + \
+            ": one static camera"
     if not root.is_dir():
         raise InputError("capture folder not found", where=str(root), fix="pass the folder that holds the capture")
     if (root / "annots.npy").is_file():

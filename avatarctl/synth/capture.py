@@ -19,6 +19,14 @@ Layout written (see docs/formats.md)::
     OUT/gt/geometry.npz                 per-frame body and skirt vertices, faces, skirt grid parameters
     OUT/capture.json                    generator version, config, seed, timings, statistics
     OUT/contact_sheet.png               a few frames x views for a person to look at
+
+With `layout = "video"` (the `phone` preset: what one phone gives a user) OUT holds only::
+
+    OUT/video.mp4                       the first camera's frames (H.264, undistorted lens, frame rate
+                                        sim_fps / stride), its 35 mm-equivalent focal length in the metadata tag
+                                        `FOCAL_35MM_TAG` (as an iPhone writes it)
+    OUT/gt/capture/                     the truth: the same render as the EasyMocap capture above (every camera,
+                                        calibration, masks, plates, exact fits, split, gt/geometry.npz)
 """
 
 from __future__ import annotations
@@ -38,6 +46,10 @@ from avatarctl.progress import ProgressFn, ProgressReport
 from avatarctl.synth.config import GENERATOR_VERSION, SynthConfig
 from avatarctl.synth.motion import PHENOTYPE_LABELS, ProceduralMotion, make_motion
 
+VIDEO_FILE = "video.mp4"  # layout "video": the one file a user has
+GT_CAPTURE = Path("gt") / "capture"  # layout "video": the truth, as an EasyMocap capture
+FOCAL_35MM_TAG = "com.apple.quicktime.camera.focal_length.35mm_equivalent"  # the focal length phones record
+FULL_FRAME_DIAGONAL_MM = 43.27  # diagonal of a 36 x 24 mm frame: f_35mm / 43.27 = f_px / image diagonal (px)
 
 
 @dataclass(frozen=True)
@@ -54,6 +66,11 @@ class SynthResult:
     hem_pair: dict | None  # two training frames with near-identical body pose and different hem
     max_penetrating_particles: int  # skirt particles > 2 mm inside the body, worst simulated frame
     hem_radius_range: tuple[float, float] = field(default=(0.0, 0.0))  # metres, over written frames
+
+    @property
+    def sheet(self) -> Path:
+        """The contact sheet (under gt/capture/ for the video layout)."""
+        return (self.out / GT_CAPTURE if (self.out / VIDEO_FILE).is_file() else self.out) / "contact_sheet.png"
 
 
 @dataclass(frozen=True)
@@ -85,9 +102,10 @@ def load_scene(out: Path) -> Scene:
 
 
 def make_cameras(config: SynthConfig, target_z: float) -> list[Camera]:
-    """`config.views` cameras on a ring around the origin, jittered by the seed, with k1/k2 lens distortion."""
+    """`config.views` cameras on a ring around the origin, jittered by the seed, with k1/k2 lens distortion (none for
+    the video layout: a phone corrects its lens in the video)."""
     rng = np.random.default_rng([config.seed, 4])
-    n, size = config.views, config.size
+    n, size, width = config.views, config.size, config.image_width
     cams = []
     for i in range(n):
         az = 2 * np.pi * i / n + rng.uniform(-0.25, 0.25) * 2 * np.pi / n - np.pi / 2  # cam00 in front (-y)
@@ -97,12 +115,14 @@ def make_cameras(config: SynthConfig, target_z: float) -> list[Camera]:
         R, T = look_at(eye, target)
         half_extent = 1.0  # metres visible above and below the target at the camera distance
         f = (size / 2) * np.linalg.norm(eye - target) / half_extent * rng.uniform(0.97, 1.03)
-        cx = (size - 1) / 2 + rng.uniform(-0.02, 0.02) * size
+        cx = (width - 1) / 2 + rng.uniform(-0.02, 0.02) * width
         cy = (size - 1) / 2 + rng.uniform(-0.02, 0.02) * size
         K = np.array([[f, 0, cx], [0, f * rng.uniform(0.995, 1.005), cy], [0, 0, 1]])
         k1 = rng.choice([-1.0, 1.0]) * rng.uniform(0.12, 0.3)  # ~1-5 px at the image corners at 96 px
         k2 = rng.uniform(-0.05, 0.05)
-        cams.append(Camera(name=f"cam{i:02d}", K=K, R=R, T=T, width=size, height=size,
+        if config.layout == "video":
+            k1 = k2 = 0.0
+        cams.append(Camera(name=f"cam{i:02d}", K=K, R=R, T=T, width=width, height=size,
                            dist=np.array([k1, k2, 0.0, 0.0, 0.0])))
     return cams
 
@@ -376,8 +396,10 @@ def synthesize(out: Path, config: SynthConfig, progress: ProgressFn | None = Non
         hem_radius = np.linalg.norm(hem[..., :2] - centre[:, None, :2], axis=-1).mean(1)  # [frames]
         hem_pair = _hem_pair(scene.body_vertices, hem, train_frames) if len(train_frames) > 1 else None
 
-    with atomic_dir(out) as tmp:
+    with atomic_dir(out) as root:
         t0 = time.perf_counter()
+        tmp = root / GT_CAPTURE if config.layout == "video" else root
+        video = _VideoWriter(root / VIDEO_FILE, cameras[0], motion.fps) if config.layout == "video" else None
         write_easymocap_cameras(tmp, cameras)
         renderer = SceneRenderer(scene, cameras, config.supersample, config.seed)
         jpeg = [int(cv2.IMWRITE_JPEG_QUALITY), config.jpeg_quality]
@@ -396,8 +418,12 @@ def synthesize(out: Path, config: SynthConfig, progress: ProgressFn | None = Non
                 write_image(tmp / "masks" / names[c] / f"{k:06d}.png", np.where(cov >= 0.5, 255, 0).astype(np.uint8))
                 if k in sheet_frames:
                     sheet_tiles[(k, c)] = u8
+                if video is not None and c == 0:
+                    video.send(u8)
             if progress:
                 progress(ProgressReport(done=k + 1, total=len(frames), part="render"))
+        if video is not None:
+            video.close()
         stats["render_s"] = time.perf_counter() - t0
 
         t0 = time.perf_counter()
@@ -452,6 +478,27 @@ def synthesize(out: Path, config: SynthConfig, progress: ProgressFn | None = Non
                        train_views=train_views, test_views=test_views, timings=timings, hem_pair=hem_pair,
                        max_penetrating_particles=int(stats["max_penetrating_particles"]),
                        hem_radius_range=(float(hem_radius.min()), float(hem_radius.max())))
+
+
+class _VideoWriter:
+    """The `layout = "video"` file: H.264 frames of one camera, its 35 mm-equivalent focal length in the metadata
+    (`FOCAL_35MM_TAG`; 35 mm-equivalent focal = focal_px x 43.27 mm / image diagonal in px)."""
+
+    def __init__(self, path: Path, cam: Camera, fps: float):
+        import imageio_ffmpeg
+
+        f35 = float(cam.K[0, 0]) * FULL_FRAME_DIAGONAL_MM / float(np.hypot(cam.width, cam.height))
+        self._gen = imageio_ffmpeg.write_frames(
+            str(path), (cam.width, cam.height), fps=fps, quality=9, macro_block_size=1,
+            output_params=["-metadata", f"{FOCAL_35MM_TAG}={f35:.2f}", "-movflags", "use_metadata_tags"])
+        self._gen.send(None)
+
+    def send(self, rgb: np.ndarray) -> None:
+        """One RGB uint8 [H, W, 3] frame."""
+        self._gen.send(np.ascontiguousarray(rgb))
+
+    def close(self) -> None:
+        self._gen.close()
 
 
 def _sheet_frames(config: SynthConfig, hem_radius: np.ndarray, hem_pair: dict | None) -> list[int]:

@@ -9,6 +9,9 @@ Settings of the paper's other experiments (`avatarctl reproduce`, docs/reproduce
   place through 360 degrees with the arms in an A-pose, no skirt; cam01..cam03 (90, 180, 270 degrees around) are
   evaluation-only cameras (`split.json` test views: ingest/fit never train on them); the test frames turn on with
   the arms lowered and the elbows and knees bent (held-out poses).
+- `phone` (issue 31: what a user films with one phone): the `monocular` scene through a portrait camera (288 x 512
+  px, no lens distortion) written as ONE video file, `OUT/video.mp4`, with no calibration, masks or fits beside it;
+  the truth goes under `OUT/gt/` (`layout = "video"`, see `avatarctl.synth.capture`).
 - `tight` (ZJU-MoCap-like, Tab. 2): the tiny choreography and cameras without the skirt (tight clothing); the
   every-third rule leaves 4 training views, as the paper's 4-view ZJU-MoCap protocol.
 """
@@ -37,10 +40,14 @@ _PRESETS: dict[str, dict[str, Any]] = {
     # the paper's other settings at tiny sizes (CPU minutes)
     "monocular": dict(views=4, train_views=1, motion="turn", garment="none", train_frames=24, test_frames=8,
                       size=96, stride=5, supersample=2),
+    # one phone video (portrait, phone-like size), the truth under gt/ (issue 31)
+    "phone": dict(views=4, train_views=1, motion="turn", garment="none", train_frames=40, test_frames=12,
+                  size=512, width=288, stride=3, supersample=2, layout="video"),
     "tight": dict(views=6, garment="none", train_frames=24, test_frames=12, size=96, stride=5, supersample=2),
 }
 MOTIONS = ("choreography", "turn")
 GARMENTS = ("skirt", "none")
+LAYOUTS = ("easymocap", "video")
 PRESETS = tuple(_PRESETS)
 
 
@@ -59,7 +66,9 @@ class SynthConfig:
     test_frames: int = 12
     """Written frames of the novel-pose test segment (march, arm poses, opposite twirl)."""
     size: int = 96
-    """Image width and height in pixels."""
+    """Image height in pixels (and the width, unless `width` is set)."""
+    width: int = 0
+    """Image width in pixels; 0: square images (`size`)."""
     stride: int = 4
     """Write every `stride`-th simulated frame (the simulation always runs at `sim_fps`)."""
     supersample: int = 2
@@ -96,6 +105,10 @@ class SynthConfig:
     knees (test)."""
     garment: str = "skirt"
     """skirt: the simulated loose skirt; none: tight clothing (body only, no cloth simulation)."""
+    layout: str = "easymocap"
+    """easymocap: the capture folder (calibration, images, masks, plates, fits); video: only `OUT/video.mp4` (the
+    first camera, undistorted, its 35 mm-equivalent focal length in the file's metadata, as phones write it) and
+    the truth under `OUT/gt/` (`gt/capture/`: the same render as an EasyMocap capture, every camera)."""
     train_views: int = 0
     """0: every third camera (cam01, cam04, ...) is held out, the rest train; k > 0: cam00 .. cam(k-1) train and
     every other camera is evaluation-only (split.json test views)."""
@@ -105,6 +118,8 @@ class SynthConfig:
             (self.views >= 2, "views must be >= 2"),
             (self.train_frames >= 1 and self.test_frames >= 1, "train_frames and test_frames must be >= 1"),
             (16 <= self.size <= 4096, "size must be in [16, 4096]"),
+            (self.width == 0 or 16 <= self.width <= 4096, "width must be 0 (square) or in [16, 4096]"),
+            (self.layout in LAYOUTS, f"layout must be one of {', '.join(LAYOUTS)}"),
             (self.stride >= 1, "stride must be >= 1"),
             (1 <= self.supersample <= 4, "supersample must be in [1, 4]"),
             (self.sim_fps > 0, "sim_fps must be > 0"),
@@ -127,7 +142,7 @@ class SynthConfig:
 
     @classmethod
     def preset(cls, name: str, seed: int = 0, **overrides: Any) -> "SynthConfig":
-        """The named preset (`micro`, `tiny`, `small`, `standard`, `monocular`, `tight`) with optional field
+        """The named preset (`micro`, `tiny`, `small`, `standard`, `monocular`, `phone`, `tight`) with optional field
         overrides."""
         if name not in _PRESETS:
             raise InputError(f"unknown synth preset {name!r}", fix=f"use one of {', '.join(PRESETS)}")
@@ -136,6 +151,11 @@ class SynthConfig:
         if bad:
             raise InputError(f"unknown synth config fields {bad}", fix=f"use fields of SynthConfig: {sorted(known)}")
         return replace(cls(preset=name, seed=seed, **_PRESETS[name]), **overrides)
+
+    @property
+    def image_width(self) -> int:
+        """Image width in pixels (`width`, or `size` for square images)."""
+        return self.width or self.size
 
     @property
     def frames(self) -> int:

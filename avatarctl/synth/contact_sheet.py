@@ -26,12 +26,13 @@ def contact_sheet(path: Path, tiles: dict[tuple[int, int], np.ndarray], frames: 
         seg = "train" if f < config.train_frames else "test"
         cells = []
         for c in views:
+            tile_w = max(1, round(TILE * config.image_width / config.size))
             img = tiles.get((f, c))
             if img is None:
-                img = np.zeros((TILE, TILE, 3), np.uint8)
-            img = cv2.resize(img, (TILE, TILE), interpolation=cv2.INTER_AREA if img.shape[0] > TILE
+                img = np.zeros((TILE, tile_w, 3), np.uint8)
+            img = cv2.resize(img, (tile_w, TILE), interpolation=cv2.INTER_AREA if img.shape[0] > TILE
                              else cv2.INTER_NEAREST)
-            cell = np.full((TILE + label_h, TILE, 3), 255, np.uint8)
+            cell = np.full((TILE + label_h, tile_w, 3), 255, np.uint8)
             cell[label_h:] = img
             cv2.putText(cell, f"f{f:04d} {seg} {names[c]} hem {hem_radius[f]:.2f}m", (3, 13),
                         cv2.FONT_HERSHEY_SIMPLEX, 0.36, (0, 0, 0), 1, cv2.LINE_AA)
