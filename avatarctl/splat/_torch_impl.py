@@ -4,7 +4,8 @@
 
     d = p - mean2d,   power = -0.5 (a dx^2 + c dy^2) - b dx dy           (skipped where power > 0)
     alpha = min(ALPHA_MAX, o exp(power))                              (skipped where alpha < ALPHA_MIN)
-    a splat only touches the pixels of its footprint (project.footprint: mean +- radius)
+    a splat only touches the pixels of its footprint (project.footprint: mean +- radius), within its window
+    (`Projected.bounds`) where several images share one canvas
     T_0 = 1;  a splat whose T (1 - alpha) would fall below T_MIN ends the pixel and is NOT added;
     otherwise C += T alpha c,  T *= 1 - alpha
     rgb = C + T_final background,   alpha = 1 - T_final
@@ -16,7 +17,7 @@ from __future__ import annotations
 
 import torch
 
-from avatarctl.splat.project import Projected, footprint
+from avatarctl.splat.project import Projected, footprint, within_bounds
 
 TILE = 16  # px, the side of a screen tile (binning and the kernels' unit of work)
 ALPHA_MIN = 1.0 / 255.0  # a splat fainter than this at a pixel is skipped there
@@ -44,7 +45,7 @@ def rasterize_torch(proj: Projected, colors: torch.Tensor,  # [G, C]
     power = torch.where(power <= 0, power, torch.full_like(power, -torch.inf))
     alpha = torch.clamp(opacities[order] * torch.exp(power), max=ALPHA_MAX)  # [P, visible]
     if cutoffs:
-        box = footprint(proj.means2d, proj.radii, width, height)[order]  # [visible, 4]
+        box = within_bounds(footprint(proj.means2d, proj.radii, width, height), proj)[order]  # [visible, 4]
         inside = (px >= box[:, 0]) & (px <= box[:, 2]) & (py >= box[:, 1]) & (py <= box[:, 3])
         alpha = torch.where(inside & (alpha >= ALPHA_MIN), alpha, torch.zeros_like(alpha))
         with torch.no_grad():

@@ -59,6 +59,13 @@ def footprint(means2d: torch.Tensor, radii: torch.Tensor, width, height) -> torc
     return box.to(torch.int32)
 
 
+def within_bounds(box: torch.Tensor, proj: Projected) -> torch.Tensor:
+    """[G, 4] int32 pixel boxes cut to each splat's window `proj.bounds` (unchanged where it is None)."""
+    if proj.bounds is None:
+        return box
+    return torch.cat([torch.maximum(box[:, :2], proj.bounds[:, :2]), torch.minimum(box[:, 2:], proj.bounds[:, 2:])], -1)
+
+
 def project_gaussians(means: torch.Tensor,  # [G, 3] world, metres
                       covars: torch.Tensor,  # [G, 3, 3] world covariance, metres^2 (symmetric PSD)
                       cam: SplatCamera, near: float = 0.01) -> Projected:

@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import torch
 
 from avatarctl.splat._torch_impl import ALPHA_MIN, TILE, rasterize_torch
-from avatarctl.splat.project import Projected, footprint
+from avatarctl.splat.project import Projected, footprint, within_bounds
 
 BACKENDS = ("auto", "warp", "warp_tile", "warp_pixel", "torch")
 
@@ -57,10 +57,7 @@ def reach(proj: Projected, opacities: torch.Tensor, width: int, height: int) -> 
     tight = torch.cat([torch.maximum(box[:, :2], lo), torch.minimum(box[:, 2:], hi)], -1)
     tight = torch.where(ok[:, None], tight, box)
     tight = torch.where((r2 > 0)[:, None], tight, torch.tensor([0, 0, -1, -1], dtype=torch.int32, device=box.device))
-    if proj.bounds is None:
-        return tight
-    return torch.cat([torch.maximum(tight[:, :2], proj.bounds[:, :2]), torch.minimum(tight[:, 2:], proj.bounds[:, 2:])],
-                     -1)
+    return within_bounds(tight, proj)
 
 
 def bin_gaussians(proj: Projected, opacities: torch.Tensor, width: int, height: int) -> TileBins:
@@ -159,15 +156,11 @@ def rasterize_batch(proj: Projected,  # fields with a leading [B]: `project.proj
     canvas (each starting on a tile row, so no tile holds two), every splat confined to its image's window
     (`Projected.bounds`), then binned and composited by one `rasterize`. The same images as B `rasterize` calls up to
     the float rounding of the shifted pixel rows; one set of launches and synchronisations instead of B (what bounds
-    small images on a GPU). backend "torch": B calls of the dense twin."""
+    small images on a GPU)."""
     B, G = proj.means2d.shape[:2]
     assert len(sizes) == B and colors.shape[:2] == (B, G) and opacities.shape == (B, G), \
         f"rasterize_batch: {len(sizes)} sizes, colors {list(colors.shape)}, opacities {list(opacities.shape)} for " \
         f"means2d {list(proj.means2d.shape)}"
-    if backend == "torch":
-        return [rasterize(Projected(means2d=proj.means2d[b], conics=proj.conics[b], depths=proj.depths[b],
-                                    radii=proj.radii[b]), colors[b], opacities[b], w, h, background, backend)
-                for b, (w, h) in enumerate(sizes)]
     tops = [0]
     for _, h in sizes:
         tops.append(tops[-1] + -(-int(h) // TILE) * TILE)
