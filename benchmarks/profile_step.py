@@ -1,19 +1,31 @@
 """Profile training steps of the fit loop (torch profiler table, ms per step) on an ingested project.
 
-    OMP_NUM_THREADS=1 python -m benchmarks.profile_step PROJECT [key=value ...]   (fit `--set` overrides)
+    OMP_NUM_THREADS=1 python -m benchmarks.profile_step PROJECT [key=value ...] [--preset cpu] [--warmup 30]
+        [--steps 10] [--rows 25]
 
-Builds the same pieces as `avatarctl fit` (pose table, frame store, the ray or image sampler in `Replicas`, model,
-Adam with its param groups), runs 30 warm-up steps, then profiles 10. Works for every field (`model.field=gaussians`
-trains on image crops).
+`key=value` are fit `--set` overrides. Builds the same pieces as `avatarctl fit` (the preset's config with
+`model.pose_refine.enabled = auto` decided from the capture as the fit decides it, pose table, frame store, the ray
+or image sampler in `Replicas`, model, Adam with its param groups), runs `--warmup` steps, then profiles `--steps`.
+Works for every field (`model.field=gaussians` trains on image crops). Hull nodes are not placed (the survey is
+the fit's set-up, not its step): the nodes all start on the surface, which does not change a step's cost.
 """
 
 from __future__ import annotations
 
-import sys
+import argparse
 import time
+from dataclasses import dataclass
 
 
-def main(argv: list[str] | None = None) -> None:
+@dataclass(frozen=True)
+class StepProfile:
+    ms_per_step: float  # wall time of one profiled step (the profiler's overhead included)
+    stats: dict[str, float]  # the step's own counters (images, Gaussians, pixels or rays)
+    table: str  # torch profiler: ops by self CPU time
+
+
+def profile_steps(project_dir: str, overrides: list[str], preset: str = "cpu", warmup: int = 30, steps: int = 10,
+                  rows: int = 25) -> StepProfile:
     import torch
     from torch.profiler import ProfilerActivity, profile
 
@@ -22,14 +34,15 @@ def main(argv: list[str] | None = None) -> None:
     from avatarctl.fit.config import MASK_DILATE_PX, resolve_fit_config
     from avatarctl.fit.data import FrameStore, ImageSampler, RaySampler
     from avatarctl.fit.distributed import Replicas
+    from avatarctl.fit.loop import decide_auto
     from avatarctl.fit.schedule import make_optimizer, param_groups
     from avatarctl.io.project_io import load_project_capture
     from avatarctl.model.avatar import SlrfAvatar
     from avatarctl.project import Project
 
-    argv = sys.argv[1:] if argv is None else argv
-    cfg = resolve_fit_config("cpu", overrides=argv[1:])
-    cap = load_project_capture(Project.open(argv[0]))
+    project = Project.open(project_dir)
+    cfg = decide_auto(resolve_fit_config(preset, overrides=overrides), project)
+    cap = load_project_capture(project)
     frames = sorted(int(f) for f in cap.split.train_frames)
     body = load_body_model(cap.body_model, cap.body_model_path)
     poses = build_pose_table(body, cap.motion, frames)
@@ -51,15 +64,30 @@ def main(argv: list[str] | None = None) -> None:
         opt.step()
         return out
 
-    for _ in range(30):
+    for _ in range(warmup):
         step()
     with profile(activities=[ProfilerActivity.CPU]) as prof:
         t0 = time.perf_counter()
-        for _ in range(10):
+        for _ in range(steps):
             out = step()
-        dt = (time.perf_counter() - t0) / 10
-    print(f"{dt * 1e3:.1f} ms/step (profiled)", out.stats)
-    print(prof.key_averages().table(sort_by="self_cpu_time_total", row_limit=25))
+        dt = (time.perf_counter() - t0) / steps
+    table = prof.key_averages().table(sort_by="self_cpu_time_total", row_limit=rows)
+    return StepProfile(ms_per_step=dt * 1e3, stats=dict(out.stats), table=table)
+
+
+def main(argv: list[str] | None = None) -> StepProfile:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("project")
+    ap.add_argument("overrides", nargs="*", help="fit --set overrides, key=value")
+    ap.add_argument("--preset", default="cpu")
+    ap.add_argument("--warmup", type=int, default=30)
+    ap.add_argument("--steps", type=int, default=10)
+    ap.add_argument("--rows", type=int, default=25)
+    a = ap.parse_args(argv)
+    res = profile_steps(a.project, a.overrides, a.preset, a.warmup, a.steps, a.rows)
+    print(f"{res.ms_per_step:.1f} ms/step (profiled)", res.stats)
+    print(res.table)
+    return res
 
 
 if __name__ == "__main__":
