@@ -9,8 +9,7 @@ no network), shared by every page that draws Gaussians (`export --format player`
   image is drawn at `movingScale` of the canvas' pixels per side (then upscaled by the browser), and `settling`
   turns true once a full-resolution redraw is due (the page then calls `draw` again).
 - `OrbitControls(canvas, camera, onChange)`: drag to orbit about `camera.target` around `camera.up`, wheel to zoom;
-  `orbitView(camera)` -> the `view` of an orbit camera {target, up, az, el, radius, fov}; `orbitFromEye(eye,
-  target, up, fov)` starts one at a given camera.
+  `orbitView(camera)` -> the `view` of an orbit camera {target, up, az, el, radius, fov}.
 
 Drawing (the 3DGS splat equations, as `splat.project` / `splat.rasterizer`): per Gaussian its camera-space centre p
 and covariance W Sigma W^T; the 2D covariance J W Sigma W^T J^T + 0.3 I (J the Jacobian of the pinhole projection at
@@ -166,7 +165,6 @@ class SplatRenderer {
 
 const vnorm = v => { const l = Math.hypot(...v) || 1; return v.map(x => x / l); };
 const vcross = (a, b) => [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]];
-const vdot = (a, b) => a[0] * b[0] + a[1] * b[1] + a[2] * b[2];
 
 function orbitBasis(up) {  // two unit vectors orthogonal to `up`: azimuth 0 and pi/2
   const e1 = vnorm(vcross(up, Math.abs(up[0]) < 0.9 ? [1, 0, 0] : [0, 1, 0]));
@@ -180,13 +178,6 @@ function orbitView(cam) {  // {target, up, az, el, radius, fov} -> {eye, right, 
   const eye = cam.target.map((x, k) => x + cam.radius * dir[k]);
   const fwd = dir.map(x => -x), right = vnorm(vcross(fwd, up)), down = vcross(fwd, right);
   return {eye, right, down, fwd, fov: cam.fov};
-}
-
-function orbitFromEye(eye, target, up, fov) {  // the orbit camera that sits at `eye` looking at `target`
-  up = vnorm(up); const [e1, e2] = orbitBasis(up);
-  const off = eye.map((x, k) => x - target[k]), radius = Math.hypot(...off) || 1, dir = off.map(x => x / radius);
-  const el = Math.asin(Math.max(-1, Math.min(1, vdot(dir, up))));
-  return {target: [...target], up, az: Math.atan2(vdot(dir, e2), vdot(dir, e1)), el, radius, fov};
 }
 
 function OrbitControls(canvas, cam, onChange) {  // drag: orbit; wheel: zoom; onChange() after each change
