@@ -2,18 +2,27 @@
 
 Starts `avatarctl view`'s server in this process (`stages.view.prepare` + `viewer.server.ViewerServer`), opens the
 page, and measures in the browser, with a probe injected into the page (a `requestAnimationFrame` loop that counts
-animation frames and, when sampling, draws the WebGL canvas into a 24x18 canvas and notes the wall time whenever it
-changes):
-- **orbit fps**: animation frames per second while the mouse drags the orbit camera (Chromium input events; the
-  canvas is checked to change during the drag, so the frames are really drawn);
+animation frames and the frames in which the page issued WebGL draw calls, and, when sampling, draws the WebGL canvas
+into a 24x18 canvas and notes the wall time whenever it changes):
+- **orbit fps**: animation frames per second while the mouse drags the orbit camera (Chromium input events), with
+  sampling off (reading the canvas back costs SwiftShader frames); beside it the frames that drew, the browser's CPU
+  time per drawn frame (all of Chromium's processes, from /proc: the figure least moved by other jobs on a shared
+  machine; 1000 / it is the fps of one free core) and the mean change of one screenshot before and one after the
+  drag (> 0: the view really turned);
 - **frame-change latency**: wall time from setting the frame slider on the server to the first animation frame
   whose canvas differs (posing, sending, the page's sort and draw; same clock, one machine);
 - **playback fps**: distinct canvas images per second while "play" runs (the frames of motion actually shown), and
   the server's pushes per second;
 - **memory**: the peak resident memory of this process (the viewer's: model, caches, server), from /proc;
-- **second tab**: a second page of the same browser shows the avatar too.
+- **second tab**: a second page of the same browser shows the avatar too;
+- the 1-minute load average at the start of each measurement.
+
+With `--player FILE` (an `export --format player` page) the same browser also measures that page, alternating with
+the viewer's page `--repeats` times (paired figures on a shared machine): orbit as above, and frame change as the
+wall time from moving the page's slider to the first changed canvas.
 
     python -m benchmarks.viewer_page PROJECT [--seconds 5] [--size 640 480] [--out figures.json] [--shots DIR]
+                                     [--player player.html] [--repeats 2]
 
 Needs viser and Chromium (`apt-get install -y chromium`). Run it with `nice -n 19` on a shared machine.
 """
@@ -22,6 +31,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -32,7 +42,12 @@ import numpy as np
 PROBE = """
 (() => {
   if (window.__probe) return true;
-  const p = {frames: 0, changes: [], sig: null, sample: false};
+  const p = {frames: 0, drawn: 0, draws: 0, seen: 0, changes: [], sig: null, sample: false};
+  for (const P of [WebGL2RenderingContext.prototype, WebGLRenderingContext.prototype])
+    for (const m of ['drawArrays', 'drawElements', 'drawArraysInstanced', 'drawElementsInstanced']) {
+      const f = P[m];
+      P[m] = function (...a) { p.draws++; return f.apply(this, a); };
+    }
   const small = document.createElement('canvas'); small.width = 24; small.height = 18;
   const ctx = small.getContext('2d', {willReadFrequently: true});
   function gl() {
@@ -43,6 +58,7 @@ PROBE = """
   }
   function tick() {
     p.frames++;
+    if (p.draws !== p.seen) { p.drawn++; p.seen = p.draws; }
     const c = gl();
     if (p.sample && c && c.width > 0) {
       ctx.drawImage(c, 0, 0, 24, 18);
@@ -61,10 +77,19 @@ PROBE = """
 
 
 @dataclass
+class OrbitFigures:
+    fps: float  # animation frames per second during the drag (no canvas sampling)
+    drawn_fps: float  # animation frames per second in which the page issued WebGL draw calls
+    cpu_ms_per_frame: float  # CPU time of all Chromium processes per drawn frame
+    image_change: float  # mean |difference| of the canvas, one screenshot before and one after the drag (0..255)
+    load_average: float  # 1-minute load average when the drag started
+
+
+@dataclass
 class PageFigures:
     gaussians: int  # Gaussians sent per frame
-    orbit_fps: float  # animation frames per second during the drag
-    orbit_distinct_images: int  # distinct canvas images seen during a sampled drag (> 1: the view really turns)
+    load_average: float  # 1-minute load average at the start
+    orbit: OrbitFigures
     idle_changes_per_s: float  # canvas changes per second with nothing happening (0: the latency probe is clean)
     frame_change_ms: list[float]  # per frame change, slider set -> canvas changed
     playback_fps_page: float  # distinct canvas images per second while playing
@@ -73,6 +98,40 @@ class PageFigures:
     peak_rss_mb: float
     second_tab_drawn: bool
     splat_seconds: float  # posing + arrays of one uncached frame on the server
+
+
+@dataclass
+class PlayerFigures:
+    load_average: float
+    orbit: OrbitFigures
+    frame_change_ms: list[float]  # per slider move in the page -> canvas changed
+
+
+def browser_cpu_seconds(tab: Any) -> float:
+    """User + system CPU seconds of the browser's process and all its descendants (/proc)."""
+    root = getattr(tab, "browser", tab).proc.pid
+    pids, todo = [root], [root]
+    while todo:
+        pid = todo.pop()
+        try:
+            for task in os.listdir(f"/proc/{pid}/task"):
+                kids = [int(c) for c in Path(f"/proc/{pid}/task/{task}/children").read_text().split()]
+                pids += kids
+                todo += kids
+        except OSError:  # a process that ended meanwhile
+            pass
+    ticks = 0
+    for pid in pids:
+        try:
+            fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+            ticks += int(fields[11]) + int(fields[12])
+        except OSError:
+            pass
+    return ticks / os.sysconf("SC_CLK_TCK")
+
+
+def load_average() -> float:
+    return round(os.getloadavg()[0], 2)
 
 
 def peak_rss_mb() -> float:
@@ -116,6 +175,25 @@ def drag(tab: Any, seconds: float, rect: tuple[int, int, int, int]) -> int:
     return k
 
 
+def orbit(tab: Any, seconds: float) -> OrbitFigures:
+    """Drag the orbit camera for `seconds` with the probe's sampling off (`PageFigures.orbit`)."""
+    evaluate(tab, "window.__probe.sample = false")
+    rect = canvas_rect(tab)
+    x, y, w, h = rect
+    load = load_average()
+    before = tab.screenshot()[y:y + h, x:x + w].astype(np.float32)
+    c0, (f0, d0), t0 = browser_cpu_seconds(tab), evaluate(tab, "[window.__probe.frames, window.__probe.drawn]"), \
+        time.monotonic()
+    drag(tab, seconds, rect)
+    (f1, d1), t1, c1 = evaluate(tab, "[window.__probe.frames, window.__probe.drawn]"), time.monotonic(), \
+        browser_cpu_seconds(tab)
+    time.sleep(0.5)
+    after = tab.screenshot()[y:y + h, x:x + w].astype(np.float32)
+    return OrbitFigures(fps=round((f1 - f0) / (t1 - t0), 2), drawn_fps=round((d1 - d0) / (t1 - t0), 2),
+                        cpu_ms_per_frame=round(1000.0 * (c1 - c0) / max(d1 - d0, 1), 1),
+                        image_change=round(float(np.abs(after - before).mean()), 2), load_average=load)
+
+
 def wait_drawn(tab: Any, timeout: float = 60.0) -> np.ndarray | None:
     """A screenshot once the centre of the canvas differs from its bottom-right corner (the avatar drawn), else
     None."""
@@ -141,6 +219,7 @@ def measure(server: Any, browser: Any, seconds: float = 5.0, size: tuple[int, in
     """The figures of the module docstring for a running `ViewerServer` (Gaussian-field session) and a `Browser`
     (tests/fixtures/browser.py) whose page is not yet opened."""
     session = server.session
+    load = load_average()
     t = time.perf_counter()
     splats = session.splats(len(session.frames) - 1, "zero")
     splat_seconds = time.perf_counter() - t
@@ -149,17 +228,9 @@ def measure(server: Any, browser: Any, seconds: float = 5.0, size: tuple[int, in
     if first is None:
         raise RuntimeError("the page never showed the avatar")
     evaluate(browser, PROBE)
-    rect = canvas_rect(browser)
     time.sleep(1.0)
-    # orbit: animation frames while dragging (no sampling: it would cost frames)
-    f0, t0 = evaluate(browser, "window.__probe.frames"), time.monotonic()
-    drag(browser, seconds, rect)
-    f1, t1 = evaluate(browser, "window.__probe.frames"), time.monotonic()
-    orbit_fps = (f1 - f0) / (t1 - t0)
-    evaluate(browser, "window.__probe.sample = true; window.__probe.changes = []")
-    drag(browser, 1.5, rect)
-    time.sleep(0.3)
-    distinct = len(evaluate(browser, "window.__probe.changes"))
+    orbit_figures = orbit(browser, seconds)
+    evaluate(browser, "window.__probe.sample = true")
     orbited = browser.screenshot()
     # frame changes: slider set on the server -> the first canvas change in the page
     n = len(session.frames)
@@ -208,11 +279,44 @@ def measure(server: Any, browser: Any, seconds: float = 5.0, size: tuple[int, in
             if img is not None:
                 cv2.imwrite(str(shots / f"viewer_{name}.png"), img[..., ::-1])
     second.close()
-    return PageFigures(gaussians=splats.count, orbit_fps=round(orbit_fps, 2), orbit_distinct_images=distinct, idle_changes_per_s=idle,
+    return PageFigures(gaussians=splats.count, load_average=load, orbit=orbit_figures, idle_changes_per_s=idle,
                        frame_change_ms=[round(x, 1) for x in latencies],
                        playback_fps_page=round(playback_page, 2), playback_pushes_per_s=round(pushes_per_s, 2),
                        motion_fps=float(server.fps.value), peak_rss_mb=round(peak_rss_mb(), 1),
                        second_tab_drawn=drawn2 is not None, splat_seconds=round(splat_seconds, 4))
+
+
+SEEK = """
+(() => { const seek = document.getElementById('seek'); const n = Number(seek.max) + 1;
+  window.__probe.changes = []; const t = Date.now();
+  seek.value = String((Number(seek.value) + Math.max(1, Math.floor(n / 3))) % n);
+  seek.dispatchEvent(new Event('input')); return t; })()
+"""
+
+
+def measure_player(browser: Any, page: Path, seconds: float = 5.0, changes: int = 6) -> PlayerFigures:
+    """Orbit and frame-change figures of an `export --format player` page (paused) in `browser`."""
+    load = load_average()
+    browser.open(page.resolve().as_uri())
+    if wait_drawn(browser) is None:
+        raise RuntimeError(f"the player {page} never showed the avatar")
+    evaluate(browser, "window.__player.setPlaying(false)")
+    evaluate(browser, PROBE)
+    time.sleep(1.0)
+    orbit_figures = orbit(browser, seconds)
+    evaluate(browser, "window.__probe.sample = true")
+    latencies = []
+    for _ in range(changes):
+        time.sleep(0.6)
+        t_set = evaluate(browser, SEEK)
+        deadline = time.monotonic() + 5
+        while time.monotonic() < deadline:
+            after = [c for c in evaluate(browser, "window.__probe.changes") if c >= t_set]
+            if after:
+                latencies.append(float(after[0] - t_set))
+                break
+            time.sleep(0.01)
+    return PlayerFigures(load_average=load, orbit=orbit_figures, frame_change_ms=latencies)
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -231,16 +335,29 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--out", type=Path, default=None, help="write the figures as JSON here")
     ap.add_argument("--shots", type=Path, default=None, help="write screenshots here")
+    ap.add_argument("--player", type=Path, default=None, help="also measure this `export --format player` page, "
+                    "alternating with the viewer's")
+    ap.add_argument("--repeats", type=int, default=1, help="rounds of measurements (alternating with --player)")
     args = ap.parse_args(argv)
     setup = prepare(args.project, ViewConfig(device=args.device))
     server = ViewerServer(setup.session, setup.initial, port=free_port(), motions=(PROJECT,))
-    browser = Browser(*args.size)
+    figures: dict[str, list[dict]] = {"viewer": [], "player": []}
     try:
-        figures = measure(server, browser, args.seconds, tuple(args.size), args.shots)
+        for _ in range(max(args.repeats, 1)):
+            browser = Browser(*args.size)
+            try:
+                figures["viewer"].append(asdict(measure(server, browser, args.seconds, tuple(args.size), args.shots)))
+            finally:
+                browser.close()
+            if args.player is not None:
+                browser = Browser(*args.size)
+                try:
+                    figures["player"].append(asdict(measure_player(browser, args.player, args.seconds)))
+                finally:
+                    browser.close()
     finally:
-        browser.close()
         server.stop()
-    text = json.dumps(asdict(figures), indent=1)
+    text = json.dumps(figures if args.player is not None or args.repeats > 1 else figures["viewer"][0], indent=1)
     print(text)
     if args.out is not None:
         args.out.write_text(text + "\n")
