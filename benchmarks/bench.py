@@ -1,12 +1,14 @@
 """Benchmark: sparse (supplement Sec. C.2, packed) vs dense node evaluation, and training throughput.
 
     python -m benchmarks.bench [--out bench.json] [--device cpu|cuda] [--rays-paper N] [--rays-cpu N]
+        [--rays-throughput N] [--repeats 2] [--steps 3] [--presets paper,cpu] [--body anny|toy]
 
 (run from the repository root: `benchmarks/` is not part of the installed package).
 
 Setup (realistic batch): nodes by FPS on the anny template (`load_body_model("anny")`), B = 4 frames in anny's
-reference pose with different time stamps, rays from cameras on a 3 m circle around the body aimed at points drawn
-uniformly in each frame's posed bounding box (so nearly every ray crosses the body), 64 uniform samples per ray.
+reference pose (`--body toy`: the tests' sphere, unbent) with different time stamps, rays from cameras on a 3 m
+circle around the body aimed at points drawn uniformly in each frame's posed bounding box (so nearly every ray
+crosses the body), 64 uniform samples per ray.
 
 For each preset ("paper", "cpu") and each path (sparse, dense) on the SAME batch, in the same process:
 - time per training step = node_state (cVAE posterior) + render + Eq. 11 loss + backward (median of repeats);
@@ -32,6 +34,7 @@ from typing import Any
 import torch
 
 from avatarctl.geometry.rays import RayBatch
+from avatarctl.lists import split_list
 from avatarctl.model.avatar import FrameConditioning, SlrfAvatar
 from avatarctl.fit.config import preset as fit_preset
 
@@ -43,16 +46,26 @@ class Batch:
     target: torch.Tensor  # [rays, 3]
 
 
-def anny_setup(num_frames: int = 4):
-    """(template, joint_transforms [B, J, 4, 4], pose_features [B, J, 3], posed vertices [B, V, 3]) for anny."""
+def rest_setup(body_name: str = "anny", num_frames: int = 4):
+    """(template, joint_transforms [B, J, 4, 4], pose_features [B, J, 3], posed vertices [B, V, 3]) of `num_frames`
+    frames in the body's rest pose: anny's reference pose (A-pose), or the toy sphere unbent (`--body toy`, the
+    tests: no anny cache)."""
     import numpy as np
 
-    from avatarctl.body.anny_model import identity_pose
     from avatarctl.body.motion import BodyMotion
     from avatarctl.body.registry import load_body_model
 
-    body = load_body_model("anny")
-    motion = BodyMotion(body_model="anny", frame_index=np.arange(num_frames), pose_parameters=identity_pose(num_frames))
+    body = load_body_model(body_name)
+    frames = np.arange(num_frames)
+    if body_name == "anny":
+        from avatarctl.body.anny_model import identity_pose
+
+        motion = BodyMotion(body_model="anny", frame_index=frames, pose_parameters=identity_pose(num_frames))
+    elif body_name == "toy":
+        zeros = np.zeros((num_frames, 3), np.float32)
+        motion = BodyMotion(body_model="toy", frame_index=frames, global_orient=zeros, body_pose=zeros, transl=zeros)
+    else:
+        raise ValueError(f"--body {body_name!r}: use anny or toy")
     posed = body.pose(motion)
     return body.template(motion), posed.joint_transforms, posed.pose_features, posed.vertices
 
@@ -178,6 +191,9 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     ap.add_argument("--rays-throughput", type=int, default=1024, help="rays per step for the throughput run")
     ap.add_argument("--repeats", type=int, default=2, help="timed steps per path (median)")
     ap.add_argument("--steps", type=int, default=3, help="steps for the throughput run")
+    ap.add_argument("--presets", default="paper,cpu", help="the presets compared, sparse vs dense (comma list)")
+    ap.add_argument("--body", default="anny", choices=["anny", "toy"],
+                    help="the body of the batch (toy: the 2-joint sphere of the tests, no anny cache)")
     args = ap.parse_args(argv)
     device = torch.device(args.device)
     cuda = device.type == "cuda"
@@ -185,20 +201,26 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     rays_cpu = args.rays_cpu or (2048 if cuda else 192)
 
     t0 = time.perf_counter()
-    template, M, feats, verts = anny_setup(4)
+    template, M, feats, verts = rest_setup(args.body, 4)
+    pose = {"anny": "anny reference pose (A-pose)", "toy": "toy sphere, unbent"}[args.body]
     results: dict[str, Any] = {"device": str(device), "torch": torch.__version__, "threads": torch.get_num_threads(),
-                               "body": "anny", "joints": template.num_joints, "pose": "anny reference pose (A-pose)",
+                               "body": args.body, "joints": template.num_joints, "pose": pose,
                                "comparisons": []}
     if cuda:
         results["gpu"] = torch.cuda.get_device_name(device)
-    for preset, n in (("paper", rays_paper), ("cpu", rays_cpu)):
-        results["comparisons"].append(compare(preset, template, make_batch(M, feats, verts, n), device, args.repeats))
+    rays = {"paper": rays_paper, "cpu": rays_cpu}
+    presets = list(split_list(args.presets))
+    if not presets or not set(presets) <= set(rays):
+        ap.error(f"--presets {args.presets!r}: use paper, cpu or both")
+    for preset in presets:
+        batch = make_batch(M, feats, verts, rays[preset])
+        results["comparisons"].append(compare(preset, template, batch, device, args.repeats))
     results["throughput"] = throughput(template, make_batch(M, feats, verts, args.rays_throughput, seed=1), device,
                                        args.steps)
     results["bench_s"] = time.perf_counter() - t0
 
     print(f"device {results['device']} ({results['threads']} threads), torch {results['torch']}, "
-          f"anny template ({template.num_joints} joints), 4 frames")
+          f"{args.body} template ({template.num_joints} joints), 4 frames")
     print(f"{'preset':7} {'rays':>5} {'path':7} {'step s':>8} {'peak MB':>9} {'pairs':>10} {'max S_i':>8}")
     for c in results["comparisons"]:
         for path in ("sparse", "dense"):

@@ -1,6 +1,7 @@
 """Benchmark: data-parallel fit throughput (steps/s, rays/s) on N = 1, 2 ranks of this machine.
 
     python -m benchmarks.distributed [--project DIR] [--seconds 20] [--preset cpu] [--out bench_dist.json]
+        [--parts wall,cpu,phases,sync] [--ranks 1,2] [--cpu-steps 20]
 
 (run from the repository root: `benchmarks/` is not part of the installed package).
 
@@ -31,6 +32,9 @@ import json
 import os
 import shutil
 import tempfile
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 from avatarctl.lists import split_list
@@ -99,26 +103,22 @@ def cpu_per_step(project: Path, work: Path, nproc: int, steps: int, preset: str)
     return (used[1] - used[0]) / steps
 
 
-_ACC: dict[str, float] = {}
-
-
-def _timed() -> dict[str, float]:
-    """Wrap Replicas.forward / Replicas.sync / Tensor.backward of this process with CPU-time accumulators (once;
-    later calls reset them)."""
+@contextmanager
+def _timed() -> Iterator[dict[str, float]]:
+    """Wrap Replicas.forward / Replicas.sync / Tensor.backward of this process with CPU-time accumulators while the
+    block runs (put back after it: `main` may run inside another program, the tests)."""
     import time
 
     import torch
 
     from avatarctl.fit import distributed
 
-    installed = bool(_ACC)
-    _ACC.update({"forward": 0.0, "backward": 0.0, "sync": 0.0, "steps": 0.0})
-    if installed:
-        return _ACC
-    acc = _ACC
+    acc = {"forward": 0.0, "backward": 0.0, "sync": 0.0, "steps": 0.0}
+    saved = []
 
     def wrap(owner: object, name: str, key: str) -> None:
         inner = getattr(owner, name)
+        saved.append((owner, name, inner))
 
         def timed(*a, **k):
             t = time.process_time()
@@ -129,17 +129,21 @@ def _timed() -> dict[str, float]:
 
         setattr(owner, name, timed)
 
-    wrap(distributed.Replicas, "forward", "forward")
-    wrap(distributed.Replicas, "sync", "sync")
-    wrap(torch.Tensor, "backward", "backward")
-    return _ACC
+    try:
+        wrap(distributed.Replicas, "forward", "forward")
+        wrap(distributed.Replicas, "sync", "sync")
+        wrap(torch.Tensor, "backward", "backward")
+        yield acc
+    finally:
+        for owner, name, inner in reversed(saved):
+            setattr(owner, name, inner)
 
 
 def _phases_rank(env, channel, project: str, req) -> dict[str, float]:
     from avatarctl.stages.fit import _fit_rank
 
-    acc = _timed()
-    _fit_rank(env, channel, project, req)
+    with _timed() as acc:
+        _fit_rank(env, channel, project, req)
     return dict(acc)
 
 
@@ -160,8 +164,8 @@ def phase_times(project: Path, work: Path, nproc: int, rays: int, images: int, s
                                 f"images_per_batch={images}"))
     if nproc == 1:
         torch.set_num_threads(1)
-        acc = _timed()
-        fit.run(dest, req, handle_sigint=False)
+        with _timed() as acc:
+            fit.run(dest, req, handle_sigint=False)
     else:
         acc = launch(_phases_rank, nproc, (str(dest), req), what="phase benchmark")
     n = max(acc["steps"], 1.0)
@@ -202,19 +206,38 @@ def allreduce_seconds(numel: int, occ: int, reps: int = 10) -> float:
 def model_sizes(project: Path, preset: str) -> tuple[int, int]:
     """(parameters, occupancy cells) of the preset's model on the project's body."""
     from avatarctl.body.registry import load_body_model
-    from avatarctl.fit.config import preset as fit_preset
+    from avatarctl.fit.config import resolve_fit_config
+    from avatarctl.fit.loop import decide_auto
     from avatarctl.io.project_io import load_project_capture
     from avatarctl.model.avatar import SlrfAvatar
     from avatarctl.project import Project
 
-    cap = load_project_capture(Project.open(project))
+    proj = Project.open(project)
+    cfg = decide_auto(resolve_fit_config(preset), proj)  # pose refinement 'auto' decided as the fit decides it
+    cap = load_project_capture(proj)
     body = load_body_model(cap.body_model, cap.body_model_path)
-    model = SlrfAvatar(fit_preset(preset).model, body.template(cap.motion), num_frames=len(cap.split.train_frames))
-    occ = model.occupancy.numel() if model.cfg.occupancy else 0
+    model = SlrfAvatar(cfg.model, body.template(cap.motion), num_frames=len(cap.split.train_frames))
+    occ = model.occupancy.numel() if model.cfg.uses_occupancy else 0
     return sum(p.numel() for p in model.parameters()), occ
 
 
-def main() -> None:
+PARTS = ("wall", "cpu", "phases", "sync")
+
+
+@dataclass(frozen=True)
+class DistBench:
+    """What `main` measured (also written to `--out`); a part not run is empty."""
+    project: str
+    preset: str
+    seconds: float
+    ranks: tuple[int, ...]  # the rank counts measured
+    runs: tuple[dict, ...]  # `wall`: one row per (ranks, threads per rank) fit, as `fit_once` returns it
+    cpu_time: dict[str, float]  # `cpu`: n<ranks>_cpu_s_per_step
+    phases: tuple[dict, ...]  # `phases`: CPU seconds per step of rank 0 by phase
+    sync: dict[str, float]  # `sync`: parameters, occupancy cells, all-reduce seconds (2 ranks)
+
+
+def main(argv: list[str] | None = None) -> DistBench:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--project", type=Path, default=None)
     ap.add_argument("--cache", type=Path, default=Path(tempfile.gettempdir()) / "avatarctl_bench_dist")
@@ -222,21 +245,27 @@ def main() -> None:
     ap.add_argument("--threads", type=int, default=2, help="threads of the one-process comparison run")
     ap.add_argument("--preset", default="cpu")
     ap.add_argument("--out", type=Path, default=Path("bench_dist.json"))
-    ap.add_argument("--parts", default="wall,cpu,phases,sync",
-                    help="which measurements: wall, cpu, phases, sync (comma list)")
+    ap.add_argument("--parts", default=",".join(PARTS), help="which measurements: wall, cpu, phases, sync (comma list)")
+    ap.add_argument("--ranks", default="1,2", help="rank counts to measure: 1, 2 (comma list; sync needs 2)")
     ap.add_argument("--cpu-steps", type=int, default=20, help="steps of the CPU-time runs")
-    args = ap.parse_args()
+    args = ap.parse_args(argv)
+    parts = set(split_list(args.parts))
+    ranks = tuple(sorted(set(split_list(args.ranks, int))))
+    if not parts <= set(PARTS):
+        ap.error(f"unknown --parts {sorted(parts - set(PARTS))}: use {', '.join(PARTS)}")
+    if not ranks or not set(ranks) <= {1, 2}:
+        ap.error(f"--ranks {args.ranks!r}: use 1, 2 or 1,2")
     project = args.project or ensure_project(args.cache)
     work = args.cache / "runs"
     work.mkdir(parents=True, exist_ok=True)
     rows = []
-    parts = set(split_list(args.parts))
-    for nproc, threads in ((1, 1), (1, args.threads), (2, 1)) if "wall" in parts else ():
+    wall = (list(dict.fromkeys([(1, 1), (1, args.threads)])) if 1 in ranks else []) + ([(2, 1)] if 2 in ranks else [])
+    for nproc, threads in wall if "wall" in parts else ():
         row = fit_once(project, work, nproc, threads, args.seconds, args.preset)
         print(json.dumps(row), flush=True)
         rows.append(row)
     cpu = {}
-    for nproc in (1, 2) if "cpu" in parts else ():
+    for nproc in ranks if "cpu" in parts else ():
         cpu[f"n{nproc}_cpu_s_per_step"] = round(cpu_per_step(project, work, nproc, args.cpu_steps, args.preset), 3)
         print(json.dumps(cpu), flush=True)
     phases = []
@@ -245,17 +274,22 @@ def main() -> None:
 
         full = fit_preset(args.preset)
         r, b = full.rays_per_batch, full.images_per_batch
-        for nproc, rays, images in ((1, r, b), (1, r // 2, b // 2), (2, r, b)):
+        runs = ([(1, r, b), (1, r // 2, b // 2)] if 1 in ranks else []) + ([(2, r, b)] if 2 in ranks else [])
+        for nproc, rays, images in runs:
             phases.append(phase_times(project, work, nproc, rays, images, args.cpu_steps, args.preset))
             print(json.dumps(phases[-1]), flush=True)
     sync = {}
-    if "sync" in parts:
+    if "sync" in parts and 2 in ranks:
         params, occ = model_sizes(project, args.preset)
         sync = {"parameters": params, "occupancy_cells": occ, "allreduce_s": round(allreduce_seconds(params, occ), 4)}
         print(json.dumps(sync), flush=True)
-    args.out.write_text(json.dumps({"project": str(project), "preset": args.preset, "seconds": args.seconds,
-                                    "cpu_count": os.cpu_count(), "runs": rows, "cpu_time": cpu, "phases": phases, "sync": sync}, indent=2))
+    elif "sync" in parts:
+        print("sync: the all-reduce needs 2 ranks (--ranks 1): not measured", flush=True)
+    res = DistBench(project=str(project), preset=args.preset, seconds=args.seconds, ranks=ranks, runs=tuple(rows),
+                    cpu_time=cpu, phases=tuple(phases), sync=sync)
+    args.out.write_text(json.dumps({"cpu_count": os.cpu_count(), **asdict(res)}, indent=2))
     print(f"wrote {args.out}")
+    return res
 
 
 if __name__ == "__main__":

@@ -3,11 +3,14 @@
 For each backend (a name and `--set` overrides), the script copies the ingested project, runs `avatarctl fit` with
 a time budget and snapshots after the given minutes of training (`FitConfig.snapshot_at_s`), scores every snapshot
 with `avatarctl eval` (held-out views of training frames, bbox protocol, `--every 10`: the docs' protocol), and
-times a 512x512 render of the final model. Fits run `--parallel` at a time with `--threads` threads each, so that
+times a 512x512 render (`--render-size`) of the final model. Fits run `--parallel` at a time with `--threads` threads each, so that
 two 1-thread fits on the 2-core machine run under equal conditions (equal wall time, equal cores).
 
     python -m benchmarks.quality_vs_time PROJECT OUT --minutes 2,5,10 \
         --backend mlp= --backend "gaussians=model.field=gaussians" [--threads 1 --parallel 2]
+        [--preset cpu] [--every 10] [--region garment] [--render-size 512] [--render-threads 2] [--reuse]
+
+`--minutes` may be fractions (0.02 = 1.2 s: the test's toy run).
 
 Writes OUT/results.csv, OUT/results.json and OUT/quality_vs_time.png (with matplotlib: `pip install -e .[bench]`).
 Every figure names the protocol; the command line is stored in results.json.
@@ -23,6 +26,7 @@ import shutil
 import subprocess
 import sys
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 from avatarctl.lists import split_list
@@ -53,6 +57,9 @@ def _batched(items: list, n: int):
 def _fit_record(project: Path) -> dict:
     log = [json.loads(line) for line in (project / "fit" / "log.jsonl").read_text().splitlines()]
     loss_recs = [r for r in log if "loss" in r]
+    if not loss_recs:
+        raise SystemExit(f"{project}: the fit logged no step (it ran fewer than log_every steps): "
+                         "give the backend a smaller log_every, e.g. --backend 'NAME=log_every=1'")
     last = loss_recs[-1]
     steps, seconds = last["step"], last["time"]
     stats = last.get("stats", {})
@@ -71,8 +78,9 @@ def _box_psnr(per_frame: Path) -> float:
     return sum(vals) / len(vals)
 
 
-def _render_512(project: Path, threads: int) -> dict:
-    """Time one 512x512 render (held-out camera scaled x2, first training frame, posterior-mean latent)."""
+def _render_timing(project: Path, threads: int, side: int = 512) -> dict:
+    """Time one render of `side` pixels on the long edge (the first held-out camera scaled, first training frame,
+    posterior-mean latent) and one at the camera's own size -> render_<side>_s, _rays, _size, render_native_s, _size."""
     code = (
         "import json,sys,time,torch\n"
         "from avatarctl.project import Project\n"
@@ -80,7 +88,8 @@ def _render_512(project: Path, threads: int) -> dict:
         "from avatarctl.render.engine import render_view\n"
         "av = load_avatar(Project.open(sys.argv[1]), device='cpu')\n"
         "cam0 = av.capture.cameras[av.capture.split.test_views[0]].pinhole()\n"
-        "cam = cam0.scaled(512 / max(cam0.width, cam0.height))\n"
+        "side = int(sys.argv[2])\n"
+        "cam = cam0.scaled(side / max(cam0.width, cam0.height))\n"
         "cond = av.conditioning(av.capture.motion.select([av.train_frames[0]]), frames_are_training=True)\n"
         "with torch.no_grad():\n"
         "    st = av.model.node_state(cond, mode='mean')\n"
@@ -88,17 +97,26 @@ def _render_512(project: Path, threads: int) -> dict:
         "    t0 = time.perf_counter(); render_view(av.model, st, 0, cam0, av.fit_config.background)\n"
         "    native = time.perf_counter() - t0\n"
         "    t0 = time.perf_counter(); v = render_view(av.model, st, 0, cam, av.fit_config.background)\n"
-        "print(json.dumps({'render_512_s': time.perf_counter() - t0, 'render_512_rays': v.rays,\n"
-        "                  'render_512_size': [int(cam.width), int(cam.height)], 'render_native_s': native,\n"
+        "print(json.dumps({f'render_{side}_s': time.perf_counter() - t0, f'render_{side}_rays': v.rays,\n"
+        "                  f'render_{side}_size': [int(cam.width), int(cam.height)], 'render_native_s': native,\n"
         "                  'render_native_size': [int(cam0.width), int(cam0.height)]}))\n")
     env = {**os.environ, "OMP_NUM_THREADS": str(threads)}
-    out = subprocess.run([sys.executable, "-c", code, str(project)], env=env, capture_output=True, text=True)
+    out = subprocess.run([sys.executable, "-c", code, str(project), str(side)], env=env, capture_output=True, text=True)
     if out.returncode != 0:
         raise SystemExit(f"render timing failed for {project}:\n{out.stderr[-2000:]}")
     return json.loads(out.stdout.strip().splitlines()[-1])
 
 
-def main(argv: list[str] | None = None) -> None:
+@dataclass(frozen=True)
+class QualityVsTime:
+    """What `main` wrote: one row per (backend, snapshot) scored (the CSV's rows, the keys of its header)."""
+    rows: tuple[dict, ...]
+    csv: Path
+    json: Path
+    plot: Path | None  # None without matplotlib
+
+
+def main(argv: list[str] | None = None) -> QualityVsTime:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("project", type=Path, help="an ingested project (e.g. of `avatarctl synth --preset small`)")
     ap.add_argument("out", type=Path)
@@ -110,6 +128,8 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--parallel", type=int, default=2, help="fits / evals run at the same time")
     ap.add_argument("--every", type=int, default=10, help="eval: keep every N-th training frame")
     ap.add_argument("--region", default=None, help="eval --region (e.g. garment): region PSNRs in the table")
+    ap.add_argument("--render-size", type=int, default=512, help="the timed render's long edge, pixels")
+    ap.add_argument("--render-threads", type=int, default=2, help="threads of the render timing (run alone)")
     ap.add_argument("--reuse", action="store_true",
                     help="keep backends whose OUT/NAME/project already holds a finished fit (no re-fit, no re-eval)")
     args = ap.parse_args(argv)
@@ -120,7 +140,7 @@ def main(argv: list[str] | None = None) -> None:
         name, _, sets = spec.partition("=")
         backends.append((name, sets.split()))
     args.out.mkdir(parents=True, exist_ok=True)
-    exe = shutil.which("avatarctl") or "avatarctl"
+    exe = [sys.executable, "-m", "avatarctl"]  # this interpreter's avatarctl, on PATH or not
 
     # 1. fits, `parallel` at a time
     projects, done = {}, set()
@@ -142,7 +162,7 @@ def main(argv: list[str] | None = None) -> None:
     for batch in _batched([b for b in backends if b[0] not in done], args.parallel):
         procs = []
         for name, sets in batch:
-            cmd = [exe, "fit", str(projects[name]), "--preset", args.preset, "--iters", "10000000",
+            cmd = [*exe, "fit", str(projects[name]), "--preset", args.preset, "--iters", "10000000",
                    "--set", f"time_budget_s={max(minutes) * 60:g}",
                    "--set", "snapshot_at_s=" + ",".join(f"{m * 60:g}" for m in minutes),
                    "--set", "val_every=0", "--set", "val_pairs=0", "--set", "checkpoint_every=100000"]
@@ -163,7 +183,7 @@ def main(argv: list[str] | None = None) -> None:
     for batch in _batched(jobs, args.parallel):
         procs = []
         for name, m, snap in batch:
-            cmd = [exe, "eval", str(projects[name]), "--split", "novel_view", "--protocol", "bbox",
+            cmd = [*exe, "eval", str(projects[name]), "--split", "novel_view", "--protocol", "bbox",
                    "--every", str(args.every), "--checkpoint", str(snap), "--name", f"t{m:g}min", "--sheet", "4"] \
                 + (["--region", args.region] if args.region else [])
             procs.append((f"{name}@{m:g}", _run(cmd, args.threads, args.out / name / f"eval_t{m:g}.log")))
@@ -173,7 +193,7 @@ def main(argv: list[str] | None = None) -> None:
     rows = []
     for name, sets in backends:
         rec = _fit_record(projects[name])
-        rec.update(_render_512(projects[name], threads=2))
+        rec.update(_render_timing(projects[name], threads=args.render_threads, side=args.render_size))
         for m in minutes:
             mfile = projects[name] / "eval" / f"t{m:g}min" / "metrics.json"
             if not mfile.exists():
@@ -187,6 +207,8 @@ def main(argv: list[str] | None = None) -> None:
                          "psnr_bbox": box, "ssim_bbox": met["ssim"], "images": met["images"], **regions,
                          "sheet": str(projects[name] / "eval" / f"t{m:g}min" / "sheet.png"),
                          "fit_peak_rss_gb": round(peaks.get(name, float("nan")), 3), **rec})
+    if not rows:
+        raise SystemExit(f"no snapshot was scored: see the fit and eval logs under {args.out}")
     with (args.out / "results.csv").open("w", newline="") as f:
         w = csv.DictWriter(f, fieldnames=list(rows[0]))
         w.writeheader()
@@ -197,13 +219,15 @@ def main(argv: list[str] | None = None) -> None:
             "threads_per_fit": args.threads, "parallel": args.parallel, "date": time.strftime("%Y-%m-%d %H:%M"),
             "rows": rows}
     (args.out / "results.json").write_text(json.dumps(meta, indent=1))
-    _plot(rows, args.out / "quality_vs_time.png", meta["protocol"])
+    plot = _plot(rows, args.out / "quality_vs_time.png", meta["protocol"])
     for r in rows:
         print(f"{r['backend']:>14} {r['minutes']:>5g} min  PSNR {r['psnr_bbox']:.2f} dB  SSIM {r['ssim_bbox']:.3f}  "
-              f"{r['steps_per_s']:.2f} steps/s  {r['rays_per_s']:.0f} rays/s  512² render {r['render_512_s']:.1f} s")
+              f"{r['steps_per_s']:.2f} steps/s  {r['rays_per_s']:.0f} rays/s  "
+              f"{args.render_size}² render {r[f'render_{args.render_size}_s']:.1f} s")
+    return QualityVsTime(rows=tuple(rows), csv=args.out / "results.csv", json=args.out / "results.json", plot=plot)
 
 
-def _plot(rows: list[dict], path: Path, protocol: str) -> None:
+def _plot(rows: list[dict], path: Path, protocol: str) -> Path | None:
     try:
         import matplotlib
 
@@ -211,7 +235,7 @@ def _plot(rows: list[dict], path: Path, protocol: str) -> None:
         import matplotlib.pyplot as plt
     except ImportError:
         print("matplotlib not installed (pip install -e .[bench]): no plot written")
-        return
+        return None
     fig, ax = plt.subplots(figsize=(7, 4.5))
     for name in dict.fromkeys(r["backend"] for r in rows):
         pts = sorted((r["minutes"], r["psnr_bbox"]) for r in rows if r["backend"] == name)
@@ -225,7 +249,9 @@ def _plot(rows: list[dict], path: Path, protocol: str) -> None:
     fig.tight_layout()
     tmp = path.with_suffix(".tmp.png")
     fig.savefig(tmp, dpi=120)
+    plt.close(fig)
     os.replace(tmp, path)
+    return path
 
 
 if __name__ == "__main__":

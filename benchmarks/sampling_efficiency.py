@@ -1,12 +1,12 @@
 """Field evaluations per ray at equal quality: one trained avatar rendered with and without empty-space skipping.
 
 For a checkpoint trained with `model.occupancy=true`, renders held-out views of training frames (bbox protocol, the
-eval's pixels) three ways on the same weights: every sample evaluated (occupancy off: the paper's 64 uniform
+eval's pixels) two ways on the same weights: every sample evaluated (occupancy off: the paper's 64 uniform
 samples) and occupancy skipping (early stop from the cached transmittance was tried and removed, docs/fit.md). Reports,
 per way: evaluated samples and node-field evaluations ((point, node) pairs) per rendered ray, seconds per image,
 PSNR against the ground truth, and PSNR of the render against the all-samples render (how much skipping changes).
 
-    python -m benchmarks.sampling_efficiency PROJECT [--checkpoint FILE] [--images 4]
+    python -m benchmarks.sampling_efficiency PROJECT [--checkpoint FILE] [--images 4] [--out FILE.json]
 """
 
 from __future__ import annotations
@@ -14,13 +14,30 @@ from __future__ import annotations
 import argparse
 import json
 import time
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
 import torch
 
 
-def main(argv: list[str] | None = None) -> None:
+@dataclass(frozen=True)
+class WayStats:
+    """One way of rendering, averaged over the images."""
+    field_samples_per_ray: float  # samples the field evaluated
+    node_field_evals_per_ray: float  # (point, node) pairs
+    seconds_per_image: float
+    psnr_bbox_vs_gt: float  # dB, bbox pixels
+    psnr_vs_all_samples: float | None  # dB against the all-samples render (inf: identical); None for that render
+
+
+@dataclass(frozen=True)
+class SamplingEfficiency:
+    images: int
+    ways: dict[str, WayStats]  # "all samples", "occupancy"
+
+
+def main(argv: list[str] | None = None) -> SamplingEfficiency:
     from avatarctl.evaluate.metrics import psnr
     from avatarctl.evaluate.protocols import bbox_region, ground_truth
     from avatarctl.fit.checkpoint import load_avatar
@@ -83,19 +100,21 @@ def main(argv: list[str] | None = None) -> None:
     model.cfg = ways["all samples"]
     out = {}
     for name, s in stats.items():
-        out[name] = {"field_samples_per_ray": s["samples"] / max(s["rays"], 1),
-                     "node_field_evals_per_ray": s["pairs"] / max(s["rays"], 1),
-                     "seconds_per_image": s["seconds"] / len(frames), "psnr_bbox_vs_gt": float(np.mean(s["psnr_gt"])),
-                     "psnr_vs_all_samples": float(np.mean(s["psnr_vs_all"])) if s["psnr_vs_all"] else None}
-        o = out[name]
-        vs = o["psnr_vs_all_samples"]
-        print(f"{name:>24}: {o['field_samples_per_ray']:6.1f} samples/ray  {o['node_field_evals_per_ray']:7.1f} "
-              f"node-field evals/ray  {o['seconds_per_image']:6.2f} s/image  PSNR {o['psnr_bbox_vs_gt']:.2f} dB"
+        rays = max(s["rays"], 1)
+        o = out[name] = WayStats(
+            field_samples_per_ray=s["samples"] / rays, node_field_evals_per_ray=s["pairs"] / rays,
+            seconds_per_image=s["seconds"] / len(frames), psnr_bbox_vs_gt=float(np.mean(s["psnr_gt"])),
+            psnr_vs_all_samples=float(np.mean(s["psnr_vs_all"])) if s["psnr_vs_all"] else None)
+        vs = o.psnr_vs_all_samples
+        print(f"{name:>24}: {o.field_samples_per_ray:6.1f} samples/ray  {o.node_field_evals_per_ray:7.1f} "
+              f"node-field evals/ray  {o.seconds_per_image:6.2f} s/image  PSNR {o.psnr_bbox_vs_gt:.2f} dB"
               + ("" if vs is None else f"  (vs all-samples render {vs:.1f} dB)"))
+    res = SamplingEfficiency(images=len(frames), ways=out)
     if args.out:
         args.out.write_text(json.dumps({"images": len(frames), "checkpoint": str(args.checkpoint or "latest"),
                                         "protocol": "bbox pixels of held-out views of training frames, mean latent",
-                                        "ways": out}, indent=1))
+                                        "ways": {k: asdict(v) for k, v in out.items()}}, indent=1))
+    return res
 
 
 if __name__ == "__main__":

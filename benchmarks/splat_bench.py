@@ -146,7 +146,8 @@ def table(result: dict) -> str:
     return "\n".join(lines)
 
 
-def main(argv: list[str] | None = None) -> None:
+def main(argv: list[str] | None = None) -> dict:
+    """The command line -> `run`'s result (also printed as a table, and written with `--json`)."""
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--device", default="cpu", choices=["cpu", "cuda"])
     ap.add_argument("--sizes", nargs="+", default=[f"{s}:{n}" for s, n in DEFAULT_SIZES],
@@ -161,6 +162,7 @@ def main(argv: list[str] | None = None) -> None:
     print(table(result))
     if args.json:
         args.json.write_text(json.dumps(result, indent=2))
+    return result
 
 
 if __name__ == "__main__":

@@ -4,7 +4,8 @@ Loads the avatar the way `avatarctl view` does (`stages.view.prepare`), points t
 held-out camera at the subject (square image, the camera's vertical field of view, as the page starts), and times
 `ViewerSession.render` at each resolution: the full-quality image and the preview (a quarter of the side) shown
 while the camera moves. Wall time and process CPU time are both reported (on a shared machine the wall time
-depends on the load; with one torch thread the CPU time is what an idle core would take). The first call per (frame, latent) also builds the node state; it is reported apart.
+depends on the load; with one torch thread the CPU time is what an idle core would take). The first call per
+(frame, latent) also builds the node state; it is reported apart.
 
     python -m benchmarks.viewer_frame_time PROJECT [--resolutions 256 512] [--repeats 3] [--device cpu] [--out F]
 """
@@ -14,13 +15,34 @@ from __future__ import annotations
 import argparse
 import json
 import time
-from dataclasses import replace
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import numpy as np
 
 
-def main(argv: list[str] | None = None) -> None:
+@dataclass(frozen=True)
+class FrameTime:
+    resolution: int  # the requested side, pixels
+    kind: str  # "full" or "preview"
+    side: int  # the rendered side: the resolution, or a quarter of it for the preview
+    median_s: float
+    min_s: float
+    median_cpu_s: float  # process CPU time
+    repeats: int
+
+
+@dataclass(frozen=True)
+class ViewerFrameTimes:
+    project: str
+    device: str
+    torch_threads: int
+    node_state_s: float  # the first call of a (frame, latent): the node state, cached afterwards
+    fov_y_rad: float
+    rows: tuple[FrameTime, ...]  # full and preview per resolution
+
+
+def main(argv: list[str] | None = None) -> ViewerFrameTimes:
     import torch
 
     from avatarctl.export.skinning import matrix_to_quaternion
@@ -55,16 +77,18 @@ def main(argv: list[str] | None = None) -> None:
                 setup.session.render(req)
                 times.append(time.perf_counter() - t0)
                 cpu.append(time.process_time() - c0)
-            rows.append({"resolution": res, "kind": kind, "side": side, "median_s": float(np.median(times)),
-                         "min_s": float(np.min(times)), "median_cpu_s": float(np.median(cpu)),
-                         "repeats": args.repeats})
+            rows.append(FrameTime(resolution=res, kind=kind, side=side, median_s=float(np.median(times)),
+                                  min_s=float(np.min(times)), median_cpu_s=float(np.median(cpu)),
+                                  repeats=args.repeats))
             print(f"{res}^2 {kind:7s} ({side}^2): wall median {np.median(times):.3f} s (min {np.min(times):.3f}), "
                   f"process CPU {np.median(cpu):.3f} s", flush=True)
-    out = {"project": str(args.project), "device": str(setup.avatar.device), "torch_threads": torch.get_num_threads(),
-           "node_state_s": state_s, "fov_y_rad": fov_y, "rows": rows}
+    out = ViewerFrameTimes(project=str(args.project), device=str(setup.avatar.device),
+                           torch_threads=torch.get_num_threads(), node_state_s=state_s, fov_y_rad=fov_y,
+                           rows=tuple(rows))
     print(f"node state of a frame: {state_s:.3f} s (once per frame and latent, cached)")
     if args.out:
-        args.out.write_text(json.dumps(out, indent=2))
+        args.out.write_text(json.dumps(asdict(out), indent=2))
+    return out
 
 
 if __name__ == "__main__":
