@@ -30,8 +30,9 @@ def register(app: typer.Typer) -> None:
                                      "skeleton, skinning weights, animation)."),
         voxel: float = typer.Option(0.008, "--voxel", help="Grid spacing of the density sampling, metres."),
         threshold: str = typer.Option("auto", "--threshold", help="Density level of the surface, 1/metre (lower: "
-                                      "fuller cloth, more haze; higher: holes in soft regions), or auto: from the "
-                                      "field's density just inside the body model's skin, at most 10."),
+                                      "fuller cloth, more haze; higher: holes in soft regions), or auto: levels "
+                                      "around the field's density just inside the body model's skin (at most 10), "
+                                      "the one whose mesh looks most like the training photographs."),
         influences: int = typer.Option(4, "--influences", help="Skinning weights per vertex in avatar.glb: 4 (every "
                                        "glTF viewer) or 8 (a second JOINTS_1 / WEIGHTS_1 set: closer to the body "
                                        "model, read by Blender, not by three.js)."),
@@ -91,12 +92,21 @@ def _run(project: Path, cfg, wait: bool, console) -> None:
 
     t = Table(title="avatarctl export", show_header=False)
     t.add_row("output", str(res.out_dir))
+    if res.level is not None:
+        c = res.level.choice
+        tried = ", ".join(f"{'*' if s.step == c.step else ''}{s.level:.3g}/m "
+                          + (f"{s.psnr:.2f} dB" if s.psnr is not None else "no surface")
+                          for s in sorted(c.candidates, key=lambda s: s.level))
+        t.add_row("surface level", f"{c.level:.3g}/m = {c.factor:.3g} x body level {c.body_level:.3g}/m, the best of "
+                  f"{tried} (frame {res.level.frame}, training views {', '.join(c.views)}; {c.seconds:.1f} s)")
     for m in res.meshes:
-        t.add_row(f"frame {m.frame}", f"{m.vertices:,} vertices, {m.faces:,} faces, level {m.threshold:.3g}/m, {m.seconds:.1f} s: "
+        t.add_row(f"frame {m.frame}", f"{m.vertices:,} vertices, {m.faces:,} faces, level {m.threshold:.3g}/m, "
+                  f"{m.pieces} piece(s) (largest {100 * m.largest_piece:.0f} %), {m.seconds:.1f} s: "
                   + ", ".join(f"{f} ({b / 1e6:.1f} MB)" for f, b in m.files.items()))
     if res.avatar is not None:
         a = res.avatar
-        t.add_row("avatar", f"{a.file}: {a.vertices:,} vertices (level {a.threshold:.3g}/m), {a.joints} joints, {a.animation_frames} animation "
+        t.add_row("avatar", f"{a.file}: {a.vertices:,} vertices (level {a.threshold:.3g}/m, {a.pieces} piece(s), "
+                  f"largest {100 * a.largest_piece:.0f} %), {a.joints} joints, {a.animation_frames} animation "
                   f"frames ({a.animation_source}), {a.bytes / 1e6:.1f} MB, {a.seconds:.1f} s")
         r = a.reload
         t.add_row("reload check", f"max vertex error {r['vs_lbs_same_weights_max_m'] * 1000:.3g} mm vs our LBS "

@@ -12,12 +12,13 @@ Steps (`extract_mesh`):
    the "hard surface" levels of NeRF meshing because a fitted SLRF's cloth (a skirt) is soft: on synth small
    (10 min cpu fit, 8 mm grid, frame 0, 4 held-out views) levels 5 / 10 / 20 / 40 gave mesh PSNR
    21.01 / 21.26 / 18.13 / 16.28 dB (holes open in the skirt above 10; the volume render: 22.38 dB);
-   The default level is chosen per mesh from the field's own densities (`body_level`): the density just inside
-   the body model's skin (1 cm in along the template's normals, the body posed like the frame) is what the
-   surface must enclose; the level is its `BODY_QUANTILE` quantile, at most `DEFAULT_THRESHOLD`. A well-fitted
-   field (skin densities in the hundreds) keeps the level 10; a soft one (a short fit: the demo's tiny project,
-   533 steps, has a median skin density of 3.3 / m) gets a lower level, so thin parts (neck, thighs under a
-   skirt) stay inside the surface instead of falling apart;
+   The body level (`body_level`) is a level from the field's own densities: the density just inside the body
+   model's skin (1 cm in along the template's normals, the body posed like the frame) is what the surface must
+   enclose; the level is its `BODY_QUANTILE` quantile, at most `DEFAULT_THRESHOLD`. A well-fitted field (skin
+   densities in the hundreds) gets 10; a soft one (a short fit: the demo's tiny project, 533 steps, has a median
+   skin density of 3.3 / m) a lower level, so thin parts (neck, thighs under a skirt) stay inside the surface
+   instead of falling apart. The export's default level is the body level times a factor chosen by scoring
+   candidate meshes against training images (`export.level`);
 3. connected components with fewer than `min_component` of the faces (floaters of stray density) are dropped;
 4. vertex colours (`bake_colours`): each vertex is looked at head-on, with a ray from just outside the surface
    (v + 2 voxels * n, n the outward normal) along -n, volume-rendered through the field (`slrf_ray_colour`, the
@@ -241,20 +242,34 @@ def marching_cubes(grid: DensityGrid, threshold: float, min_component: float = 0
     return verts.astype(np.float32), faces.astype(np.int32), (normals / np.maximum(n, 1e-12)).astype(np.float32)
 
 
+def _face_components(faces: np.ndarray, num_vertices: int) -> np.ndarray:
+    """[faces] the face-connected component of each face (labels 0 ..)."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    rows = np.concatenate([faces[:, 0], faces[:, 1], faces[:, 2]])
+    cols = np.concatenate([faces[:, 1], faces[:, 2], faces[:, 0]])
+    _, label = connected_components(coo_matrix((np.ones(rows.size), (rows, cols)),
+                                               shape=(num_vertices, num_vertices)), directed=False)
+    return label[faces[:, 0]]
+
+
+def mesh_pieces(faces: np.ndarray, num_vertices: int) -> tuple[int, float]:
+    """faces [faces, 3] of a mesh of `num_vertices` -> (connected pieces, the largest piece's share of the faces)."""
+    if faces.shape[0] == 0:
+        return 0, 0.0
+    _, counts = np.unique(_face_components(np.asarray(faces), num_vertices), return_counts=True)
+    return int(counts.size), float(counts.max() / faces.shape[0])
+
+
 def _drop_small_components(verts: np.ndarray, faces: np.ndarray, normals: np.ndarray, min_fraction: float
                            ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Keep the face-connected components with at least `min_fraction` of the faces; reindex the vertices."""
     if min_fraction <= 0 or faces.shape[0] == 0:
         return verts, faces, normals
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
-
     V = verts.shape[0]
-    rows = np.concatenate([faces[:, 0], faces[:, 1], faces[:, 2]])
-    cols = np.concatenate([faces[:, 1], faces[:, 2], faces[:, 0]])
-    _, label = connected_components(coo_matrix((np.ones(rows.size), (rows, cols)), shape=(V, V)), directed=False)
-    face_label = label[faces[:, 0]]
-    counts = np.bincount(face_label, minlength=label.max() + 1)
+    face_label = _face_components(faces, V)
+    counts = np.bincount(face_label)
     keep_faces = counts[face_label] >= min_fraction * faces.shape[0]
     faces = faces[keep_faces]
     used = np.zeros(V, bool)

@@ -4,17 +4,23 @@ colours are baked radiance, as the volume render shows them), composited over a 
 
 Conventions: pinhole camera (OpenCV, world->camera, metres), pixel centres at integer coordinates, the mesh in the
 same world frame as the camera. The mesh's PSNR against held-out views (`stages/export.py --score`) is computed on
-these images with the one metrics module, beside the volume render of the same (frame, view).
+these images with the one metrics module, beside the volume render of the same (frame, view); `export.level` scores
+candidate surface levels on training views with `cast_pixels` + `shade` (one ray cast per mesh and view, the colours
+of only the vertices hit).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from avatarctl.export.mesh import ColouredMesh
 from avatarctl.geometry.cameras import Camera
+
+if TYPE_CHECKING:
+    from avatarctl.synth.raster import RayCaster
 
 
 @dataclass(frozen=True)
@@ -37,22 +43,49 @@ def barycentric(points: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndarray)
 
 def render_mesh(mesh: ColouredMesh, camera: Camera, background: tuple[float, float, float]) -> MeshImage:
     """The mesh seen by `camera` (module docstring)."""
-    from avatarctl.synth.raster import RayCaster, camera_rays
+    from avatarctl.synth.raster import RayCaster
+
+    return shade(mesh, cast_pixels(RayCaster(mesh.vertices, mesh.faces), camera), background)
+
+
+@dataclass(frozen=True)
+class MeshHits:
+    """The pixels of one camera whose ray hits the mesh: what `shade` needs, and the faces (hence the vertices) whose
+    colours show in the image (`export.level` bakes only those)."""
+
+    pixel: np.ndarray  # [hits] int64, flat pixel index (row-major, H * W)
+    face: np.ndarray  # [hits] int64, the face hit
+    points: np.ndarray  # [hits, 3] float64, the hit points (world, metres)
+    height: int
+    width: int
+
+
+def cast_pixels(caster: "RayCaster", camera: Camera) -> MeshHits:
+    """One ray per pixel centre of the pinhole `camera` cast against `caster`'s triangles (`synth.raster.RayCaster`,
+    built once per mesh and reused for every camera)."""
+    from avatarctl.synth.raster import camera_rays
 
     grid = camera_rays(camera.pinhole())
     H, W = grid.dirs.shape[:2]
     dirs = grid.dirs.reshape(-1, 3)
-    face, t = RayCaster(mesh.vertices, mesh.faces).cast(grid.origin, dirs)
+    face, t = caster.cast(grid.origin, dirs)
+    hit = np.flatnonzero(face >= 0)
+    points = grid.origin[None].astype(np.float64) + t[hit, None].astype(np.float64) * dirs[hit].astype(np.float64)
+    return MeshHits(pixel=hit, face=face[hit].astype(np.int64), points=points, height=H, width=W)
+
+
+def shade(mesh: ColouredMesh, hits: MeshHits, background: tuple[float, float, float]) -> MeshImage:
+    """The image of `hits`: the hit face's vertex colours interpolated barycentrically at the hit point, unlit, over
+    `background` where no face is hit."""
+    H, W = hits.height, hits.width
     rgb = np.empty((H * W, 3), np.float32)
     rgb[:] = np.asarray(background, np.float32)
-    hit = np.flatnonzero(face >= 0)
-    if hit.size:
-        tri = mesh.faces[face[hit]]  # [hit, 3]
+    if hits.pixel.size:
+        tri = mesh.faces[hits.face]  # [hits, 3]
         v = mesh.vertices.astype(np.float64)
-        p = grid.origin[None].astype(np.float64) + t[hit, None].astype(np.float64) * dirs[hit].astype(np.float64)
-        bc = np.clip(barycentric(p, v[tri[:, 0]], v[tri[:, 1]], v[tri[:, 2]]), 0.0, 1.0)
+        bc = np.clip(barycentric(hits.points, v[tri[:, 0]], v[tri[:, 1]], v[tri[:, 2]]), 0.0, 1.0)
         bc /= np.maximum(bc.sum(-1, keepdims=True), 1e-12)
-        rgb[hit] = (bc[..., None] * mesh.colours[tri]).sum(1)
+        rgb[hits.pixel] = (bc[..., None] * mesh.colours[tri]).sum(1)
     alpha = np.zeros(H * W, np.float32)
-    alpha[hit] = 1.0
+    alpha[hits.pixel] = 1.0
     return MeshImage(rgb=np.clip(rgb, 0.0, 1.0).reshape(H, W, 3), alpha=alpha.reshape(H, W))

@@ -4,23 +4,30 @@ Steps:
 1. load the fitted avatar (`stages.common.load_fitted`); choose the motion: the project's own frames (training frames
    with the cVAE latent z = mu, novel ones with z = 0, as `render`) or a motion file (`--poses`, z = 0; any rig
    `render --poses` takes, retargeted onto the avatar's body model when made for another: `motion_for_avatar`);
-2. posed meshes (`--frames`, default the first training frame / the motion file's first frame): the density field
-   of the frame sampled on a grid over the node supports, marching cubes at `threshold` (default: a level from the
-   field's densities just inside the body model's skin, `export.mesh.body_level`), vertex colours baked by
-   rendering each vertex head-on along its normal (`export.mesh`); written as GLB / PLY / OBJ;
-3. the animatable avatar `avatar.glb`: one mesh extracted the same way in the canonical (rest) pose
+2. the surface level (`--threshold auto`, the default; `export.level`): on one training frame (the first posed
+   frame that is one, else the project's first training frame), candidate levels around the body level b (the
+   density just inside the body model's skin, `export.mesh.body_level`) are meshed and rendered in a few TRAINING
+   views and the one with the best PSNR against the photographs wins; every mesh of the export (each posed frame,
+   the rest pose) then takes its own body level times the chosen factor (level / b). A number (`--threshold 10`)
+   is used as it is for every mesh;
+3. posed meshes (`--frames`, default the first training frame / the motion file's first frame): the density field
+   of the frame sampled on a grid over the node supports, marching cubes at the level, vertex colours baked by
+   rendering each vertex head-on along its normal (`export.mesh`); written as GLB / PLY / OBJ (the scoring frame's
+   mesh is the chosen candidate of step 2, finished);
+4. the animatable avatar `avatar.glb`: one mesh extracted the same way in the canonical (rest) pose
    (`export.mesh.rest_node_state`: M_j = identity, z = 0), skinning weights transferred from the body template
    (inverse-distance blend of the 4 nearest template vertices, the 4 (or `influences` = 8) largest kept), the body
    model's joints as a glTF node tree bound at their centres (`body.joints.joint_centres` over the project's
    poses), and the motion (the project's frames, or `--poses`) as a glTF animation (`export.skinning`,
    `export.gltf`);
-4. the reload check: `avatar.glb` is read back with pygltflib and skinned from the file's own data
+5. the reload check: `avatar.glb` is read back with pygltflib and skinned from the file's own data
    (`export.gltf_read`), against our LBS (`body.lbs.lbs`) on sampled animation frames: the vertex error with the
    exported 4 weights (file fidelity) and with the dense transferred weights (what truncation to 4 costs);
-5. with `--score`: every posed project frame rendered as a mesh (`export.raster`, unlit baked colours) and as the
+6. with `--score`: every posed project frame rendered as a mesh (`export.raster`, unlit baked colours) and as the
    volume (`render.engine.render_view`) in the held-out views, both scored against the same ground truth under the
    eval `bbox` protocol with the one metrics module (`evaluate.metrics`);
-6. `export.json` (config, sizes, timings, reload errors, scores) and `preview.png` (ground truth | volume | mesh of
+7. `export.json` (config, the level candidates and their scores, sizes, pieces, timings, reload errors, scores) and
+   `preview.png` (ground truth | volume | mesh of
    the first posed frame in the first held-out view) are written with the meshes into a temporary directory,
    renamed into place (`atomic_dir`), and the stage is recorded.
 
@@ -35,9 +42,10 @@ origin the middle of the body's footprint in the motion's first frame; the root 
 from __future__ import annotations
 
 import time
+from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any, Iterator
 
 import numpy as np
 
@@ -48,7 +56,10 @@ from avatarctl.progress import ProgressReport, ProgressFn
 from avatarctl.stages.common import check_latent_mode, frame_node_state, latent_for, \
     load_fitted, motion_for_avatar, open_fitted, writing
 
-SCHEMA_VERSION = 2  # 2: threshold None = from the field; glb_frame; reload default_pose_max_m
+if TYPE_CHECKING:
+    from avatarctl.export.level import LevelChoice
+
+SCHEMA_VERSION = 3  # 2: threshold None = from the field; glb_frame; reload default_pose_max_m. 3: level_choice, pieces
 MESH_FORMATS = ("glb", "ply", "obj")
 SPLAT_FORMATS = ("splat", "player")  # Gaussian-field avatars: per-frame 3DGS .ply, the HTML player (_splats)
 FORMATS = MESH_FORMATS + SPLAT_FORMATS
@@ -67,7 +78,8 @@ class ExportConfig:
     poses: str | None = None  # motion file: the posed frames and the animation; None = the project's frames
     formats: tuple[str, ...] = ("glb", "ply")  # posed mesh files: glb | ply | obj; Gaussian fields: splat | player
     voxel: float = 0.008  # grid spacing, metres
-    threshold: float | None = None  # density level of the surface, 1/metre; None = from the field (export.mesh.body_level)
+    threshold: float | None = None  # density level of the surface, 1/metre; None = chosen by the training views
+    #                                 (export.level: the body level times the best-scoring factor)
     min_component: float = 0.01  # drop connected pieces with fewer than this fraction of the faces
     influences: int = 4  # skinning weights per vertex in avatar.glb: 4 (JOINTS_0) or 8 (+ JOINTS_1)
     latent: str = "auto"  # auto | mean | zero | sample (posed meshes; the rest mesh uses z = 0)
@@ -116,7 +128,9 @@ class ExportedMesh:
     faces: int
     threshold: float  # the surface level used, 1/metre
     grid_points: int  # density evaluations (grid points inside a node support)
-    seconds: float
+    pieces: int  # connected pieces of the mesh
+    largest_piece: float  # the largest piece's share of the faces
+    seconds: float  # the scoring frame's includes the level search
 
 
 @dataclass(frozen=True)
@@ -139,6 +153,8 @@ class SkinnedExport:
     vertices: int
     faces: int
     threshold: float  # the surface level of the rest mesh, 1/metre
+    pieces: int  # connected pieces of the rest mesh
+    largest_piece: float  # the largest piece's share of the faces
     joints: int
     animation_frames: int
     animation_source: str
@@ -146,6 +162,15 @@ class SkinnedExport:
     trs_residual: float  # max |TRS - local joint matrix| (0 for rigid joint transforms)
     weight_mass_dropped: float  # max weight mass lost by keeping `influences` weights per vertex
     reload: dict[str, Any]  # the reload check (step 4): errors in metres, or the reason it was skipped
+
+
+@dataclass(frozen=True)
+class ChosenLevel:
+    """`--threshold auto`: the level chosen on one training frame (`export.level`); every mesh of the export takes its
+    own body level times `choice.factor`."""
+
+    frame: int
+    choice: "LevelChoice"
 
 
 @dataclass
@@ -157,6 +182,7 @@ class ExportResult:
     seconds: float
     checkpoint_step: int
     splats: dict[str, int] = field(default_factory=dict)  # splat / player files -> bytes
+    level: ChosenLevel | None = None  # --threshold auto: the candidates and their training-view scores
 
     def mean_psnr(self) -> tuple[float, float] | None:
         if not self.scores:
@@ -178,6 +204,7 @@ def _run(project_dir: str | Path, cfg: ExportConfig, progress: ProgressFn | None
     from avatarctl.atomic import atomic_dir, write_json
     from avatarctl.render.trajectories import up_from_cameras
 
+    from avatarctl.export.mesh import mesh_pieces
     from avatarctl.export.skinning import glb_frame, up_to_y_basis
 
     started = now_iso()
@@ -225,6 +252,14 @@ def _run(project_dir: str | Path, cfg: ExportConfig, progress: ProgressFn | None
                                     seconds=time.perf_counter() - t0, part=part))
 
     with atomic_dir(out_dir) as tmp:
+        chosen: ChosenLevel | None = None
+        first: Any = None  # the scoring frame's mesh when it is one of `frames` (step 3)
+        factor, first_seconds = 1.0, 0.0
+        if cfg.threshold is None and mesh_formats and (frames or cfg.skinned):
+            report("choosing the surface level")
+            ts = time.perf_counter()
+            chosen, first = _choose_level(avatar, cfg, frames if cfg.poses is None else [], train_set)
+            factor, first_seconds = chosen.choice.factor, time.perf_counter() - ts
         for frame in frames:
             is_train = cfg.poses is None and frame in train_set
             latent = latent_for(cfg.latent, is_train)
@@ -237,11 +272,16 @@ def _run(project_dir: str | Path, cfg: ExportConfig, progress: ProgressFn | None
                 continue
             ts = time.perf_counter()
             body = avatar.body.pose(one).vertices[0].detach().float().cpu().numpy()
-            mesh, queried, level = _extract(avatar, state, cfg, f"frame {frame}", body)
+            if first is not None and chosen is not None and frame == chosen.frame:  # step 2 meshed it
+                (mesh, queried), level, spent = first, chosen.choice.level, first_seconds
+            else:
+                (mesh, queried, level), spent = _extract(avatar, state, cfg, f"frame {frame}", body, factor), 0.0
             files = _write_posed(tmp, frame, mesh, mesh_formats, frame_glb)
+            pieces, largest = mesh_pieces(mesh.faces, mesh.num_vertices)
             meshes.append(ExportedMesh(frame=frame, latent=latent, files=files, vertices=mesh.num_vertices,
                                        faces=mesh.num_faces, threshold=round(level, 4), grid_points=queried,
-                                       seconds=round(time.perf_counter() - ts, 3)))
+                                       pieces=pieces, largest_piece=round(largest, 4),
+                                       seconds=round(time.perf_counter() - ts + spent, 3)))
             if cfg.score:
                 scores += _score(avatar, one, state, mesh, frame, is_train, preview if not preview else None)
             elif not preview:
@@ -256,7 +296,7 @@ def _run(project_dir: str | Path, cfg: ExportConfig, progress: ProgressFn | None
             write_player(tmp / "player.html", block, f"avatarctl player: {project.root.name}")
             splat_files["player.html"] = (tmp / "player.html").stat().st_size
         if cfg.skinned and mesh_formats:  # the skinned avatar is a mesh product: not with splat formats alone
-            skinned = _export_skinned(tmp, avatar, cfg, motion, source, frame_glb)
+            skinned = _export_skinned(tmp, avatar, cfg, motion, source, frame_glb, factor)
             report("skinned")
         if preview:
             from avatarctl.render.images import write_png
@@ -264,11 +304,12 @@ def _run(project_dir: str | Path, cfg: ExportConfig, progress: ProgressFn | None
             write_png(tmp / "preview.png", np.concatenate(preview, axis=1), None)
         result = ExportResult(out_dir=out_dir, meshes=meshes, avatar=skinned, scores=scores,
                               seconds=round(time.perf_counter() - t_start, 3), checkpoint_step=avatar.step,
-                              splats=splat_files)
+                              splats=splat_files, level=chosen)
         write_json(tmp / "export.json", _record(cfg, avatar, result, frame_glb, source, retarget))
     project.record("export", config=cfg.to_json(), outputs=[out_dir], started=started,
                    summary={"name": cfg.name, "meshes": len(meshes), "avatar": skinned.file if skinned else None,
                             "checkpoint_step": avatar.step, "motion": source,
+                            **({"level_factor": chosen.choice.factor} if chosen else {}),
                             **({"psnr_mesh": round(result.mean_psnr()[0], 3),
                                 "psnr_volume": round(result.mean_psnr()[1], 3)} if scores else {})})
     return result
@@ -300,31 +341,75 @@ def _require(module: str, what: str, alternative: str = "") -> None:
                          fix=f"pip install 'avatarctl[export]' {alternative}".strip())
 
 
-def _extract(avatar: Any, state: Any, cfg: ExportConfig, what: str, body: np.ndarray) -> tuple[Any, int, float]:
-    """The coloured mesh of frame slot 0 of `state` (export.mesh) -> (mesh, grid points queried, the level used);
-    body [V, 3]: the body model posed like `state` (the level's probes when `cfg.threshold` is None). A one-line
-    error when there is no surface."""
-    from avatarctl.export.mesh import (GridTooLargeError, NoSurfaceError, body_level, extract_mesh, slrf_density,
-                                       slrf_ray_colour)
+def _field(avatar: Any, state: Any) -> tuple[Any, Any]:
+    """(density, ray colour) callables of frame slot 0 of `state` (`export.mesh` adapters)."""
+    from avatarctl.export.mesh import slrf_density, slrf_ray_colour
 
     model = avatar.model
-    density = slrf_density(model, state)
+    # the Gaussian field: a short bake ray (4 cm, 8 samples) into its shell of splats, a quarter of the density
+    # queries (each costs K Gaussians per node in range; the 30 cm / 32-sample bake ran > 15 min on the tiny demo)
+    bake = slrf_ray_colour(model, state) if model.cfg.ray_marched else slrf_ray_colour(model, state, 0.04, 8)
+    return slrf_density(model, state), bake
+
+
+@contextmanager
+def _surface_errors(what: str) -> Iterator[None]:
+    """The meshing errors of `export.mesh` / `export.level` as one-line input errors."""
+    from avatarctl.export.mesh import GridTooLargeError, NoSurfaceError
+
     try:
-        level = cfg.threshold if cfg.threshold is not None else body_level(
-            density, body, avatar.template.faces.cpu().numpy())
-        # the Gaussian field: a short bake ray (4 cm, 8 samples) into its shell of splats, a quarter of the density
-        # queries (each costs K Gaussians per node in range; the 30 cm / 32-sample bake ran > 15 min on the tiny demo)
-        bake = slrf_ray_colour(model, state) if model.cfg.ray_marched else slrf_ray_colour(model, state, 0.04, 8)
-        mesh, queried = extract_mesh(density, bake,
-                                     state.centers[0].detach().float().cpu().numpy(),
-                                     float(model.cfg.support_radius), cfg.voxel, level, cfg.min_component,
-                                     background=tuple(float(c) for c in avatar.background))
-        return mesh, queried, level
+        yield
     except NoSurfaceError as e:
         raise InputError(f"no surface to mesh for {what}: {e}", where="--threshold",
                          fix="lower --threshold (or fit longer)") from None
     except GridTooLargeError as e:
         raise InputError(str(e), where="--voxel", fix="use a larger --voxel") from None
+
+
+def _extract(avatar: Any, state: Any, cfg: ExportConfig, what: str, body: np.ndarray,
+             factor: float) -> tuple[Any, int, float]:
+    """The coloured mesh of frame slot 0 of `state` (export.mesh) -> (mesh, grid points queried, the level used);
+    body [V, 3]: the body model posed like `state` (the level's probes when `cfg.threshold` is None: its body level
+    times `factor`, step 2). A one-line error when there is no surface."""
+    from avatarctl.export.mesh import body_level, extract_mesh
+
+    model = avatar.model
+    density, bake = _field(avatar, state)
+    with _surface_errors(what):
+        level = cfg.threshold if cfg.threshold is not None else factor * body_level(
+            density, body, avatar.template.faces.cpu().numpy())
+        mesh, queried = extract_mesh(density, bake, state.centers[0].detach().float().cpu().numpy(),
+                                     float(model.cfg.support_radius), cfg.voxel, level, cfg.min_component,
+                                     background=tuple(float(c) for c in avatar.background))
+    return mesh, queried, level
+
+
+def _choose_level(avatar: Any, cfg: ExportConfig, frames: list[int], train_set: set[int]
+                  ) -> tuple[ChosenLevel, tuple[Any, int] | None]:
+    """Step 2 on the first of `frames` that is a training frame, else the project's first training frame ->
+    (the choice, (the mesh at the chosen level, grid points queried) when the scoring frame is one of `frames`)."""
+    from avatarctl.export.level import choose_level, pick_views, scoring_image
+    from avatarctl.export.mesh import body_level, density_grid
+
+    cap = avatar.capture
+    if not train_set:
+        raise InputError("--threshold auto scores the surface levels on training frames; the fit has none",
+                         where="--threshold", fix="give a level, e.g. --threshold 10")
+    frame = next((f for f in frames if f in train_set), min(train_set))
+    one = cap.motion.select(cap.motion.rows_for([frame]))
+    state = frame_node_state(avatar, one, frame, True, latent_for(cfg.latent, True), cfg.seed)
+    body = avatar.body.pose(one).vertices[0].detach().float().cpu().numpy()
+    background = tuple(float(c) for c in avatar.background)
+    images = [scoring_image(v, cap.cameras[v], cap.image(v, frame), cap.mask(v, frame), background, body)
+              for v in pick_views(list(cap.split.train_views) or sorted(cap.cameras))]
+    model = avatar.model
+    density, bake = _field(avatar, state)
+    with _surface_errors(f"frame {frame}"):
+        base = body_level(density, body, avatar.template.faces.cpu().numpy())
+        grid = density_grid(density, state.centers[0].detach().float().cpu().numpy(),
+                            float(model.cfg.support_radius), cfg.voxel, level=base)
+        choice, mesh = choose_level(grid, base, bake, images, background, 2.0 * cfg.voxel, cfg.min_component)
+    return ChosenLevel(frame=frame, choice=choice), ((mesh, grid.queried) if frame in frames else None)
 
 
 def _ground_origin(avatar: Any, motion: Any, basis: np.ndarray, chunk: int = 64) -> np.ndarray:
@@ -403,19 +488,20 @@ def _score(avatar: Any, one: Any, state: Any, mesh: Any, frame: int, is_train: b
 
 
 def _export_skinned(tmp: Path, avatar: Any, cfg: ExportConfig, motion: Any, source: str,
-                    frame: np.ndarray) -> SkinnedExport:
-    """Step 3 and 4: avatar.glb and its reload check."""
+                    frame: np.ndarray, factor: float) -> SkinnedExport:
+    """Steps 4 and 5: avatar.glb and its reload check; `factor`: the level factor of step 2."""
     import torch
 
     from avatarctl.body.joints import joint_centres, skin_weighted_centroids
     from avatarctl.export import skinning
     from avatarctl.export.gltf import Animation, SkinnedMesh, glb_bytes
-    from avatarctl.export.mesh import rest_node_state
+    from avatarctl.export.mesh import mesh_pieces, rest_node_state
 
     ts = time.perf_counter()
     tpl = avatar.template
     mesh, _, level = _extract(avatar, rest_node_state(avatar.model), cfg, "the rest pose",
-                              tpl.vertices.cpu().numpy())
+                              tpl.vertices.cpu().numpy(), factor)
+    pieces, largest = mesh_pieces(mesh.faces, mesh.num_vertices)
     dense = skinning.transfer_weights(mesh.vertices, tpl.vertices.cpu().numpy(), tpl.skin_weights.cpu().numpy())
     weights = skinning.sparsify(dense, cfg.influences)
     cap = avatar.capture
@@ -442,7 +528,7 @@ def _export_skinned(tmp: Path, avatar: Any, cfg: ExportConfig, motion: Any, sour
     seconds = time.perf_counter() - ts
     reload = _reload_check(tmp / "avatar.glb", mesh_y, weights, dense, M_y)
     return SkinnedExport(file="avatar.glb", bytes=len(data), vertices=mesh.num_vertices, faces=mesh.num_faces,
-                         threshold=round(level, 4),
+                         threshold=round(level, 4), pieces=pieces, largest_piece=round(largest, 4),
                          joints=len(tpl.parents), animation_frames=len(times), animation_source=source,
                          seconds=round(seconds, 3), trs_residual=float(trs.residual),
                          weight_mass_dropped=round(weights.dense_residual, 6), reload=reload)
@@ -456,7 +542,7 @@ def _joint_transforms(avatar: Any, motion: Any, chunk: int = 64) -> np.ndarray:
 
 
 def _reload_check(path: Path, mesh_y: Any, weights: Any, dense: np.ndarray, M_y: np.ndarray) -> dict[str, Any]:
-    """Step 4: max / mean vertex error (metres) of the file skinned by its own data vs our LBS."""
+    """Step 5: max / mean vertex error (metres) of the file skinned by its own data vs our LBS."""
     import importlib.util
 
     if importlib.util.find_spec("pygltflib") is None:
@@ -492,8 +578,9 @@ def _record(cfg: ExportConfig, avatar: Any, res: ExportResult, frame: np.ndarray
     return {"config": cfg.to_json(), "checkpoint": str(avatar.checkpoint) if avatar.checkpoint else None,
             "checkpoint_step": avatar.step, "motion_source": source, "retarget": retarget,
             "surface": {"threshold_per_m": cfg.threshold if cfg.threshold is not None else
-                        "from the field: the 25 % quantile of the density 1 cm inside the body model's skin, at most 10 "
-                        "(per mesh: meshes[].threshold, avatar.threshold)",
+                        "auto: the body level (the 25 % quantile of the density 1 cm inside the body model's skin, at "
+                        "most 10) times the factor whose mesh scored best in training views (level_choice); per mesh: "
+                        "meshes[].threshold, avatar.threshold",
                         "voxel_m": cfg.voxel, "min_component": cfg.min_component,
                         "colour": "volume render of a 30 cm ray (32 samples) looking at each vertex along -normal from 2 "
                                   "voxels outside, composited over the fit's background (one view direction per vertex)"},
@@ -501,6 +588,9 @@ def _record(cfg: ExportConfig, avatar: Any, res: ExportResult, frame: np.ndarray
             "glb_origin": "on the ground (the lowest point of the body template over the motion) under the middle "
                           "of the body's footprint in the motion's first frame; +Y up",
             "ply_obj_frame": "capture world (metres)",
+            "level_choice": {"frame": res.level.frame, **asdict(res.level.choice),
+                             "protocol": "PSNR (dB) of the mesh (unlit baked colours, 1 ray per pixel) vs the training "
+                                         "photographs, bbox region, mean over the views"} if res.level else None,
             "meshes": [asdict(m) for m in res.meshes], "splats": res.splats,
             "avatar": asdict(res.avatar) if res.avatar else None,
             "scores": [asdict(s) for s in res.scores],
