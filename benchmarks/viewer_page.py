@@ -1,7 +1,7 @@
 """The viewer page of a Gaussian-field avatar measured in headless Chromium (SwiftShader WebGL: a CPU floor).
 
-Starts `avatarctl view`'s server in this process (`stages.view.prepare` + `viewer.server.ViewerServer`), opens the
-page, and measures in the browser, with a probe injected into the page (a `requestAnimationFrame` loop that counts
+Starts `avatarctl view`'s server in this process (`stages.view.prepare`, a `viewer.controller.ViewerController` and
+the page the viewer serves for a Gaussian-field avatar, `viewer.splat_server.SplatPageServer`), opens the page, and measures in the browser, with a probe injected into the page (a `requestAnimationFrame` loop that counts
 animation frames and the frames in which the page issued WebGL draw calls, and, when sampling, draws the WebGL canvas
 into a 24x18 canvas and notes the wall time whenever it changes):
 - **orbit fps**: animation frames per second while the mouse drags the orbit camera (Chromium input events), with
@@ -9,8 +9,9 @@ into a 24x18 canvas and notes the wall time whenever it changes):
   time per drawn frame (all of Chromium's processes, from /proc: the figure least moved by other jobs on a shared
   machine; 1000 / it is the fps of one free core) and the mean change of one screenshot before and one after the
   drag (> 0: the view really turned);
-- **frame-change latency**: wall time from setting the frame slider on the server to the first animation frame
-  whose canvas differs (posing, sending, the page's sort and draw; same clock, one machine);
+- **frame-change latency**: wall time from setting the frame on the server (`ViewerController.set_frame`, what
+  the page's slider sends) to the first animation frame whose canvas differs (posing, encoding, sending, the page's
+  decode, sort and draw; same clock, one machine); beside it the server's share (posing + encoding, uncached);
 - **playback fps**: distinct canvas images per second while "play" runs (the frames of motion actually shown), and
   the server's pushes per second;
 - **memory**: the peak resident memory of this process (the viewer's: model, caches, server), from /proc;
@@ -24,7 +25,7 @@ wall time from moving the page's slider to the first changed canvas.
     python -m benchmarks.viewer_page PROJECT [--seconds 5] [--size 640 480] [--out figures.json] [--shots DIR]
                                      [--player player.html] [--repeats 2]
 
-Needs viser and Chromium (`apt-get install -y chromium`). Run it with `nice -n 19` on a shared machine.
+Needs websockets (the `view` extra) and Chromium (`apt-get install -y chromium`). Run it with `nice -n 19` on a shared machine.
 """
 
 from __future__ import annotations
@@ -98,6 +99,8 @@ class PageFigures:
     peak_rss_mb: float
     second_tab_drawn: bool
     splat_seconds: float  # posing + arrays of one uncached frame on the server
+    encode_seconds: float  # its wire form (splats.encode_splats)
+    bytes_per_frame: int  # the binary message of one frame
 
 
 @dataclass
@@ -216,13 +219,18 @@ def wait_drawn(tab: Any, timeout: float = 60.0) -> np.ndarray | None:
 
 def measure(server: Any, browser: Any, seconds: float = 5.0, size: tuple[int, int] = (640, 480),
             shots: Path | None = None, changes: int = 8) -> PageFigures:
-    """The figures of the module docstring for a running `ViewerServer` (Gaussian-field session) and a `Browser`
+    """The figures of the module docstring for a running `SplatPageServer` (`start_viewer`) and a `Browser`
     (tests/fixtures/browser.py) whose page is not yet opened."""
-    session = server.session
+    from avatarctl.viewer.splats import encode_splats
+
+    session, controller = server.session, server.controller
     load = load_average()
     t = time.perf_counter()
     splats = session.splats(len(session.frames) - 1, "zero")
     splat_seconds = time.perf_counter() - t
+    t = time.perf_counter()
+    header, payload = encode_splats(splats)
+    encode_seconds = time.perf_counter() - t
     browser.open(server.url)
     first = wait_drawn(browser)
     if first is None:
@@ -245,7 +253,7 @@ def measure(server: Any, browser: Any, seconds: float = 5.0, size: tuple[int, in
         time.sleep(0.2)
         settled = len(evaluate(browser, "window.__probe.changes"))
         t_set = time.time() * 1000.0
-        server.frame.value = (int(server.frame.value) + max(1, n // (changes + 1))) % n
+        controller.set_frame((controller.state.frame + max(1, n // (changes + 1))) % n)
         deadline = time.monotonic() + 5
         seen = []
         while time.monotonic() < deadline:
@@ -260,9 +268,9 @@ def measure(server: Any, browser: Any, seconds: float = 5.0, size: tuple[int, in
     evaluate(browser, "window.__probe.changes = []")
     pushes0 = len(server.pushes)
     tp = time.monotonic()
-    server.play.value = True
+    controller.set_playing(True)
     time.sleep(seconds)
-    server.play.value = False
+    controller.set_playing(False)
     played = time.monotonic() - tp
     shown = evaluate(browser, "window.__probe.changes")
     pushed = [t for t, _ in server.pushes[pushes0:]]
@@ -282,8 +290,9 @@ def measure(server: Any, browser: Any, seconds: float = 5.0, size: tuple[int, in
     return PageFigures(gaussians=splats.count, load_average=load, orbit=orbit_figures, idle_changes_per_s=idle,
                        frame_change_ms=[round(x, 1) for x in latencies],
                        playback_fps_page=round(playback_page, 2), playback_pushes_per_s=round(pushes_per_s, 2),
-                       motion_fps=float(server.fps.value), peak_rss_mb=round(peak_rss_mb(), 1),
-                       second_tab_drawn=drawn2 is not None, splat_seconds=round(splat_seconds, 4))
+                       motion_fps=float(controller.state.fps), peak_rss_mb=round(peak_rss_mb(), 1),
+                       second_tab_drawn=drawn2 is not None, splat_seconds=round(splat_seconds, 4),
+                       encode_seconds=round(encode_seconds, 4), bytes_per_frame=len(payload) + 64)
 
 
 SEEK = """
@@ -319,14 +328,26 @@ def measure_player(browser: Any, page: Path, seconds: float = 5.0, changes: int 
     return PlayerFigures(load_average=load, orbit=orbit_figures, frame_change_ms=latencies)
 
 
+def start_viewer(project: Path, device: str = "cpu", port: int = 0) -> Any:
+    """The page `avatarctl view` serves for a Gaussian-field avatar, started in this process (`stop()` it)."""
+    from avatarctl.stages.view import PROJECT, ViewConfig, prepare
+    from avatarctl.viewer.controller import ViewerController
+    from avatarctl.viewer.splat_server import SplatPageServer
+
+    setup = prepare(project, ViewConfig(device=device))
+    controller = ViewerController(setup.session, motions=(PROJECT,))
+    try:
+        return SplatPageServer(controller, setup.initial, port=port)
+    except BaseException:
+        controller.stop()
+        raise
+
+
 def main(argv: list[str] | None = None) -> None:
     import sys
 
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
     from fixtures.browser import Browser, free_port
-
-    from avatarctl.stages.view import PROJECT, ViewConfig, prepare
-    from avatarctl.viewer.server import ViewerServer
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("project", type=Path)
@@ -339,8 +360,7 @@ def main(argv: list[str] | None = None) -> None:
                     "alternating with the viewer's")
     ap.add_argument("--repeats", type=int, default=1, help="rounds of measurements (alternating with --player)")
     args = ap.parse_args(argv)
-    setup = prepare(args.project, ViewConfig(device=args.device))
-    server = ViewerServer(setup.session, setup.initial, port=free_port(), motions=(PROJECT,))
+    server = start_viewer(args.project, args.device, free_port())
     figures: dict[str, list[dict]] = {"viewer": [], "player": []}
     try:
         for _ in range(max(args.repeats, 1)):

@@ -3,6 +3,7 @@ callback on a fitted toy project, and (marked `browser`, skipped without Chromiu
 
 from __future__ import annotations
 
+import json
 import threading
 import time
 
@@ -236,22 +237,175 @@ def test_a_gaussian_avatar_gives_the_page_its_splats(toy_gaussian_project, tmp_p
     assert len(s.frames) == 5, "a failed load keeps the motion shown"
 
 
+def test_the_wire_form_of_a_frame_keeps_its_gaussians(toy_gaussian_project):
+    """`encode_splats` (22 bytes a Gaussian): centres within a 16-bit step of the box, covariances within float16
+    precision, colours within a byte."""
+    from avatarctl.stages.view import ViewConfig, prepare
+    from avatarctl.viewer.splats import decode_splats, encode_splats
+
+    a = prepare(toy_gaussian_project, ViewConfig(device="cpu")).session.splats(0, "auto")
+    header, payload = encode_splats(a)
+    assert len(payload) == 22 * a.count
+    b = decode_splats(header, payload)
+    step = (np.asarray(header["hi"]) - np.asarray(header["lo"])) / 65535
+    assert np.all(np.abs(b.centers - a.centers) <= step * 0.5 + 1e-6)
+    rel = np.abs(b.covariances - a.covariances).max(axis=(1, 2)) / np.abs(a.covariances).max(axis=(1, 2))
+    assert rel.max() < 2e-3, rel.max()
+    assert np.abs(b.rgbs - a.rgbs).max() <= 0.5 / 255 + 1e-6 and np.abs(b.opacities - a.opacities).max() <= 0.5 / 255 + 1e-6
+
+
+def test_the_controller_plays_switches_and_poses_the_newest_frame(toy_gaussian_project, tmp_path):
+    """One controller behind both pages: setters, play at the fps, motion switch, the posing thread's newest frame."""
+    from fixtures.toy_capture import toy_motion
+
+    from avatarctl.stages.view import PROJECT, ViewConfig, prepare
+    from avatarctl.viewer.controller import ViewerController
+
+    setup = prepare(toy_gaussian_project, ViewConfig(device="cpu"))
+    c = ViewerController(setup.session, fps=20.0, resolution=48, motions=(PROJECT,))
+    states, frames = [], []
+    c.subscribe(states.append)
+    c.subscribe_frames(lambda key, splats: frames.append((key, splats.count)))
+    try:
+        c.set_frame(99)
+        assert c.state.frame == len(c.state.labels) - 1, "clamped to the last frame"
+        c.set_latent("zero")
+        c.set_latent("bogus")
+        assert c.state.latent == "zero" and "unknown latent" in c.state.status
+        deadline = time.monotonic() + 20
+        while (not frames or frames[-1][0] != c.state.key) and time.monotonic() < deadline:
+            time.sleep(0.02)
+        assert frames and frames[-1][0] == c.state.key and frames[-1][1] > 0, "the newest frame is posed"
+        c.set_playing(True)
+        time.sleep(0.6)
+        c.set_playing(False)
+        assert len({s.frame for s in states}) >= 3, "play advances the frames"
+        toy_motion(5).save(tmp_path / "walk.npz")
+        c.switch_motion(str(tmp_path / "walk.npz"), add=True)
+        s = c.state
+        assert len(s.labels) == 5 and s.generation == 1 and s.motion in s.motions and s.frame == 0
+        c.switch_motion(str(tmp_path / "missing.npz"), add=True)
+        assert "cannot load" in c.state.status and len(c.state.labels) == 5
+        req = c.request(*_camera_of(setup.initial), aspect=4 / 3)
+        assert c.render(req).shape == (36, 48, 3) and "exact render" in c.state.status
+    finally:
+        c.stop()
+
+
+def _camera_of(initial):
+    """(wxyz, position, fov_y) of a camera at `initial` looking at its subject."""
+    R, _ = look_at(np.asarray(initial.position, float), np.asarray(initial.look_at, float),
+                   np.asarray(initial.up, float))
+    return _wxyz(R.T), tuple(initial.position), 0.8
+
+
+def _page_errors(browser) -> list:
+    return [m for m in browser.events if m.get("method") == "Runtime.exceptionThrown"
+            or (m.get("method") == "Runtime.consoleAPICalled" and m["params"].get("type") == "error")
+            or (m.get("method") == "Log.entryAdded" and m["params"]["entry"].get("level") == "error")]
+
+
 @pytest.mark.browser
-def test_gaussian_viewer_page_draws_orbits_and_plays_in_headless_chromium(toy_gaussian_project, tmp_path):
-    """The page of a Gaussian-field avatar (benchmarks/viewer_page.py at toy scale): drawn by the browser, the drag
-    turns it, a frame change shows a new image, play shows frames, a second tab draws too, memory stays small."""
-    pytest.importorskip("viser")
+def test_gaussian_viewer_page_draws_changes_plays_and_renders_in_headless_chromium(toy_gaussian_project, tmp_path):
+    """Our page for a Gaussian-field avatar: the browser draws the avatar, a frame change changes the picture, play
+    shows new frames, "render" shows the server's image, the panel's controls reach the server, no console error."""
+    pytest.importorskip("websockets")
     from fixtures.browser import Browser, find_chromium, free_port
+    from fixtures.toy_capture import toy_motion
 
     if find_chromium() is None:
         pytest.skip("no chromium / chrome on this machine")
-    from benchmarks.viewer_page import measure
+    from benchmarks.viewer_page import canvas_rect, evaluate, wait_drawn
 
     from avatarctl.stages.view import PROJECT, ViewConfig, prepare
-    from avatarctl.viewer.server import ViewerServer
+    from avatarctl.viewer.controller import ViewerController
+    from avatarctl.viewer.splat_server import SplatPageServer
 
     setup = prepare(toy_gaussian_project, ViewConfig(device="cpu"))
-    server = ViewerServer(setup.session, setup.initial, port=free_port(), motions=(PROJECT,))
+    controller = ViewerController(setup.session, resolution=64, motions=(PROJECT,))
+    server = SplatPageServer(controller, setup.initial, port=free_port())
+    browser = None
+    toy_motion(5).save(tmp_path / "walk.npz")
+
+    def wait(expr: str, timeout: float = 30.0):
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            value = evaluate(browser, expr)
+            if value:
+                return value
+            time.sleep(0.05)
+        raise AssertionError(f"timed out waiting for {expr}")
+
+    try:
+        browser = Browser(640, 480)
+        browser.call("Runtime.enable")
+        browser.call("Log.enable")
+        browser.open(server.url)
+        first = wait_drawn(browser)
+        assert first is not None, "no avatar in the page's screenshot"
+        x, y, w, h = canvas_rect(browser)
+        wait("window.__viewer.shown && window.__viewer.shown.frame === 0")
+        last = len(controller.state.labels) - 1
+        controller.set_frame(last)
+        wait(f"window.__viewer.shown.frame === {last}")
+        time.sleep(0.3)
+        changed = browser.screenshot()
+        diff = np.abs(changed[y:y + h, x:x + w].astype(float) - first[y:y + h, x:x + w].astype(float)).mean()
+        assert diff > 0.05, f"another frame, another picture ({diff})"
+        assert evaluate(browser, "document.getElementById('label').textContent").startswith(
+            controller.state.labels[last])
+        evaluate(browser, "document.getElementById('play').click()")
+        wait("window.__viewer.state.playing")
+        seen = set()
+        deadline = time.monotonic() + 3.0
+        while time.monotonic() < deadline:
+            seen.add(evaluate(browser, "window.__viewer.shown.frame"))
+            time.sleep(0.05)
+        evaluate(browser, "document.getElementById('play').click()")
+        assert len(seen) >= 2 and len(server.pushes) >= 3, f"play shows frames: {seen}"
+        wait("!window.__viewer.state.playing && window.__viewer.shown.frame === window.__viewer.state.frame")
+        evaluate(browser, "document.getElementById('render').click()")
+        wait("window.__viewer.exactShown && document.getElementById('exact').naturalWidth > 0", 60)
+        size = evaluate(browser, "[document.getElementById('exact').naturalWidth, "
+                                 "document.getElementById('exact').naturalHeight]")
+        assert max(size) == 64, f"the server image at the resolution asked for: {size}"
+        assert "exact render" in controller.state.status
+        rendered = browser.screenshot()
+        cv2 = pytest.importorskip("cv2")
+        for name, img in (("first", first), ("changed", changed), ("rendered", rendered)):
+            cv2.imwrite(str(tmp_path / f"page_{name}.png"), img[..., ::-1])
+        evaluate(browser, "const l = document.getElementById('latent'); l.value = 'zero';"
+                          " l.dispatchEvent(new Event('change'))")
+        wait("window.__viewer.state.latent === 'zero' && window.__viewer.shown.latent === 'zero'")
+        assert controller.state.latent == "zero"
+        assert not evaluate(browser, "window.__viewer.exactShown"), "the exact image goes with the frame it showed"
+        evaluate(browser, f"document.getElementById('file').value = {json.dumps(str(tmp_path / 'walk.npz'))};"
+                          " document.getElementById('load').click()")
+        wait("window.__viewer.state.labels.length === 5 && window.__viewer.shown.generation === 1")
+        second = browser.new_tab(server.url)
+        try:
+            assert wait_drawn(second) is not None, "a second tab draws too"
+        finally:
+            second.close()
+        assert not _page_errors(browser), _page_errors(browser)
+    finally:
+        if browser is not None:
+            browser.close()
+        server.stop()
+
+
+@pytest.mark.browser
+def test_gaussian_viewer_page_measured_at_toy_scale(toy_gaussian_project, tmp_path):
+    """benchmarks/viewer_page.py at toy scale: the drag turns the view, frame changes and playback show frames, a
+    second tab draws too, memory stays small."""
+    pytest.importorskip("websockets")
+    from fixtures.browser import Browser, find_chromium
+
+    if find_chromium() is None:
+        pytest.skip("no chromium / chrome on this machine")
+    from benchmarks.viewer_page import measure, start_viewer
+
+    server = start_viewer(toy_gaussian_project, device="cpu")
     browser = None
     try:
         browser = Browser(640, 480)

@@ -9,10 +9,11 @@ import typer
 
 
 def register(app: typer.Typer) -> None:
-    @app.command("view", help="Open a local web viewer of a fitted avatar (viser): orbit camera, frame slider over "
+    @app.command("view", help="Open a local web viewer of a fitted avatar: orbit camera, frame slider over "
                               "training and test frames or motion files, play, latent mode, server render and save "
-                              "video buttons. A Gaussian-field avatar is drawn by the browser (real time); a "
-                              "ray-marched one is rendered progressively with a mesh preview. Ctrl-C stops it.")
+                              "video buttons. A Gaussian-field avatar is drawn by the browser (our WebGL2 page); a "
+                              "ray-marched one is rendered progressively with a mesh preview (viser's page). Ctrl-C "
+                              "stops it.")
     def view_cmd(
         project: Path = typer.Argument(..., help="Project directory with a fit (`avatarctl fit`)."),
         poses: Optional[list[Path]] = typer.Option(None, "--poses", help="Motion file to play (as for `avatarctl "

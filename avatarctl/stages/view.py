@@ -6,10 +6,12 @@ Steps:
    as `render --poses` does: `motion_for_avatar`); any other motion file can be loaded from the page (the same
    loader). The latent of a frame follows `--latent` / the GUI with the "auto" rule (z = mu for training frames, 0
    otherwise); "mean" on a frame that is not a training frame falls back to 0;
-3. a `viewer.session.ViewerSession` served by `viewer.server.ViewerServer`: orbit camera starting at the first
-   held-out camera (its position and vertical field of view), looking at the subject. A Gaussian-field avatar is
-   drawn by the page (its posed Gaussians per frame); a ray-marched one is rendered progressively on the server, with
-   its posed mesh (`export.mesh`, coarse voxel) drawn by the page meanwhile (`--mesh-preview`);
+3. a `viewer.session.ViewerSession` behind a `viewer.controller.ViewerController` (the panel's state, play, render,
+   save video), served by one of two pages: a Gaussian-field avatar by our own page (`viewer.splat_server`: the
+   browser draws each frame's posed Gaussians, sent over a websocket), a ray-marched one by viser's
+   (`viewer.server`: progressive server renders, with its posed mesh (`export.mesh`, coarse voxel) drawn by the
+   page meanwhile, `--mesh-preview`). The orbit camera starts at the first held-out camera (its position and
+   vertical field of view), looking at the subject;
 4. "save video" in the page runs `avatarctl render` in a child process for the motion, latent and camera path shown
    (`render/view-<n>`: the only thing the viewer writes into the project);
 5. `ready(url)` is called once the server listens; the stage then serves until `stop` is set (or Ctrl-C reaches
@@ -236,21 +238,29 @@ class ViewResult:
 def run(project_dir: str | Path, cfg: ViewConfig, ready: Callable[[str], None] | None = None,
         stop: threading.Event | None = None) -> ViewResult:
     """Serve the viewer until `stop` is set (or KeyboardInterrupt); returns what it served."""
+    from avatarctl.viewer.controller import ViewerController
     from avatarctl.viewer.server import ViewerServer, import_viser
+    from avatarctl.viewer.splat_server import SplatPageServer, import_websockets
 
     try:
         import_viser()
+        import_websockets()
     except ImportError:
-        raise InputError("the viewer needs the `viser` package", where="avatarctl[view]",
+        raise InputError("the viewer needs the `viser` and `websockets` packages", where="avatarctl[view]",
                          fix="pip install 'avatarctl[view]'") from None
     setup = prepare(project_dir, cfg)
     gaussian = setup.session.gaussian
     resolution = cfg.resolution or (512 if setup.avatar.device.type == "cuda" or gaussian else 256)
+    controller = ViewerController(setup.session, fps=cfg.fps, latent=cfg.latent, resolution=resolution,
+                                  motions=(PROJECT, *cfg.poses), video=_video_fn(Path(project_dir), cfg))
     try:
-        server = ViewerServer(setup.session, setup.initial, host=cfg.host, port=cfg.port, resolution=resolution,
-                              preview_scale=cfg.preview_scale, settle_s=cfg.settle_s, fps=cfg.fps, latent=cfg.latent,
-                              motions=(PROJECT, *cfg.poses), video=_video_fn(Path(project_dir), cfg))
+        if gaussian:
+            server: Any = SplatPageServer(controller, setup.initial, host=cfg.host, port=cfg.port)
+        else:
+            server = ViewerServer(controller, setup.initial, host=cfg.host, port=cfg.port,
+                                  preview_scale=cfg.preview_scale, settle_s=cfg.settle_s)
     except OSError as e:
+        controller.stop()
         raise InputError(f"cannot serve on {cfg.host}:{cfg.port} ({e.strerror or e})", where="--port",
                          fix="choose another --port") from None
     stop = stop or threading.Event()

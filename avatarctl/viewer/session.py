@@ -74,6 +74,25 @@ def quaternion_wxyz_to_matrix(wxyz: tuple[float, float, float, float]) -> np.nda
                      [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
 
 
+def matrix_to_quaternion_wxyz(R: np.ndarray) -> tuple[float, float, float, float]:
+    """[3, 3] rotation -> (w, x, y, z), w >= 0 (the inverse of `quaternion_wxyz_to_matrix`)."""
+    R = np.asarray(R, np.float64)
+    t = np.trace(R)
+    if t > 0:
+        s = 2.0 * np.sqrt(t + 1.0)
+        q = (0.25 * s, (R[2, 1] - R[1, 2]) / s, (R[0, 2] - R[2, 0]) / s, (R[1, 0] - R[0, 1]) / s)
+    else:
+        i = int(np.argmax(np.diag(R)))
+        j, k = (i + 1) % 3, (i + 2) % 3
+        s = 2.0 * np.sqrt(max(1.0 + R[i, i] - R[j, j] - R[k, k], 1e-12))
+        v = [0.0, 0.0, 0.0]
+        v[i], v[j], v[k] = 0.25 * s, (R[j, i] + R[i, j]) / s, (R[k, i] + R[i, k]) / s
+        q = ((R[k, j] - R[j, k]) / s, *v)
+    q = np.asarray(q) / np.linalg.norm(q)
+    q = -q if q[0] < 0 else q
+    return (float(q[0]), float(q[1]), float(q[2]), float(q[3]))
+
+
 def request_camera(req: ViewRequest) -> Camera:
     """The pinhole `Camera` of a request at its resolution (longer side = `req.resolution`; module docstring)."""
     aspect = max(float(req.aspect), 1e-3)
