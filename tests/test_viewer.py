@@ -175,8 +175,13 @@ def test_viewer_page_in_headless_chromium(toy_fitted_project, tmp_path):
     assert results[0].url == urls[0] and results[0].frames > 0 and results[0].config.resolution == 128
 
 
-def test_cli_prints_the_url_and_stops_cleanly_on_ctrl_c(toy_fitted_project):
+@pytest.mark.parametrize("fixture", ["toy_fitted_project", "toy_gaussian_project"])
+def test_cli_prints_the_url_and_stops_cleanly_on_ctrl_c(fixture, request):
+    """Both pages: viser's (ray-marched avatar) and ours (Gaussian-field avatar); the printed URL serves a page."""
     pytest.importorskip("viser")
+    import urllib.request
+
+    toy_fitted_project = request.getfixturevalue(fixture)
     import os
     import signal
     import subprocess
@@ -199,6 +204,9 @@ def test_cli_prints_the_url_and_stops_cleanly_on_ctrl_c(toy_fitted_project):
             if "viewer ready" in line:
                 break
         assert any("viewer ready: http://localhost:" in s for s in lines), "".join(lines)
+        url = next(s for s in lines if "viewer ready:" in s).split("viewer ready:")[1].split()[0]
+        with urllib.request.urlopen(url, timeout=10) as r:
+            assert r.status == 200 and b"<html" in r.read(2000).lower()
         proc.send_signal(signal.SIGINT)
         out, _ = proc.communicate(timeout=30)
     finally:
@@ -262,7 +270,26 @@ def test_the_controller_plays_switches_and_poses_the_newest_frame(toy_gaussian_p
     from avatarctl.viewer.controller import ViewerController
 
     setup = prepare(toy_gaussian_project, ViewConfig(device="cpu"))
-    c = ViewerController(setup.session, fps=20.0, resolution=48, motions=(PROJECT,))
+    started = []
+
+    class Job:  # a "save video" that finishes at its third poll
+        polls = 0
+
+        def poll(self):
+            self.polls += 1
+            return "video saved: v.mp4" if self.polls >= 3 else None
+
+        def progress(self):
+            return f"{self.polls}/3 images"
+
+        def cancel(self):
+            pass
+
+    def video(motion, latent, camera_path):
+        started.append((motion, latent, camera_path))
+        return Job()
+
+    c = ViewerController(setup.session, fps=20.0, resolution=48, motions=(PROJECT,), video=video)
     states, frames = [], []
     c.subscribe(states.append)
     c.subscribe_frames(lambda key, splats: frames.append((key, splats.count)))
@@ -286,6 +313,13 @@ def test_the_controller_plays_switches_and_poses_the_newest_frame(toy_gaussian_p
         assert len(s.labels) == 5 and s.generation == 1 and s.motion in s.motions and s.frame == 0
         c.switch_motion(str(tmp_path / "missing.npz"), add=True)
         assert "cannot load" in c.state.status and len(c.state.labels) == 5
+        c.set_camera_path("orbit")
+        c.start_video()
+        assert started == [(s.motion, "zero", "orbit")] and not c.state.can_video
+        deadline = time.monotonic() + 5
+        while "video saved" not in c.state.status and time.monotonic() < deadline:
+            time.sleep(0.02)
+        assert "video saved: v.mp4" in c.state.status and c.state.can_video
         req = c.request(*_camera_of(setup.initial), aspect=4 / 3)
         assert c.render(req).shape == (36, 48, 3) and "exact render" in c.state.status
     finally:

@@ -102,6 +102,7 @@ class ViewerController:
         self._stop = threading.Event()
         self._wake = threading.Condition()
         self._video_job: VideoJob | None = None
+        self._video_polled = 0.0
         self.posed: list[tuple[float, FrameKey]] = []  # (monotonic time, key) of every frame the posing thread made
         self._threads = [threading.Thread(target=self._play_loop, name="avatarctl-viewer-play", daemon=True)]
         if session.gaussian:
@@ -291,8 +292,9 @@ class ViewerController:
 
     def _poll_video(self) -> None:
         job = self._video_job
-        if job is None:
+        if job is None or time.monotonic() - self._video_polled < 0.25:  # a child process: 4 looks a second
             return
+        self._video_polled = time.monotonic()
         outcome = job.poll()
         if outcome is None:
             progress = f"saving video: {job.progress()}"
