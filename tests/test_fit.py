@@ -71,10 +71,13 @@ def test_presets_are_stated_once_and_the_defaults_are_the_paper():
     from avatarctl.model import ModelConfig
 
     assert FitConfig() == preset("paper") and FitConfig().model == ModelConfig()
-    assert set(PRESETS) == {"paper", "cpu", "micro"} and DEFAULT_PRESET == "cpu"
+    assert set(PRESETS) == {"paper", "cpu", "gaussians", "micro"} and DEFAULT_PRESET == "cpu"
     docs = (Path(__file__).parents[1] / "docs" / "fit.md").read_text()
     assert presets_markdown() in docs, "docs/fit.md's preset table is stale: paste presets_markdown()"
     assert all(f"'{name}'" in preset_help() for name in PRESETS)
+    # the gaussians preset is the cpu preset with the Gaussian local fields, nothing else
+    g, c = preset("gaussians"), preset("cpu")
+    assert g.model.field == "gaussians" and g.model.with_(field="mlp") == c.model and replace(g, model=c.model, preset="cpu") == c
 
 
 def test_nested_overrides_and_the_flat_keys_of_older_configs():
