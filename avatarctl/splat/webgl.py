@@ -3,12 +3,12 @@ no network), shared by every page that draws Gaussians (`export --format player`
 
 `RENDERER_JS` defines, in the page's scope:
 - `SplatRenderer(canvas, background, {lod} = {})`: `setSplats(centers, cov, rgba)` (Float32Array [G*3] metres,
-  Float32Array [G*6] upper triangles of the world covariances (xx, xy, xz, yy, yz, zz) in metres^2, Uint8Array [G*4] RGBA), then
-  `draw(view)` with `view = {eye, right, down, fwd, fov}` (world vectors: the OpenCV camera axes x right, y down,
-  z forward; `fov` the vertical field of view, radians). `moved()` when the camera moves: for 0.25 s after it the
-  image is drawn at `movingScale` of the canvas' pixels per side (then upscaled by the browser), and `settling`
-  is true whenever a redraw is due (after `moved()`, and once the full image is due at rest: the page then calls
-  `draw` again).
+  Float32Array [G*6] upper triangles of the world covariances (xx, xy, xz, yy, yz, zz) in metres^2, Uint8Array [G*4]
+  RGBA), then `draw(view)` with `view = {eye, right, down, fwd, fov}` (world vectors: the OpenCV camera axes x right,
+  y down, z forward; `fov` the vertical field of view, radians). `moved()` when the camera moves: for 0.25 s after it
+  the image is drawn at `movingScale` of the canvas' pixels per side (then upscaled by the browser), and `settling` is
+  true whenever a redraw is due (after `moved()`, and once the full image is due at rest: the page then calls `draw`
+  again).
 - the splat budget while the view moves (level of detail, `renderer.lod`, on unless `new SplatRenderer(canvas,
   background, {lod: {enabled: false}})`): while the camera moves (`moved()`), a new frame arrives (`setSplats`) or the
   page animates (`renderer.animating = true`, a playing motion), only `budget` of the G Gaussians are drawn: a uniform
@@ -64,7 +64,9 @@ void main() {
   float iz = 1.0 / p.z;
   vec3 j0 = vec3(focal * iz, 0.0, -focal * p.x * iz * iz);
   vec3 j1 = vec3(0.0, focal * iz, -focal * p.y * iz * iz);
-  float a = grow * dot(j0, C * j0) + 0.3, b = grow * dot(j0, C * j1), c = grow * dot(j1, C * j1) + 0.3;
+  // the 2D covariance (grown for a preview sample, splat budget below) + 0.3 px^2
+  float a = grow * dot(j0, C * j0) + 0.3, b = grow * dot(j0, C * j1);
+  float c = grow * dot(j1, C * j1) + 0.3;
   float mid = 0.5 * (a + c), rad = sqrt(max(0.25 * (a - c) * (a - c) + b * b, 0.0));
   float l1 = mid + rad, l2 = max(mid - rad, 0.1);
   vec2 v1 = abs(b) > 1e-12 ? normalize(vec2(b, l1 - a)) : (a >= c ? vec2(1.0, 0.0) : vec2(0.0, 1.0));
