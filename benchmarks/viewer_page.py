@@ -23,7 +23,12 @@ the viewer's page `--repeats` times (paired figures on a shared machine): orbit 
 wall time from moving the page's slider to the first changed canvas.
 
     python -m benchmarks.viewer_page PROJECT [--seconds 5] [--size 640 480] [--out figures.json] [--shots DIR]
-                                     [--player player.html] [--repeats 2]
+                                     [--player player.html] [--repeats 2] [--budget on off]
+
+`--budget on off` measures with the pages' splat budget while moving ("fast preview while moving", `splat.webgl`) on
+and off, alternating; with it on, also the Gaussians drawn during the drag and at rest, the frame change until all
+Gaussians are drawn again, and the PSNR of the preview against the image at rest (screenshots `viewer_moving.png`,
+`viewer_rest.png` with `--shots`).
 
 Needs websockets (the `view` extra) and Chromium (`apt-get install -y chromium`). Run it with `nice -n 19` on a shared machine.
 """
@@ -84,15 +89,22 @@ class OrbitFigures:
     cpu_ms_per_frame: float  # CPU time of all Chromium processes per drawn frame
     image_change: float  # mean |difference| of the canvas, one screenshot before and one after the drag (0..255)
     load_average: float  # 1-minute load average when the drag started
+    splats_moving: int  # Gaussians in the last draw during the drag (the splat budget, splat.webgl)
+    splats_rest: int  # Gaussians in the draw after the drag, at rest
+    us_per_splat: float | None  # the renderer's estimate of a drawn splat's cost (None: the budget is off)
 
 
 @dataclass
 class PageFigures:
+    budget: bool  # the page's "fast preview while moving" (SplatRenderer.lod.enabled)
     gaussians: int  # Gaussians sent per frame
     load_average: float  # 1-minute load average at the start
     orbit: OrbitFigures
     idle_changes_per_s: float  # canvas changes per second with nothing happening (0: the latency probe is clean)
     frame_change_ms: list[float]  # per frame change, slider set -> canvas changed
+    frame_change_full_ms: list[float]  # slider set -> the last canvas change within 0.6 s (all splats drawn)
+    preview_psnr_db: float | None  # the canvas drawn with the budget against the canvas at rest (same view; None:
+    # the budget off or covering all Gaussians)
     playback_fps_page: float  # distinct canvas images per second while playing
     playback_pushes_per_s: float  # frames the server sent per second while playing
     motion_fps: float
@@ -105,6 +117,7 @@ class PageFigures:
 
 @dataclass
 class PlayerFigures:
+    budget: bool
     load_average: float
     orbit: OrbitFigures
     frame_change_ms: list[float]  # per slider move in the page -> canvas changed
@@ -146,6 +159,18 @@ def peak_rss_mb() -> float:
 
 def evaluate(tab: Any, expr: str) -> Any:
     return tab.call("Runtime.evaluate", expression=expr, returnByValue=True)["result"].get("value")
+
+
+def wait_for(tab: Any, expr: str, timeout: float = 30.0) -> Any:
+    """The value of the page expression `expr` once it is truthy (polled every 50 ms); AssertionError after
+    `timeout` seconds."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        value = evaluate(tab, expr)
+        if value:
+            return value
+        time.sleep(0.05)
+    raise AssertionError(f"timed out waiting for {expr}")
 
 
 CANVAS_RECT = """
@@ -190,11 +215,46 @@ def orbit(tab: Any, seconds: float) -> OrbitFigures:
     drag(tab, seconds, rect)
     (f1, d1), t1, c1 = evaluate(tab, "[window.__probe.frames, window.__probe.drawn]"), time.monotonic(), \
         browser_cpu_seconds(tab)
+    moving = evaluate(tab, "window.__splatStats.moving")
     time.sleep(0.5)
     after = tab.screenshot()[y:y + h, x:x + w].astype(np.float32)
+    stats = evaluate(tab, "window.__splatStats")
     return OrbitFigures(fps=round((f1 - f0) / (t1 - t0), 2), drawn_fps=round((d1 - d0) / (t1 - t0), 2),
                         cpu_ms_per_frame=round(1000.0 * (c1 - c0) / max(d1 - d0, 1), 1),
-                        image_change=round(float(np.abs(after - before).mean()), 2), load_average=load)
+                        image_change=round(float(np.abs(after - before).mean()), 2), load_average=load,
+                        splats_moving=int(moving), splats_rest=int(stats["rest"]), us_per_splat=stats["usPerSplat"])
+
+
+SET_BUDGET = """
+(on => { const b = document.getElementById('lod'); if (b.checked !== on) b.click(); return b.checked; })
+"""
+
+HOLD_PREVIEW = """
+(hold => { window.__splatStats.drawn = -1; const r = (window.__viewer || window.__player).renderer;
+  r.lod.holdPreview = hold; r.moved(); return true; })
+"""
+
+
+def preview_and_rest(tab: Any) -> tuple[np.ndarray, np.ndarray]:
+    """Screenshots of the canvas drawn with the splat budget (held) and at rest, the same view and frame."""
+    x, y, w, h = canvas_rect(tab)
+    shots = []
+    for hold in (True, False):
+        evaluate(tab, f"{HOLD_PREVIEW}({'true' if hold else 'false'})")
+        deadline = time.monotonic() + 10
+        while time.monotonic() < deadline:
+            st = evaluate(tab, "window.__splatStats")
+            if st["drawn"] == (st["budget"] if hold else st["gaussians"]):
+                break
+            time.sleep(0.05)
+        time.sleep(0.4 if hold else 0.1)
+        shots.append(tab.screenshot()[y:y + h, x:x + w])
+    return shots[0], shots[1]
+
+
+def psnr(a: np.ndarray, b: np.ndarray) -> float:
+    mse = float(((a.astype(np.float64) - b.astype(np.float64)) ** 2).mean())
+    return round(10.0 * np.log10(255.0 ** 2 / max(mse, 1e-12)), 2)
 
 
 def wait_drawn(tab: Any, timeout: float = 60.0) -> np.ndarray | None:
@@ -218,9 +278,9 @@ def wait_drawn(tab: Any, timeout: float = 60.0) -> np.ndarray | None:
 
 
 def measure(server: Any, browser: Any, seconds: float = 5.0, size: tuple[int, int] = (640, 480),
-            shots: Path | None = None, changes: int = 8) -> PageFigures:
+            shots: Path | None = None, changes: int = 8, budget: bool = True) -> PageFigures:
     """The figures of the module docstring for a running `SplatPageServer` (`start_viewer`) and a `Browser`
-    (tests/fixtures/browser.py) whose page is not yet opened."""
+    (tests/fixtures/browser.py) whose page is not yet opened; `budget`: the page's "fast preview while moving"."""
     from avatarctl.viewer.splats import encode_splats
 
     session, controller = server.session, server.controller
@@ -235,6 +295,7 @@ def measure(server: Any, browser: Any, seconds: float = 5.0, size: tuple[int, in
     first = wait_drawn(browser)
     if first is None:
         raise RuntimeError("the page never showed the avatar")
+    evaluate(browser, f"{SET_BUDGET}({'true' if budget else 'false'})")
     evaluate(browser, PROBE)
     time.sleep(1.0)
     orbit_figures = orbit(browser, seconds)
@@ -246,7 +307,7 @@ def measure(server: Any, browser: Any, seconds: float = 5.0, size: tuple[int, in
     evaluate(browser, "window.__probe.changes = []")
     time.sleep(2.0)
     idle = len(evaluate(browser, "window.__probe.changes")) / 2.0
-    latencies = []
+    latencies, full = [], []
     for k in range(changes):
         time.sleep(0.6)
         evaluate(browser, "window.__probe.changes = []")
@@ -264,6 +325,10 @@ def measure(server: Any, browser: Any, seconds: float = 5.0, size: tuple[int, in
         after = [c for c in seen[settled:] if c >= t_set]
         if after:
             latencies.append(float(after[0] - t_set))
+            time.sleep(0.6)
+            full.append(float(max(c for c in evaluate(browser, "window.__probe.changes") if c >= t_set) - t_set))
+    sampled = budget and evaluate(browser, "window.__splatStats.budget < window.__splatStats.gaussians")
+    preview, rest = preview_and_rest(browser) if sampled else (None, None)
     # playback
     evaluate(browser, "window.__probe.changes = []")
     pushes0 = len(server.pushes)
@@ -283,12 +348,16 @@ def measure(server: Any, browser: Any, seconds: float = 5.0, size: tuple[int, in
         import cv2
 
         shots.mkdir(parents=True, exist_ok=True)
-        for name, img in (("start", first), ("orbited", orbited), ("second_tab", drawn2)):
+        for name, img in (("start", first), ("orbited", orbited), ("second_tab", drawn2), ("moving", preview),
+                          ("rest", rest)):
             if img is not None:
                 cv2.imwrite(str(shots / f"viewer_{name}.png"), img[..., ::-1])
     second.close()
-    return PageFigures(gaussians=splats.count, load_average=load, orbit=orbit_figures, idle_changes_per_s=idle,
+    return PageFigures(budget=budget, gaussians=splats.count, load_average=load, orbit=orbit_figures,
+                       idle_changes_per_s=idle,
                        frame_change_ms=[round(x, 1) for x in latencies],
+                       frame_change_full_ms=[round(x, 1) for x in full],
+                       preview_psnr_db=psnr(preview, rest) if sampled else None,
                        playback_fps_page=round(playback_page, 2), playback_pushes_per_s=round(pushes_per_s, 2),
                        motion_fps=float(controller.state.fps), peak_rss_mb=round(peak_rss_mb(), 1),
                        second_tab_drawn=drawn2 is not None, splat_seconds=round(splat_seconds, 4),
@@ -303,13 +372,15 @@ SEEK = """
 """
 
 
-def measure_player(browser: Any, page: Path, seconds: float = 5.0, changes: int = 6) -> PlayerFigures:
+def measure_player(browser: Any, page: Path, seconds: float = 5.0, changes: int = 6,
+                   budget: bool = True) -> PlayerFigures:
     """Orbit and frame-change figures of an `export --format player` page (paused) in `browser`."""
     load = load_average()
     browser.open(page.resolve().as_uri())
     if wait_drawn(browser) is None:
         raise RuntimeError(f"the player {page} never showed the avatar")
     evaluate(browser, "window.__player.setPlaying(false)")
+    evaluate(browser, f"{SET_BUDGET}({'true' if budget else 'false'})")
     evaluate(browser, PROBE)
     time.sleep(1.0)
     orbit_figures = orbit(browser, seconds)
@@ -325,7 +396,7 @@ def measure_player(browser: Any, page: Path, seconds: float = 5.0, changes: int 
                 latencies.append(float(after[0] - t_set))
                 break
             time.sleep(0.01)
-    return PlayerFigures(load_average=load, orbit=orbit_figures, frame_change_ms=latencies)
+    return PlayerFigures(budget=budget, load_average=load, orbit=orbit_figures, frame_change_ms=latencies)
 
 
 def start_viewer(project: Path, device: str = "cpu", port: int = 0) -> Any:
@@ -359,25 +430,30 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--player", type=Path, default=None, help="also measure this `export --format player` page, "
                     "alternating with the viewer's")
     ap.add_argument("--repeats", type=int, default=1, help="rounds of measurements (alternating with --player)")
+    ap.add_argument("--budget", choices=("on", "off"), nargs="+", default=["on"],
+                    help="the pages' splat budget while moving ('on off': alternating within each round)")
     args = ap.parse_args(argv)
     server = start_viewer(args.project, args.device, free_port())
     figures: dict[str, list[dict]] = {"viewer": [], "player": []}
+    rounds = [(r, b == "on") for r in range(max(args.repeats, 1)) for b in args.budget]
     try:
-        for _ in range(max(args.repeats, 1)):
+        for _, budget in rounds:
             browser = Browser(*args.size)
             try:
-                figures["viewer"].append(asdict(measure(server, browser, args.seconds, tuple(args.size), args.shots)))
+                figures["viewer"].append(asdict(measure(server, browser, args.seconds, tuple(args.size), args.shots,
+                                                        budget=budget)))
             finally:
                 browser.close()
             if args.player is not None:
                 browser = Browser(*args.size)
                 try:
-                    figures["player"].append(asdict(measure_player(browser, args.player, args.seconds)))
+                    figures["player"].append(asdict(measure_player(browser, args.player, args.seconds,
+                                                                   budget=budget)))
                 finally:
                     browser.close()
     finally:
         server.stop()
-    text = json.dumps(figures if args.player is not None or args.repeats > 1 else figures["viewer"][0], indent=1)
+    text = json.dumps(figures if args.player is not None or len(rounds) > 1 else figures["viewer"][0], indent=1)
     print(text)
     if args.out is not None:
         args.out.write_text(text + "\n")

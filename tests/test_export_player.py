@@ -129,3 +129,44 @@ def test_player_plays_in_headless_chromium(exported, tmp_path):
     assert canvas[0].std() > 2, "something is drawn"
     assert np.abs(canvas[0] - canvas[1]).mean() > 0.05 and np.abs(canvas[1] - canvas[2]).mean() > 0.05, \
         "three moments of the motion differ"
+
+
+@pytest.mark.browser
+def test_player_draws_a_splat_budget_while_playing_and_all_at_rest(exported):
+    """The player shares the renderer's splat budget: playing on a (mimicked) slow machine draws fewer Gaussians,
+    paused at rest all of them, the same picture as with "fast preview while moving" off."""
+    from fixtures.browser import Browser, find_chromium
+
+    if find_chromium() is None:
+        pytest.skip("no chromium / chrome on this machine")
+    pytest.importorskip("websockets")
+    from benchmarks.viewer_page import canvas_rect, evaluate, wait_for
+
+    browser = Browser(480, 400)
+
+    def wait(expr: str):
+        wait_for(browser, expr)
+
+    try:
+        browser.open((exported.out_dir / "player.html").as_uri())
+        wait("window.__player && window.__splatStats.gaussians > 0")
+        evaluate(browser, "window.__player.setPlaying(false); const r = window.__player.renderer;"
+                          " r.lod.minSplats = 64; r.lod.measureScale = 1e4; window.__splatStats.drawn = -1; r.moved()")
+        wait("window.__splatStats.drawn === window.__splatStats.gaussians && window.__splatStats.timed > 0")
+        n = evaluate(browser, "window.__splatStats.gaussians")
+        evaluate(browser, "window.__player.setPlaying(true)")
+        wait("window.__splatStats.moving === 64 && window.__splatStats.drawn === 64")
+        assert "preview 64 / " in evaluate(browser, "document.getElementById('status').textContent")
+        evaluate(browser, "window.__player.setPlaying(false)")
+        wait(f"window.__splatStats.drawn === {n} && !window.__player.renderer.moving")
+        time.sleep(0.3)
+        x, y, w, h = canvas_rect(browser)
+        rest = browser.screenshot()[y:y + h, x:x + w].astype(float)
+        evaluate(browser, "window.__splatStats.drawn = -1; document.getElementById('lod').click()")
+        wait(f"window.__splatStats.drawn === {n}")
+        time.sleep(0.3)
+        without = browser.screenshot()[y:y + h, x:x + w].astype(float)
+    finally:
+        browser.close()
+    assert rest.std() > 2, "something is drawn"
+    assert np.abs(rest - without).max() <= 2, "at rest the budget draws the no-budget picture"

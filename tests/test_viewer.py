@@ -339,36 +339,38 @@ def _page_errors(browser) -> list:
             or (m.get("method") == "Log.entryAdded" and m["params"]["entry"].get("level") == "error")]
 
 
-@pytest.mark.browser
-def test_gaussian_viewer_page_draws_changes_plays_and_renders_in_headless_chromium(toy_gaussian_project, tmp_path):
-    """Our page for a Gaussian-field avatar: the browser draws the avatar, a frame change changes the picture, play
-    shows new frames, "render" shows the server's image, the panel's controls reach the server, no console error."""
-    pytest.importorskip("websockets")
-    from fixtures.browser import Browser, find_chromium, free_port
-    from fixtures.toy_capture import toy_motion
-
-    if find_chromium() is None:
-        pytest.skip("no chromium / chrome on this machine")
-    from benchmarks.viewer_page import canvas_rect, evaluate, wait_drawn
+def _gaussian_page_server(project):
+    """Our page for the Gaussian-field avatar of `project`, served in this process at 64 px exact renders."""
+    from fixtures.browser import free_port
 
     from avatarctl.stages.view import PROJECT, ViewConfig, prepare
     from avatarctl.viewer.controller import ViewerController
     from avatarctl.viewer.splat_server import SplatPageServer
 
-    setup = prepare(toy_gaussian_project, ViewConfig(device="cpu"))
+    setup = prepare(project, ViewConfig(device="cpu"))
     controller = ViewerController(setup.session, resolution=64, motions=(PROJECT,))
-    server = SplatPageServer(controller, setup.initial, port=free_port())
+    return SplatPageServer(controller, setup.initial, port=free_port())
+
+
+@pytest.mark.browser
+def test_gaussian_viewer_page_draws_changes_plays_and_renders_in_headless_chromium(toy_gaussian_project, tmp_path):
+    """Our page for a Gaussian-field avatar: the browser draws the avatar, a frame change changes the picture, play
+    shows new frames, "render" shows the server's image, the panel's controls reach the server, no console error."""
+    pytest.importorskip("websockets")
+    from fixtures.browser import Browser, find_chromium
+    from fixtures.toy_capture import toy_motion
+
+    if find_chromium() is None:
+        pytest.skip("no chromium / chrome on this machine")
+    from benchmarks.viewer_page import canvas_rect, evaluate, wait_drawn, wait_for
+
+    server = _gaussian_page_server(toy_gaussian_project)
+    controller = server.controller
     browser = None
     toy_motion(5).save(tmp_path / "walk.npz")
 
     def wait(expr: str, timeout: float = 30.0):
-        deadline = time.monotonic() + timeout
-        while time.monotonic() < deadline:
-            value = evaluate(browser, expr)
-            if value:
-                return value
-            time.sleep(0.05)
-        raise AssertionError(f"timed out waiting for {expr}")
+        return wait_for(browser, expr, timeout)
 
     try:
         browser = Browser(640, 480)
@@ -421,6 +423,80 @@ def test_gaussian_viewer_page_draws_changes_plays_and_renders_in_headless_chromi
             assert wait_drawn(second) is not None, "a second tab draws too"
         finally:
             second.close()
+        assert not _page_errors(browser), _page_errors(browser)
+    finally:
+        if browser is not None:
+            browser.close()
+        server.stop()
+
+
+@pytest.mark.browser
+def test_gaussian_viewer_page_draws_a_splat_budget_while_moving(toy_gaussian_project):
+    """The splat budget (splat.webgl, "fast preview while moving"): with a slow measured draw the budget drops, the
+    drag draws fewer Gaussians, the rest draws all and equals the picture with the budget off; the status says it."""
+    pytest.importorskip("websockets")
+    from fixtures.browser import Browser, find_chromium
+
+    if find_chromium() is None:
+        pytest.skip("no chromium / chrome on this machine")
+    from benchmarks.viewer_page import canvas_rect, drag, evaluate, wait_drawn, wait_for
+
+    server = _gaussian_page_server(toy_gaussian_project)
+    browser = None
+
+    def wait(expr: str, timeout: float = 30.0):
+        return wait_for(browser, expr, timeout)
+
+    def redraw_at_rest():  # a moving draw, then the full one at rest (timed: the budget follows)
+        evaluate(browser, "window.__splatStats.drawn = -1; window.__viewer.renderer.moved()")
+        wait("window.__splatStats.drawn === window.__splatStats.gaussians && !window.__viewer.renderer.moving")
+
+    try:
+        browser = Browser(640, 480)
+        browser.call("Runtime.enable")
+        browser.call("Log.enable")
+        browser.open(server.url)
+        assert wait_drawn(browser) is not None
+        wait("window.__viewer.shown && window.__splatStats.gaussians > 0")
+        n = evaluate(browser, "window.__splatStats.gaussians")
+        evaluate(browser, "window.__viewer.renderer.lod.minSplats = 64")
+        redraw_at_rest()
+        fast = evaluate(browser, "window.__viewer.renderer.budget")
+        evaluate(browser, "window.__viewer.renderer.lod.measureScale = 1e4")  # a machine 10^4 times slower
+        redraw_at_rest()
+        redraw_at_rest()
+        slow = evaluate(browser, "window.__viewer.renderer.budget")
+        assert 64 <= slow < n and slow < fast, f"a slow machine, a smaller budget: {fast} -> {slow} of {n}"
+        x, y, w, h = rect = canvas_rect(browser)
+        drag(browser, 1.0, rect)
+        stats = evaluate(browser, "window.__splatStats")
+        assert stats["moving"] == slow, f"the drag draws the budget: {stats}"
+        wait(f"window.__splatStats.drawn === {n}")
+        time.sleep(0.3)
+        rest = browser.screenshot()[y:y + h, x:x + w].astype(float)
+        evaluate(browser, "window.__viewer.renderer.lod.holdPreview = true")
+        wait(f"window.__splatStats.drawn === {slow}")
+        wait("document.getElementById('status').textContent.includes("
+             f"'preview {slow:,} / {n:,} splats while moving')")
+        time.sleep(0.3)
+        preview = browser.screenshot()[y:y + h, x:x + w].astype(float)
+        assert np.abs(preview - rest).mean() > 0.05, "the preview leaves Gaussians out"
+        evaluate(browser, "window.__viewer.renderer.lod.holdPreview = false")
+        wait(f"window.__splatStats.drawn === {n}")
+        evaluate(browser, "document.getElementById('lod').click()")
+        assert evaluate(browser, "window.__viewer.renderer.lod.enabled") is False
+        drag(browser, 0.5, rect)
+        assert evaluate(browser, "window.__splatStats.moving") == n, "the budget off: all drawn while moving"
+        wait(f"window.__splatStats.drawn === {n} && !window.__viewer.renderer.moving")
+        time.sleep(0.3)
+        evaluate(browser, "window.__splatStats.drawn = -1; window.__viewer.renderer.moved()")  # the same view again
+        wait(f"window.__splatStats.drawn === {n}")
+        drawn_without = browser.screenshot()[y:y + h, x:x + w].astype(float)
+        evaluate(browser, "window.__splatStats.drawn = -1; document.getElementById('lod').click()")  # on, at rest
+        wait(f"window.__splatStats.drawn === {n}")
+        time.sleep(0.3)
+        rest_again = browser.screenshot()[y:y + h, x:x + w].astype(float)
+        assert np.abs(rest_again - drawn_without).max() <= 2, "at rest the budget draws the no-budget picture"
         assert not _page_errors(browser), _page_errors(browser)
     finally:
         if browser is not None:

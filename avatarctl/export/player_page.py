@@ -1,7 +1,8 @@
 """The HTML page of `export --format player` (`export.player.write_player` fills __TITLE__ and __DATA__): a player
 around the WebGL2 splat renderer of `splat.webgl` (ours: no libraries, no network). See export/player.py for the data
 layout; the page unpacks it, rebuilds each covariance R S^2 R^T and hands a frame's Gaussians to the renderer.
-Controls: drag to orbit, wheel to zoom, space or the button to play / pause, the slider to scrub.
+Controls: drag to orbit, wheel to zoom, space or the button to play / pause, the slider to scrub, "fast preview while
+moving" (the renderer's splat budget while the view moves or plays, on by default; the status shows it).
 """
 
 from avatarctl.splat.webgl import RENDERER_JS
@@ -16,11 +17,13 @@ PAGE = r"""<!DOCTYPE html>
 html,body{margin:0;height:100%;background:#f4f4f4;font:13px system-ui,sans-serif;overflow:hidden}
 canvas{display:block;width:100%;height:calc(100% - 40px);cursor:grab}
 #bar{height:40px;display:flex;align-items:center;gap:10px;padding:0 12px;background:#fff;border-top:1px solid #ddd}
-#seek{flex:1}#status{min-width:170px;color:#444}
+#bar{overflow:hidden}#bar label{white-space:nowrap}
+#seek{flex:1;min-width:80px}#status{color:#444;white-space:nowrap;overflow:hidden;text-overflow:ellipsis}
 </style></head><body>
 <canvas id="view"></canvas>
 <div id="bar"><button id="play">pause</button><input id="seek" type="range" min="0" max="0" value="0">
-<span id="status">loading ...</span></div>
+<label title="while the camera moves or the motion plays, draw a sample of the Gaussians"><input id="lod"
+ type="checkbox" checked> fast preview while moving</label><span id="status">loading ...</span></div>
 <script id="data" type="application/octet-stream">__DATA__</script>
 <script>
 "use strict";
@@ -73,11 +76,14 @@ async function main() {
   renderer.movingScale = MOVING_SCALE;
   // orbit camera around the motion's centre, the capture's up
   const cam = {target: head.target, up: head.up, az: 0, el: 0.15, radius: head.radius, fov: 0.8};
-  let frame = 0, playing = true, start = performance.now(), dirty = true, shown = -1;
+  let label = "", frame = 0, playing = true, start = performance.now(), dirty = true, shown = -1;
   const seek = document.getElementById("seek"), status = document.getElementById("status");
   const button = document.getElementById("play");
   seek.max = String(head.frames - 1);
+  const lod = document.getElementById("lod");
+  lod.onchange = () => { renderer.lod.enabled = lod.checked; dirty = true; };
   const setPlaying = p => { playing = p; button.textContent = p ? "pause" : "play";
+                            renderer.animating = p && head.frames > 1;
                             start = performance.now() - frame / head.fps * 1000; };
   button.onclick = () => setPlaying(!playing);
   window.addEventListener("keydown", e => { if (e.code === "Space") { setPlaying(!playing); e.preventDefault(); } });
@@ -93,12 +99,17 @@ async function main() {
       const f = decode(head, frames[frame]);
       renderer.setSplats(f.centers, f.cov, f.rgba);
       shown = frame; seek.value = String(frame); dirty = true;
-      status.textContent = `${head.labels[frame] || "frame " + frame} · ${frame + 1}/${head.frames} · ${head.fps} fps`;
+      label = `${head.labels[frame] || "frame " + frame} · ${frame + 1}/${head.frames} · ${head.fps} fps`;
     }
-    if (dirty || renderer.settling) { renderer.draw(orbitView(cam)); dirty = false; }
+    if (dirty || renderer.settling) {
+      renderer.draw(orbitView(cam)); dirty = false;
+      const text = `${label} · ${renderer.budgetText()}`;
+      if (status.textContent !== text) status.textContent = text;
+    }
     requestAnimationFrame(tick);
   }
-  window.__player = {head, get frame() { return frame; }, setPlaying};
+  renderer.animating = head.frames > 1;
+  window.__player = {head, get frame() { return frame; }, setPlaying, renderer};
   requestAnimationFrame(tick);
 }
 main();

@@ -10,8 +10,9 @@ the exact server render, shown over the canvas until the camera moves or a frame
 Messages from the page: {"cmd": ...} with "frame", "play", "fps", "latent", "resolution", "camera_path",
 "motion" (name, add), "render" (view, aspect), "video", "drawn" (seq).
 
-`window.__viewer` exposes what was drawn (`shown`: the header of the frame on the canvas, `draws`) for tests and the
-benchmark.
+`window.__viewer` exposes what was drawn (`shown`: the header of the frame on the canvas, `draws`, the `renderer`) for
+tests and the benchmark; `window.__splatStats` the renderer's splat budget (`splat.webgl`). The "fast preview while
+moving" checkbox switches the budget (`SplatRenderer.lod.enabled`); the status line shows it.
 """
 
 import json
@@ -51,6 +52,9 @@ border-left:1px solid #ddd;display:flex;flex-direction:column;gap:7px}
 <button id="render" title="the exact image of this view (the renderer of `render` / `eval`)">render</button>
 <label>video camera <select id="camera_path"><option>held-out view</option><option>orbit</option></select></label>
 <button id="video" title="run `avatarctl render` for this motion, latent and camera path">save video</button>
+<label title="while the camera moves or the motion plays, draw a sample of the Gaussians (as many as this
+ machine draws in about 10 ms); all of them at rest"><span><input id="lod" type="checkbox" checked> fast preview while
+ moving</span></label>
 <div style="color:#777">drag: orbit · wheel: zoom · space: play</div>
 </div>
 <script>
@@ -77,6 +81,7 @@ const HALF = (() => {  // float16 bits -> float32
   }
   return t;
 })();
+let lodText = "";
 let ws = null, state = null, exactKey = null, pending = null, shown = null, acked = -1, dirty = true, sliding = false, draws = 0;
 
 function send(msg) { if (ws && ws.readyState === WebSocket.OPEN) ws.send(JSON.stringify(msg)); }
@@ -124,7 +129,13 @@ function onState(s) {
   if (document.activeElement !== $("fps")) $("fps").value = String(s.fps);
   if (document.activeElement !== $("resolution")) $("resolution").value = String(s.resolution);
   $("latent").value = s.latent; $("camera_path").value = s.camera_path; $("video").disabled = !s.can_video;
-  statusEl.textContent = s.status;
+  renderer.animating = s.playing;
+  showStatus();
+}
+
+function showStatus() {  // the server's status line and the splat budget (splat.webgl: budgetText)
+  lodText = renderer.budgetText();
+  statusEl.textContent = state ? (lodText ? `${state.status}\n${lodText}` : state.status) : "connecting ...";
 }
 
 function connect() {
@@ -145,6 +156,7 @@ $("camera_path").onchange = () => send({cmd: "camera_path", value: $("camera_pat
 $("motion").onchange = () => send({cmd: "motion", name: $("motion").value, add: false});
 $("load").onclick = () => send({cmd: "motion", name: $("file").value, add: true});
 $("video").onclick = () => send({cmd: "video"});
+$("lod").onchange = () => { renderer.lod.enabled = $("lod").checked; dirty = true; };
 $("render").onclick = () => {
   $("render").disabled = true;
   send({cmd: "render", view: orbitView(cam), aspect: canvas.clientWidth / Math.max(canvas.clientHeight, 1)});
@@ -167,12 +179,13 @@ function tick() {
   }
   if (dirty || renderer.settling) {
     renderer.draw(orbitView(cam)); dirty = false; draws++;
+    if (renderer.budgetText() !== lodText) showStatus();
     if (shown && shown.seq !== acked) { acked = shown.seq; send({cmd: "drawn", seq: shown.seq}); }
   }
   requestAnimationFrame(tick);
 }
 window.__viewer = {get shown() { return shown; }, get state() { return state; }, get draws() { return draws; },
-                   get exactShown() { return exact.style.display !== "none"; }};
+                   get exactShown() { return exact.style.display !== "none"; }, renderer};
 connect();
 requestAnimationFrame(tick);
 </script></body></html>
