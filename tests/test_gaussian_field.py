@@ -233,7 +233,8 @@ def test_splat_ply_holds_the_posed_gaussians_in_the_world_frame(tmp_path):
 
 def test_density_query_of_the_gaussians_for_mesh_export():
     """`SlrfAvatar.query` on the Gaussian field = the sum over every Gaussian (brute force), and a ray through an
-    isotropic Gaussian's centre accumulates its opacity."""
+    isotropic Gaussian's centre accumulates the optical depth -ln(1 - o), so its opacity there is o, as the
+    rasterizer draws the splat's centre."""
     from avatarctl.body.toy import sphere_template, toy_joint_transforms
     from avatarctl.model.avatar import FrameConditioning, SlrfAvatar
 
@@ -251,10 +252,11 @@ def test_density_query_of_the_gaussians_for_mesh_export():
         d = pts[:, None] - posed.means[0][None]
         q = torch.einsum("pgi,gij,pgj->pg", d, torch.linalg.inv(posed.covars[0]), d)
         s = torch.linalg.det(posed.covars[0]) ** (1 / 6)
-        brute = (posed.opacities[0] / (math.sqrt(2 * math.pi) * s) * torch.exp(-0.5 * q)).sum(1)
+        tau = -torch.log1p(-posed.opacities[0].clamp(max=0.99))
+        brute = (tau / (math.sqrt(2 * math.pi) * s) * torch.exp(-0.5 * q)).sum(1)
     assert sigma.shape == (200,) and rgb.shape == (200, 3) and (sigma > 0).sum() > 20
     assert torch.allclose(sigma, brute, rtol=1e-4, atol=1e-6)
-    with torch.no_grad():  # one isotropic Gaussian left: the line integral through its centre is its opacity
+    with torch.no_grad():  # one isotropic Gaussian left (o = 0.5): the line integral through its centre is ln 2
         model.fields.opacity_logits.fill_(-30.0)
         model.fields.opacity_logits[0, 0] = 0.0
         model.fields.quats[0, 0] = torch.tensor([0.9, 0.1, 0.3, -0.2])
@@ -265,4 +267,6 @@ def test_density_query_of_the_gaussians_for_mesh_export():
         t = torch.linspace(-0.1, 0.1, 2001)
         line = c + t[:, None] * torch.tensor([0.0, 0.6, 0.8])
         _, sig, _ = model.query(line, line * 0, torch.zeros(2001, dtype=torch.long), state)
-    assert abs(float(torch.trapezoid(sig, t)) - 0.5) < 0.01 * (1 + float(abs(s_world - 0.01) / 0.01))
+    depth = float(torch.trapezoid(sig, t))
+    assert abs(depth - math.log(2.0)) < 0.01 * (1 + float(abs(s_world - 0.01) / 0.01))
+    assert abs((1.0 - math.exp(-depth)) - 0.5) < 0.01  # the opacity a ray through the centre sees: o

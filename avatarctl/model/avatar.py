@@ -433,16 +433,19 @@ class SlrfAvatar(nn.Module):
     def _query_gaussians(self, points: torch.Tensor, dirs: torch.Tensor, point_frame: torch.Tensor,
                          state: NodeState, chunk: int = 2048) -> tuple[torch.Tensor, torch.Tensor]:
         """`query` of the Gaussian local fields (mesh export): the Gaussians as a density,
-        sigma(x) = sum_g o_g exp(-d^T Sigma_g^-1 d / 2) / (sqrt(2 pi) s_g), s_g = det(Sigma_g)^(1/6) (1/metre: a ray
-        through an isotropic Gaussian's centre accumulates o_g), and the colour as the sum of the Gaussians'
-        view-dependent colours weighted by their terms. Only the Gaussians of nodes within 1.5 support radii of
+        sigma(x) = sum_g tau_g exp(-d^T Sigma_g^-1 d / 2) / (sqrt(2 pi) s_g), s_g = det(Sigma_g)^(1/6) (1/metre),
+        tau_g = -ln(1 - min(o_g, 0.99)): a ray through an isotropic Gaussian's centre accumulates the optical depth
+        tau_g, i.e. the opacity 1 - exp(-tau_g) = o_g that the rasterizer gives the splat's centre (before 2026-11-27
+        tau_g was o_g, so an opaque splat let 37 % through: exported meshes of Gaussian avatars came out dark), and
+        the colour as the sum of the Gaussians' view-dependent colours weighted by their terms. Only the Gaussians of nodes within 1.5 support radii of
         a point are summed. points / dirs [P, 3], point_frame [P] -> rgb [P, 3], sigma [P]."""
         from avatarctl.model.gaussian_field import eval_sh
 
         posed = self.posed_gaussians(state)
         K = posed.per_node
         prec = torch.linalg.inv(posed.covars)  # [B, G, 3, 3]
-        norm = posed.opacities / (math.sqrt(2 * math.pi) * torch.linalg.det(posed.covars).clamp(min=1e-30) ** (1 / 6))
+        depth = -torch.log1p(-posed.opacities.clamp(max=0.99))  # tau_g: optical depth through the centre
+        norm = depth / (math.sqrt(2 * math.pi) * torch.linalg.det(posed.covars).clamp(min=1e-30) ** (1 / 6))
         pi, ni = candidate_pairs(points, point_frame, state.centers, 1.5 * self.cfg.support_radius)
         sigma = points.new_zeros(points.shape[0])
         rgb = points.new_zeros(points.shape[0], 3)
