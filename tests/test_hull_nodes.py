@@ -91,6 +91,13 @@ def test_persistence_drops_what_one_frame_shows():
     assert persistent_cells([], 0.05, 2).shape == (0, 3)
 
 
+@pytest.mark.parametrize("frames, need", [(1, 1), (2, 2), (10, 2), (24, 4), (80, 12)])
+def test_persistence_needs_15_percent_of_the_frames_and_two_unless_there_is_one(frames, need):
+    from avatarctl.fit.hull_nodes import persistence_threshold
+
+    assert persistence_threshold(frames, 0.15) == need
+
+
 def test_farthest_point_sampling_starts_where_the_existing_nodes_are_not():
     from avatarctl.model.deformer import farthest_point_sampling
 

@@ -15,8 +15,9 @@ the training masks:
    a skirt shows where the body is not;
 2. hull voxels farther than `min_dist` from every posed surface node are "off-body";
 3. each is mapped to the canonical space with the inverse skinning transform of its nearest posed body vertex
-   (Eq. 1 inverted); of the pooled points, only the 5 cm cells that points of at least 15 % of the carved frames fall
-   in are kept (one frame's phantom hull volume, or a hem mapped through a swinging leg, is not);
+   (Eq. 1 inverted); of the pooled points, only the 5 cm cells that points of at least 15 % of the carved frames (and
+   at least two; one carved frame keeps all its cells) fall in are kept (one frame's phantom hull volume, or a hem
+   mapped through a swinging leg, is not);
 4. K nodes are chosen among them by farthest point sampling, starting from the surface nodes (so they go where the
    surface nodes are not), each skinned like its nearest canonical body vertex. When fewer than K points remain
    (tight clothing; one training view, which carves nothing), the missing nodes go on the surface, farthest from
@@ -150,6 +151,12 @@ def persistent_cells(per_frame: list[np.ndarray], cell: float, min_frames: int) 
     return mean[frames_in >= min_frames]
 
 
+def persistence_threshold(frames: int, min_share: float) -> int:
+    """How many of `frames` carved frames must show a cell for `persistent_cells` to keep it: `min_share` of them and
+    at least two, but never more than there are (one carved frame, a static multi-view capture, keeps its cells)."""
+    return min(frames, max(2, int(np.ceil(min_share * frames))))
+
+
 def mesh_volume(vertices: torch.Tensor, faces: torch.Tensor) -> float:
     """|signed volume| (m^3) of the closed triangle mesh `vertices` [V, 3] / `faces` [F, 3] (divergence theorem)."""
     v = vertices.detach().double()
@@ -188,7 +195,7 @@ def survey_hull(capture, body, template, frames: list[int], views: list[str], su
         pts = carve(cams, [capture.mask(v, frame) for v in views], lo, hi, voxel, explained=sil)
         Tv = blend_transforms(W, posed.joint_transforms[t:t + 1].double())[0]  # [V, 4, 4]
         pooled.append(off_body_canonical(pts, V, Tv, V[surface_vertex].numpy(), min_dist))
-    cells = persistent_cells(pooled, cell=2 * voxel, min_frames=max(2, int(np.ceil(min_share * len(use)))))
+    cells = persistent_cells(pooled, cell=2 * voxel, min_frames=persistence_threshold(len(use), min_share))
     return HullSurvey(cells=cells, cell=2 * voxel, frames=len(use),
                       body_volume=mesh_volume(template.vertices, template.faces))
 
