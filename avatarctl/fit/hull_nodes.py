@@ -112,6 +112,75 @@ def carve(cameras: list[Camera], masks: list[np.ndarray], lo: np.ndarray, hi: np
     return X[keep & (seen >= 2) & shows]
 
 
+def not_carved(cameras: list[Camera], masks: list[np.ndarray], lo: np.ndarray, shape: tuple[int, int, int],
+               voxel: float) -> np.ndarray:
+    """bool [nx, ny, nz]: the voxels of the grid from `lo` (its first voxel's corner) that no camera carves, i.e.
+    that project inside the mask of every camera seeing them (a voxel no camera sees is kept: nothing says it is
+    empty)."""
+    axes = [lo[i] + voxel / 2 + voxel * np.arange(shape[i]) for i in range(3)]
+    X = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+    keep = np.ones(len(X), dtype=bool)
+    px, depth = project(projection_matrices(cameras), X)
+    for c, m in enumerate(masks):
+        u, v = np.round(px[:, c, 0]).astype(np.int64), np.round(px[:, c, 1]).astype(np.int64)
+        inside = (depth[:, c] > 0) & (u >= 0) & (v >= 0) & (u < m.shape[1]) & (v < m.shape[0])
+        hit = np.zeros(len(X), dtype=bool)
+        hit[inside] = m[v[inside], u[inside]]
+        keep &= hit | ~inside
+    return keep.reshape(shape)
+
+
+def hull_distance(cameras: list[Camera], masks: list[np.ndarray], lo: np.ndarray, shape: tuple[int, int, int],
+                  voxel: float) -> np.ndarray:
+    """float32 [nx, ny, nz]: metres from each voxel of the grid (`not_carved`'s) to the nearest voxel of the visual
+    hull; 0 inside it."""
+    from scipy.ndimage import distance_transform_edt
+
+    keep = not_carved(cameras, masks, lo, shape, voxel)
+    return (distance_transform_edt(~keep) * voxel).astype(np.float32)
+
+
+@dataclass(frozen=True)
+class FrameHulls:
+    """Each training frame's visual hull as a distance field (`model.gaussians.lambda_hull`, a deviation: the masks
+    say where a frame's subject is not, in 3D): metres from a voxel to the nearest voxel no training view carves
+    (0 inside the hull), on a grid of fixed shape placed per frame around the posed body."""
+
+    distance: torch.Tensor  # [F, 1, nx, ny, nz] float32 metres
+    lo: torch.Tensor  # [F, 3] centre of each grid's first voxel (world, metres)
+    voxel: float
+    rows: dict[int, int]  # capture frame index -> grid
+
+    def outside(self, points: torch.Tensor, frames: list[int]) -> torch.Tensor:
+        """points [B, P, 3] (world, the B frames `frames`) -> [B, P] metres outside the frame's visual hull,
+        trilinear in the grid, differentiable in `points`; beyond the grid its border value."""
+        rows = torch.as_tensor([self.rows[int(f)] for f in frames], device=self.distance.device)
+        grid = self.distance[rows].to(points)  # [B, 1, nx, ny, nz]
+        size = torch.tensor(grid.shape[2:], device=points.device, dtype=points.dtype)
+        u = 2 * (points - self.lo[rows].to(points)[:, None]) / (self.voxel * (size - 1)) - 1  # [B, P, 3] x, y, z
+        d = torch.nn.functional.grid_sample(grid, u.flip(-1)[:, :, None, None, :], mode="bilinear",
+                                            padding_mode="border", align_corners=True)  # [B, 1, P, 1, 1]
+        return d[:, 0, :, 0, 0]
+
+
+def frame_hulls(capture, body, frames: list[int], views: list[str], *, voxel: float = 0.025,
+                margin: float = 0.35, device: str | torch.device = "cpu") -> FrameHulls:
+    """`FrameHulls` of `frames` of `capture` (a `ProjectCapture`) carved by the masks of `views`."""
+    posed = body.pose(capture.motion.select(capture.motion.rows_for(frames)))
+    V = posed.vertices.detach().double().cpu().numpy()  # [F, V, 3]
+    extent = (V.max(1) - V.min(1)).max(0) + 2 * margin
+    shape = tuple(int(np.ceil(e / voxel)) for e in extent)
+    cams = [capture.cameras[v] for v in views]
+    dist, lo = [], []
+    for t, frame in enumerate(frames):
+        corner = 0.5 * (V[t].max(0) + V[t].min(0)) - 0.5 * voxel * np.asarray(shape)
+        dist.append(hull_distance(cams, [capture.mask(v, frame) for v in views], corner, shape, voxel))
+        lo.append(corner + voxel / 2)
+    return FrameHulls(distance=torch.from_numpy(np.stack(dist))[:, None].to(device),
+                      lo=torch.as_tensor(np.stack(lo), dtype=torch.float32, device=device), voxel=voxel,
+                      rows={int(f): i for i, f in enumerate(frames)})
+
+
 def off_body_canonical(points: np.ndarray, posed_vertices: torch.Tensor, vertex_transforms: torch.Tensor,
                        posed_nodes: np.ndarray, min_dist: float) -> np.ndarray:
     """Hull `points` [M, 3] of one frame farther than `min_dist` from every posed surface node [N, 3] -> their
