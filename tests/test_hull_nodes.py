@@ -47,29 +47,6 @@ def test_carving_recovers_a_sphere():
     assert len(pts) >= (inner < r - 0.05).sum()  # everything well inside is kept
 
 
-def test_frame_hull_distance_is_zero_inside_and_grows_outside():
-    """`FrameHulls.outside`: 0 inside a frame's visual hull, the distance to it outside (within a voxel), a gradient
-    that points away from the hull, and each frame's own grid (two frames, the sphere moved)."""
-    from avatarctl.fit.hull_nodes import FrameHulls, hull_distance
-
-    cams, r, voxel, shape = _ring_cameras(), 0.3, 0.04, (30, 30, 30)
-    centres = [np.array([0.0, 0.0, 0.0]), np.array([0.2, 0.0, 0.0])]
-    grids, lo = [], []
-    for c in centres:
-        corner = c - 0.6
-        grids.append(hull_distance(cams, [_sphere_mask(cam, c, r) for cam in cams], corner, shape, voxel))
-        lo.append(corner + voxel / 2)
-    hulls = FrameHulls(distance=torch.from_numpy(np.stack(grids))[:, None], lo=torch.tensor(np.stack(lo)).float(),
-                       voxel=voxel, rows={5: 0, 9: 1})
-    pts = torch.tensor([[[0.0, 0.0, 0.0], [0.0, 0.0, 0.55], [-0.35, 0.0, 0.0]]] * 2, requires_grad=True)
-    d = hulls.outside(pts, [5, 9])
-    assert d[0, 0] == 0 and d[1, 0] == 0
-    assert 0.55 - r - 0.12 < float(d[0, 1].detach()) < 0.55 - r + voxel  # a 6-view hull is a little larger than the sphere
-    assert float(d[1, 2].detach()) > float(d[0, 2].detach()) + 0.1  # the sphere of frame 9 moved away from x = -0.35
-    d[0, 1].backward()
-    assert float(pts.grad[0, 1, 2]) > 0  # moving up (away from the sphere) increases the distance
-
-
 def test_carving_keeps_only_what_the_body_does_not_explain():
     """Tight clothing: the masks are the body's silhouettes, so every hull voxel (phantoms included) projects onto
     the body in every view and none is kept. A second solid the body does not explain (a garment) keeps its own

@@ -48,9 +48,7 @@ from avatarctl.errors import InputError
 
 if TYPE_CHECKING:
     from avatarctl.fit.data import ImageBatch, RaySampler, TrainBatch
-    from avatarctl.fit.hull_nodes import FrameHulls
     from avatarctl.model.avatar import ImageOutputs, NodeState, RenderOutputs, SlrfAvatar
-    from avatarctl.model.gaussian_field import PosedGaussians
     from avatarctl.model.losses import LossTerms
 
 SHARD_SEED_STRIDE = 1_000_003
@@ -125,7 +123,6 @@ class Replicas:
         self.local = [k for k in range(shards) if k % world == (env.rank if env is not None else 0)]
         self.samplers = {k: make_sampler(None if shards == 1 else pairs[k::shards], rays // shards, images // shards)
                          for k in self.local}
-        self.hulls: "FrameHulls | None" = None  # the training frames' visual hulls, for the hull term (field gaussians)
         self.reseed(seed)
 
     @property
@@ -163,23 +160,18 @@ class Replicas:
         image loss over all of this rank's crops. -> (loss terms, outputs, pixels of the whole step over all ranks)."""
         from avatarctl.model.avatar import ImageOutputs
 
-        states, outs, counts, hull = [], [], [], []
+        states, outs, counts = [], [], []
         for k, b in parts:
             st = model.node_state(b.cond, mode="posterior", generator=self.noise_gens[k])
             states.append(st)
-            out, posed = render_crops(model, b, st, background)
-            outs.append(out)
+            outs.append(render_crops(model, b, st, background))
             counts.append(int((b.cond.frame_ids >= 0).sum()))
-            if self.hulls is not None:
-                hull.append(model.hull_outside(posed, self.hulls.outside(posed.means, b.frames),
-                                               model.cfg.gaussians.hull_tolerance))
         state = states[0] if len(states) == 1 else _cat_states(states, counts)
         out = ImageOutputs.cat(outs)
         batches = [b for _, b in parts]
         targets = [c.target for b in batches for c in b.crops]
         masks = [c.mask for b in batches for c in b.crops]
-        terms = model.image_losses(out.rgb, out.alpha, targets, masks, state,
-                                   hull=torch.stack(hull).mean() if hull else None)
+        terms = model.image_losses(out.rgb, out.alpha, targets, masks, state)
         return terms, out, sum(b.pixels for b in batches) * self.world
 
     def _forward_shards(self, model: "SlrfAvatar", parts: list[tuple[int, "TrainBatch"]], background: torch.Tensor,
@@ -280,9 +272,8 @@ class Replicas:
 
 
 def render_crops(model: "SlrfAvatar", batch: "ImageBatch", state: "NodeState", background: torch.Tensor
-                 ) -> "tuple[ImageOutputs, PosedGaussians]":
-    """Rasterize every crop of `batch` (crop b is frame slot b of `state`) with the avatar's posed Gaussians.
-    -> (the crops, the posed Gaussians)."""
+                 ) -> "ImageOutputs":
+    """Rasterize every crop of `batch` (crop b is frame slot b of `state`) with the avatar's posed Gaussians."""
     from avatarctl.model.avatar import ImageOutputs
     from avatarctl.splat import SplatCamera
 
@@ -291,7 +282,7 @@ def render_crops(model: "SlrfAvatar", batch: "ImageBatch", state: "NodeState", b
             for c in batch.crops]
     rgb, alpha = model.render_images(posed, cams, background)
     return ImageOutputs(rgb=rgb, alpha=alpha, stats={"images": float(len(rgb)), "gaussians": float(
-        posed.means.shape[1]), "pixels": float(batch.pixels)}), posed
+        posed.means.shape[1]), "pixels": float(batch.pixels)})
 
 
 def saved_shards(rng: dict) -> int:

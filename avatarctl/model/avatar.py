@@ -19,8 +19,6 @@ Units: metres, world frame of the capture; time stamps t/T in [0, 1]; densities 
 
 from __future__ import annotations
 
-import dataclasses
-
 import math
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
@@ -304,25 +302,13 @@ class SlrfAvatar(nn.Module):
         return [o[0] for o in out], [o[1] for o in out]
 
     def image_losses(self, rgb: list[torch.Tensor], alpha: list[torch.Tensor], target: list[torch.Tensor],
-                     mask: list[torch.Tensor], state: NodeState, hull: torch.Tensor | None = None) -> LossTerms:
+                     mask: list[torch.Tensor], state: NodeState) -> LossTerms:
         """Eq. 11 with the image loss of the rasterized field in place of Eq. 12 (`losses.image_reconstruction_loss`:
-        L1 + D-SSIM + mask, per image crop) and the paper's regularisers (Eq. 13-15) as in `losses`; `hull` (a
-        deviation): the posed Gaussians' opacity-weighted distance outside their frame's visual hull
-        (`hull_outside`), added with weight `model.gaussians.lambda_hull`."""
+        L1 + D-SSIM + mask, per image crop) and the paper's regularisers (Eq. 13-15) as in `losses`."""
         c, g = self.cfg, self.cfg.gaussians
         rec, mse = image_reconstruction_loss(rgb, target, alpha, mask, g.lambda_ssim, g.lambda_mask,
                                              c.rec_reference_rays)
-        terms = self._with_regularisers(rec, mse, state)
-        if hull is None:
-            return terms
-        return dataclasses.replace(terms, total=terms.total + g.lambda_hull * hull, hull=hull)
-
-    @staticmethod
-    def hull_outside(posed: "PosedGaussians", outside: torch.Tensor, tolerance: float) -> torch.Tensor:
-        """[] the hull term: sum over Gaussians of opacity (not differentiated) x metres beyond `tolerance` outside
-        the frame's visual hull (`outside` [B, G]), averaged over the B frames."""
-        excess = torch.relu(outside - tolerance)
-        return (posed.opacities.detach() * excess).sum() / max(outside.shape[0], 1)
+        return self._with_regularisers(rec, mse, state)
 
     # ---- step 2: rendering --------------------------------------------------------------------------------------
     def render(self, rays: RayBatch, state: NodeState, background: torch.Tensor, *, jitter: bool = False,

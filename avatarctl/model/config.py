@@ -238,16 +238,11 @@ class GaussianConfig:
     # steps the Gaussians with opacity < `min_opacity` move onto live ones of their node (0: never)
     relocate_every: int = 100
     min_opacity: float = 0.005
-    # each frame's visual hull (a deviation): lambda_hull x sum of opacity x metres a Gaussian lies beyond
-    # `hull_tolerance` outside its frame's hull (fit/hull_nodes.py FrameHulls); 0: off
-    lambda_hull: float = 0.0
-    hull_tolerance: float = 0.01
 
     def __post_init__(self) -> None:
         def need(ok: bool, msg: str) -> None:
             if not ok:
                 raise ValueError(f"GaussianConfig: {msg}")
-
 
         for name in ("per_node", "feature_dim", "decoder_width"):
             v = getattr(self, name)
@@ -259,7 +254,7 @@ class GaussianConfig:
         need(0 <= self.min_opacity < self.init_opacity, f"min_opacity must be in [0, init_opacity), got "
              f"{self.min_opacity}")
         need(0 <= self.lambda_ssim <= 1, f"lambda_ssim must be in [0, 1], got {self.lambda_ssim}")
-        for name in ("offset_scale", "lambda_mask", "lambda_hull", "hull_tolerance"):
+        for name in ("offset_scale", "lambda_mask"):
             need(getattr(self, name) >= 0, f"{name} must be >= 0, got {getattr(self, name)}")
         for name in ("lr_means", "lr_scales", "lr_quats", "lr_opacity", "lr_colors"):
             need(getattr(self, name) > 0, f"{name} must be > 0, got {getattr(self, name)}")
