@@ -69,7 +69,7 @@ def test_the_benchmark_measures_a_toy_project(tmp_path):
     np.savez(cap / GT_GEOMETRY, frame_index=np.arange(4), body_vertices=verts, body_faces=faces,
              garment_vertices=verts * 1.02, garment_faces=faces)
     out = tmp_path / "tracking.json"
-    report = main([str(proj), "--patches", "4,8", "--json", str(out)])
+    report = main([str(proj), "--patches", "4,8", "--flow", "--json", str(out)])
     assert report.frames >= 1 and report.garment_vertices == verts.shape[1]
     assert [(r.skinning, r.patches) for r in report.residuals] == [
         ("nearest vertex", 4), ("nearest vertex", 8), ("root", 4), ("root", 8)]
@@ -77,5 +77,9 @@ def test_the_benchmark_measures_a_toy_project(tmp_path):
         assert all(math.isfinite(v) and v >= 0 for v in (r.translation_cm, r.rigid_cm, r.translation_p90_cm))
     assert [d.motion for d in report.drift] == ["learned", "skeleton"]
     assert report.nodes_on_garment > 0 and all(math.isfinite(d.mean_cm) for d in report.drift)
+    f = report.flow
+    assert f is not None and f.pairs >= 1 and f.vertices > 0
+    assert math.isfinite(f.error_px) and f.error_px >= 0 and f.still_error_px == f.motion_px >= 0
     saved = json.loads(out.read_text())
     assert saved["nodes_on_garment"] == report.nodes_on_garment and len(saved["residuals"]) == 4
+    assert saved["flow"]["pairs"] == f.pairs
