@@ -38,7 +38,7 @@ Synchronisation per step (after the backward pass), all in one flat SUM all-redu
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from typing import TYPE_CHECKING, Callable
 
 import torch
@@ -48,9 +48,7 @@ from avatarctl.errors import InputError
 
 if TYPE_CHECKING:
     from avatarctl.fit.data import ImageBatch, RaySampler, TrainBatch
-    from avatarctl.fit.flow import FrameFlows
     from avatarctl.model.avatar import ImageOutputs, NodeState, RenderOutputs, SlrfAvatar
-    from avatarctl.model.gaussian_field import PosedGaussians
     from avatarctl.model.losses import LossTerms
 
 SHARD_SEED_STRIDE = 1_000_003
@@ -125,7 +123,6 @@ class Replicas:
         self.local = [k for k in range(shards) if k % world == (env.rank if env is not None else 0)]
         self.samplers = {k: make_sampler(None if shards == 1 else pairs[k::shards], rays // shards, images // shards)
                          for k in self.local}
-        self.flows: "FrameFlows | None" = None  # the training views' optical flow, for the flow term (field gaussians)
         self.reseed(seed)
 
     @property
@@ -163,26 +160,18 @@ class Replicas:
         image loss over all of this rank's crops. -> (loss terms, outputs, pixels of the whole step over all ranks)."""
         from avatarctl.model.avatar import ImageOutputs
 
-        states, outs, counts, flow = [], [], [], []
+        states, outs, counts = [], [], []
         for k, b in parts:
             st = model.node_state(b.cond, mode="posterior", generator=self.noise_gens[k])
             states.append(st)
-            out, posed, cams = render_crops(model, b, st, background)
-            outs.append(out)
+            outs.append(render_crops(model, b, st, background))
             counts.append(int((b.cond.frame_ids >= 0).sum()))
-            if self.flows is not None:
-                term = flow_term(model, b, posed, cams, out, self.flows, self.samplers[k], self.noise_gens[k])
-                if term is not None:
-                    flow.append(term)
         state = states[0] if len(states) == 1 else _cat_states(states, counts)
         out = ImageOutputs.cat(outs)
         batches = [b for _, b in parts]
         targets = [c.target for b in batches for c in b.crops]
         masks = [c.mask for b in batches for c in b.crops]
         terms = model.image_losses(out.rgb, out.alpha, targets, masks, state)
-        if self.flows is not None:
-            f = torch.stack(flow).mean() if flow else terms.total.new_zeros(())
-            terms = replace(terms, total=terms.total + model.cfg.gaussians.lambda_flow * f, flow=f)
         return terms, out, sum(b.pixels for b in batches) * self.world
 
     def _forward_shards(self, model: "SlrfAvatar", parts: list[tuple[int, "TrainBatch"]], background: torch.Tensor,
@@ -293,51 +282,7 @@ def render_crops(model: "SlrfAvatar", batch: "ImageBatch", state: "NodeState", b
             for c in batch.crops]
     rgb, alpha = model.render_images(posed, cams, background)
     return ImageOutputs(rgb=rgb, alpha=alpha, stats={"images": float(len(rgb)), "gaussians": float(
-        posed.means.shape[1]), "pixels": float(batch.pixels)}), posed, cams
-
-
-def flow_term(model: "SlrfAvatar", batch: "ImageBatch", posed: "PosedGaussians", cams: list, out: "ImageOutputs",
-              flows: "FrameFlows", sampler, generator: torch.Generator, max_px: float = 5.0,
-              depth_tol: float = 0.02, min_opacity: float = 0.05) -> torch.Tensor | None:
-    """The flow term (`model.gaussians.lambda_flow`, fit/flow.py): for each crop (frame t, view v) whose next frame
-    t + 1 is a training frame, the Gaussians posed at t + 1 too; of the Gaussians visible in the crop at t (opacity
-    >= `min_opacity`, inside the mask, not behind the rendered depth by more than `depth_tol` metres), the projected
-    motion t -> t + 1 against the view's optical flow at their projection, |.|_1 in pixels capped at `max_px` (a
-    larger disagreement is more likely the flow's error), averaged. None when no crop has a next frame."""
-    from avatarctl.fit.flow import project_points, sample_flow
-    from avatarctl.splat import render_gaussians_batch
-
-    slots = [b for b, (f, v) in enumerate(zip(batch.frames, batch.views)) if flows.next_frame(v, f) is not None]
-    if not slots:
-        return None
-    nxt = [batch.frames[b] + 1 for b in slots]
-    cond = sampler.conditioning(nxt, posed.means.device)
-    posed_next = model.posed_gaussians(model.node_state(cond, mode="posterior", generator=generator))
-    losses = []
-    for j, b in enumerate(slots):
-        cam, crop = cams[b], batch.crops[b]
-        uv, z = project_points(posed.means[b], cam)
-        uv_next, _ = project_points(posed_next.means[j], cam)
-        with torch.no_grad():
-            H, W = crop.mask.shape
-            zc = z.detach()[:, None].expand(-1, 3).contiguous()
-            depth_img, acc = render_gaussians_batch(posed.means[b:b + 1].detach(), posed.covars[b:b + 1].detach(),
-                                                    zc[None], posed.opacities[b:b + 1].detach(), [cam],
-                                                    zc.new_zeros(3))[0]
-            depth = depth_img[..., 0] / acc.clamp(min=1e-6)
-            u = uv[:, 0].detach().round().long()
-            v = uv[:, 1].detach().round().long()
-            inside = (u >= 0) & (v >= 0) & (u < W) & (v < H) & (z.detach() > 0)
-            uc, vc = u.clamp(0, W - 1), v.clamp(0, H - 1)
-            seen = inside & (crop.mask[vc, uc] > 0.5) & (acc[vc, uc] > 0.5) & (z.detach() <= depth[vc, uc] + depth_tol)
-            seen &= posed.opacities[b].detach() >= min_opacity
-        if not seen.any():
-            continue
-        full = uv[seen].detach() + torch.tensor([crop.x0, crop.y0], dtype=uv.dtype, device=uv.device)
-        target = sample_flow(flows.flows[(batch.views[b], batch.frames[b])], full)
-        err = ((uv_next[seen] - uv[seen]) - target).abs().sum(-1)
-        losses.append(err.clamp(max=max_px).mean())
-    return torch.stack(losses).mean() if losses else None
+        posed.means.shape[1]), "pixels": float(batch.pixels)})
 
 
 def saved_shards(rng: dict) -> int:

@@ -372,10 +372,6 @@ def _set_up(project: Project, cfg: FitConfig | None, device: str, resume: bool, 
     replicas = Replicas(env, shards, lambda pairs, rays, images: Sampler(
         store, train_frames, split.train_views, rays, images, cfg.box_fraction, cfg.background, cfg.mask_fraction,
         pairs), train_frames, list(split.train_views), cfg.rays_per_batch, cfg.images_per_batch, cfg.seed, dev)
-    if not cfg.model.ray_marched and cfg.model.gaussians.lambda_flow > 0:  # the training views' optical flow
-        from avatarctl.fit.flow import training_flows
-
-        replicas.flows = training_flows(capture, train_frames, list(split.train_views))
     pairs = choose_val_pairs(split.test_views, train_frames, cfg.val_pairs) if main else []
     validator = Validator(capture, body, pairs, train_frames, cfg.background, cfg.val_scale) if pairs else None
 

@@ -238,9 +238,6 @@ class GaussianConfig:
     # steps the Gaussians with opacity < `min_opacity` move onto live ones of their node (0: never)
     relocate_every: int = 100
     min_opacity: float = 0.005
-    # the training views' optical flow between consecutive frames (a deviation, fit/flow.py): lambda_flow x the mean
-    # |projected motion - flow| (pixels, capped) of the visible Gaussians; 0: off
-    lambda_flow: float = 0.0
 
     def __post_init__(self) -> None:
         def need(ok: bool, msg: str) -> None:
@@ -257,7 +254,7 @@ class GaussianConfig:
         need(0 <= self.min_opacity < self.init_opacity, f"min_opacity must be in [0, init_opacity), got "
              f"{self.min_opacity}")
         need(0 <= self.lambda_ssim <= 1, f"lambda_ssim must be in [0, 1], got {self.lambda_ssim}")
-        for name in ("offset_scale", "lambda_mask", "lambda_flow"):
+        for name in ("offset_scale", "lambda_mask"):
             need(getattr(self, name) >= 0, f"{name} must be >= 0, got {getattr(self, name)}")
         for name in ("lr_means", "lr_scales", "lr_quats", "lr_opacity", "lr_colors"):
             need(getattr(self, name) > 0, f"{name} must be > 0, got {getattr(self, name)}")

@@ -31,12 +31,11 @@ class LossTerms:
     mse: torch.Tensor  # [] mean squared colour error over rays and channels (for logs; PSNR = -10 log10 mse)
     pose: torch.Tensor | None = None  # [] pose-refinement penalty (model/pose_refine.py), None when off
     pose_accel: torch.Tensor | None = None  # [] acceleration of the refined poses (model/pose_refine.py), None: off
-    flow: torch.Tensor | None = None  # [] projected motion against the optical flow, pixels (fit/flow.py), None: off
 
     def keys(self) -> tuple[str, ...]:
         """Names of the terms this step has (the optional ones only when on; the same on every rank)."""
         return ("total", "rec", "trans", "ebd", "kl", "mse") + tuple(
-            k for k in ("pose", "pose_accel", "flow") if getattr(self, k) is not None)
+            k for k in ("pose", "pose_accel") if getattr(self, k) is not None)
 
     def as_floats(self) -> dict[str, float]:
         return {k: float(getattr(self, k).detach()) for k in self.keys()}
