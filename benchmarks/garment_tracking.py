@@ -20,6 +20,11 @@ skirt back"):
    motion: the end-point error in pixels beside the true motion's size. A small error against the motion means the
    flow could supervise the projected motion of the Gaussians.
 
+4. **Do the Gaussians on the garment move with it from frame to frame?** (Gaussian-field avatars): for every 5th
+   training frame t whose next frame is a training frame, the Gaussians (opacity >= 0.05, latent mean) within 2 cm of
+   the garment at t, in every training view: their projected motion t -> t + 1 against that of their nearest garment
+   vertex (end-point error, pixels), beside the garment's projected motion.
+
     python -m benchmarks.garment_tracking PROJECT [--patches 32,64,128] [--flow] [--json OUT.json]
 """
 
@@ -63,6 +68,15 @@ class FlowError:
 
 
 @dataclass(frozen=True)
+class GaussianMotion:
+    gaussians: int  # Gaussians within 2 cm of the garment, summed over the frames measured
+    motion_px: float  # median projected motion of their garment vertices t -> t + 1
+    motion_p90_px: float
+    error_px: float  # median end-point error of the Gaussians' own projected motion
+    error_p90_px: float
+
+
+@dataclass(frozen=True)
 class TrackingReport:
     frames: int
     garment_vertices: int
@@ -70,6 +84,7 @@ class TrackingReport:
     residuals: tuple[PatchResidual, ...]
     drift: tuple[NodeDrift, ...]
     flow: FlowError | None = None
+    gaussian_motion: GaussianMotion | None = None  # Gaussian-field avatars only
 
 
 def _canonical(points: torch.Tensor, weights: torch.Tensor, joints: torch.Tensor) -> torch.Tensor:
@@ -175,6 +190,45 @@ def flow_error(capture, gt, frames: list[int], views: list[str], max_pairs: int 
                      error_px=med(e), error_p90_px=med(e, 90), still_error_px=med(m))
 
 
+def gaussian_motion(av, gt, frames: list[int], views: list[str], every: int = 5, near: float = 0.02,
+                    min_opacity: float = 0.05) -> GaussianMotion:
+    """Part 4 of the module docstring for a loaded Gaussian-field avatar `av`."""
+    from scipy.spatial import cKDTree
+
+    from avatarctl.splat import SplatCamera
+
+    m = av.model
+    have = set(frames)
+    cams = [SplatCamera.from_camera(av.capture.cameras[v]) for v in views]
+    errors, motions, count = [], [], 0
+    for t in [f for f in frames if f + 1 in have][::every]:
+        cond = av.conditioning(av.capture.motion.select([t, t + 1]), frames_are_training=True)
+        with torch.no_grad():
+            posed = m.posed_gaussians(m.node_state(cond, mode="mean"))
+        ga = torch.as_tensor(gt.garment_vertices[gt.row(t)], dtype=torch.float32)
+        gb = torch.as_tensor(gt.garment_vertices[gt.row(t + 1)], dtype=torch.float32)
+        dist, vert = cKDTree(ga.numpy()).query(posed.means[0].numpy())
+        sel = torch.as_tensor(dist < near) & (posed.opacities[0] >= min_opacity)
+        vert = torch.as_tensor(vert)[sel]
+        count += int(sel.sum())
+        for cam in cams:
+            proj = [_project(x, cam) for x in (posed.means[0][sel], posed.means[1][sel], ga[vert], gb[vert])]
+            true = proj[3] - proj[2]
+            errors.append(((proj[1] - proj[0]) - true).norm(dim=-1))
+            motions.append(true.norm(dim=-1))
+    e, mo = (torch.cat(x) if x else torch.zeros(0) for x in (errors, motions))
+    q = (lambda x, p: float(x.quantile(p)) if len(x) else float("nan"))
+    return GaussianMotion(gaussians=count, motion_px=q(mo, 0.5), motion_p90_px=q(mo, 0.9), error_px=q(e, 0.5),
+                          error_p90_px=q(e, 0.9))
+
+
+def _project(points: torch.Tensor, cam) -> torch.Tensor:
+    """points [P, 3] world -> [P, 2] pixels of the `SplatCamera` `cam`."""
+    x = points @ cam.R.T + cam.T
+    uvw = x @ cam.K.T
+    return uvw[:, :2] / uvw[:, 2:3].clamp(min=1e-6)
+
+
 def measure(project_dir: str | Path, patch_counts: tuple[int, ...] = (32, 64, 128), flow: bool = False
             ) -> TrackingReport:
     from scipy.spatial import cKDTree
@@ -225,7 +279,9 @@ def measure(project_dir: str | Path, patch_counts: tuple[int, ...] = (32, 64, 12
                                float(spread.quantile(0.9) * 100) if len(on) else float("nan")))
     return TrackingReport(frames=len(frames), garment_vertices=int(garment.shape[1]), nodes_on_garment=len(on),
                           residuals=tuple(residuals), drift=tuple(drift),
-                          flow=flow_error(av.capture, gt, frames, list(av.capture.split.train_views)) if flow else None)
+                          flow=flow_error(av.capture, gt, frames, list(av.capture.split.train_views)) if flow else None,
+                          gaussian_motion=gaussian_motion(av, gt, frames, list(av.capture.split.train_views))
+                          if not m.cfg.ray_marched else None)
 
 
 def main(argv: list[str] | None = None) -> TrackingReport:
@@ -251,6 +307,11 @@ def main(argv: list[str] | None = None) -> TrackingReport:
               f"{f.vertices:,} visible garment vertices: true motion {f.motion_px:.2f} px (p90 {f.motion_p90_px:.2f}), "
               f"flow error {f.error_px:.2f} px (p90 {f.error_p90_px:.2f}); no motion at all would err "
               f"{f.still_error_px:.2f} px")
+    if report.gaussian_motion is not None:
+        g = report.gaussian_motion
+        print(f"the {g.gaussians:,} Gaussians on the garment (every 5th training frame, each training view): projected "
+              f"motion t -> t + 1 errs {g.error_px:.2f} px (p90 {g.error_p90_px:.2f}) against the garment's "
+              f"{g.motion_px:.2f} px (p90 {g.motion_p90_px:.2f})")
     if args.json is not None:
         args.json.write_text(json.dumps(asdict(report), indent=1))
     return report

@@ -80,6 +80,8 @@ def test_the_benchmark_measures_a_toy_project(tmp_path):
     f = report.flow
     assert f is not None and f.pairs >= 1 and f.vertices > 0
     assert math.isfinite(f.error_px) and f.error_px >= 0 and f.still_error_px == f.motion_px >= 0
+    g = report.gaussian_motion  # a Gaussian-field avatar: part 4 measured
+    assert g is not None and g.gaussians > 0 and math.isfinite(g.error_px) and g.error_px >= 0
     saved = json.loads(out.read_text())
     assert saved["nodes_on_garment"] == report.nodes_on_garment and len(saved["residuals"]) == 4
     assert saved["flow"]["pairs"] == f.pairs
