@@ -380,6 +380,7 @@ def test_the_posing_thread_poses_ahead_while_playing_and_serves_the_clock_from_t
     from avatarctl.viewer.splats import decode_splats
 
     session = _FakePosing(fps=0.5)  # the clock would move every 2 s: the test moves it itself (`_update`)
+    session.gate = {3}  # the third frame ahead hangs until released
     c = ViewerController(session, ahead=3)
     shown = []
     c.subscribe_frames(lambda key, data: shown.append((key, data)))
@@ -391,9 +392,10 @@ def test_the_posing_thread_poses_ahead_while_playing_and_serves_the_clock_from_t
         assert _wait(lambda: len(session.calls) == 4)
         assert [f for f, _ in session.calls] == [0, 1, 2, 3], "the clock's next 3 frames, in order"
         assert c.ahead_keys() == [FrameKey(0, f, "auto") for f in (1, 2, 3)]
-        c._update(frame=1)  # the play clock reaches frame 1
-        assert _wait(lambda: len(shown) == 2) and shown[1][0] == FrameKey(0, 1, "auto")
+        c._update(frame=1)  # the play clock reaches frame 1 while frame 3 is being posed
+        assert len(shown) == 2 and shown[1][0] == FrameKey(0, 1, "auto"), "shown at once, from the cache"
         assert decode_splats(shown[1][1].header, shown[1][1].payload).centers[0, 0] == pytest.approx(1.0, abs=1e-3)
+        session.release()
         assert _wait(lambda: len(session.calls) == 5)
         assert session.calls[-1] == (4, "auto"), "one more frame ahead; frame 1 itself was not posed again"
         c.set_playing(False)
@@ -413,9 +415,9 @@ def test_the_look_ahead_stride_follows_the_cost_of_posing():
 
     c = ViewerController(_FakePosing(fps=20.0), ahead=3)
     try:
-        c.pose_seconds = 0.12  # 2.4 frames of the clock a posing
+        c.pose_seconds = 0.12  # 2.4 frames of the clock a posing (2.64 with the margin)
         c._update(playing=True, frame=10)
-        assert [k.frame for k in c.ahead_keys()] == [13, 16, 19]
+        assert [k.frame for k in c.ahead_keys()] == [13, 14, 15]
         c.pose_seconds = 0.01
         assert [k.frame for k in c.ahead_keys(c.state)] == [11, 12, 13]
         c._update(frame=38)

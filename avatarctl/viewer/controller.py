@@ -15,11 +15,12 @@ Gaussians (`ViewerSession.splats`), encoded once (`splats.encode_splats`), kept 
 encoded frames (`cache_frames` frames and `cache_bytes` bytes at most; emptied when the latent mode or the motion
 changes), so scrubbing back over recent frames, or a motion looping within the cache, costs no posing. While the
 motion plays, the posing thread, once the frame shown is done, poses the frames the play clock will reach next:
-`ahead` frames, `stride` apart, the stride the frames the clock passes during one posing (the measured cost of an
-uncached frame times the fps, at least 1: when posing is slower than the clock, the frames it would skip anyway are
-not posed). A frame the clock reaches is shown from the cache at once; a clock frame not in the cache is not posed
-(it would be shown late) while a look-ahead frame is due, and a look-ahead frame finished after the clock passed it
-is shown if nothing nearer was. A frame asked for explicitly (`set_frame`, `set_latent`, or any change while paused)
+the first of `ahead` consecutive frames not yet cached, from the first frame that a posing started now finishes
+before the clock gets there (the clock's frame + the frames it passes during one posing: the measured cost of a
+frame times the fps, at least 1; when posing is slower than the clock, the frames it would show late are skipped,
+and the thread stays busy on frames it can finish in time). A frame the clock reaches is shown from the cache at once, by the clock's thread (even while the posing
+thread poses another); a clock frame not in the cache is not posed (it would be shown late) while a look-ahead frame
+is due, and a look-ahead frame finished after the clock passed it is shown if nothing nearer was. A frame asked for explicitly (`set_frame`, `set_latent`, or any change while paused)
 is always posed before any look-ahead work (newest wins; a look-ahead frame already being posed is finished first).
 
 Play keeps wall-clock time at the motion's frame rate: when posing or drawing is slower, frames are skipped, never
@@ -161,6 +162,8 @@ class ViewerController:
         self.pose_seconds = 0.05  # running mean of posing + encoding one uncached frame (sets the look-ahead stride)
         self._asked: FrameKey | None = None  # the newest key asked for explicitly (posed before any look-ahead)
         self._failed: set[FrameKey] = set()  # look-ahead frames whose posing failed (not tried again)
+        self._delivered: FrameKey | None = None  # the frame handed to the frame subscribers last
+        self._deliver_lock = threading.Lock()
         self.session, self.video_fn = session, video
         self._lock = threading.RLock()
         self._extra = ""
@@ -255,7 +258,10 @@ class ViewerController:
             self._state = new
             cbs = list(self._state_cbs)
         if new.key != old.key and new.gaussian:
-            self._want_pose()
+            data = self.cache.get(new.key) if self._frame_cbs else None
+            if data is not None:
+                self._deliver(new.key, data)
+            self._want_pose()  # the frame to pose, or the look-ahead, moved
         for cb in cbs:
             cb(new)
         return new
@@ -344,50 +350,63 @@ class ViewerController:
             self._wake.notify_all()
 
     def ahead_keys(self, s: ViewState | None = None) -> list[FrameKey]:
-        """The frames the play clock will reach next (module docstring): `ahead` frames, `stride` apart; none while
-        paused."""
+        """The frames the play clock will reach next (module docstring): `ahead` consecutive frames from the first one
+        a posing started now can finish before the clock gets there; none while paused."""
         s = self._state if s is None else s
         n = len(s.labels)
         if not (s.playing and n > 1 and self.ahead):
             return []
-        stride = self._stride(s)
-        frames = dict.fromkeys((s.frame + stride * j) % n for j in range(1, self.ahead + 1))
+        first = s.frame + self._stride(s)
+        frames = dict.fromkeys((first + j) % n for j in range(self.ahead))
         return [FrameKey(s.generation, f, s.latent) for f in frames if f != s.frame]
 
     def _stride(self, s: ViewState) -> int:
         """Frames the clock passes during one posing (10 % margin), at least 1."""
         return max(1, math.ceil(self.pose_seconds * s.fps * 1.1))
 
-    def _next_job(self, delivered: FrameKey | None) -> tuple[bool, FrameKey] | None:
+    def _next_job(self) -> tuple[bool, FrameKey] | None:
         """(to show, key) of the posing thread's next work, None when there is none: the frame shown first when it
-        is cached, asked for or paused; else the first look-ahead frame not cached (those cached are marked used:
-        the cache drops frames played before frames still ahead); else the frame shown."""
-        s = self._state
+        is asked for or paused; else the first look-ahead frame not cached (those cached are marked used: the cache
+        drops frames played before frames still ahead); else the frame shown."""
+        s, delivered = self._state, self._delivered
         key = s.key
-        if key != delivered and (key in self.cache or key == self._asked or not s.playing):
+        if key != delivered and (key == self._asked or not s.playing):
             return True, key
         for k in self.ahead_keys(s):
             if self.cache.get(k) is None and k not in self._failed:
                 return False, k
         return (True, key) if key != delivered else None
 
-    def _late(self, key: FrameKey, delivered: FrameKey | None, s: ViewState) -> bool:
-        """A look-ahead frame the clock has just passed (within the look-ahead's reach: not after a jump), nearer to
-        the clock than the frame shown."""
-        n = len(s.labels)
-        behind = (s.frame - key.frame) % n
-        if not 0 < behind <= min(n // 2, self._stride(s) * max(self.ahead, 1)):
-            return False
-        return delivered is None or delivered.generation != key.generation or (s.frame - delivered.frame) % n > behind
+    def _deliver(self, key: FrameKey, data: EncodedSplats, window: int | None = None) -> bool:
+        """Hand a frame to the frame subscribers if it is the frame shown now, or one the clock has passed by at most
+        `window` frames (None: half the motion) nearer to the clock than the frame delivered last (newest wins:
+        never an older picture after a newer one); True if it was handed."""
+        with self._deliver_lock:
+            s, delivered = self._state, self._delivered
+            if key.generation != s.generation or key.latent != s.latent or key == delivered:
+                return False
+            if key != s.key:
+                n = len(s.labels)
+                behind = (s.frame - key.frame) % n
+                if not 0 < behind <= min(n // 2, n if window is None else window):
+                    return False
+                if delivered is not None and (delivered.generation, delivered.latent) == (key.generation, key.latent) \
+                        and (s.frame - delivered.frame) % n <= behind:
+                    return False
+            self._delivered = key
+            with self._lock:
+                cbs = list(self._frame_cbs)
+            for cb in cbs:
+                cb(key, data)
+            return True
 
     def _pose_loop(self) -> None:
         """Pose the newest frame asked for and hand it to the frame subscribers (newest wins); pose ahead while
-        playing (module docstring)."""
-        delivered: FrameKey | None = None
+        playing (module docstring). A frame the clock reaches in the cache is handed by the clock (`_update`)."""
         while True:
             with self._wake:
                 job = None
-                while not self._stop.is_set() and (not self._frame_cbs or (job := self._next_job(delivered)) is None):
+                while not self._stop.is_set() and (not self._frame_cbs or (job := self._next_job()) is None):
                     self._wake.wait(0.5)
                 if self._stop.is_set():
                     return
@@ -397,20 +416,12 @@ class ViewerController:
             except Exception as e:  # noqa: BLE001 - reported in the page; the viewer keeps serving
                 self.set_status(f"posing failed: {type(e).__name__}: {e}")
                 if show:
-                    delivered = key
+                    with self._deliver_lock:
+                        self._delivered = key  # not tried again until another frame is asked for
                 else:
                     self._failed.add(key)
                 continue
-            s = self._state
-            if key.generation != s.generation:  # the motion changed while posing: a stale frame
-                continue
-            if not (show or key == s.key or self._late(key, delivered, s)):
-                continue
-            delivered = key
-            with self._lock:
-                cbs = list(self._frame_cbs)
-            for cb in cbs:
-                cb(key, data)
+            self._deliver(key, data, None if show else self._stride(self._state) + self.ahead)
 
     def _play_loop(self) -> None:
         """While playing, the frame follows wall-clock time at the fps (frames skipped when drawing is slow); a frame
