@@ -480,7 +480,7 @@ def test_the_frame_cache_is_bounded_and_emptied_when_the_posed_gaussians_change(
         assert _wait(lambda: len(session.calls) == 4)
         for f in range(1, 12):  # the clock moves on: the look-ahead keeps posing, the cache keeps 4
             c._update(frame=f)
-            assert _wait(lambda: len(session.calls) == 4 + f)
+            assert _wait(lambda f=f: len(session.calls) == 4 + f)
             assert len(c.cache) <= 4
         assert len(c.cache) == 4
         c.set_latent("zero")

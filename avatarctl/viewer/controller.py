@@ -5,8 +5,9 @@ progressive server renders) and our own page (`viewer.splat_server.SplatPageServ
 browser draws each frame's posed Gaussians). A front-end turns its widgets into the controller's setters
 (`set_frame`, `set_playing`, `switch_motion`, ...) and shows what the controller reports:
 - `subscribe(on_state)`: called with a `ViewState` after every change (frame, motion, status line, ...);
-- `subscribe_frames(on_frame)` (Gaussian-field avatars): called from the posing thread with each frame to show, in
-  its wire form (`viewer.splats.EncodedSplats`). One posing thread poses the newest (motion, frame, latent) asked
+- `subscribe_frames(on_frame)` (Gaussian-field avatars): called with each frame to show, in its wire form
+  (`viewer.splats.EncodedSplats`), from the posing thread or, for a frame found in the cache, from the thread that
+  changed the frame (the play clock, a setter). One posing thread poses the newest (motion, frame, latent) asked
   for: a frame asked for while another is being posed replaces the one waiting (dropped, never queued). Callbacks
   must not block.
 
@@ -14,14 +15,15 @@ Posing ahead (Gaussian-field avatars): every frame is made by one path, `frame_d
 Gaussians (`ViewerSession.splats`), encoded once (`splats.encode_splats`), kept in a bounded LRU `FrameCache` of
 encoded frames (`cache_frames` frames and `cache_bytes` bytes at most; emptied when the latent mode or the motion
 changes), so scrubbing back over recent frames, or a motion looping within the cache, costs no posing. While the
-motion plays, the posing thread, once the frame shown is done, poses the frames the play clock will reach next:
-the first of `ahead` consecutive frames not yet cached, from the first frame that a posing started now finishes
-before the clock gets there (the clock's frame + the frames it passes during one posing: the measured cost of a
-frame times the fps, at least 1; when posing is slower than the clock, the frames it would show late are skipped,
-and the thread stays busy on frames it can finish in time). A frame the clock reaches is shown from the cache at once, by the clock's thread (even while the posing
-thread poses another); a clock frame not in the cache is not posed (it would be shown late) while a look-ahead frame
-is due, and a look-ahead frame finished after the clock passed it is shown if nothing nearer was. A frame asked for explicitly (`set_frame`, `set_latent`, or any change while paused)
-is always posed before any look-ahead work (newest wins; a look-ahead frame already being posed is finished first).
+motion plays, the posing thread, once the frame asked for is done, poses the frames the play clock will reach next:
+the first not yet cached of `ahead` consecutive frames that start at the first frame a posing started now can
+finish before the clock gets there (the clock's frame + the frames it passes during one posing: the measured cost
+of a frame times the fps, plus 10 %, at least 1). When posing is slower than the clock, the frames it would show
+late are skipped and the thread stays busy on frames it finishes in time. A frame the clock reaches is shown from
+the cache at once (even while the posing thread poses another); a clock frame not in the cache is not posed (it
+would be shown late) while a look-ahead frame is due; a look-ahead frame finished after the clock passed it is
+shown if nothing nearer was. A frame asked for explicitly (`set_frame`, `set_latent`, any change while paused) is
+posed before any look-ahead work (newest wins; a look-ahead frame already being posed is finished first).
 
 Play keeps wall-clock time at the motion's frame rate: when posing or drawing is slower, frames are skipped, never
 slowed. "save video" starts the `VideoFn` the stage gives (`avatarctl render` in a child process) and reports its

@@ -6,9 +6,9 @@ in the viewer process, a thin front-end over `viewer.controller.ViewerController
   binary (`splats.encode_splats`, 22 bytes a Gaussian), the PNG of a server render when asked; the page's controls
   come back as JSON commands (`splat_page` lists them).
 
-Flow: the controller's posing thread encodes each posed frame once (`ViewerController.frame_data`, cached there and
-posed ahead while playing); the server packs it with a sequence number per frame shown; every tab has one sender thread holding only
-the newest state, the newest frame and the newest image. A frame is sent when the tab has drawn the previous one
+Flow: the controller encodes each posed frame once (`ViewerController.frame_data`, cached there and posed ahead
+while playing); the server packs it with a sequence number per frame shown; every tab has one sender thread holding
+only the newest state, the newest frame and the newest image. A frame is sent when the tab has drawn the previous one
 (its "drawn" answer, or after `ACK_TIMEOUT_S`): a slow tab skips frames, it never gets a queue of them.
 """
 

@@ -92,7 +92,7 @@ def encode_splats(frame: SplatFrame) -> tuple[dict, bytes]:
 
 @dataclass(frozen=True)
 class EncodedSplats:
-    """A frame in its wire form (`encode_splats`), what the viewer caches and sends: the header's fields, the payload."""
+    """A frame in its wire form (`encode_splats`: the header's fields, the payload), what the viewer caches, sends."""
 
     header: dict
     payload: bytes
@@ -106,7 +106,7 @@ class EncodedSplats:
         return len(self.payload)
 
     @classmethod
-    def of(cls, frame: SplatFrame) -> "EncodedSplats":
+    def of(cls, frame: SplatFrame) -> EncodedSplats:
         return cls(*encode_splats(frame))
 
 
