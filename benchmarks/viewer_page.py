@@ -30,9 +30,10 @@ and off, alternating; with it on, also the Gaussians drawn during the drag and a
 Gaussians are drawn again, and the PSNR of the preview against the image at rest (screenshots `viewer_moving.png`,
 `viewer_rest.png` with `--shots`).
 
-`--pose-delay-ms D` emulates a slow server (the posing of a loaded machine): every call of the session's
-`splats` (a frame's posed Gaussians, what the viewer poses, cached or not) waits D ms more, through a wrapper this
-benchmark puts on its session object (the viewer itself has no such option).
+`--pose-delay-ms D` emulates a slow server (the posing of a loaded machine): every uncached posing (the model's
+`posed_gaussians`, what `ViewerSession.splats` calls when a frame is not in its cache) waits D ms more, through a
+wrapper this benchmark puts on its model object (the viewer itself has no such option). The caches work as without
+it: a frame posed once costs no posing again while cached.
 
 Needs websockets (the `view` extra) and Chromium (`apt-get install -y chromium`). Run it with `nice -n 19` on a shared machine.
 """
@@ -403,12 +404,12 @@ def measure_player(browser: Any, page: Path, seconds: float = 5.0, changes: int 
     return PlayerFigures(budget=budget, load_average=load, orbit=orbit_figures, frame_change_ms=latencies)
 
 
-def slowed(splats: Any, delay_s: float) -> Any:
-    """`splats(frame, latent)` that waits `delay_s` first (`--pose-delay-ms`)."""
+def slowed(pose: Any, delay_s: float) -> Any:
+    """`pose(...)` that waits `delay_s` first (`--pose-delay-ms`)."""
 
-    def slow(frame: int, latent: str) -> Any:
+    def slow(*args: Any, **kwargs: Any) -> Any:
         time.sleep(delay_s)
-        return splats(frame, latent)
+        return pose(*args, **kwargs)
 
     return slow
 
@@ -422,7 +423,8 @@ def start_viewer(project: Path, device: str = "cpu", port: int = 0, pose_delay_m
 
     setup = prepare(project, ViewConfig(device=device))
     if pose_delay_ms > 0:
-        setup.session.splats = slowed(setup.session.splats, pose_delay_ms / 1000.0)
+        model = setup.session.model
+        model.posed_gaussians = slowed(model.posed_gaussians, pose_delay_ms / 1000.0)
     controller = ViewerController(setup.session, motions=(PROJECT,))
     try:
         return SplatPageServer(controller, setup.initial, port=port)
@@ -450,7 +452,7 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--budget", choices=("on", "off"), nargs="+", default=["on"],
                     help="the pages' splat budget while moving ('on off': alternating within each round)")
     ap.add_argument("--pose-delay-ms", type=float, default=0.0,
-                    help="every posing of a frame on the server waits this much more (a slow server; docstring)")
+                    help="every uncached posing on the server waits this much more (a slow server; docstring)")
     args = ap.parse_args(argv)
     server = start_viewer(args.project, args.device, free_port(), args.pose_delay_ms)
     figures: dict[str, list[dict]] = {"viewer": [], "player": []}
