@@ -23,12 +23,17 @@ the viewer's page `--repeats` times (paired figures on a shared machine): orbit 
 wall time from moving the page's slider to the first changed canvas.
 
     python -m benchmarks.viewer_page PROJECT [--seconds 5] [--size 640 480] [--out figures.json] [--shots DIR]
-                                     [--player player.html] [--repeats 2] [--budget on off]
+                                     [--player player.html] [--repeats 2] [--budget on off] [--pose-delay-ms 80]
 
 `--budget on off` measures with the pages' splat budget while moving ("fast preview while moving", `splat.webgl`) on
 and off, alternating; with it on, also the Gaussians drawn during the drag and at rest, the frame change until all
 Gaussians are drawn again, and the PSNR of the preview against the image at rest (screenshots `viewer_moving.png`,
 `viewer_rest.png` with `--shots`).
+
+`--pose-delay-ms D` emulates a slow server (the posing of a loaded machine): every uncached posing (the model's
+`posed_gaussians`, what `ViewerSession.splats` calls when a frame is not in its cache) waits D ms more, through a
+wrapper this benchmark puts on its model object (the viewer itself has no such option). The caches work as without
+it: a frame posed once costs no posing again while cached.
 
 Needs websockets (the `view` extra) and Chromium (`apt-get install -y chromium`). Run it with `nice -n 19` on a shared machine.
 """
@@ -399,13 +404,27 @@ def measure_player(browser: Any, page: Path, seconds: float = 5.0, changes: int 
     return PlayerFigures(budget=budget, load_average=load, orbit=orbit_figures, frame_change_ms=latencies)
 
 
-def start_viewer(project: Path, device: str = "cpu", port: int = 0) -> Any:
-    """The page `avatarctl view` serves for a Gaussian-field avatar, started in this process (`stop()` it)."""
+def slowed(pose: Any, delay_s: float) -> Any:
+    """`pose(...)` that waits `delay_s` first (`--pose-delay-ms`)."""
+
+    def slow(*args: Any, **kwargs: Any) -> Any:
+        time.sleep(delay_s)
+        return pose(*args, **kwargs)
+
+    return slow
+
+
+def start_viewer(project: Path, device: str = "cpu", port: int = 0, pose_delay_ms: float = 0.0) -> Any:
+    """The page `avatarctl view` serves for a Gaussian-field avatar, started in this process (`stop()` it);
+    `pose_delay_ms`: module docstring."""
     from avatarctl.stages.view import PROJECT, ViewConfig, prepare
     from avatarctl.viewer.controller import ViewerController
     from avatarctl.viewer.splat_server import SplatPageServer
 
     setup = prepare(project, ViewConfig(device=device))
+    if pose_delay_ms > 0:
+        model = setup.session.model
+        model.posed_gaussians = slowed(model.posed_gaussians, pose_delay_ms / 1000.0)
     controller = ViewerController(setup.session, motions=(PROJECT,))
     try:
         return SplatPageServer(controller, setup.initial, port=port)
@@ -432,8 +451,10 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--repeats", type=int, default=1, help="rounds of measurements (alternating with --player)")
     ap.add_argument("--budget", choices=("on", "off"), nargs="+", default=["on"],
                     help="the pages' splat budget while moving ('on off': alternating within each round)")
+    ap.add_argument("--pose-delay-ms", type=float, default=0.0,
+                    help="every uncached posing on the server waits this much more (a slow server; docstring)")
     args = ap.parse_args(argv)
-    server = start_viewer(args.project, args.device, free_port())
+    server = start_viewer(args.project, args.device, free_port(), args.pose_delay_ms)
     figures: dict[str, list[dict]] = {"viewer": [], "player": []}
     rounds = [(r, b == "on") for r in range(max(args.repeats, 1)) for b in args.budget]
     try:

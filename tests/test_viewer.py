@@ -326,6 +326,176 @@ def test_the_controller_plays_switches_and_poses_the_newest_frame(toy_gaussian_p
         c.stop()
 
 
+class _FakePosing:
+    """A stand-in `ViewerSession` for the controller's posing thread: `splats` records each call and takes `delay`
+    seconds; a frame in `gate` waits until `release()`. Four Gaussians a frame, their x the frame number."""
+
+    gaussian = True
+
+    def __init__(self, n: int = 40, fps: float = 0.5, delay: float = 0.0):
+        from avatarctl.viewer.session import ViewerFrame, ViewerMotion
+
+        self.motion = ViewerMotion("project", [ViewerFrame(f"frame {i}", i, "train") for i in range(n)],
+                                   lambda i, latent: None, fps)
+        self.load_motion = lambda name: ViewerMotion(name, [ViewerFrame(f"m {i}", i, "motion") for i in range(n)],
+                                                     lambda i, latent: None, fps)
+        self.delay, self.calls, self.gate, self._open = delay, [], set(), threading.Event()
+
+    @property
+    def frames(self):
+        return self.motion.frames
+
+    def set_motion(self, name):
+        self.motion = self.load_motion(name)
+        return self.motion
+
+    def release(self):
+        self._open.set()
+
+    def splats(self, frame, latent):
+        from avatarctl.viewer.splats import SplatFrame
+
+        self.calls.append((frame, latent))
+        if frame in self.gate:
+            assert self._open.wait(10), "the test never released the gate"
+        time.sleep(self.delay)
+        g = 4
+        return SplatFrame(centers=np.full((g, 3), float(frame), np.float32),
+                          covariances=np.tile(np.eye(3, dtype=np.float32) * 1e-4, (g, 1, 1)),
+                          rgbs=np.full((g, 3), 0.5, np.float32), opacities=np.ones((g, 1), np.float32))
+
+
+def _wait(cond, timeout=10.0):
+    deadline = time.monotonic() + timeout
+    while not cond() and time.monotonic() < deadline:
+        time.sleep(0.005)
+    return cond()
+
+
+def test_the_posing_thread_poses_ahead_while_playing_and_serves_the_clock_from_the_cache():
+    """Playing, the frames the clock reaches next are posed and encoded before it gets there: the clock's next frame
+    is shown from the cache, without a new posing call; paused, nothing is posed ahead; scrubbing back is a cache
+    hit."""
+    from avatarctl.viewer.controller import FrameKey, ViewerController
+    from avatarctl.viewer.splats import decode_splats
+
+    session = _FakePosing(fps=0.5)  # the clock would move every 2 s: the test moves it itself (`_update`)
+    session.gate = {3}  # the third frame ahead hangs until released
+    c = ViewerController(session, ahead=3)
+    shown = []
+    c.subscribe_frames(lambda key, data: shown.append((key, data)))
+    try:
+        assert _wait(lambda: shown) and shown[0][0] == FrameKey(0, 0, "auto")
+        time.sleep(0.1)
+        assert session.calls == [(0, "auto")], "paused: nothing posed ahead"
+        c.set_playing(True)
+        assert _wait(lambda: len(session.calls) == 4)
+        assert [f for f, _ in session.calls] == [0, 1, 2, 3], "the clock's next 3 frames, in order"
+        assert c.ahead_keys() == [FrameKey(0, f, "auto") for f in (1, 2, 3)]
+        c._update(frame=1)  # the play clock reaches frame 1 while frame 3 is being posed
+        assert len(shown) == 2 and shown[1][0] == FrameKey(0, 1, "auto"), "shown at once, from the cache"
+        assert decode_splats(shown[1][1].header, shown[1][1].payload).centers[0, 0] == pytest.approx(1.0, abs=1e-3)
+        session.release()
+        assert _wait(lambda: len(session.calls) == 5)
+        assert session.calls[-1] == (4, "auto"), "one more frame ahead; frame 1 itself was not posed again"
+        c.set_playing(False)
+        c.set_frame(0)  # scrubbing back over recent frames
+        assert _wait(lambda: shown[-1][0].frame == 0)
+        c.set_frame(2)
+        assert _wait(lambda: shown[-1][0].frame == 2)
+        time.sleep(0.05)
+        assert len(session.calls) == 5, "recent frames come from the cache"
+    finally:
+        c.stop()
+
+
+def test_the_look_ahead_stride_follows_the_cost_of_posing():
+    """Posing slower than the clock: the look-ahead skips the frames the clock would pass while posing."""
+    from avatarctl.viewer.controller import ViewerController
+
+    c = ViewerController(_FakePosing(fps=20.0), ahead=3)
+    try:
+        c.pose_seconds = 0.12  # 2.4 frames of the clock a posing (2.64 with the margin)
+        c._update(playing=True, frame=10)
+        assert [k.frame for k in c.ahead_keys()] == [13, 14, 15]
+        c.pose_seconds = 0.01
+        assert [k.frame for k in c.ahead_keys(c.state)] == [11, 12, 13]
+        c._update(frame=38)
+        assert [k.frame for k in c.ahead_keys()] == [39, 0, 1], "the motion loops"
+    finally:
+        c.stop()
+
+
+def test_a_frame_asked_for_is_posed_before_pending_look_ahead():
+    """Newest wins: while a look-ahead frame is being posed, a frame set on the slider is posed next, before the
+    look-ahead frames still pending."""
+    from avatarctl.viewer.controller import ViewerController
+
+    session = _FakePosing(fps=0.5)
+    session.gate = {1}  # the first look-ahead frame hangs until released
+    c = ViewerController(session, ahead=3)
+    shown = []
+    c.subscribe_frames(lambda key, data: shown.append(key.frame))
+    try:
+        assert _wait(lambda: shown == [0])
+        c.set_playing(True)
+        assert _wait(lambda: session.calls[-1:] == [(1, "auto")])
+        c.set_frame(20)  # asked for while frame 1 is being posed ahead
+        session.release()
+        assert _wait(lambda: 20 in shown and len(session.calls) >= 3)
+        assert [f for f, _ in session.calls[:3]] == [0, 1, 20], "the slider's frame before any pending look-ahead"
+        assert _wait(lambda: len(session.calls) == 6)
+        assert [f for f, _ in session.calls[3:]] == [21, 22, 23], "then ahead of the frame asked for"
+        assert shown == [0, 20], "the look-ahead frame finished behind the new frame is not shown"
+    finally:
+        c.stop()
+
+
+def test_the_frame_cache_is_bounded_and_emptied_when_the_posed_gaussians_change(tmp_path):
+    """The LRU of encoded frames keeps at most its frames and bytes; a new latent mode, motion or motion file
+    empties it (and a frame posed before that is not stored)."""
+    from avatarctl.viewer.controller import FrameCache, FrameKey, ViewerController
+    from avatarctl.viewer.splats import EncodedSplats
+
+    data = EncodedSplats({"count": 1}, b"x" * 100)
+    cache = FrameCache(max_frames=3, max_bytes=250)
+    for f in range(3):
+        cache.put(FrameKey(0, f, "auto"), data)
+    assert [k.frame for k in cache.keys()] == [1, 2] and cache.nbytes == 200, "250 bytes hold two frames"
+    cache.max_bytes = 10_000
+    cache.get(FrameKey(0, 1, "auto"))
+    for f in (3, 4):
+        cache.put(FrameKey(0, f, "auto"), data)
+    assert [k.frame for k in cache.keys()] == [1, 3, 4], "three frames at most, the least recently used dropped"
+    epoch = cache.epoch
+    cache.clear()
+    cache.put(FrameKey(0, 5, "auto"), data, epoch)
+    assert len(cache) == 0 and cache.nbytes == 0, "a frame posed before the clear is not stored"
+
+    session = _FakePosing(fps=0.5)
+    c = ViewerController(session, ahead=3, cache_frames=4)
+    c.subscribe_frames(lambda key, data: None)
+    try:
+        c.set_playing(True)
+        assert _wait(lambda: len(session.calls) == 4)
+        for f in range(1, 12):  # the clock moves on: the look-ahead keeps posing, the cache keeps 4
+            c._update(frame=f)
+            assert _wait(lambda f=f: len(session.calls) == 4 + f)
+            assert len(c.cache) <= 4
+        assert len(c.cache) == 4
+        c.set_latent("zero")
+        assert all(k.latent == "zero" for k in c.cache.keys())
+        assert _wait(lambda: session.calls[-1][1] == "zero")
+        c.switch_motion("walk.npz", add=True)
+        assert c.state.generation == 1
+        assert all(k.generation == 1 for k in c.cache.keys())
+        c.set_frame(3)
+        assert _wait(lambda: FrameKey(1, 3, "zero") in c.cache)
+        assert session.calls[-1] == (3, "zero"), "the new motion's frame is posed anew"
+    finally:
+        c.stop()
+
+
 def _camera_of(initial):
     """(wxyz, position, fov_y) of a camera at `initial` looking at its subject."""
     R, _ = look_at(np.asarray(initial.position, float), np.asarray(initial.look_at, float),

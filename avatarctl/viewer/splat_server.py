@@ -6,8 +6,9 @@ in the viewer process, a thin front-end over `viewer.controller.ViewerController
   binary (`splats.encode_splats`, 22 bytes a Gaussian), the PNG of a server render when asked; the page's controls
   come back as JSON commands (`splat_page` lists them).
 
-Flow: the controller's posing thread encodes each posed frame once; every tab has one sender thread holding only
-the newest state, the newest frame and the newest image. A frame is sent when the tab has drawn the previous one
+Flow: the controller encodes each posed frame once (`ViewerController.frame_data`, cached there and posed ahead
+while playing); the server packs it with a sequence number per frame shown; every tab has one sender thread holding
+only the newest state, the newest frame and the newest image. A frame is sent when the tab has drawn the previous one
 (its "drawn" answer, or after `ACK_TIMEOUT_S`): a slow tab skips frames, it never gets a queue of them.
 """
 
@@ -27,10 +28,9 @@ from avatarctl.viewer.controller import FrameKey, ViewerController, ViewState
 from avatarctl.viewer.server import InitialView, page_url
 from avatarctl.viewer.session import matrix_to_quaternion_wxyz
 from avatarctl.viewer.splat_page import page_html
-from avatarctl.viewer.splats import encode_splats
 
 if TYPE_CHECKING:
-    from avatarctl.viewer.splats import SplatFrame
+    from avatarctl.viewer.splats import EncodedSplats
 
 ACK_TIMEOUT_S = 2.0  # a tab that has not said "drawn" by then gets the next frame anyway
 
@@ -234,21 +234,21 @@ class SplatPageServer:
         for tab in tabs:
             tab.offer(state=text)
 
-    def _encode(self, key: FrameKey, splats: "SplatFrame") -> tuple[int, bytes]:
+    def _message(self, key: FrameKey, data: "EncodedSplats") -> tuple[int, bytes]:
+        """(seq, the binary message) of a frame to show; a new seq unless it is the newest message's frame."""
         with self._lock:
             if self._last is not None and self._last[0] == key:
                 return self._last[1], self._last[2]
             self._seq += 1
             seq = self._seq
-        header, payload = encode_splats(splats)
         message = pack({"kind": "splats", "seq": seq, "generation": key.generation, "frame": key.frame,
-                        "latent": key.latent, **header}, payload)
+                        "latent": key.latent, **data.header}, data.payload)
         with self._lock:
             self._last = (key, seq, message)
         return seq, message
 
-    def _on_frame(self, key: FrameKey, splats: "SplatFrame") -> None:
-        frame = self._encode(key, splats)
+    def _on_frame(self, key: FrameKey, data: "EncodedSplats") -> None:
+        frame = self._message(key, data)
         with self._lock:
             tabs = list(self._tabs.values())
         for tab in tabs:
@@ -256,8 +256,8 @@ class SplatPageServer:
 
     def _current(self) -> tuple[int, bytes]:
         """The frame shown now, for a new tab (posed now if the posing thread has not yet)."""
-        key, splats = self.controller.latest_frame()
-        return self._encode(key, splats)
+        key, data = self.controller.latest_frame()
+        return self._message(key, data)
 
     def stop(self) -> None:
         for unsubscribe in self._unsubscribe:

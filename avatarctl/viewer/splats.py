@@ -90,6 +90,26 @@ def encode_splats(frame: SplatFrame) -> tuple[dict, bytes]:
     return header, q.tobytes() + cov.tobytes() + rgba.tobytes()
 
 
+@dataclass(frozen=True)
+class EncodedSplats:
+    """A frame in its wire form (`encode_splats`: the header's fields, the payload), what the viewer caches, sends."""
+
+    header: dict
+    payload: bytes
+
+    @property
+    def count(self) -> int:
+        return int(self.header["count"])
+
+    @property
+    def nbytes(self) -> int:
+        return len(self.payload)
+
+    @classmethod
+    def of(cls, frame: SplatFrame) -> EncodedSplats:
+        return cls(*encode_splats(frame))
+
+
 def decode_splats(header: dict, payload: bytes) -> SplatFrame:
     """The inverse of `encode_splats` (what the page computes; for tests and the accuracy figures)."""
     g = int(header["count"])
