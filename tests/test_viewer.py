@@ -216,7 +216,8 @@ def test_cli_prints_the_url_and_stops_cleanly_on_ctrl_c(fixture, request):
 
 
 def test_a_gaussian_avatar_gives_the_page_its_splats(toy_gaussian_project, tmp_path):
-    """Field "gaussians": the session hands out each frame's posed Gaussians (cached), switches motions, and its
+    """Field "gaussians": the session hands out each frame's posed Gaussians (cached, encoded, by the controller),
+    switches motions, and its
     server render is the rasterizer's exact image."""
     from fixtures.toy_capture import toy_motion
 
@@ -231,7 +232,14 @@ def test_a_gaussian_avatar_gives_the_page_its_splats(toy_gaussian_project, tmp_p
     assert a.rgbs.shape == (a.count, 3) and a.opacities.shape == (a.count, 1)
     assert np.all(np.linalg.eigvalsh(a.covariances.astype(np.float64)) > 0), "covariances positive definite"
     assert 0 <= a.rgbs.min() and a.rgbs.max() <= 1 and a.opacities.min() >= 1 / 255
-    assert s.splats(0, "auto") is a, "cached per (frame, latent)"
+    from avatarctl.viewer.controller import FrameKey, ViewerController
+
+    controller = ViewerController(s)  # the one cache of posed frames: the controller's, of encoded frames
+    try:
+        key = FrameKey(controller.state.generation, 0, "auto")
+        assert controller.frame_data(key) is controller.frame_data(key), "cached per (frame, latent)"
+    finally:
+        controller.stop()
     assert not np.allclose(a.centers, b.centers), "another frame, another pose"
     req = request_looking_at(setup.initial.position, setup.initial.look_at, setup.initial.up, resolution=48)
     img = s.render(req)

@@ -102,7 +102,7 @@ class FrameCache:
     payload; the newest is kept even alone over `max_bytes`). Thread-safe. `clear()` starts a new epoch: a frame
     posed before it (`put` with the older `epoch`) is not stored."""
 
-    def __init__(self, max_frames: int = 32, max_bytes: int = 192 * 2 ** 20):
+    def __init__(self, max_frames: int = 512, max_bytes: int = 384 * 2 ** 20):
         if max_frames < 1:
             raise ValueError(f"a frame cache holds at least one frame, not {max_frames}")
         self.max_frames, self.max_bytes = int(max_frames), int(max_bytes)
@@ -156,7 +156,7 @@ class ViewerController:
 
     def __init__(self, session: "ViewerSession", fps: float | None = None, latent: str = "auto",
                  resolution: int = 512, motions: tuple[str, ...] = (), video: VideoFn | None = None,
-                 ahead: int = 3, cache_frames: int = 32, cache_bytes: int = 192 * 2 ** 20):
+                 ahead: int = 3, cache_frames: int = 512, cache_bytes: int = 384 * 2 ** 20):
         if latent not in LATENTS:
             raise ValueError(f"latent {latent!r} not one of {LATENTS}")
         self.ahead = max(int(ahead), 0)  # frames posed ahead of the play clock (module docstring)

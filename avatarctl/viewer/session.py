@@ -1,15 +1,16 @@
-"""What the interactive viewer shows of one fitted avatar, per (frame, latent), cached:
+"""What the interactive viewer shows of one fitted avatar, per (frame, latent):
 
 - `render(request)`: the exact image (`render.engine.render_view`, the renderer of `render` and `eval`: ray-marched
   for the SLRF fields, rasterized for the Gaussian local fields), at the request's camera and resolution;
 - `splats(frame, latent)` (Gaussian local fields only): the frame's posed Gaussians as arrays a browser splat
   renderer draws and orbits by itself (`viewer.splats.SplatFrame`; node transforms, Delta n and the per-node
-  decoder: milliseconds on the CPU);
+  decoder: milliseconds on the CPU), posed on each call (the controller caches the encoded frames:
+  `viewer.controller.FrameCache`);
 - `mesh(frame, latent)`: a posed mesh from the `MeshFn` callback the stage gives (for the ray-marched fields: drawn by
   the page while the progressive render refines), or None without one.
 
 A session plays one `ViewerMotion` at a time (the project's frames, or a motion file's); `set_motion` switches to
-another one (loaded by the stage's `MotionLoader`) and empties the caches.
+another one (loaded by the stage's `MotionLoader`) and empties the node-state cache.
 
 Camera convention: the viewer's camera follows OpenCV axes (x right, y down, z forward, as viser does); `wxyz` is
 the camera-to-world rotation and `position` the camera centre, so the world->camera `Camera` has R = R_wc^T and
@@ -114,7 +115,7 @@ class ViewerSession:
 
     def __init__(self, model: "SlrfAvatar", motion: ViewerMotion, background: tuple[float, float, float],
                  max_rays_per_chunk: int = 4096, cache: int = 8, load_motion: MotionLoader | None = None,
-                 mesh_fn: MeshFn | None = None, splat_cache: int = 512):
+                 mesh_fn: MeshFn | None = None):
         if not motion.frames:
             raise ValueError("the viewer needs at least one frame")
         self.model, self.motion = model, motion
@@ -123,8 +124,7 @@ class ViewerSession:
         self.load_motion, self.mesh_fn = load_motion, mesh_fn
         self.lock = threading.RLock()
         self._states: OrderedDict[tuple[int, str], "NodeState"] = OrderedDict()
-        self._splats: OrderedDict[tuple[int, str], "SplatFrame"] = OrderedDict()
-        self._cache, self._splat_cache = int(cache), int(splat_cache)
+        self._cache = int(cache)
         self.last_seconds = 0.0
 
     @property
@@ -137,7 +137,7 @@ class ViewerSession:
         return not self.model.cfg.ray_marched
 
     def set_motion(self, name: str) -> ViewerMotion:
-        """Play another motion (the stage's loader; its errors pass through); empties the caches."""
+        """Play another motion (the stage's loader; its errors pass through); empties the node-state cache."""
         if self.load_motion is None:
             raise ValueError("this viewer has no motion loader")
         motion = self.load_motion(name)
@@ -146,7 +146,6 @@ class ViewerSession:
         with self.lock:
             self.motion = motion
             self._states.clear()
-            self._splats.clear()
         return motion
 
     def _check(self, frame: int) -> None:
@@ -164,7 +163,7 @@ class ViewerSession:
             return self._states[key]
 
     def splats(self, frame: int, latent: str) -> "SplatFrame":
-        """The posed Gaussians of a frame for a browser splat renderer (Gaussian local fields only)."""
+        """The posed Gaussians of a frame for a browser splat renderer (Gaussian local fields only), posed now."""
         import torch
 
         from avatarctl.viewer.splats import splat_frame
@@ -172,15 +171,8 @@ class ViewerSession:
         if not self.gaussian:
             raise ValueError("splats need a Gaussian-field avatar (model.field = 'gaussians')")
         self._check(frame)
-        key = (int(frame), latent)
-        with self.lock:
-            if key not in self._splats:
-                with torch.no_grad():
-                    self._splats[key] = splat_frame(self.model.posed_gaussians(self.state(frame, latent)), 0)
-                while len(self._splats) > self._splat_cache:
-                    self._splats.popitem(last=False)
-            self._splats.move_to_end(key)
-            return self._splats[key]
+        with self.lock, torch.no_grad():
+            return splat_frame(self.model.posed_gaussians(self.state(frame, latent)), 0)
 
     def mesh(self, frame: int, latent: str) -> Any:
         """The mesh of `mesh_fn` for a frame, or None without one (not cached: the page keeps what it was sent)."""
