@@ -1,17 +1,17 @@
 """Do an avatar's nodes follow its loose garment? Measured against the capture's ground-truth garment (synth captures,
-`CAPTURE/gt/geometry.npz`), over the project's training frames. Two parts (issue 28, docs/fit.md "What holds the
-skirt back"):
+`CAPTURE/gt/geometry.npz`), over the project's training frames. Four parts (issue 28, docs/fit.md "Why the skirt
+stays a blur"):
 
 1. **What node motion could explain** (no model needed): each garment vertex is taken to the canonical space with a
    fixed skinning (the weights of the template vertex nearest to it, as a hull node gets; or the root joint only), the
    vertices are grouped into P patches (farthest point sampling on the first frame's canonical garment), and per frame
    each patch is given its best translation (what a node's Delta n can do, Eq. 3) or its best rigid motion
-   (Kabsch, onto the patch's Procrustes mean shape). The residual, centimetres (mean and 90th percentile of the per-vertex distances), is what the Gaussians'
-   own per-frame offsets would still have to carry.
+   (Kabsch, onto the patch's Procrustes mean shape). The residual, centimetres (mean and 90th percentile of the
+   per-vertex distances), is what the Gaussians' own per-frame offsets would still have to carry.
 2. **What the fitted nodes do**: for every node within 3 cm of the garment at the first training frame (posed with
-   its learned Delta n), the garment vertex nearest to it there; over the training frames, the spread (distance from its mean) of that vertex's offset
-   in the node's frame (A_i^-1 (x - n_i)), with the learned Delta n (latent mean) and with Delta n = 0 (the skeleton
-   alone). A node that follows the cloth has a small spread.
+   its learned Delta n), the garment vertex nearest to it there; over the training frames, the spread (distance
+   from its mean) of that vertex's offset in the node's frame (A_i^-1 (x - n_i)), with the learned Delta n (latent
+   mean) and with Delta n = 0 (the skeleton alone). A node that follows the cloth has a small spread.
 3. **Would optical flow tell where the cloth moves?** (`--flow`, no model needed): OpenCV's Farnebäck optical flow
    (pyramid of 4 levels at scale 0.5, window 15, 5 iterations; better here than DIS at any preset: median error 0.55
    px against DIS medium 0.69, fast 1.27, ultrafast 1.30, all with a p90 of 6.6-6.9 px) between
@@ -88,7 +88,8 @@ class TrackingReport:
 
 
 def _canonical(points: torch.Tensor, weights: torch.Tensor, joints: torch.Tensor) -> torch.Tensor:
-    """points [F, P, 3] world, weights [P, J], joints [F, J, 4, 4] -> [F, P, 3] through the inverse blended transform."""
+    """points [F, P, 3] world, weights [P, J], joints [F, J, 4, 4] -> [F, P, 3] through the inverse blended
+    transform."""
     T = torch.einsum("pj,fjab->fpab", weights, joints)
     h = torch.cat([points, torch.ones_like(points[..., :1])], -1)
     return (torch.linalg.inv(T) @ h[..., None])[..., :3, 0]
@@ -126,7 +127,8 @@ def patch_residuals(canon: torch.Tensor, patch: torch.Tensor, patches: int, roun
 
 
 def nodes_on_garment(centers: torch.Tensor, garment: torch.Tensor, near: float = 0.03) -> torch.Tensor:
-    """[M] indices of the nodes (centers [F, N, 3]) within `near` metres of the garment (garment [F, P, 3]) at frame 0."""
+    """[M] indices of the nodes (centers [F, N, 3]) within `near` metres of the garment (garment [F, P, 3]) at
+    frame 0."""
     from scipy.spatial import cKDTree
 
     dist, _ = cKDTree(garment[0].numpy()).query(centers[0].numpy())
@@ -195,38 +197,29 @@ def gaussian_motion(av, gt, frames: list[int], views: list[str], every: int = 5,
     """Part 4 of the module docstring for a loaded Gaussian-field avatar `av`."""
     from scipy.spatial import cKDTree
 
-    from avatarctl.splat import SplatCamera
+    from avatarctl.geometry.triangulate import project, projection_matrices
 
     m = av.model
     have = set(frames)
-    cams = [SplatCamera.from_camera(av.capture.cameras[v]) for v in views]
+    P = projection_matrices([av.capture.cameras[v] for v in views])
     errors, motions, count = [], [], 0
     for t in [f for f in frames if f + 1 in have][::every]:
         cond = av.conditioning(av.capture.motion.select([t, t + 1]), frames_are_training=True)
         with torch.no_grad():
             posed = m.posed_gaussians(m.node_state(cond, mode="mean"))
-        ga = torch.as_tensor(gt.garment_vertices[gt.row(t)], dtype=torch.float32)
-        gb = torch.as_tensor(gt.garment_vertices[gt.row(t + 1)], dtype=torch.float32)
-        dist, vert = cKDTree(ga.numpy()).query(posed.means[0].numpy())
-        sel = torch.as_tensor(dist < near) & (posed.opacities[0] >= min_opacity)
-        vert = torch.as_tensor(vert)[sel]
+        means = posed.means.double().numpy()
+        ga, gb = (gt.garment_vertices[gt.row(f)].astype(np.float64) for f in (t, t + 1))
+        dist, vert = cKDTree(ga).query(means[0])
+        sel = (dist < near) & (posed.opacities[0] >= min_opacity).numpy()
         count += int(sel.sum())
-        for cam in cams:
-            proj = [_project(x, cam) for x in (posed.means[0][sel], posed.means[1][sel], ga[vert], gb[vert])]
-            true = proj[3] - proj[2]
-            errors.append(((proj[1] - proj[0]) - true).norm(dim=-1))
-            motions.append(true.norm(dim=-1))
-    e, mo = (torch.cat(x) if x else torch.zeros(0) for x in (errors, motions))
-    q = (lambda x, p: float(x.quantile(p)) if len(x) else float("nan"))
+        # [points, views, 2] pixels of the Gaussians at t, t + 1 and of their garment vertices at t, t + 1
+        p0, p1, q0, q1 = (project(P, x)[0] for x in (means[0][sel], means[1][sel], ga[vert[sel]], gb[vert[sel]]))
+        errors.append(np.linalg.norm((p1 - p0) - (q1 - q0), axis=-1).ravel())
+        motions.append(np.linalg.norm(q1 - q0, axis=-1).ravel())
+    e, mo = (np.concatenate(x) if x else np.zeros(0) for x in (errors, motions))
+    q = (lambda x, p: float(np.quantile(x, p)) if len(x) else float("nan"))
     return GaussianMotion(gaussians=count, motion_px=q(mo, 0.5), motion_p90_px=q(mo, 0.9), error_px=q(e, 0.5),
                           error_p90_px=q(e, 0.9))
-
-
-def _project(points: torch.Tensor, cam) -> torch.Tensor:
-    """points [P, 3] world -> [P, 2] pixels of the `SplatCamera` `cam`."""
-    x = points @ cam.R.T + cam.T
-    uvw = x @ cam.K.T
-    return uvw[:, :2] / uvw[:, 2:3].clamp(min=1e-6)
 
 
 def measure(project_dir: str | Path, patch_counts: tuple[int, ...] = (32, 64, 128), flow: bool = False

@@ -4,8 +4,9 @@ SuperSplat, viser, three.js splat loaders, nerfstudio).
 One `vertex` element, binary little-endian float32 properties
     x y z nx ny nz f_dc_0 f_dc_1 f_dc_2 f_rest_0 ... f_rest_44 opacity scale_0 scale_1 scale_2 rot_0 rot_1 rot_2 rot_3
 with opacity a logit, scales log metres, rotation a unit quaternion (w, x, y, z), colour = 0.5 + 0.28209479 f_dc, and
-`f_rest` channel-major (red's 15 coefficients, then green's, then blue's) for SH degree 3; our degree-1 bands fill the
-first 3 of each channel, the rest are 0. Normals are 0 (unused by splat viewers).
+`f_rest` channel-major (red's 15 coefficients, then green's, then blue's) for SH degree 3; with `sh_degree` 1 our
+degree-1 bands fill the first 3 of each channel, the rest are 0 (all 0 with the default degree 0: view-independent
+colour). Normals are 0 (unused by splat viewers).
 
 World frame: the capture's (metres), as the posed meshes' PLY. The model keeps its SH in each node's local frame (the
 view dependence turns with the body, model/gaussian_field.py); here the degree-1 band is turned into the world frame
