@@ -682,6 +682,20 @@ def test_gaussian_viewer_page_draws_a_splat_budget_while_moving(toy_gaussian_pro
         server.stop()
 
 
+def test_the_benchmarks_slow_server_waits_then_poses_through():
+    """`benchmarks.viewer_page --pose-delay-ms`: the wrapped posing waits the delay, then returns what the posing
+    returns, with its arguments."""
+    import time
+
+    from benchmarks.viewer_page import slowed
+
+    calls = []
+    slow = slowed(lambda *a, **k: calls.append((a, k)) or "posed", 0.05)
+    t0 = time.perf_counter()
+    assert slow(1, latent="auto") == "posed"
+    assert time.perf_counter() - t0 >= 0.05 and calls == [((1,), {"latent": "auto"})]
+
+
 @pytest.mark.browser
 def test_gaussian_viewer_page_measured_at_toy_scale(toy_gaussian_project, tmp_path):
     """benchmarks/viewer_page.py at toy scale: the drag turns the view, frame changes and playback show frames, a
