@@ -198,21 +198,24 @@ def part_render(device: str, quick: bool) -> dict:
     model, state, cam = _eval_avatar(device, quick)
     size, reps = cam.width, 3 if quick else 20
     sec = _timed(lambda: render_view(model, state, 0, cam, (0.0, 0.0, 0.0)), device, reps, 3)
-    # where the time goes: posing (decoder, covariances), colours + projection + binning, the raster kernel
-    from avatarctl.splat import SplatCamera, project_gaussians, rasterize
-    from avatarctl.splat.rasterizer import bin_gaussians
+    # where the time goes: posing (decoder, covariances), colours + projection + binning, the raster kernel; the
+    # fused projection (what render_view uses) beside the pure-torch pair it replaces
+    from avatarctl.splat import SplatCamera, project_and_reach, project_gaussians, rasterize
+    from avatarctl.splat.rasterizer import bin_gaussians, reach
 
     scam = SplatCamera.from_camera(cam, device=device)
     bg = torch.zeros(3, device=device)
     with torch.no_grad():
         posed = model.posed_gaussians(state)
-        proj = project_gaussians(posed.means[0], posed.covars[0], scam)
+        m, c, o = posed.means[0], posed.covars[0], posed.opacities[0]
+        proj = project_and_reach(m, c, o, scam)
         colors = posed.colors(0, scam.center)
         parts = {"pose_ms": _timed(lambda: model.posed_gaussians(state), device, reps),
-                 "project_ms": _timed(lambda: project_gaussians(posed.means[0], posed.covars[0], scam), device, reps),
-                 "bin_ms": _timed(lambda: bin_gaussians(proj, posed.opacities[0], size, size), device, reps),
-                 "raster_ms": _timed(lambda: rasterize(proj, colors, posed.opacities[0], size, size, bg), device,
-                                     reps)}
+                 "project_reach_fused_ms": _timed(lambda: project_and_reach(m, c, o, scam), device, reps),
+                 "project_torch_ms": _timed(lambda: project_gaussians(m, c, scam), device, reps),
+                 "reach_torch_ms": _timed(lambda: reach(proj, o, size, size), device, reps),
+                 "bin_ms": _timed(lambda: bin_gaussians(proj, o, size, size), device, reps),
+                 "raster_ms": _timed(lambda: rasterize(proj, colors, o, size, size, bg), device, reps)}
     return {"image_size": size, "gaussians": int(posed.means.shape[1]), "ms_per_render": 1e3 * sec,
             **{k: 1e3 * v for k, v in parts.items()}}
 

@@ -155,6 +155,15 @@ def load_average() -> float:
     return round(os.getloadavg()[0], 2)
 
 
+def reset_peak_rss() -> None:
+    """Start the peak-RSS count (VmHWM) afresh (Linux: `5` written to /proc/self/clear_refs), so that `peak_rss_mb`
+    is the viewer's own peak, not that of what ran before it in this process (a test suite); a no-op elsewhere."""
+    try:
+        Path("/proc/self/clear_refs").write_text("5")
+    except OSError:
+        pass
+
+
 def peak_rss_mb() -> float:
     for line in Path("/proc/self/status").read_text().splitlines():
         if line.startswith("VmHWM:"):
@@ -416,11 +425,12 @@ def slowed(pose: Any, delay_s: float) -> Any:
 
 def start_viewer(project: Path, device: str = "cpu", port: int = 0, pose_delay_ms: float = 0.0) -> Any:
     """The page `avatarctl view` serves for a Gaussian-field avatar, started in this process (`stop()` it);
-    `pose_delay_ms`: module docstring."""
+    `pose_delay_ms`: module docstring. The peak-RSS count starts here (`reset_peak_rss`)."""
     from avatarctl.stages.view import PROJECT, ViewConfig, prepare
     from avatarctl.viewer.controller import ViewerController
     from avatarctl.viewer.splat_server import SplatPageServer
 
+    reset_peak_rss()
     setup = prepare(project, ViewConfig(device=device))
     if pose_delay_ms > 0:
         model = setup.session.model

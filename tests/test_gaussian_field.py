@@ -160,10 +160,25 @@ def test_model_config_keeps_the_gaussian_options_in_their_own_config():
         resolve_fit_config("cpu", ablation="lbs-baseline", overrides=["model.field=gaussians"])
 
 
-def test_fit_render_eval_with_gaussian_fields_on_the_toy_body(tmp_path, monkeypatch):
-    """The chain on the rasterized field: fit (image crops, L1 + D-SSIM), resume bitwise, render, eval."""
+_TOY_SETS = ("model.field=gaussians", "model.gaussians.per_node=24", "model.gaussians.relocate_every=2",
+             "val_every=0", "log_every=2", "checkpoint_every=3")
+
+
+def _toy_project(tmp_path, monkeypatch, name: str = "proj"):
+    """(capture, project): the toy body's capture ingested (anny unavailable, as on a machine without it)."""
     from fixtures.toy_capture import make_toy_capture
 
+    from avatarctl.stages import ingest
+    from avatarctl.stages.ingest import IngestConfig
+
+    monkeypatch.setitem(sys.modules, "anny", None)
+    cap, proj = make_toy_capture(tmp_path / "cap"), tmp_path / name
+    ingest.run(proj, IngestConfig(capture=cap, project=proj))
+    return cap, proj
+
+
+def test_fit_render_eval_with_gaussian_fields_on_the_toy_body(tmp_path, monkeypatch):
+    """The chain on the rasterized field: fit (image crops, L1 + D-SSIM), resume bitwise, render, eval."""
     from avatarctl.fit.checkpoint import read_checkpoint
     from avatarctl.project import Project
     from avatarctl.stages import evaluate, fit, ingest, render
@@ -172,11 +187,8 @@ def test_fit_render_eval_with_gaussian_fields_on_the_toy_body(tmp_path, monkeypa
     from avatarctl.stages.ingest import IngestConfig
     from avatarctl.stages.render import RenderConfig
 
-    monkeypatch.setitem(sys.modules, "anny", None)
-    cap, proj = make_toy_capture(tmp_path / "cap"), tmp_path / "proj"
-    ingest.run(proj, IngestConfig(capture=cap, project=proj))
-    sets = ("model.field=gaussians", "model.gaussians.per_node=24", "model.gaussians.relocate_every=2",
-            "val_every=0", "log_every=2", "checkpoint_every=3")
+    cap, proj = _toy_project(tmp_path, monkeypatch)
+    sets = _TOY_SETS
     fr = fit.run(proj, FitRequest(preset="micro", iters=6, overrides=sets, device="cpu"), handle_sigint=False)
     assert fr.step == 6 and math.isfinite(fr.losses["total"]) and fr.val is not None and 0 < fr.val.psnr < 100
     straight = read_checkpoint(Project.open(proj).paths.latest_checkpoint)["model"]
@@ -197,6 +209,20 @@ def test_fit_render_eval_with_gaussian_fields_on_the_toy_body(tmp_path, monkeypa
 
     xr = export.run(proj, ExportConfig(frames="0", formats=("glb", "splat"), skinned=False, voxel=0.02, device="cpu"))
     assert xr.meshes and xr.meshes[0].faces > 100 and (xr.out_dir / "splats").is_dir()
+
+
+@pytest.mark.gpu
+def test_fit_eval_with_gaussian_fields_on_cuda(tmp_path, monkeypatch):
+    """The same chain on CUDA: fit (image crops, relocation, a checkpoint), then eval (render_view), on the GPU."""
+    from avatarctl.stages import evaluate, fit
+    from avatarctl.stages.evaluate import EvalConfig
+    from avatarctl.stages.fit import FitRequest
+
+    _, proj = _toy_project(tmp_path, monkeypatch)
+    fr = fit.run(proj, FitRequest(preset="micro", iters=4, overrides=_TOY_SETS, device="cuda"), handle_sigint=False)
+    assert fr.step == 4 and math.isfinite(fr.losses["total"])
+    er = evaluate.run(proj, EvalConfig(split="novel_view", device="cuda"))
+    assert er.metrics.images == 6 and 0 < er.psnr < 100
 
 
 def test_splat_ply_holds_the_posed_gaussians_in_the_world_frame(tmp_path):

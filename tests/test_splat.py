@@ -13,9 +13,10 @@ import pytest
 import torch
 
 from avatarctl.geometry.cameras import Camera, look_at
-from avatarctl.splat import (Projected, SplatCamera, project_gaussians, project_gaussians_batch, rasterize,
-                             render_gaussians, render_gaussians_batch)
+from avatarctl.splat import (Projected, SplatCamera, project_and_reach, project_gaussians, project_gaussians_batch,
+                             rasterize, render_gaussians, render_gaussians_batch)
 from avatarctl.splat._torch_impl import rasterize_torch
+from avatarctl.splat.rasterizer import reach
 
 WARP = ["warp_tile", "warp_pixel"]
 W, H = 37, 29  # not a multiple of the 16 px tile
@@ -151,16 +152,29 @@ def test_rgba_channels():
         assert float((g - r).abs().max() / r.abs().max()) < 1e-4
 
 
-def test_bucket_binning_matches_the_key_sort():
-    """The CPU's bucket sort (Warp) and CUDA's key sort (torch) give the same tile lists, depth ties included."""
+def _key_sort_against_buckets(device: str) -> None:
     from avatarctl.splat.rasterizer import _bin_buckets, _bin_keys, reach
 
     means, covars, colors, opacities = _scene(8, G=300)
     means[:20, 2] = means[20:40, 2]  # equal depths: ties go by splat index
     proj = project_gaussians(means, covars, _camera())
     boxes = reach(proj, opacities, W, H)
-    keys, buckets = _bin_keys(boxes, proj.depths, 3, 2), _bin_buckets(boxes, proj.depths, 3, 2)
+    keys = [t.cpu() for t in _bin_keys(boxes.to(device), proj.depths.to(device), 3, 2)]
+    buckets = _bin_buckets(boxes, proj.depths, 3, 2)
     assert keys[0].shape[0] > 300 and torch.equal(keys[0], buckets[0]) and torch.equal(keys[1], buckets[1].long())
+    none = _bin_keys(torch.tensor([[0, 0, -1, -1]], dtype=torch.int32, device=device), proj.depths[:1].to(device), 3, 2)
+    assert none[0].shape == (0,) and int(none[1].sum()) == 0
+
+
+def test_bucket_binning_matches_the_key_sort():
+    """The CPU's bucket sort (Warp) and CUDA's key sort (entries listed in Warp, one torch.sort) give the same tile
+    lists, depth ties included; a scene that touches no tile gives empty lists."""
+    _key_sort_against_buckets("cpu")
+
+
+@pytest.mark.gpu
+def test_cuda_key_sort_matches_the_buckets():
+    _key_sort_against_buckets("cuda")
 
 
 def test_twin_gradients_match_finite_differences():
@@ -296,6 +310,61 @@ def test_batched_rendering_matches_one_image_at_a_time(backend):
     splat kept inside its own image's window, even where it would reach into the next)."""
     img, grad = _batched_against_single(backend, "cpu")
     assert img < 1e-5 and grad < 1e-4
+
+
+def _hard_scene(seed: int):
+    """`_scene` plus the rows that take the culling branches: behind the near plane, a covariance of NaNs, a zero
+    covariance (only the low-pass left), opacities under ALPHA_MIN, Gaussians far outside the window."""
+    means, covars, colors, opacities = _scene(seed, G=80)
+    means[4, 2] = 0.005
+    covars[5] = float("nan")
+    covars[6] = 0.0
+    opacities[7:10] = torch.tensor([0.0, 1e-3, 1.0 / 255.0])
+    means[10:14, :2] = torch.tensor([[40.0, 0.0], [-40.0, 3.0], [0.0, 60.0], [3.0, -35.0]])
+    return means, covars, colors, opacities
+
+
+def _fused_against_pair(device: str) -> None:
+    for seed, cam in ((0, _camera()), (1, _camera(20, 45, f=25.0).crop(-3, 4, 20, 45)), (2, _camera(64, 48))):
+        means, covars, _, opacities = _hard_scene(seed)
+        pair = project_gaussians(means, covars, cam)
+        boxes = reach(pair, opacities, cam.width, cam.height)
+        dev_cam = cam.to(device)
+        fused = project_and_reach(means.to(device), covars.to(device), opacities.to(device), dev_cam)
+        for name in ("means2d", "conics", "depths"):  # the torch conic of the NaN covariance is NaN (culled): 0 here
+            want = torch.nan_to_num(getattr(pair, name), nan=0.0)
+            assert torch.allclose(getattr(fused, name).cpu(), want, atol=1e-5, rtol=1e-5), name
+        assert torch.equal(fused.radii.cpu(), pair.radii) and torch.equal(fused.reach.cpu(), boxes)
+        assert int((pair.radii == 0).sum()) >= 4 and int((boxes[:, 0] > boxes[:, 2]).sum()) >= 6  # culled rows seen
+
+
+def test_fused_projection_matches_the_torch_pair():
+    """`project_and_reach` (one Warp kernel, rendering without gradients) = `project_gaussians` + `reach`, the
+    culling branches included."""
+    _fused_against_pair("cpu")
+
+
+def test_rendering_without_gradients_uses_the_fused_projection(monkeypatch):
+    """`render_gaussians` under no_grad projects with the fused kernel and gives the image of the torch projection;
+    with gradients to keep it projects in torch (the fused kernel has no backward)."""
+    import avatarctl.splat as splat
+
+    means, covars, colors, opacities = _hard_scene(3)
+    bg = torch.tensor([0.2, 0.5, 0.9])
+    ref = render_gaussians(means, covars, colors, opacities, _camera(), bg, backend="torch")
+    calls = []
+    monkeypatch.setattr(splat, "project_and_reach", lambda *a, **k: calls.append(1) or project_and_reach(*a, **k))
+    with torch.no_grad():
+        out = render_gaussians(means, covars, colors, opacities, _camera(), bg)
+    assert calls and (out.rgb - ref.rgb).abs().max() < 1e-5 and (out.alpha - ref.alpha).abs().max() < 1e-5
+    calls.clear()
+    render_gaussians(means.requires_grad_(), covars, colors, opacities, _camera(), bg)
+    assert not calls
+
+
+@pytest.mark.gpu
+def test_cuda_fused_projection_matches_the_torch_pair():
+    _fused_against_pair("cuda")
 
 
 @pytest.mark.gpu

@@ -210,4 +210,4 @@ class NodeGaussians(nn.Module):
         covars = gram(torch.einsum("bnij,nkjl->bnkil", A, L))  # [B, N, K, 3, 3] M M^T, M = A R S
         return PosedGaussians(means=means.reshape(B, N * K, 3), covars=covars.reshape(B, N * K, 3, 3),
                               sh=sh.reshape(B, N * K, S, 3), opacities=opacity.reshape(B, N * K),
-                              linear_inv=torch.linalg.inv(A), per_node=K)
+                              linear_inv=torch.linalg.inv_ex(A).inverse, per_node=K)  # inv_ex: no sync for a check

@@ -169,12 +169,12 @@ def _rasterize_view(model: ViewModel, state: NodeFrames, slot: int, camera: Came
         posed = model.posed_gaussians(state)
         rgb_t, alpha_t = model.render_image(posed, 0, SplatCamera.from_camera(camera, device=device),
                                             torch.tensor(background, dtype=torch.float32, device=device))
-    rgb = rgb_t.float().cpu().numpy()
-    alpha = alpha_t.float().cpu().numpy()
+        rgb = rgb_t.float().clamp_(0.0, 1.0).cpu().numpy()  # clamped where the image is (a GPU's, not the host's)
+        alpha = alpha_t.float().cpu().numpy()
     if pixel_mask is not None:
         keep = np.asarray(pixel_mask, dtype=bool)
         rgb[~keep] = np.asarray(background, dtype=np.float32)
         alpha[~keep] = 0.0
     if progress is not None:
         progress(ProgressReport(done=H * W, total=H * W, part="rays"))
-    return ViewRender(rgb=np.clip(rgb, 0.0, 1.0), alpha=alpha, seconds=time.perf_counter() - t0, rays=H * W)
+    return ViewRender(rgb=rgb, alpha=alpha, seconds=time.perf_counter() - t0, rays=H * W)

@@ -17,7 +17,7 @@ import torch
 
 from avatarctl.splat.camera import SplatCamera
 from avatarctl.splat.project import Projected, project_gaussians, project_gaussians_batch
-from avatarctl.splat.rasterizer import rasterize, rasterize_batch
+from avatarctl.splat.rasterizer import project_and_reach, rasterize, rasterize_batch
 
 
 @dataclass
@@ -36,8 +36,14 @@ def render_gaussians(means: torch.Tensor,  # [G, 3] world, metres
                      opacities: torch.Tensor,  # [G] in [0, 1]
                      cam: SplatCamera, background: torch.Tensor,  # [C]
                      backend: str = "auto") -> SplatRender:
-    """Project and rasterize: the image of the Gaussians seen by `cam` (cam.width x cam.height)."""
-    proj = project_gaussians(means, covars, cam)
+    """Project and rasterize: the image of the Gaussians seen by `cam` (cam.width x cam.height). Without gradients
+    to keep (no grad mode, or no input that requires one) a Warp backend projects with the fused kernel
+    (`rasterizer.project_and_reach`)."""
+    grads = torch.is_grad_enabled() and any(t.requires_grad for t in (means, covars, colors, opacities))
+    if backend != "torch" and not grads and means.dtype == torch.float32:
+        proj = project_and_reach(means, covars, opacities, cam)
+    else:
+        proj = project_gaussians(means, covars, cam)
     rgb, alpha = rasterize(proj, colors, opacities, cam.width, cam.height, background, backend=backend)
     return SplatRender(rgb=rgb, alpha=alpha, radii=proj.radii, means2d=proj.means2d)
 
@@ -54,5 +60,5 @@ def render_gaussians_batch(means: torch.Tensor,  # [B, G, 3] world, metres: the 
     return rasterize_batch(proj, colors, opacities, [(c.width, c.height) for c in cams], background, backend)
 
 
-__all__ = ["Projected", "SplatCamera", "SplatRender", "project_gaussians", "project_gaussians_batch", "rasterize",
-           "rasterize_batch", "render_gaussians", "render_gaussians_batch"]
+__all__ = ["Projected", "SplatCamera", "SplatRender", "project_and_reach", "project_gaussians", "project_gaussians_batch",
+           "rasterize", "rasterize_batch", "render_gaussians", "render_gaussians_batch"]

@@ -106,6 +106,35 @@ def count_tiles(boxes: wp.array(dtype=wp.vec4i),  # [G] pixels the splat may cou
 
 
 @wp.kernel
+def count_entries(boxes: wp.array(dtype=wp.vec4i), entries: wp.array(dtype=wp.int32)):  # [G] out: tiles touched
+    g = wp.tid()
+    box = boxes[g]
+    n = int(0)
+    if box[0] <= box[2] and box[1] <= box[3]:
+        n = (box[2] // _TILE - box[0] // _TILE + 1) * (box[3] // _TILE - box[1] // _TILE + 1)
+    entries[g] = n
+
+
+@wp.kernel
+def list_entries(boxes: wp.array(dtype=wp.vec4i), tiles_x: int,
+                 ends: wp.array(dtype=wp.int32),  # [G] inclusive cumulative sum of count_entries
+                 tiles: wp.array(dtype=wp.int32), splats: wp.array(dtype=wp.int32)):  # [entries] out
+    # splat g's (tile, g) entries in rows of tiles, from ends[g - 1]: the order of a splat-major enumeration
+    g = wp.tid()
+    box = boxes[g]
+    if box[0] > box[2] or box[1] > box[3]:
+        return
+    i = int(0)
+    if g > 0:
+        i = ends[g - 1]
+    for ty in range(box[1] // _TILE, box[3] // _TILE + 1):
+        for tx in range(box[0] // _TILE, box[2] // _TILE + 1):
+            tiles[i] = ty * tiles_x + tx
+            splats[i] = g
+            i += 1
+
+
+@wp.kernel
 def fill_tiles(order: wp.array(dtype=wp.int32),  # [visible] splat indices front to back (stable)
                boxes: wp.array(dtype=wp.vec4i), tiles_x: int,
                cursor: wp.array(dtype=wp.int32),  # [tiles] in: each tile's first entry; out: one past its last
@@ -121,6 +150,95 @@ def fill_tiles(order: wp.array(dtype=wp.int32),  # [visible] splat indices front
                 t = ty * tiles_x + tx
                 ids[cursor[t]] = g
                 cursor[t] = cursor[t] + 1
+
+
+@wp.func
+def _footprint(m: wp.vec2, radius: int, width: int, height: int) -> wp.vec4i:
+    """`project.footprint` of one splat: mean +- radius clipped to the image, (0, 0, -1, -1) when culled."""
+    if radius <= 0:
+        return wp.vec4i(0, 0, -1, -1)
+    r = float(radius)
+    return wp.vec4i(int(wp.max(wp.ceil(m[0] - r), 0.0)), int(wp.max(wp.ceil(m[1] - r), 0.0)),
+                    int(wp.min(wp.floor(m[0] + r), float(width) - 1.0)),
+                    int(wp.min(wp.floor(m[1] + r), float(height) - 1.0)))
+
+
+@wp.kernel
+def project_reach(means: wp.array(dtype=wp.vec3),  # [G] world, metres
+                  covars: wp.array(dtype=wp.mat33),  # [G] world covariance, metres^2
+                  opacities: wp.array(dtype=float),  # [G]
+                  cam_K: wp.array(dtype=wp.mat33), cam_R: wp.array(dtype=wp.mat33),  # [1] each
+                  cam_T: wp.array(dtype=wp.vec3),  # [1]
+                  width: int, height: int, near: float, low_pass: float, fov_margin: float,
+                  means2d: wp.array(dtype=wp.vec2), conics: wp.array(dtype=wp.vec3),  # [G] out
+                  depths: wp.array(dtype=float), radii: wp.array(dtype=wp.int32),  # [G] out
+                  boxes: wp.array(dtype=wp.vec4i)):  # [G] out: rasterizer.reach
+    # project.project_gaussians_batch (one camera) followed by rasterizer.reach, fused for rendering without
+    # gradients: the same formulas in the same order (their docstrings hold the maths).
+    g = wp.tid()
+    K = cam_K[0]
+    R = cam_R[0]
+    t = R * means[g] + cam_T[0]
+    z = t[2]
+    in_front = z > near
+    inv_z = 1.0
+    if in_front:
+        inv_z = 1.0 / z
+    x = t[0] * inv_z
+    y = t[1] * inv_z
+    fx, skew, cx, fy, cy = K[0, 0], K[0, 1], K[0, 2], K[1, 1], K[1, 2]
+    w = float(width)
+    h = float(height)
+    xc = wp.clamp(x, -(cx / fx + fov_margin * 0.5 * w / fx), (w - cx) / fx + fov_margin * 0.5 * w / fx)
+    yc = wp.clamp(y, -(cy / fy + fov_margin * 0.5 * h / fy), (h - cy) / fy + fov_margin * 0.5 * h / fy)
+    r0 = wp.vec3(R[0, 0], R[0, 1], R[0, 2])
+    r1 = wp.vec3(R[1, 0], R[1, 1], R[1, 2])
+    r2 = wp.vec3(R[2, 0], R[2, 1], R[2, 2])
+    row_x = (r0 - xc * r2) * inv_z
+    row_y = (r1 - yc * r2) * inv_z
+    m0 = fx * row_x + skew * row_y
+    m1 = fy * row_y
+    S = covars[g]
+    s0 = S * m0
+    s1 = S * m1
+    a = wp.dot(m0, s0) + low_pass
+    b = wp.dot(m1, s0)
+    c = wp.dot(m1, s1) + low_pass
+    det = a * c - b * b
+    ok = in_front and det > 0.0 and wp.isfinite(det)
+    mean = wp.vec2(0.0, 0.0)
+    conic = wp.vec3(0.0, 0.0, 0.0)
+    radius = int(0)
+    if ok:
+        inv_det = 1.0 / det
+        conic = wp.vec3(c * inv_det, -b * inv_det, a * inv_det)
+        mean = wp.vec2(fx * x + skew * y + cx, fy * y + cy)
+        mid = 0.5 * (a + c)
+        radius = int(wp.ceil(3.0 * wp.sqrt(mid + wp.sqrt(wp.max(mid * mid - det, 0.0)))))
+    box = _footprint(mean, radius, width, height)
+    if box[0] > box[2] or box[1] > box[3]:
+        radius = 0
+        box = wp.vec4i(0, 0, -1, -1)
+    means2d[g] = mean
+    conics[g] = conic
+    depths[g] = z
+    radii[g] = radius
+    # reach: the footprint cut to the box of the ellipse o exp(power) >= ALPHA_MIN, widened by 0.05 in power and 1 px
+    o = opacities[g]
+    r2sq = 2.0 * (wp.log(wp.max(o / _ALPHA_MIN, 1.0e-30)) + 0.05)
+    if not (r2sq > 0.0):
+        boxes[g] = wp.vec4i(0, 0, -1, -1)
+        return
+    cdet = conic[0] * conic[2] - conic[1] * conic[1]
+    if cdet > 0.0 and conic[0] > 0.0:
+        ex = wp.sqrt(wp.max(r2sq * conic[2] / cdet, 0.0))
+        ey = wp.sqrt(wp.max(r2sq * conic[0] / cdet, 0.0))
+        lo_x = int(wp.floor(wp.clamp(mean[0] - ex - 1.0, -1.0e6, 1.0e6)))
+        lo_y = int(wp.floor(wp.clamp(mean[1] - ey - 1.0, -1.0e6, 1.0e6)))
+        hi_x = int(wp.ceil(wp.clamp(mean[0] + ex + 1.0, -1.0e6, 1.0e6)))
+        hi_y = int(wp.ceil(wp.clamp(mean[1] + ey + 1.0, -1.0e6, 1.0e6)))
+        box = wp.vec4i(wp.max(box[0], lo_x), wp.max(box[1], lo_y), wp.min(box[2], hi_x), wp.min(box[3], hi_y))
+    boxes[g] = box
 
 
 @wp.kernel

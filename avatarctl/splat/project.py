@@ -38,6 +38,9 @@ class Projected:
     # [G, 4] int32 (x0, y0, x1, y1) inclusive: the window a splat may count in, where several images share one
     # canvas (`rasterizer.rasterize_batch`); None = the whole image
     bounds: torch.Tensor | None = None
+    # [G, 4] int32: `rasterizer.reach` already computed (by the fused `rasterizer.project_and_reach`); None = binning
+    # computes it
+    reach: torch.Tensor | None = None
 
 
 def footprint(means2d: torch.Tensor, radii: torch.Tensor, width, height) -> torch.Tensor:

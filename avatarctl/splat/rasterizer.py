@@ -14,6 +14,7 @@ launch on one core), so `torch.set_num_threads` sets the cores used by both torc
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import threading
 from collections.abc import Sequence
@@ -23,7 +24,8 @@ from dataclasses import dataclass
 import torch
 
 from avatarctl.splat._torch_impl import ALPHA_MIN, TILE, rasterize_torch
-from avatarctl.splat.project import Projected, footprint, within_bounds
+from avatarctl.splat.camera import SplatCamera
+from avatarctl.splat.project import FOV_CLAMP, LOW_PASS, Projected, footprint, within_bounds
 
 BACKENDS = ("auto", "warp", "warp_tile", "warp_pixel", "torch")
 
@@ -60,10 +62,42 @@ def reach(proj: Projected, opacities: torch.Tensor, width: int, height: int) -> 
     return within_bounds(tight, proj)
 
 
+def project_and_reach(means: torch.Tensor,  # [G, 3] world, metres
+                      covars: torch.Tensor,  # [G, 3, 3] world covariance, metres^2
+                      opacities: torch.Tensor,  # [G] in [0, 1]
+                      cam: SplatCamera, near: float = 0.01) -> Projected:
+    """`project.project_gaussians` and `reach` in one Warp kernel (`_warp_kernels.project_reach`), for rendering
+    without gradients (float32, no autograd): one launch where the pure-torch pair issues ~180 small operations, the
+    cost that bounds a single render on a GPU. Same numbers up to float rounding (`tests/test_splat.py`); the
+    result's `reach` holds the boxes, so binning does not compute them again."""
+    import warp as wp
+
+    k = _kernels()
+    G = means.shape[0]
+    assert means.shape == (G, 3) and covars.shape == (G, 3, 3) and opacities.shape == (G,), \
+        f"project_and_reach: means {list(means.shape)}, covars {list(covars.shape)}, opacities {list(opacities.shape)}"
+    dev = means.device
+    f32 = [t.detach().to(device=dev, dtype=torch.float32).contiguous() for t in (means, covars, opacities)]
+    K, R, T = (getattr(cam, n).to(device=dev, dtype=torch.float32).contiguous()[None] for n in ("K", "R", "T"))
+    means2d, conics = torch.empty(G, 2, device=dev), torch.empty(G, 3, device=dev)
+    depths, radii = torch.empty(G, device=dev), torch.empty(G, dtype=torch.int32, device=dev)
+    boxes = torch.empty(G, 4, dtype=torch.int32, device=dev)
+    if G:
+        inputs = [wp.from_torch(f32[0], dtype=wp.vec3), wp.from_torch(f32[1], dtype=wp.mat33), wp.from_torch(f32[2]),
+                  wp.from_torch(K, dtype=wp.mat33), wp.from_torch(R, dtype=wp.mat33), wp.from_torch(T, dtype=wp.vec3),
+                  int(cam.width), int(cam.height), float(near), LOW_PASS, FOV_CLAMP - 1.0]
+        outputs = [wp.from_torch(means2d, dtype=wp.vec2), wp.from_torch(conics, dtype=wp.vec3), wp.from_torch(depths),
+                   wp.from_torch(radii), wp.from_torch(boxes, dtype=wp.vec4i)]
+        stream = wp.ScopedStream(wp.stream_from_torch(dev)) if dev.type == "cuda" else contextlib.nullcontext()
+        with stream:
+            wp.launch(k.project_reach, dim=G, inputs=inputs + outputs, device=str(dev))
+    return Projected(means2d=means2d, conics=conics, depths=depths, radii=radii, reach=boxes)
+
+
 def bin_gaussians(proj: Projected, opacities: torch.Tensor, width: int, height: int) -> TileBins:
     """One entry per (splat, tile its `reach` box touches), sorted by tile, then depth, then splat index. On the CPU a
     bucket sort in Warp (`_bin_buckets`), on CUDA one torch.sort of (tile << 32 | depth bits) keys (`_bin_keys`)."""
-    boxes = reach(proj, opacities, width, height)  # [G, 4]
+    boxes = reach(proj, opacities, width, height) if proj.reach is None else proj.reach  # [G, 4]
     tiles_x, tiles_y = -(-width // TILE), -(-height // TILE)
     bin_ = _bin_buckets if boxes.device.type == "cpu" else _bin_keys
     ids, counts = bin_(boxes, proj.depths.detach(), tiles_x, tiles_y)
@@ -74,19 +108,29 @@ def bin_gaussians(proj: Projected, opacities: torch.Tensor, width: int, height: 
 
 
 def _bin_keys(boxes: torch.Tensor, depths: torch.Tensor, tiles_x: int, tiles_y: int):
-    """boxes [G, 4], depths [G] -> (ids [entries] int32, counts [tiles]): one entry per (splat, tile), sorted."""
-    device = boxes.device
-    t0 = torch.div(boxes[:, :2], TILE, rounding_mode="floor")  # [G, 2] first tile x, y
-    span = torch.div(boxes[:, 2:], TILE, rounding_mode="floor") - t0 + 1  # [G, 2] tiles along x, y
-    n = torch.where((boxes[:, 0] <= boxes[:, 2]) & (boxes[:, 1] <= boxes[:, 3]), span[:, 0] * span[:, 1],
-                    torch.zeros_like(span[:, 0])).long()  # [G]
-    g = torch.repeat_interleave(torch.arange(n.shape[0], device=device), n)  # [entries]
-    local = torch.arange(g.shape[0], device=device) - (torch.cumsum(n, 0) - n)[g]
-    sx = span[g, 0].long()
-    tile = (t0[g, 1].long() + local // sx) * tiles_x + t0[g, 0].long() + local % sx
+    """boxes [G, 4], depths [G] -> (ids [entries] int32, counts [tiles]): one entry per (splat, tile), sorted. The
+    entries are listed by two Warp kernels (`count_entries`, `list_entries`: a dozen launches where torch took ~40,
+    what a single render on a GPU pays for), then one stable torch.sort of the keys (tile << 32 | depth bits)."""
+    import warp as wp
+
+    k = _kernels()
+    device, G = boxes.device, boxes.shape[0]
+    box = wp.from_torch(boxes.contiguous(), dtype=wp.vec4i)
+    counts = torch.empty(G, dtype=torch.int32, device=device)
+    stream = wp.ScopedStream(wp.stream_from_torch(device)) if device.type == "cuda" else contextlib.nullcontext()
+    with stream:
+        if G:
+            wp.launch(k.count_entries, dim=G, inputs=[box, wp.from_torch(counts)], device=str(device))
+        ends = torch.cumsum(counts, 0, dtype=torch.int32)
+        total = int(ends[-1]) if G else 0
+        tile = torch.empty(total, dtype=torch.int32, device=device)
+        g = torch.empty(total, dtype=torch.int32, device=device)
+        if total:
+            wp.launch(k.list_entries, dim=G, inputs=[box, tiles_x, wp.from_torch(ends), wp.from_torch(tile),
+                                                     wp.from_torch(g)], device=str(device))
     depth_bits = depths.float().contiguous().view(torch.int32).long()  # monotone for depth > 0
-    _, order = torch.sort((tile << 32) | depth_bits[g], stable=True)
-    return g[order].to(torch.int32), torch.bincount(tile, minlength=tiles_x * tiles_y)
+    _, order = torch.sort((tile.long() << 32) | depth_bits[g.long()], stable=True)
+    return g[order], torch.bincount(tile, minlength=tiles_x * tiles_y)
 
 
 def _bin_buckets(boxes: torch.Tensor, depths: torch.Tensor, tiles_x: int, tiles_y: int):
