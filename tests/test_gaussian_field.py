@@ -10,8 +10,8 @@ import torch
 
 from avatarctl.fit.config import preset
 from avatarctl.model.config import GaussianConfig, ModelConfig
-from avatarctl.model.gaussian_field import (NodeGaussians, eval_sh, initial_gaussians, quaternion_to_matrix,
-                                            rgb_to_sh0)
+from avatarctl.model.gaussian_field import NodeGaussians, eval_sh, initial_gaussians, rgb_to_sh0
+from avatarctl.splat.covariance import quaternion_to_matrix, transformed_covariances
 
 
 def _sphere(n: int = 12):
@@ -209,6 +209,35 @@ def test_fit_render_eval_with_gaussian_fields_on_the_toy_body(tmp_path, monkeypa
 
     xr = export.run(proj, ExportConfig(frames="0", formats=("glb", "splat"), skinned=False, voxel=0.02, device="cpu"))
     assert xr.meshes and xr.meshes[0].faces > 100 and (xr.out_dir / "splats").is_dir()
+
+
+def _covariances_against_twin(device: str) -> None:
+    gen = torch.Generator().manual_seed(0)
+    A = torch.randn(2, 5, 3, 3, generator=gen)
+    quats, log_scales = torch.randn(5, 7, 4, generator=gen), torch.randn(5, 7, 3, generator=gen) - 3.0
+    quats[0, 0] = 0.0  # the norm's clamp
+    twin = transformed_covariances(A.double(), quats.double(), log_scales.double())  # float64: the torch path
+    with torch.no_grad():
+        fused = transformed_covariances(A.to(device), quats.to(device), log_scales.to(device)).cpu()
+    assert fused.shape == (2, 5, 7, 3, 3) and fused.dtype == torch.float32
+    assert torch.allclose(fused.double(), twin, rtol=1e-5, atol=1e-6 * float(twin.abs().max()))
+
+
+def test_covariance_kernel_matches_the_torch_twin(monkeypatch):
+    """`transformed_covariances` without gradients (the Warp kernel) = its torch twin; with gradients to keep it
+    takes the torch path (the kernel has no backward)."""
+    _covariances_against_twin("cpu")
+    import warp
+
+    q = torch.randn(2, 3, 4, requires_grad=True)
+    monkeypatch.setattr(warp, "launch", None)  # the kernel path would fail
+    transformed_covariances(torch.randn(1, 2, 3, 3), q, torch.zeros(2, 3, 3)).sum().backward()
+    assert q.grad is not None
+
+
+@pytest.mark.gpu
+def test_cuda_covariance_kernel_matches_the_torch_twin():
+    _covariances_against_twin("cuda")
 
 
 @pytest.mark.gpu

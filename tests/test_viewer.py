@@ -705,8 +705,9 @@ def test_gaussian_viewer_page_measured_at_toy_scale(toy_gaussian_project, tmp_pa
 
     if find_chromium() is None:
         pytest.skip("no chromium / chrome on this machine")
-    from benchmarks.viewer_page import measure, start_viewer
+    from benchmarks.viewer_page import measure, rss_mb, start_viewer
 
+    before = rss_mb()  # this test process holds what the suite's earlier tests left: count the viewer's growth
     server = start_viewer(toy_gaussian_project, device="cpu")
     browser = None
     try:
@@ -719,4 +720,4 @@ def test_gaussian_viewer_page_measured_at_toy_scale(toy_gaussian_project, tmp_pa
     assert fig.orbit.image_change > 0.5, "dragging turns the view (drawn by the page)"
     assert fig.orbit.fps > 0 and fig.orbit.drawn_fps > 0 and fig.frame_change_ms, fig
     assert fig.playback_fps_page > 0 and fig.playback_pushes_per_s > 0, fig
-    assert fig.second_tab_drawn and fig.peak_rss_mb < 2048, fig
+    assert fig.second_tab_drawn and fig.peak_rss_mb - before < 1024, fig

@@ -15,7 +15,8 @@ from __future__ import annotations
 
 import torch
 
-from avatarctl.model.gaussian_field import NodeGaussians, quaternion_to_matrix
+from avatarctl.model.gaussian_field import NodeGaussians
+from avatarctl.splat.covariance import quaternion_to_matrix
 
 
 @torch.no_grad()

@@ -35,6 +35,7 @@ from torch import nn
 
 from avatarctl.model.batched_mlp import BatchedLinear, BatchedMLP
 from avatarctl.model.config import GaussianConfig
+from avatarctl.splat.covariance import transformed_covariances
 
 SH_C0 = 0.28209479177387814
 SH_C1 = 0.4886025119029199
@@ -60,25 +61,6 @@ def rgb_to_sh0(rgb: torch.Tensor) -> torch.Tensor:
     return (rgb - 0.5) / SH_C0
 
 
-def quaternion_to_matrix(q: torch.Tensor) -> torch.Tensor:
-    """[..., 4] quaternions (w, x, y, z), any norm -> [..., 3, 3] rotation matrices of the normalised quaternion."""
-    q = q / q.norm(dim=-1, keepdim=True).clamp(min=1e-12)
-    w, x, y, z = q.unbind(-1)
-    return torch.stack([
-        1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-        2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-        2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], dim=-1).reshape(*q.shape[:-1], 3, 3)
-
-
-def gram(M: torch.Tensor) -> torch.Tensor:
-    """[..., 3, 3] -> M M^T from its 6 distinct row products (half the time of a batched matmul of 3x3 matrices on
-    the CPU, forward and backward, measured at 100k matrices)."""
-    r0, r1, r2 = M.unbind(-2)
-    c00, c01, c02 = (r0 * r0).sum(-1), (r0 * r1).sum(-1), (r0 * r2).sum(-1)
-    c11, c12, c22 = (r1 * r1).sum(-1), (r1 * r2).sum(-1), (r2 * r2).sum(-1)
-    return torch.stack([c00, c01, c02, c01, c11, c12, c02, c12, c22], -1).reshape(M.shape)
-
-
 @dataclass
 class PosedGaussians:
     """The Gaussians of B frames, posed (world frame). G = nodes x per_node, node-major."""
@@ -96,12 +78,14 @@ class PosedGaussians:
 
     def colors_batch(self, slots: list[int], camera_centers: torch.Tensor) -> torch.Tensor:
         """[B, G, 3] colours of frames `slots` (B of them) seen from `camera_centers` [B, 3] (world)."""
-        sh = self.sh[slots]  # [B, G, S, 3]
+        contiguous = list(slots) == list(range(slots[0], slots[0] + len(slots))) if len(slots) else False
+        sel = slice(slots[0], slots[0] + len(slots)) if contiguous else slots  # a slice: no index tensor to copy
+        sh = self.sh[sel]  # [B, G, S, 3]
         if sh.shape[-2] == 1:
             return eval_sh(sh, sh.new_zeros(*sh.shape[:2], 3))
         B, N = len(slots), self.linear_inv.shape[1]
-        d = self.means[slots] - camera_centers.to(self.means)[:, None, :]  # [B, G, 3]
-        d_local = torch.einsum("bnij,bnkj->bnki", self.linear_inv[slots],
+        d = self.means[sel] - camera_centers.to(self.means)[:, None, :]  # [B, G, 3]
+        d_local = torch.einsum("bnij,bnkj->bnki", self.linear_inv[sel],
                                d.reshape(B, N, self.per_node, 3)).reshape(B, -1, 3)
         return eval_sh(sh, d_local / d_local.norm(dim=-1, keepdim=True).clamp(min=1e-12))
 
@@ -206,8 +190,7 @@ class NodeGaussians(nn.Module):
         A = transforms[..., :3, :3]  # [B, N, 3, 3]
         local = self.means[None] + offset  # [B, N, K, 3]
         means = centers[:, :, None, :] + (A[:, :, None] * local[..., None, :]).sum(-1)
-        L = quaternion_to_matrix(self.quats) * self.log_scales.exp()[:, :, None, :]  # [N, K, 3, 3] R S
-        covars = gram(torch.einsum("bnij,nkjl->bnkil", A, L))  # [B, N, K, 3, 3] M M^T, M = A R S
+        covars = transformed_covariances(A, self.quats, self.log_scales)  # [B, N, K, 3, 3] M M^T, M = A R S
         return PosedGaussians(means=means.reshape(B, N * K, 3), covars=covars.reshape(B, N * K, 3, 3),
                               sh=sh.reshape(B, N * K, S, 3), opacities=opacity.reshape(B, N * K),
                               linear_inv=torch.linalg.inv_ex(A).inverse, per_node=K)  # inv_ex: no sync for a check

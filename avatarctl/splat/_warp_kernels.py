@@ -242,6 +242,26 @@ def project_reach(means: wp.array(dtype=wp.vec3),  # [G] world, metres
 
 
 @wp.kernel
+def transformed_covariances(linear: wp.array(dtype=wp.mat33),  # [B * N] one linear map per group
+                            quats: wp.array(dtype=wp.vec4),  # [N * K] (w, x, y, z), any norm
+                            log_scales: wp.array(dtype=wp.vec3),  # [N * K] log metres
+                            per_group: int, groups: int,  # K, N
+                            covars: wp.array(dtype=wp.mat33)):  # [B * N * K] out
+    # covariance.transformed_covariances without gradients: Sigma = M M^T, M = A R(q) diag(exp(s))
+    i = wp.tid()
+    gk = i % (groups * per_group)
+    q = quats[gk]
+    q = q / wp.max(wp.length(q), 1.0e-12)
+    w, x, y, z = q[0], q[1], q[2], q[3]
+    R = wp.mat33(1.0 - 2.0 * (y * y + z * z), 2.0 * (x * y - w * z), 2.0 * (x * z + w * y),
+                 2.0 * (x * y + w * z), 1.0 - 2.0 * (x * x + z * z), 2.0 * (y * z - w * x),
+                 2.0 * (x * z - w * y), 2.0 * (y * z + w * x), 1.0 - 2.0 * (x * x + y * y))
+    s = log_scales[gk]
+    M = wp.mul(linear[i // per_group], wp.mul(R, wp.diag(wp.vec3(wp.exp(s[0]), wp.exp(s[1]), wp.exp(s[2])))))
+    covars[i] = wp.mul(M, wp.transpose(M))
+
+
+@wp.kernel
 def forward_tiles(tile_order: wp.array(dtype=wp.int32), first: int, step: int,  # tiles of this launch
                   tiles_x: int, width: int, height: int,
                   tile_start: wp.array(dtype=wp.int32),  # [tiles + 1] range of each tile in ids

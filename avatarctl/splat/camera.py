@@ -9,6 +9,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, replace
 
+import numpy as np
 import torch
 
 
@@ -42,10 +43,10 @@ class SplatCamera:
             raise ValueError(f"camera {cam.name}: has lens distortion {list(cam.dist)}; splatting needs a pinhole "
                              "camera (undistort the images and pass cam.pinhole())")
 
-        def tensor(a):
-            return torch.as_tensor(a, dtype=torch.float32, device=device)
-
-        return SplatCamera(K=tensor(cam.K), R=tensor(cam.R), T=tensor(cam.T), width=int(cam.width),
+        # one host-to-device copy for the three (each copy costs a GPU render more than its bytes)
+        packed = torch.from_numpy(np.concatenate([np.ravel(cam.K), np.ravel(cam.R), np.ravel(cam.T)]).astype(
+            np.float32)).to(device)
+        return SplatCamera(K=packed[:9].view(3, 3), R=packed[9:18].view(3, 3), T=packed[18:21], width=int(cam.width),
                            height=int(cam.height))
 
     def crop(self, x0: int, y0: int, width: int, height: int) -> "SplatCamera":
