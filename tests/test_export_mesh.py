@@ -115,23 +115,3 @@ def test_body_level_from_the_density_inside_the_skin():
         body_level(lambda p: np.zeros(len(p)), body.vertices, body.faces)
 
 
-def test_the_bake_ray_of_a_fitted_avatar_skips_ahead(toy_gaussian_project):
-    """`slrf_ray_colour(..., skip=s)` renders the segment [s, s + length] of each ray: the same as the segment
-    [0, length] of the ray started s further along (what the Gaussian field's bake uses to start near the surface)."""
-    import torch
-
-    from avatarctl.export.mesh import slrf_ray_colour
-    from avatarctl.fit.checkpoint import load_avatar
-    from avatarctl.project import Project
-
-    av = load_avatar(Project.open(toy_gaussian_project), device="cpu")
-    cond = av.conditioning(av.capture.motion.select([av.capture.split.train_frames[0]]), frames_are_training=True)
-    with torch.no_grad():
-        state = av.model.node_state(cond, mode="mean")
-    centre = state.centers[0].mean(0).numpy().astype(np.float64)
-    dirs = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, -1.0]])
-    origins = centre[None] - 0.5 * dirs
-    skipped = slrf_ray_colour(av.model, state, 0, 0.6, 12, skip=0.2)(origins, dirs)
-    moved = slrf_ray_colour(av.model, state, 0, 0.6, 12)(origins + 0.2 * dirs, dirs)
-    assert np.allclose(skipped[0], moved[0], atol=1e-5) and np.allclose(skipped[1], moved[1], atol=1e-5)
-    assert skipped[1].max() > 0.1  # the rays pass through the avatar

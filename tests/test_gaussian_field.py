@@ -286,12 +286,47 @@ def test_splat_ply_holds_the_posed_gaussians_in_the_world_frame(tmp_path):
     assert torch.allclose(rgb.clamp(min=0), posed.colors(0, cam).double(), atol=1e-5)
 
 
+def _density_against_twin(device: str) -> None:
+    from avatarctl.splat.density import gaussian_field_at, gaussian_field_at_torch
+
+    gen = torch.Generator().manual_seed(0)
+    G, P = 300, 1500
+    means = torch.rand(G, 3, generator=gen) * 0.5
+    covars = transformed_covariances(torch.eye(3).expand(1, G, 3, 3), torch.randn(G, 1, 4, generator=gen),
+                                     torch.randn(G, 1, 3, generator=gen) * 0.3 - 3.5)[0, :, 0]
+    weights = torch.rand(G, generator=gen) * 50
+    for S in (1, 4):  # view-independent colours; degree 1 with a direction map per Gaussian
+        sh = torch.randn(G, S, 3, generator=gen)
+        maps = torch.randn(G, 3, 3, generator=gen) if S == 4 else None
+        pts = torch.rand(P, 3, generator=gen) * 0.7 - 0.1  # some beyond every Gaussian's reach
+        dirs = torch.nn.functional.normalize(torch.randn(P, 3, generator=gen), dim=-1)
+        ref_rgb, ref_sigma = gaussian_field_at_torch(*(t.double() for t in (pts, dirs, means, covars, weights, sh)),
+                                                     None if maps is None else maps.double())
+        args = [t.to(device) for t in (pts, dirs, means, covars, weights, sh)]
+        rgb, sigma = gaussian_field_at(*args, None if maps is None else maps.to(device))
+        hit = ref_sigma > 1e-3
+        assert 100 < int(hit.sum()) < P and int((ref_sigma == 0).sum()) > 10
+        assert torch.allclose(sigma.cpu().double(), ref_sigma, rtol=1e-5, atol=1e-6)
+        assert torch.allclose(rgb.cpu().double()[hit], ref_rgb[hit], atol=1e-5)
+
+
+def test_density_kernels_match_the_torch_twin():
+    """`splat.density.gaussian_field_at` (Gaussians binned into cells, one thread per point) = its dense twin."""
+    _density_against_twin("cpu")
+
+
+@pytest.mark.gpu
+def test_cuda_density_kernels_match_the_torch_twin():
+    _density_against_twin("cuda")
+
+
 def test_density_query_of_the_gaussians_for_mesh_export():
-    """`SlrfAvatar.query` on the Gaussian field = the sum over every Gaussian (brute force), and a ray through an
-    isotropic Gaussian's centre accumulates the optical depth -ln(1 - o), so its opacity there is o, as the
-    rasterizer draws the splat's centre."""
+    """`SlrfAvatar.query` on the Gaussian field = the sum over every Gaussian within its cut-off (brute force), and a
+    ray through an isotropic Gaussian's centre accumulates the optical depth -ln(1 - o), so its opacity there is o,
+    as the rasterizer draws the splat's centre."""
     from avatarctl.body.toy import sphere_template, toy_joint_transforms
     from avatarctl.model.avatar import FrameConditioning, SlrfAvatar
+    from avatarctl.splat.density import CUTOFF
 
     cfg = preset("cpu").model.with_(field="gaussians", num_nodes=64, hull={"nodes": 0}, pose_refine={"enabled": False},
                                     gaussians=GaussianConfig(per_node=16))
@@ -308,7 +343,7 @@ def test_density_query_of_the_gaussians_for_mesh_export():
         q = torch.einsum("pgi,gij,pgj->pg", d, torch.linalg.inv(posed.covars[0]), d)
         s = torch.linalg.det(posed.covars[0]) ** (1 / 6)
         tau = -torch.log1p(-posed.opacities[0].clamp(max=0.99))
-        brute = (tau / (math.sqrt(2 * math.pi) * s) * torch.exp(-0.5 * q)).sum(1)
+        brute = (tau / (math.sqrt(2 * math.pi) * s) * torch.exp(-0.5 * q) * (q <= CUTOFF ** 2)).sum(1)
     assert sigma.shape == (200,) and rgb.shape == (200, 3) and (sigma > 0).sum() > 20
     assert torch.allclose(sigma, brute, rtol=1e-4, atol=1e-6)
     with torch.no_grad():  # one isotropic Gaussian left (o = 0.5): the line integral through its centre is ln 2

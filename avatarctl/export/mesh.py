@@ -323,10 +323,9 @@ def slrf_density(model: "SlrfAvatar", state: "NodeState", slot: int = 0) -> Dens
 
 
 def slrf_ray_colour(model: "SlrfAvatar", state: "NodeState", slot: int = 0, length: float = BAKE_LENGTH,
-                    samples: int = BAKE_SAMPLES, skip: float = 0.0) -> RayColourFn:
-    """Volume-render ray segments [`skip`, `skip` + `length`] metres of frame `slot` over black with `samples`
-    samples (the same compositing as an image, `render.volume.march`): (origins, dirs) [rays, 3] -> (rgb [rays, 3],
-    alpha [rays])."""
+                    samples: int = BAKE_SAMPLES) -> RayColourFn:
+    """Volume-render the first `length` metres of rays of frame `slot` over black with `samples` samples (the same
+    compositing as an image, `render.volume.march`): (origins, dirs) [rays, 3] -> (rgb [rays, 3], alpha [rays])."""
     import torch
 
     from avatarctl.render.volume import march
@@ -343,7 +342,7 @@ def slrf_ray_colour(model: "SlrfAvatar", state: "NodeState", slot: int = 0, leng
     def ray_colour(origins: np.ndarray, dirs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         o = torch.from_numpy(np.ascontiguousarray(origins, dtype=np.float32)).to(dev)
         d = torch.nn.functional.normalize(torch.from_numpy(np.ascontiguousarray(dirs, dtype=np.float32)), dim=-1)
-        near = o.new_full((o.shape[0],), float(skip))
+        near = o.new_zeros(o.shape[0])
         with torch.no_grad():
             out = march(field, o, d.to(dev), near, near + length, samples, black, False, None)
         return out.rgb.float().cpu().numpy(), out.alpha.float().cpu().numpy()

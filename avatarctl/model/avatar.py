@@ -431,35 +431,30 @@ class SlrfAvatar(nn.Module):
         return rgb, sigma, stats
 
     def _query_gaussians(self, points: torch.Tensor, dirs: torch.Tensor, point_frame: torch.Tensor,
-                         state: NodeState, chunk: int = 2048) -> tuple[torch.Tensor, torch.Tensor]:
-        """`query` of the Gaussian local fields (mesh export): the Gaussians as a density,
-        sigma(x) = sum_g tau_g exp(-d^T Sigma_g^-1 d / 2) / (sqrt(2 pi) s_g), s_g = det(Sigma_g)^(1/6) (1/metre),
-        tau_g = -ln(1 - min(o_g, 0.99)): a ray through an isotropic Gaussian's centre accumulates the optical depth
-        tau_g, i.e. the opacity 1 - exp(-tau_g) = o_g that the rasterizer gives the splat's centre (before 2026-11-27
-        tau_g was o_g, so an opaque splat let 37 % through: exported meshes of Gaussian avatars came out dark), and
-        the colour as the sum of the Gaussians' view-dependent colours weighted by their terms. Only the Gaussians of nodes within 1.5 support radii of
-        a point are summed. points / dirs [P, 3], point_frame [P] -> rgb [P, 3], sigma [P]."""
-        from avatarctl.model.gaussian_field import eval_sh
+                         state: NodeState) -> tuple[torch.Tensor, torch.Tensor]:
+        """`query` of the Gaussian local fields (mesh export; no gradients): the Gaussians as a density
+        (`splat.density`: each within 4 of its Mahalanobis radii), sigma(x) = sum_g tau_g exp(-d^T Sigma_g^-1 d / 2) /
+        (sqrt(2 pi) s_g), s_g = det(Sigma_g)^(1/6) (1/metre), tau_g = -ln(1 - min(o_g, 0.99)): a ray through an
+        isotropic Gaussian's centre accumulates the optical depth tau_g, i.e. the opacity 1 - exp(-tau_g) = o_g that
+        the rasterizer gives the splat's centre (before 2026-11-27 tau_g was o_g, so an opaque splat let 37 %
+        through: exported meshes of Gaussian avatars came out dark), and the colour as the sum of the Gaussians'
+        view-dependent colours (SH at the direction in their node's frame) weighted by their terms.
+        points / dirs [P, 3], point_frame [P] -> rgb [P, 3], sigma [P]."""
+        from avatarctl.splat.density import gaussian_field_at
 
         posed = self.posed_gaussians(state)
         K = posed.per_node
-        prec = torch.linalg.inv(posed.covars)  # [B, G, 3, 3]
         depth = -torch.log1p(-posed.opacities.clamp(max=0.99))  # tau_g: optical depth through the centre
         norm = depth / (math.sqrt(2 * math.pi) * torch.linalg.det(posed.covars).clamp(min=1e-30) ** (1 / 6))
-        pi, ni = candidate_pairs(points, point_frame, state.centers, 1.5 * self.cfg.support_radius)
         sigma = points.new_zeros(points.shape[0])
         rgb = points.new_zeros(points.shape[0], 3)
-        for s in range(0, pi.numel(), chunk):
-            p, n = pi[s:s + chunk], ni[s:s + chunk]
-            f = point_frame[p]
-            g = n[:, None] * K + torch.arange(K, device=n.device)  # [pairs, K] the node's Gaussians
-            d = points[p][:, None, :] - posed.means[f[:, None], g]  # [pairs, K, 3]
-            w = norm[f[:, None], g] * torch.exp(-0.5 * torch.einsum("pki,pkij,pkj->pk", d, prec[f[:, None], g], d))
-            d_local = torch.einsum("pij,pj->pi", posed.linear_inv[f, n], dirs[p])
-            c = eval_sh(posed.sh[f[:, None], g], torch.nn.functional.normalize(d_local, dim=-1)[:, None, :])
-            sigma.index_add_(0, p, w.sum(1))
-            rgb.index_add_(0, p, (w[..., None] * c).sum(1))
-        return rgb / sigma.clamp(min=1e-12)[:, None], sigma
+        for f in torch.unique(point_frame).tolist():
+            idx = (point_frame == f).nonzero(as_tuple=True)[0]
+            maps = posed.linear_inv[f].repeat_interleave(K, 0) if posed.sh.shape[2] > 1 else None  # [G, 3, 3]
+            c, s = gaussian_field_at(points[idx], dirs[idx], posed.means[f], posed.covars[f], norm[f], posed.sh[f],
+                                     maps)
+            rgb[idx], sigma[idx] = c.to(rgb), s.to(sigma)
+        return rgb, sigma
 
     def _local_scale(self) -> float:
         """Local coordinates are in units of sigma (module docstring of model/config.py)."""

@@ -36,24 +36,11 @@ from torch import nn
 from avatarctl.model.batched_mlp import BatchedLinear, BatchedMLP
 from avatarctl.model.config import GaussianConfig
 from avatarctl.splat.covariance import transformed_covariances
-
-SH_C0 = 0.28209479177387814
-SH_C1 = 0.4886025119029199
-
+from avatarctl.splat.density import SH_C0, SH_C1, eval_sh  # noqa: F401 (the model's colour rule, re-exported)
 
 def sh_coefficients(degree: int) -> int:
     """Coefficients per colour channel of real spherical harmonics up to `degree`: (degree + 1)^2."""
     return (degree + 1) ** 2
-
-
-def eval_sh(sh: torch.Tensor, dirs: torch.Tensor) -> torch.Tensor:
-    """Colour from SH coefficients (3DGS's basis and signs): sh [..., S, 3] (S = 1 or 4), dirs [..., 3] unit ->
-    rgb [..., 3] = max(0, 0.5 + sum_s Y_s(d) sh_s)."""
-    out = SH_C0 * sh[..., 0, :]
-    if sh.shape[-2] > 1:
-        x, y, z = dirs[..., 0:1], dirs[..., 1:2], dirs[..., 2:3]
-        out = out - SH_C1 * y * sh[..., 1, :] + SH_C1 * z * sh[..., 2, :] - SH_C1 * x * sh[..., 3, :]
-    return torch.clamp(out + 0.5, min=0.0)
 
 
 def rgb_to_sh0(rgb: torch.Tensor) -> torch.Tensor:

@@ -4,7 +4,8 @@ Layers (gsplat's): `render_gaussians` (this file) = `project_gaussians` (project
 mean and covariance) + `rasterize` (rasterizer.py: tile binning, then NVIDIA Warp kernels (`_warp_kernels.py`, CPU
 and CUDA) behind a `torch.autograd.Function`, with a dense pure-PyTorch twin in `_torch_impl.py`). Rendering without
 gradients projects with one fused kernel (`rasterizer.project_and_reach`, twin: `project_gaussians` + `reach`);
-`covariance.py` gives the covariances of rotated, scaled, linearly mapped Gaussians (torch, or one kernel).
+`covariance.py` gives the covariances of rotated, scaled, linearly mapped Gaussians (torch, or one kernel);
+`density.py` the Gaussians as a coloured density at arbitrary points (binned Warp kernels, dense torch twin).
 
 Conventions: metres; world->camera `x_cam = R x_world + T` (OpenCV: +z forward, x right, y down); pixel centres at
 integer coordinates; colours in any number of channels C. Imports only torch, numpy, warp (lazily, on the first

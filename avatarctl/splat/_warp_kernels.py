@@ -27,6 +27,7 @@ from typing import Any
 import warp as wp
 
 from avatarctl.splat._torch_impl import ALPHA_MAX, ALPHA_MIN, T_MIN, TILE
+from avatarctl.splat.density import SH_C0, SH_C1
 
 wp.set_module_options({"enable_backward": False})  # the adjoints are written by hand below
 
@@ -35,6 +36,8 @@ _PIXELS_PER_TILE = wp.constant(TILE * TILE)
 _ALPHA_MIN = wp.constant(ALPHA_MIN)
 _ALPHA_MAX = wp.constant(ALPHA_MAX)
 _T_MIN = wp.constant(T_MIN)
+_SH_C0 = wp.constant(SH_C0)
+_SH_C1 = wp.constant(SH_C1)
 
 
 @wp.func
@@ -259,6 +262,80 @@ def transformed_covariances(linear: wp.array(dtype=wp.mat33),  # [B * N] one lin
     s = log_scales[gk]
     M = wp.mul(linear[i // per_group], wp.mul(R, wp.diag(wp.vec3(wp.exp(s[0]), wp.exp(s[1]), wp.exp(s[2])))))
     covars[i] = wp.mul(M, wp.transpose(M))
+
+
+@wp.func
+def _cell_box(mean: wp.vec3, half: wp.vec3, lo: wp.vec3, cell: float, dims: wp.vec3i) -> wp.spatial_vectorf:
+    """The cells (x0, y0, z0, x1, y1, z1), inclusive, that the box mean +- half overlaps, clipped to the grid (as
+    floats; x0 > x1 when it misses)."""
+    a = wp.cw_div(mean - half - lo, wp.vec3(cell, cell, cell))
+    b = wp.cw_div(mean + half - lo, wp.vec3(cell, cell, cell))
+    return wp.spatial_vectorf(wp.max(wp.floor(a[0]), 0.0), wp.max(wp.floor(a[1]), 0.0), wp.max(wp.floor(a[2]), 0.0),
+                              wp.min(wp.floor(b[0]), float(dims[0] - 1)), wp.min(wp.floor(b[1]), float(dims[1] - 1)),
+                              wp.min(wp.floor(b[2]), float(dims[2] - 1)))
+
+
+@wp.kernel
+def count_cells(means: wp.array(dtype=wp.vec3), halves: wp.array(dtype=wp.vec3), lo: wp.vec3, cell: float,
+                dims: wp.vec3i, counts: wp.array(dtype=wp.int32)):  # [cells] zeroed, added to
+    g = wp.tid()
+    box = _cell_box(means[g], halves[g], lo, cell, dims)
+    for z in range(int(box[2]), int(box[5]) + 1):
+        for y in range(int(box[1]), int(box[4]) + 1):
+            for x in range(int(box[0]), int(box[3]) + 1):
+                wp.atomic_add(counts, (z * dims[1] + y) * dims[0] + x, 1)
+
+
+@wp.kernel
+def fill_cells(means: wp.array(dtype=wp.vec3), halves: wp.array(dtype=wp.vec3), lo: wp.vec3, cell: float,
+               dims: wp.vec3i, cursor: wp.array(dtype=wp.int32),  # [cells] in: each cell's first entry
+               ids: wp.array(dtype=wp.int32)):  # [entries] out: Gaussian indices by cell
+    g = wp.tid()
+    box = _cell_box(means[g], halves[g], lo, cell, dims)
+    for z in range(int(box[2]), int(box[5]) + 1):
+        for y in range(int(box[1]), int(box[4]) + 1):
+            for x in range(int(box[0]), int(box[3]) + 1):
+                ids[wp.atomic_add(cursor, (z * dims[1] + y) * dims[0] + x, 1)] = g
+
+
+@wp.kernel
+def density_at_points(points: wp.array(dtype=wp.vec3), dirs: wp.array(dtype=wp.vec3),
+                      lo: wp.vec3, cell: float, dims: wp.vec3i,
+                      cell_start: wp.array(dtype=wp.int32),  # [cells + 1]
+                      ids: wp.array(dtype=wp.int32),  # [entries] sorted by cell, then Gaussian
+                      means: wp.array(dtype=wp.vec3), precisions: wp.array(dtype=wp.mat33),
+                      weights: wp.array(dtype=float),  # [G] peak density of each Gaussian
+                      sh: wp.array2d(dtype=float),  # [G, 3 S] SH coefficients, (S, 3) row-major; S = 1 or 4
+                      dir_maps: wp.array(dtype=wp.mat33),  # [G] world direction -> the Gaussian's SH frame
+                      cutoff2: float,
+                      sigma: wp.array(dtype=float), rgb: wp.array(dtype=wp.vec3)):  # [P] out
+    # splat.density.gaussian_field_at: the Gaussians listed in the point's cell, within the Mahalanobis cut-off
+    p = wp.tid()
+    x = points[p]
+    c = wp.cw_div(x - lo, wp.vec3(cell, cell, cell))
+    total = float(0.0)
+    acc = wp.vec3(0.0, 0.0, 0.0)
+    if c[0] >= 0.0 and c[1] >= 0.0 and c[2] >= 0.0 and c[0] < float(dims[0]) and c[1] < float(dims[1]) and \
+            c[2] < float(dims[2]):
+        k = (int(c[2]) * dims[1] + int(c[1])) * dims[0] + int(c[0])
+        S = sh.shape[1] // 3
+        for e in range(cell_start[k], cell_start[k + 1]):
+            g = ids[e]
+            d = x - means[g]
+            q = wp.dot(d, precisions[g] * d)
+            if q <= cutoff2:
+                w = weights[g] * wp.exp(-0.5 * q)
+                col = wp.vec3(sh[g, 0], sh[g, 1], sh[g, 2]) * _SH_C0
+                if S > 1:
+                    v = wp.normalize(dir_maps[g] * dirs[p])
+                    col = col - _SH_C1 * v[1] * wp.vec3(sh[g, 3], sh[g, 4], sh[g, 5]) \
+                        + _SH_C1 * v[2] * wp.vec3(sh[g, 6], sh[g, 7], sh[g, 8]) \
+                        - _SH_C1 * v[0] * wp.vec3(sh[g, 9], sh[g, 10], sh[g, 11])
+                col = wp.vec3(wp.max(col[0] + 0.5, 0.0), wp.max(col[1] + 0.5, 0.0), wp.max(col[2] + 0.5, 0.0))
+                total += w
+                acc += w * col
+    sigma[p] = total
+    rgb[p] = acc
 
 
 @wp.kernel
