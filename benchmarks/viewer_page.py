@@ -30,10 +30,13 @@ and off, alternating; with it on, also the Gaussians drawn during the drag and a
 Gaussians are drawn again, and the PSNR of the preview against the image at rest (screenshots `viewer_moving.png`,
 `viewer_rest.png` with `--shots`).
 
-`--pose-delay-ms D` emulates a slow server (the posing of a loaded machine): every uncached posing (the model's
-`posed_gaussians`, what `ViewerSession.splats` calls when a frame is not in its cache) waits D ms more, through a
-wrapper this benchmark puts on its model object (the viewer itself has no such option). The caches work as without
-it: a frame posed once costs no posing again while cached.
+`--pose-delay-ms D` emulates a slow server (the posing of a loaded machine): every posing (the model's
+`posed_gaussians`, which `ViewerSession.splats` calls each time; the viewer poses a frame only when it is not in the
+controller's `FrameCache`) waits D ms more, through a wrapper this benchmark puts on its model object (the viewer
+itself has no such option). The cache works as without it: a frame posed once costs no posing again while cached.
+
+The viewer shows the project's own frames (`avatarctl view` without `--poses`; /work/data/P_alone: 120 frames at
+15 fps, so `--seconds 5` of play passes 75 of them); the benchmark has no option for a motion file.
 
 Needs websockets (the `view` extra) and Chromium (`apt-get install -y chromium`). Run it with `nice -n 19` on a shared machine.
 """
