@@ -6,7 +6,6 @@ import math
 import sys
 
 import pytest
-import numpy as np
 import torch
 
 from avatarctl.fit.config import preset
@@ -285,57 +284,6 @@ def test_splat_ply_holds_the_posed_gaussians_in_the_world_frame(tmp_path):
     dc = torch.stack([col(f"f_dc_{i}") for i in range(3)], -1)
     rgb = 0.5 + SH_C0 * dc + SH_C1 * (-d[:, 1:2] * rest[..., 0] + d[:, 2:3] * rest[..., 1] - d[:, 0:1] * rest[..., 2])
     assert torch.allclose(rgb.clamp(min=0), posed.colors(0, cam).double(), atol=1e-5)
-
-
-def test_random_background_recomposite_is_exact():
-    """`losses.over_background`: a render over black and its target moved onto another colour = rendering over that
-    colour and compositing the photograph over it (`evaluate.protocols.ground_truth`)."""
-    from avatarctl.evaluate.protocols import ground_truth
-    from avatarctl.model.losses import over_background
-    from avatarctl.splat import SplatCamera, render_gaussians
-
-    gen = torch.Generator().manual_seed(0)
-    means = torch.cat([torch.rand(40, 2, generator=gen) - 0.5, 2 + torch.rand(40, 1, generator=gen)], -1)
-    covars = transformed_covariances(torch.eye(3).expand(1, 40, 3, 3), torch.randn(40, 1, 4, generator=gen),
-                                     torch.full((40, 1, 3), -3.0))[0, :, 0]
-    colors, opac = torch.rand(40, 3, generator=gen), torch.rand(40, generator=gen)
-    cam = SplatCamera(K=torch.tensor([[30.0, 0, 15], [0, 30, 12], [0, 0, 1]]), R=torch.eye(3), T=torch.zeros(3),
-                      width=31, height=25)
-    black, b = torch.zeros(3), torch.tensor([0.2, 0.9, 0.5])
-    over_black = render_gaussians(means, covars, colors, opac, cam, black, backend="torch")
-    over_b = render_gaussians(means, covars, colors, opac, cam, b, backend="torch")
-    photo, mask = np.random.default_rng(0).random((25, 31, 3)), np.random.default_rng(1).random((25, 31)) > 0.5
-    target_black = torch.from_numpy(ground_truth(photo, mask, black.numpy()).astype(np.float32))
-    rgb, target = over_background(over_black.rgb, over_black.alpha, target_black, torch.from_numpy(mask), b, black)
-    assert torch.allclose(rgb, over_b.rgb, atol=1e-6)
-    assert torch.allclose(target, torch.from_numpy(ground_truth(photo, mask, b.numpy()).astype(np.float32)), atol=1e-6)
-
-
-def test_image_sampler_draws_a_background_per_crop(toy_gaussian_project):
-    """`ImageSampler(random_background=True)`: one colour in [0, 1]^3 per crop, from the batch's generator (the same
-    seed, the same colours); without it the crops keep the fit's background (None)."""
-    from avatarctl.body.registry import load_body_model
-    from avatarctl.fit.conditioning import build_pose_table
-    from avatarctl.fit.data import FrameStore, ImageSampler
-    from avatarctl.io.project_io import load_project_capture
-    from avatarctl.project import Project
-
-    cap = load_project_capture(Project.open(toy_gaussian_project))
-    frames = cap.split.train_frames
-    poses = build_pose_table(load_body_model(cap.body_model, cap.body_model_path), cap.motion, frames)
-    store = FrameStore(cap, poses, 0.1, 2**26, 2)
-
-    def batch(random_background: bool, seed: int = 0):
-        sampler = ImageSampler(store, frames, cap.split.train_views, 64, 3, 0.5, (0.0, 0.0, 0.0),
-                               random_background=random_background)
-        return sampler.sample(torch.Generator().manual_seed(seed))
-
-    plain, first, again = batch(False), batch(True), batch(True)
-    assert all(c.background is None for c in plain.crops)
-    colours = torch.stack([c.background for c in first.crops])
-    assert colours.shape == (3, 3) and 0 <= float(colours.min()) and float(colours.max()) <= 1
-    assert torch.equal(colours, torch.stack([c.background for c in again.crops]))
-    assert plain.frames == first.frames and plain.views == first.views  # the colours are drawn after the pairs
 
 
 def _density_against_twin(device: str) -> None:

@@ -217,9 +217,6 @@ class CropTarget:
     y0: int
     target: torch.Tensor  # [h, w, 3] float32: rgb * mask + background * (1 - mask)
     mask: torch.Tensor  # [h, w] float32 foreground
-    # [3] a colour the loss composites render and target over instead of the fit's background (the sampler's
-    # random_background); None: the fit's background
-    background: torch.Tensor | None = None
 
 
 @dataclass
@@ -238,23 +235,15 @@ class ImageBatch:
 
 class ImageSampler(RaySampler):
     """Draws `ImageBatch`es: the same (frame, view) pairs as `RaySampler` (`draw_images`), each image's whole crop
-    (the posed body's box grown by `crop_pad`, see the module docstring) as its target instead of scattered rays.
-    With `random_background` each crop also gets a uniformly random colour (from the same generator, after the
-    pairs) for the loss to composite over (`losses.over_background`)."""
-
-    def __init__(self, *args, random_background: bool = False, **kwargs):
-        super().__init__(*args, **kwargs)
-        self.random_background = bool(random_background)
+    (the posed body's box grown by `crop_pad`, see the module docstring) as its target instead of scattered rays."""
 
     def sample(self, generator: torch.Generator, device: str | torch.device = "cpu") -> ImageBatch:  # type: ignore[override]
         frames, views = self.draw_images(generator)
-        colours = torch.rand(len(frames), 3, generator=generator) if self.random_background else None
         crops = []
-        for i, (frame, view) in enumerate(zip(frames, views)):
+        for frame, view in zip(frames, views):
             crop = self.store.get(view, frame)
             target = ground_truth(crop.rgb, crop.mask, self.background).astype(np.float32)
             crops.append(CropTarget(camera=self.store.capture.cameras[view], x0=crop.x0, y0=crop.y0,
                                     target=torch.from_numpy(target).to(device),
-                                    mask=torch.from_numpy(crop.mask.astype(np.float32)).to(device),
-                                    background=None if colours is None else colours[i].to(device)))
+                                    mask=torch.from_numpy(crop.mask.astype(np.float32)).to(device)))
         return ImageBatch(crops=crops, cond=self.conditioning(frames, device), frames=frames, views=views)

@@ -159,7 +159,6 @@ class Replicas:
         """The rasterized field's step: each shard's node state (its noise generator), its crops rasterized, the
         image loss over all of this rank's crops. -> (loss terms, outputs, pixels of the whole step over all ranks)."""
         from avatarctl.model.avatar import ImageOutputs
-        from avatarctl.model.losses import over_background
 
         states, outs, counts = [], [], []
         for k, b in parts:
@@ -170,13 +169,9 @@ class Replicas:
         state = states[0] if len(states) == 1 else _cat_states(states, counts)
         out = ImageOutputs.cat(outs)
         batches = [b for _, b in parts]
-        crops = [c for b in batches for c in b.crops]
-        rgbs, targets, masks = list(out.rgb), [c.target for c in crops], [c.mask for c in crops]
-        for i, c in enumerate(crops):  # the sampler's random background colours (ImageSampler.random_background)
-            if c.background is not None:
-                rgbs[i], targets[i] = over_background(rgbs[i], out.alpha[i], targets[i], masks[i], c.background,
-                                                      background)
-        terms = model.image_losses(rgbs, out.alpha, targets, masks, state)
+        targets = [c.target for b in batches for c in b.crops]
+        masks = [c.mask for b in batches for c in b.crops]
+        terms = model.image_losses(out.rgb, out.alpha, targets, masks, state)
         return terms, out, sum(b.pixels for b in batches) * self.world
 
     def _forward_shards(self, model: "SlrfAvatar", parts: list[tuple[int, "TrainBatch"]], background: torch.Tensor,

@@ -368,12 +368,10 @@ def _set_up(project: Project, cfg: FitConfig | None, device: str, resume: bool, 
     poses = build_pose_table(body, capture.motion, train_frames)
     store = FrameStore(capture, poses, cfg.crop_pad, cfg.cache_mb * 2**20, MASK_DILATE_PX)
     # the ray-marched fields learn from scattered rays, the rasterized one (model.field = "gaussians") from whole crops
-    extra = {} if cfg.model.ray_marched else {"random_background": cfg.model.gaussians.random_background}
     Sampler = RaySampler if cfg.model.ray_marched else ImageSampler
     replicas = Replicas(env, shards, lambda pairs, rays, images: Sampler(
         store, train_frames, split.train_views, rays, images, cfg.box_fraction, cfg.background, cfg.mask_fraction,
-        pairs, **extra), train_frames, list(split.train_views), cfg.rays_per_batch, cfg.images_per_batch, cfg.seed,
-        dev)
+        pairs), train_frames, list(split.train_views), cfg.rays_per_batch, cfg.images_per_batch, cfg.seed, dev)
     pairs = choose_val_pairs(split.test_views, train_frames, cfg.val_pairs) if main else []
     validator = Validator(capture, body, pairs, train_frames, cfg.background, cfg.val_scale) if pairs else None
 

@@ -240,9 +240,6 @@ class GaussianConfig:
     # steps the Gaussians with opacity < `min_opacity` move onto live ones of their node (0: never)
     relocate_every: int = 100
     min_opacity: float = 0.005
-    # a uniformly random background colour per training crop (the sampler draws it, the loss composites render and
-    # target over it: losses.over_background), as the 3DGS avatar works train
-    random_background: bool = False
 
     def __post_init__(self) -> None:
         def need(ok: bool, msg: str) -> None:

@@ -109,16 +109,6 @@ def ssim_map(a: torch.Tensor, b: torch.Tensor, window: int = 11) -> torch.Tensor
     return ((2 * mu_a * mu_b + c1) * (2 * cov + c2)) / ((mu_a * mu_a + mu_b * mu_b + c1) * (va + vb + c2))
 
 
-def over_background(rgb: torch.Tensor, alpha: torch.Tensor, target: torch.Tensor, mask: torch.Tensor,
-                    new: torch.Tensor, old: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """A render and its target, both composited over the background `old` [3], composited over `new` [3] instead:
-    the render is C + (1 - alpha) old and the target rgb mask + old (1 - mask), so adding (1 - alpha)(new - old) and
-    (1 - mask)(new - old) gives what rendering over `new` and compositing the photograph over it would (exactly).
-    rgb / target [h, w, 3], alpha / mask [h, w] -> (rgb, target) over `new`."""
-    d = (new - old).to(rgb)
-    return rgb + (1 - alpha)[..., None] * d, target + (1 - mask.to(target))[..., None] * d.to(target)
-
-
 def image_reconstruction_loss(rgb: list[torch.Tensor], target: list[torch.Tensor], alpha: list[torch.Tensor],
                               mask: list[torch.Tensor], lambda_ssim: float, lambda_mask: float,
                               reference_rays: int = 2048) -> tuple[torch.Tensor, torch.Tensor]:
