@@ -172,8 +172,10 @@ def part_train(device: str, quick: bool) -> dict:
         sec = _timed(step, device, steps)
         relocate_dead(model.fields, opt, 0.005, 0, 100)  # the density control runs on the device too
         _sync(device)
-        out[f"batch{batch}"] = {"seconds_per_step": sec, "images_per_s": batch / sec, "pixels_per_s": batch * size * size / sec,
-                     "peak_gpu_gb": torch.cuda.max_memory_allocated() / 2**30 if device.startswith("cuda") else None}
+        out[f"batch{batch}"] = {"seconds_per_step": sec, "images_per_s": batch / sec,
+                                "pixels_per_s": batch * size * size / sec,
+                                "peak_gpu_gb": torch.cuda.max_memory_allocated() / 2**30
+                                if device.startswith("cuda") else None}
     return out
 
 
@@ -220,6 +222,33 @@ def part_render(device: str, quick: bool) -> dict:
             **{k: 1e3 * v for k, v in parts.items()}}
 
 
+def part_density(device: str, quick: bool) -> dict:
+    """The Gaussians as a density at points (`splat.density`, what the mesh export samples): the posed toy avatar
+    queried at points around its nodes, ms per million points, and the largest relative difference of sigma against
+    the dense torch twin on CPU (a subset of the points)."""
+    import torch
+
+    from avatarctl.splat.density import gaussian_field_at, gaussian_field_at_torch
+
+    model, state, _ = _eval_avatar(device, quick)
+    n_points, reps = (2_000, 2) if quick else (1_000_000, 5)
+    gen = torch.Generator().manual_seed(0)
+    with torch.no_grad():
+        posed = model.posed_gaussians(state)
+        centers = state.centers[0].cpu()
+        pts = centers[torch.randint(centers.shape[0], (n_points,), generator=gen)]
+        pts = (pts + 0.05 * torch.randn(n_points, 3, generator=gen)).to(device)
+        dirs = torch.nn.functional.normalize(torch.randn(n_points, 3, generator=gen), dim=-1).to(device)
+        args = (posed.means[0], posed.covars[0], posed.opacities[0] * 50.0, posed.sh[0])
+        sec = _timed(lambda: gaussian_field_at(pts, dirs, *args), device, reps)
+        _, sigma = gaussian_field_at(pts[:500], dirs[:500], *args)
+        _, ref = gaussian_field_at_torch(pts[:500].cpu().double(), dirs[:500].cpu().double(),
+                                         *(a.cpu().double() for a in args))
+    rel = float(((sigma.cpu().double() - ref).abs() / ref.clamp(min=1e-3)).max())
+    return {"points": n_points, "gaussians": int(posed.means.shape[1]),
+            "ms_per_million_points": 1e3 * sec / n_points * 1e6, "sigma_max_rel_diff_vs_twin": rel}
+
+
 def part_profile(device: str, quick: bool) -> dict:
     """Where a render's time goes on the device: torch.profiler's top operators by self device time and by self host
     time, and the count of host-device synchronisations (what keeps a small render from its kernels' speed)."""
@@ -251,7 +280,7 @@ def part_profile(device: str, quick: bool) -> dict:
 
 
 PARTS = {"env": part_env, "parity": part_parity, "raster": part_raster, "train": part_train, "render": part_render,
-         "profile": part_profile}
+         "density": part_density, "profile": part_profile}
 
 
 def main(argv: list[str] | None = None) -> dict:
