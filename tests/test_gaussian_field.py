@@ -315,6 +315,21 @@ def test_density_kernels_match_the_torch_twin():
     _density_against_twin("cpu")
 
 
+def test_density_cells_grow_coarser_when_the_lists_would_be_too_long(monkeypatch):
+    """Huge Gaussians (floaters) cover many cells: past MAX_ENTRIES / MAX_CELLS the cells grow coarser, and the field
+    stays the twin's."""
+    import warp
+
+    import avatarctl.splat.density as density
+
+    monkeypatch.setattr(density, "MAX_ENTRIES", 3_000)
+    monkeypatch.setattr(density, "MAX_CELLS", 5_000)
+    launch, counted = warp.launch, []
+    monkeypatch.setattr(warp, "launch", lambda kernel, *a, **k: counted.append(kernel.key) or launch(kernel, *a, **k))
+    _density_against_twin("cpu")
+    assert counted.count("count_cells") > 2  # two calls; at least one counted again with coarser cells
+
+
 @pytest.mark.gpu
 def test_cuda_density_kernels_match_the_torch_twin():
     _density_against_twin("cuda")

@@ -23,6 +23,7 @@ SH_C0 = 0.28209479177387814  # 3DGS's real spherical-harmonic constants, degrees
 SH_C1 = 0.4886025119029199
 CUTOFF = 4.0  # Mahalanobis radius beyond which a Gaussian adds nothing (exp(-8) = 3.4e-4 of its peak)
 MAX_CELLS = 4_000_000  # the cell grid grows coarser past this many cells
+MAX_ENTRIES = 32_000_000  # ... or past this many (cell, Gaussian) entries (a few huge Gaussians cover many cells)
 
 
 def eval_sh(sh: torch.Tensor, dirs: torch.Tensor) -> torch.Tensor:
@@ -89,21 +90,24 @@ def gaussian_field_at(points: torch.Tensor, dirs: torch.Tensor, means: torch.Ten
     halves = (CUTOFF * torch.sqrt(torch.diagonal(cov, dim1=-2, dim2=-1).clamp(min=0))).contiguous()  # [G, 3]
     lo, hi = pts.min(0).values, pts.max(0).values
     cell = max(float(torch.quantile(halves.max(-1).values.cpu(), 0.75)), 1e-4)
-    while True:
-        dims = [int(x) + 1 for x in torch.ceil((hi - lo) / cell).cpu().tolist()]
-        if dims[0] * dims[1] * dims[2] <= MAX_CELLS:
-            break
-        cell *= 1.26
-    lo_v, dims_v = wp.vec3(*lo.cpu().tolist()), wp.vec3i(*dims)
-    cells = dims[0] * dims[1] * dims[2]
-    counts = torch.zeros(cells, dtype=torch.int32, device=dev)
+    lo_v = wp.vec3(*lo.cpu().tolist())
     mu_w, half_w = wp.from_torch(mu, dtype=wp.vec3), wp.from_torch(halves, dtype=wp.vec3)
     maps = f32(dir_maps) if dir_maps is not None else torch.eye(3, device=dev).expand(G, 3, 3).contiguous()
     sigma, rgb = torch.empty(P, device=dev), torch.empty(P, 3, device=dev)
     stream = wp.ScopedStream(wp.stream_from_torch(dev)) if dev.type == "cuda" else contextlib.nullcontext()
     with stream:
-        wp.launch(k.count_cells, dim=G, inputs=[mu_w, half_w, lo_v, cell, dims_v, wp.from_torch(counts)],
-                  device=str(dev))
+        while True:  # cells of the common Gaussian's size, coarser where the grid or its lists would grow too big
+            dims = [int(x) + 1 for x in torch.ceil((hi - lo) / cell).cpu().tolist()]
+            if dims[0] * dims[1] * dims[2] > MAX_CELLS:
+                cell *= 1.26
+                continue
+            dims_v = wp.vec3i(*dims)
+            counts = torch.zeros(dims[0] * dims[1] * dims[2], dtype=torch.int32, device=dev)
+            wp.launch(k.count_cells, dim=G, inputs=[mu_w, half_w, lo_v, cell, dims_v, wp.from_torch(counts)],
+                      device=str(dev))
+            if int(counts.sum(dtype=torch.int64)) <= MAX_ENTRIES:
+                break
+            cell *= 1.26
         start = torch.cat([counts.new_zeros(1), torch.cumsum(counts, 0, dtype=torch.int32)])
         ids = torch.empty(int(start[-1]), dtype=torch.int32, device=dev)
         cursor = start[:-1].clone()
