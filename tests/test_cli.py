@@ -56,3 +56,27 @@ def test_allocator_tuning_applies_on_glibc_and_can_be_switched_off(monkeypatch):
     monkeypatch.setenv("AVATARCTL_MALLOC_TUNING", "1")
     if platform.system() == "Linux" and platform.libc_ver()[0] == "glibc":
         assert allocator.tune() is True  # glibc accepted every mallopt setting
+
+
+def test_a_checkpoint_of_another_version_is_a_one_line_error(toy_gaussian_project, tmp_path):
+    """A checkpoint whose settings hold a key this avatarctl does not know (written by another version): `eval` and
+    `fit --resume` refuse it in one line that says so, not with an internal error."""
+    import shutil
+
+    import torch
+
+    from avatarctl.fit.checkpoint import read_checkpoint
+
+    proj = tmp_path / "proj"
+    shutil.copytree(toy_gaussian_project, proj)
+    path = proj / "fit" / "checkpoints" / "latest.pt"
+    path = path.resolve() if path.is_symlink() else path
+    ckpt = read_checkpoint(path)
+    ckpt["model_config"]["gaussians"]["future_option"] = 1
+    ckpt["fit_config"]["model"]["gaussians"]["future_option"] = 1
+    torch.save(ckpt, path)
+    for args in (["eval", str(proj)], ["fit", str(proj), "--resume", "--iters", "99"]):
+        res = CliRunner().invoke(app, args)
+        out = res.output.strip()
+        assert res.exit_code != 0 and "not ones this avatarctl reads" in out and "future_option" in out, out
+        assert "internal error" not in out and "Traceback" not in out, out

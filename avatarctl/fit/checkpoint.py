@@ -35,7 +35,7 @@ from avatarctl import __version__
 from avatarctl.atomic import atomic_path
 from avatarctl.body.base import BodyModel, BodyTemplate
 from avatarctl.body.motion import BodyMotion
-from avatarctl.errors import ProjectError
+from avatarctl.errors import InputError, ProjectError
 from avatarctl.io.project_io import ProjectCapture
 from avatarctl.project import Project
 
@@ -145,21 +145,33 @@ class LoadedAvatar:
         return conditioning_for_motion(self.body, motion, self.train_frames, frames_are_training, self.device)
 
 
+def saved_configs(ckpt: dict[str, Any], path: Path) -> tuple["FitConfig", "ModelConfig"]:
+    """(fit config, model config) a checkpoint was trained with; a one-line `ProjectError` when they hold settings
+    this avatarctl does not read (a checkpoint of another version), not an internal error."""
+    from avatarctl.fit.config import FitConfig
+    from avatarctl.model.config import ModelConfig
+
+    try:
+        return FitConfig.from_json(ckpt["fit_config"]), ModelConfig.from_json(ckpt["model_config"])
+    except (InputError, ValueError, TypeError) as e:
+        what = e.what if isinstance(e, InputError) else str(e)
+        raise ProjectError(f"the checkpoint's settings are not ones this avatarctl reads ({what})", where=str(path),
+                           fix="it was written by another avatarctl version: use that version, or start over with "
+                               "`avatarctl fit --fresh`") from None
+
+
 def load_avatar(project: Project, device: str = "cpu", checkpoint: Path | None = None) -> LoadedAvatar:
     """Rebuild the fitted avatar from `checkpoint` (default: the project's latest) on `device`, in eval mode."""
     from avatarctl.body.registry import load_body_model
-    from avatarctl.fit.config import FitConfig
     from avatarctl.io.project_io import load_project_capture
     from avatarctl.model.avatar import SlrfAvatar
-    from avatarctl.model.config import ModelConfig
 
     path = Path(checkpoint) if checkpoint is not None else project.paths.latest_checkpoint
     ckpt = read_checkpoint(path, device="cpu")
+    fit_cfg, cfg = saved_configs(ckpt, path)
     capture = load_project_capture(project)
     body = load_body_model(capture.body_model, capture.body_model_path)
     template = body.template(capture.motion)
-    cfg = ModelConfig.from_json(ckpt["model_config"])
-    fit_cfg = FitConfig.from_json(ckpt["fit_config"])
     train_frames = [int(f) for f in ckpt["train_frames"]]
     model = SlrfAvatar(cfg, template, num_frames=len(train_frames), seed=fit_cfg.seed)
     try:

@@ -274,7 +274,7 @@ def _open_run(project: Project, cfg: FitConfig | None, resume: bool, fresh: bool
               ) -> tuple[Any, list[int], FitConfig, "dict[str, Any] | None"]:
     """Check the project's split, read the checkpoint being resumed (its config holds; only `iters` may change) or
     clear the fit being replaced. -> (capture, training frames, config, checkpoint or None)."""
-    from avatarctl.fit.checkpoint import read_checkpoint
+    from avatarctl.fit.checkpoint import read_checkpoint, saved_configs
     from avatarctl.io.project_io import load_project_capture
 
     paths = project.paths
@@ -293,7 +293,7 @@ def _open_run(project: Project, cfg: FitConfig | None, resume: bool, fresh: bool
     ckpt = None
     if resume:
         ckpt = read_checkpoint(paths.latest_checkpoint)
-        cfg = _resume_config(cfg, FitConfig.from_json(ckpt["fit_config"]))
+        cfg = _resume_config(cfg, saved_configs(ckpt, paths.latest_checkpoint)[0])
         if [int(f) for f in ckpt["train_frames"]] != train_frames:
             raise ProjectError("the checkpoint was trained on other frames than the project's split",
                                where=str(paths.latest_checkpoint), fix="start over with --fresh")

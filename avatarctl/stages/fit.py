@@ -83,9 +83,10 @@ def fit_config(project: Project, cfg: FitRequest) -> "FitConfig | None":
                          fix="resume with only --iters (or start over with --fresh)")
     if cfg.iters is None:
         return None
-    from avatarctl.fit.checkpoint import read_checkpoint  # extend (or shorten) the resumed run
+    from avatarctl.fit.checkpoint import read_checkpoint, saved_configs  # extend (or shorten) the resumed run
 
-    saved = FitConfig.from_json(read_checkpoint(project.paths.latest_checkpoint)["fit_config"])
+    path = project.paths.latest_checkpoint
+    saved = saved_configs(read_checkpoint(path), path)[0]
     return replace(saved, iters=cfg.iters)
 
 
