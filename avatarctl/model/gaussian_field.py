@@ -38,6 +38,7 @@ from avatarctl.model.config import GaussianConfig
 from avatarctl.splat.covariance import transformed_covariances
 from avatarctl.splat.density import SH_C0, SH_C1, eval_sh  # noqa: F401 (the model's colour rule, re-exported)
 
+
 def sh_coefficients(degree: int) -> int:
     """Coefficients per colour channel of real spherical harmonics up to `degree`: (degree + 1)^2."""
     return (degree + 1) ** 2

@@ -63,5 +63,5 @@ def render_gaussians_batch(means: torch.Tensor,  # [B, G, 3] world, metres: the 
     return rasterize_batch(proj, colors, opacities, [(c.width, c.height) for c in cams], background, backend)
 
 
-__all__ = ["Projected", "SplatCamera", "SplatRender", "project_and_reach", "project_gaussians", "project_gaussians_batch",
-           "rasterize", "rasterize_batch", "render_gaussians", "render_gaussians_batch"]
+__all__ = ["Projected", "SplatCamera", "SplatRender", "project_and_reach", "project_gaussians",
+           "project_gaussians_batch", "rasterize", "rasterize_batch", "render_gaussians", "render_gaussians_batch"]

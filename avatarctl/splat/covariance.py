@@ -10,8 +10,6 @@ torch operations that bound a single render on a GPU.
 
 from __future__ import annotations
 
-import contextlib
-
 import torch
 
 
@@ -51,7 +49,7 @@ def transformed_covariances(linear: torch.Tensor,  # [B, N, 3, 3] A: one linear 
         return gram(torch.einsum("bnij,nkjl->bnkil", linear, L))
     import warp as wp
 
-    from avatarctl.splat.rasterizer import _kernels
+    from avatarctl.splat.rasterizer import _kernels, torch_stream
 
     k = _kernels()
     dev = linear.device
@@ -60,7 +58,6 @@ def transformed_covariances(linear: torch.Tensor,  # [B, N, 3, 3] A: one linear 
               wp.from_torch(quats.detach().contiguous().reshape(N * K, 4), dtype=wp.vec4),
               wp.from_torch(log_scales.detach().contiguous().reshape(N * K, 3), dtype=wp.vec3), K, N,
               wp.from_torch(out.reshape(B * N * K, 3, 3), dtype=wp.mat33)]
-    stream = wp.ScopedStream(wp.stream_from_torch(dev)) if dev.type == "cuda" else contextlib.nullcontext()
-    with stream:
+    with torch_stream(dev):
         wp.launch(k.transformed_covariances, dim=B * N * K, inputs=inputs, device=str(dev))
     return out

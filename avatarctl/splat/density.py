@@ -15,8 +15,6 @@ Gaussian; tiny scenes).
 
 from __future__ import annotations
 
-import contextlib
-
 import torch
 
 SH_C0 = 0.28209479177387814  # 3DGS's real spherical-harmonic constants, degrees 0 and 1
@@ -74,7 +72,7 @@ def gaussian_field_at(points: torch.Tensor, dirs: torch.Tensor, means: torch.Ten
     """`gaussian_field_at_torch`'s result from the Warp kernels (module docstring), float32, no gradients."""
     import warp as wp
 
-    from avatarctl.splat.rasterizer import _kernels
+    from avatarctl.splat.rasterizer import _kernels, torch_stream
 
     _check(points, dirs, means, covars, weights, sh, dir_maps)
     P, G, dev = points.shape[0], means.shape[0], points.device
@@ -94,8 +92,7 @@ def gaussian_field_at(points: torch.Tensor, dirs: torch.Tensor, means: torch.Ten
     mu_w, half_w = wp.from_torch(mu, dtype=wp.vec3), wp.from_torch(halves, dtype=wp.vec3)
     maps = f32(dir_maps) if dir_maps is not None else torch.eye(3, device=dev).expand(G, 3, 3).contiguous()
     sigma, rgb = torch.empty(P, device=dev), torch.empty(P, 3, device=dev)
-    stream = wp.ScopedStream(wp.stream_from_torch(dev)) if dev.type == "cuda" else contextlib.nullcontext()
-    with stream:
+    with torch_stream(dev):
         while True:  # cells of the common Gaussian's size, coarser where the grid or its lists would grow too big
             dims = [int(x) + 1 for x in torch.ceil((hi - lo) / cell).cpu().tolist()]
             if dims[0] * dims[1] * dims[2] > MAX_CELLS:

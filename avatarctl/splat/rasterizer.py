@@ -88,8 +88,7 @@ def project_and_reach(means: torch.Tensor,  # [G, 3] world, metres
                   int(cam.width), int(cam.height), float(near), LOW_PASS, FOV_CLAMP - 1.0]
         outputs = [wp.from_torch(means2d, dtype=wp.vec2), wp.from_torch(conics, dtype=wp.vec3), wp.from_torch(depths),
                    wp.from_torch(radii), wp.from_torch(boxes, dtype=wp.vec4i)]
-        stream = wp.ScopedStream(wp.stream_from_torch(dev)) if dev.type == "cuda" else contextlib.nullcontext()
-        with stream:
+        with torch_stream(dev):
             wp.launch(k.project_reach, dim=G, inputs=inputs + outputs, device=str(dev))
     return Projected(means2d=means2d, conics=conics, depths=depths, radii=radii, reach=boxes)
 
@@ -117,8 +116,7 @@ def _bin_keys(boxes: torch.Tensor, depths: torch.Tensor, tiles_x: int, tiles_y: 
     device, G = boxes.device, boxes.shape[0]
     box = wp.from_torch(boxes.contiguous(), dtype=wp.vec4i)
     counts = torch.empty(G, dtype=torch.int32, device=device)
-    stream = wp.ScopedStream(wp.stream_from_torch(device)) if device.type == "cuda" else contextlib.nullcontext()
-    with stream:
+    with torch_stream(device):
         if G:
             wp.launch(k.count_entries, dim=G, inputs=[box, wp.from_torch(counts)], device=str(device))
         ends = torch.cumsum(counts, 0, dtype=torch.int32)
@@ -233,6 +231,14 @@ def _kernels():
     return _warp_kernels
 
 
+def torch_stream(device: torch.device):
+    """The context Warp launches on `device` run in: torch's current CUDA stream (so they order with torch's own
+    operations), nothing on the CPU."""
+    import warp as wp
+
+    return wp.ScopedStream(wp.stream_from_torch(device)) if device.type == "cuda" else contextlib.nullcontext()
+
+
 @functools.lru_cache(maxsize=None)
 def _pool(workers: int) -> ThreadPoolExecutor:
     return ThreadPoolExecutor(max_workers=workers, thread_name_prefix="splat")
@@ -258,7 +264,7 @@ def _launch(kernel, bins: TileBins, per_tile: int, jobs: int, args_of_job, chann
             wp.launch(kernel, dim=n * per_tile, inputs=[tile_order, j, jobs, *args_of_job(j)], device=str(device))
 
     if device.type == "cuda":
-        with wp.ScopedStream(wp.stream_from_torch(device)):
+        with torch_stream(device):
             one(0)
         return
     key = (kernel.key, channels, str(device))
