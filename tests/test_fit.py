@@ -108,7 +108,8 @@ def test_config_of_schema_version_1_reads_into_the_nested_one():
     cfg = FitConfig.from_json(old)
     want = resolve_fit_config("cpu", iters=30, seed=1, overrides=["model.pose_refine.enabled=true",
                                                                   "checkpoint_every=10",
-                                                                  "model.gaussians.sh_degree=1"])  # its saved value
+                                                                  "model.gaussians.sh_degree=1",  # its saved values
+                                                                  "model.gaussians.lambda_ssim=0.2"])
     assert cfg == want
     assert FitConfig.from_json(json.loads(json.dumps(cfg.to_json()))) == cfg
     for key, value in (("pe_anneal_steps", 1000), ("occ_stop_eps", 1e-3)):
