@@ -35,8 +35,8 @@ Gaussians are drawn again, and the PSNR of the preview against the image at rest
 controller's `FrameCache`) waits D ms more, through a wrapper this benchmark puts on its model object (the viewer
 itself has no such option). The cache works as without it: a frame posed once costs no posing again while cached.
 
-The viewer shows the project's own frames (`avatarctl view` without `--poses`; /work/data/P_alone: 120 frames at
-15 fps, so `--seconds 5` of play passes 75 of them); the benchmark has no option for a motion file.
+The viewer shows the project's own frames (`avatarctl view` without `--poses`; on synth small's project: 120 frames
+at 15 fps, so `--seconds 5` of play passes 75 of them); the benchmark has no option for a motion file.
 
 Needs websockets (the `view` extra) and Chromium (`apt-get install -y chromium`). Run it with `nice -n 19` on a shared machine.
 """

@@ -259,7 +259,7 @@ def test_splat_ply_holds_the_posed_gaussians_in_the_world_frame(tmp_path):
     same view-dependent colour once the local-frame SH band is turned into the world frame."""
     trimesh = pytest.importorskip("trimesh")
     from avatarctl.export.splat_ply import splat_arrays, write_splat_ply
-    from avatarctl.model.gaussian_field import SH_C0, SH_C1
+    from avatarctl.splat.density import SH_C0, SH_C1
 
     g = _fields(N=2, K=3)
     with torch.no_grad():

@@ -36,7 +36,7 @@ from torch import nn
 from avatarctl.model.batched_mlp import BatchedLinear, BatchedMLP
 from avatarctl.model.config import GaussianConfig
 from avatarctl.splat.covariance import transformed_covariances
-from avatarctl.splat.density import SH_C0, SH_C1, eval_sh  # noqa: F401 (the model's colour rule, re-exported)
+from avatarctl.splat.density import SH_C0, eval_sh
 
 
 def sh_coefficients(degree: int) -> int:
