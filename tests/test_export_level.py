@@ -11,7 +11,7 @@ import pytest
 
 from avatarctl.export.level import (LEVEL_STEP, ScoringImage, choose_level, pick_views, scoring_image,
                                     search_steps)
-from avatarctl.export.mesh import density_grid, extract_mesh
+from avatarctl.export.mesh import density_grid, extract_mesh, head_on_bake
 from avatarctl.geometry.cameras import Camera, look_at
 
 FALLOFF = 0.05  # metres: sigma(r) = 100 exp(-r / FALLOFF), so the level L is the ball of radius FALLOFF ln(100 / L)
@@ -26,6 +26,9 @@ def soft_ball(points: np.ndarray) -> np.ndarray:
 
 def opaque_red(origins: np.ndarray, dirs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return np.tile(RED, (len(origins), 1)), np.ones(len(origins))
+
+
+RED_BAKE = head_on_bake(opaque_red, offset=0.02, background=(0.0, 0.0, 0.0))
 
 
 def radius_of(level: float) -> float:
@@ -54,8 +57,7 @@ def test_the_chooser_finds_the_level_the_photographs_show(best):
     pytest.importorskip("warp")
     true_level = BASE * LEVEL_STEP ** best
     grid = density_grid(soft_ball, CENTERS, radius=0.3, voxel=0.01, level=BASE)
-    choice, mesh = choose_level(grid, BASE, opaque_red, photographs(radius_of(true_level)), (0.0, 0.0, 0.0),
-                                offset=0.02)
+    choice, mesh = choose_level(grid, BASE, RED_BAKE, photographs(radius_of(true_level)), (0.0, 0.0, 0.0))
     tried = [c.step for c in choice.candidates]
     expected = [0, -1, 1, -2, -3] if best == -2 else [0, -1, 1, 2]
     assert tried == expected, "k = 0 and its neighbours, then the climb until the score falls (each scored once)"
@@ -64,8 +66,7 @@ def test_the_chooser_finds_the_level_the_photographs_show(best):
     scores = {c.step: c.psnr for c in choice.candidates}
     assert scores[best] == max(scores.values()) and scores[best] > 30.0
     assert all(0 < c.baked < c.faces for c in choice.candidates), "only the vertices the views see are baked"
-    plain, _ = extract_mesh(soft_ball, opaque_red, CENTERS, radius=0.3, voxel=0.01, threshold=BASE * LEVEL_STEP ** best,
-                            background=(0.0, 0.0, 0.0))
+    plain, _ = extract_mesh(soft_ball, RED_BAKE, CENTERS, radius=0.3, voxel=0.01, threshold=BASE * LEVEL_STEP ** best)
     assert np.array_equal(mesh.faces, plain.faces) and np.allclose(mesh.vertices, plain.vertices, atol=1e-6)
     assert np.allclose(mesh.colours, plain.colours, atol=1e-6), "every vertex baked, as extract_mesh does"
 
@@ -78,12 +79,11 @@ def test_a_level_without_surface_loses_and_none_at_all_raises():
         return np.minimum(soft_ball(points), 50.0)  # no surface above 50/m
 
     grid = density_grid(flat_top, CENTERS, radius=0.3, voxel=0.01, level=40.0)
-    choice, _ = choose_level(grid, 40.0, opaque_red, photographs(radius_of(40.0 / LEVEL_STEP)), (0.0, 0.0, 0.0),
-                             offset=0.02)
+    choice, _ = choose_level(grid, 40.0, RED_BAKE, photographs(radius_of(40.0 / LEVEL_STEP)), (0.0, 0.0, 0.0))
     assert [(c.step, c.psnr is None) for c in choice.candidates] == [(0, False), (-1, False), (1, True), (-2, False)]
     assert choice.step == -1
     with pytest.raises(NoSurfaceError, match="no candidate level"):
-        choose_level(grid, 1e4, opaque_red, photographs(0.1), (0.0, 0.0, 0.0), offset=0.02)
+        choose_level(grid, 1e4, RED_BAKE, photographs(0.1), (0.0, 0.0, 0.0))
 
 
 @pytest.mark.parametrize("peak, steps, expected, scored", [

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from avatarctl.export.mesh import (ColouredMesh, NoSurfaceError, bake_colours, density_grid, extract_mesh,
-                                   marching_cubes)
+                                   head_on_bake, marching_cubes)
 
 RADIUS = 0.25
 
@@ -29,10 +29,11 @@ def colour_by_height(origins: np.ndarray, dirs: np.ndarray) -> tuple[np.ndarray,
 
 
 CENTERS = np.array([[0.0, 0.0, 0.0], [0.45, 0.0, 0.0]])
+HEIGHT_BAKE = head_on_bake(colour_by_height, offset=0.02)  # 2 voxels of 1 cm outside, no background: rgb / alpha
 
 
 def test_sphere_surface_normals_winding_and_colours():
-    mesh, queried = extract_mesh(sphere_density, colour_by_height, CENTERS, radius=0.3, voxel=0.01, threshold=50.0)
+    mesh, queried = extract_mesh(sphere_density, HEIGHT_BAKE, CENTERS, radius=0.3, voxel=0.01, threshold=50.0)
     r = np.linalg.norm(mesh.vertices, axis=-1)
     assert np.abs(r - RADIUS).max() < 0.005, "vertices on the 50/m level set (the sphere's edge)"
     assert (np.einsum("vi,vi->v", mesh.normals, mesh.vertices / r[:, None]) > 0.95).all(), "outward normals"
@@ -81,7 +82,7 @@ def test_rasterised_mesh_matches_the_sphere_silhouette():
     from avatarctl.export.raster import render_mesh
     from avatarctl.geometry.cameras import Camera, look_at
 
-    mesh, _ = extract_mesh(sphere_density, colour_by_height, CENTERS[:1], radius=0.3, voxel=0.01, threshold=50.0)
+    mesh, _ = extract_mesh(sphere_density, HEIGHT_BAKE, CENTERS[:1], radius=0.3, voxel=0.01, threshold=50.0)
     R, T = look_at(np.array([0.0, -2.0, 0.0]), np.zeros(3))
     cam = Camera("c", K=np.array([[80.0, 0, 31.5], [0, 80.0, 31.5], [0, 0, 1]]), R=R, T=T, width=64, height=64)
     img = render_mesh(mesh, cam, (0.0, 0.0, 0.0))

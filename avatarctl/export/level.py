@@ -15,11 +15,12 @@ Steps (`choose_level`):
    direction while the score strictly improves (the training-view PSNR rises to one peak and falls on both projects
    measured); k = 0 is kept unless a neighbour beats it;
 3. a candidate's score: marching cubes at its level (`mesh.marching_cubes`), one ray per pixel of each scoring image
-   cast against it (`raster.cast_pixels`), the vertices of the faces hit baked (`mesh.bake_colours`, the colours the
-   exported mesh gets: only those vertices show in the images), the images shaded (`raster.shade`) and scored with
+   cast against it (`raster.cast_pixels`), the vertices of the faces hit coloured (the `mesh.VertexColourFn` the
+   exported mesh gets: only those vertices show in the images; the head-on bake computes only them), the images
+   shaded (`raster.shade`) and scored with
    the PSNR over the eval bbox region (`evaluate.metrics.psnr`), averaged over the images; a level with no surface
    loses to every level with one;
-4. the mesh at the chosen level is that candidate with the rest of its vertices baked: the same mesh (vertices,
+4. the mesh at the chosen level is that candidate with the rest of its vertices coloured: the same mesh (vertices,
    faces, colours) `mesh.extract_mesh` gives at that level.
 
 Scoring images are at most SCORE_MAX_SIDE pixels on their long side (`scoring_image` scales larger cameras down and
@@ -35,8 +36,8 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from avatarctl.export.mesh import ColouredMesh, DensityGrid, NoSurfaceError, RayColourFn, bake_colours, \
-    marching_cubes, mesh_pieces
+from avatarctl.export.mesh import ColouredMesh, DensityGrid, NoSurfaceError, VertexColourFn, marching_cubes, \
+    mesh_pieces
 from avatarctl.geometry.cameras import Camera
 
 LEVEL_STEP = float(np.sqrt(2.0))  # factor between neighbouring candidates (a 2x ladder skipped the demo's best level)
@@ -70,7 +71,7 @@ class LevelScore:
     faces: int
     pieces: int  # connected pieces (after dropping the small ones)
     largest_piece: float  # the largest piece's share of the faces
-    baked: int  # vertices baked to score it (those of the faces hit)
+    baked: int  # vertices coloured to score it (those of the faces hit)
 
 
 @dataclass(frozen=True)
@@ -116,20 +117,20 @@ def scoring_image(view: str, camera: Camera, rgb: np.ndarray, mask: np.ndarray,
 
 @dataclass
 class _Candidate:
-    """A candidate mesh, its colours baked where the scoring images see it."""
+    """A candidate mesh, its colours valid where the scoring images see it."""
 
     mesh: ColouredMesh  # colours valid where `baked`
-    baked: np.ndarray  # [verts] bool
+    baked: np.ndarray  # [verts] bool: at least the vertices seen (all, for a colouring that does all at once)
 
 
-def choose_level(grid: DensityGrid, body_level: float, ray_colour: RayColourFn, images: Sequence[ScoringImage],
-                 background: tuple[float, float, float], offset: float, min_component: float = 0.01,
+def choose_level(grid: DensityGrid, body_level: float, colour: VertexColourFn, images: Sequence[ScoringImage],
+                 background: tuple[float, float, float], min_component: float = 0.01,
                  step: float = LEVEL_STEP, steps: int = LEVEL_STEPS) -> tuple[LevelChoice, ColouredMesh]:
-    """The level of the best candidate (module docstring) -> (the choice, the mesh at that level, fully baked).
+    """The level of the best candidate (module docstring) -> (the choice, the mesh at that level, fully coloured).
 
-    grid: the density refined around `body_level` (1/metre); ray_colour, background, offset (metres outside the
-    surface the bake rays start) and min_component as for `mesh.extract_mesh`; images: at least one. Raises
-    `NoSurfaceError` when no candidate has a surface.
+    grid: the density refined around `body_level` (1/metre); colour and min_component as for `mesh.extract_mesh`;
+    background: the scoring images' (the fit's); images: at least one. Raises `NoSurfaceError` when no candidate has
+    a surface.
     """
     if not images:
         raise ValueError("choose_level needs at least one scoring image")
@@ -156,15 +157,14 @@ def choose_level(grid: DensityGrid, body_level: float, ray_colour: RayColourFn, 
         seen = np.zeros(verts.shape[0], bool)
         for h in hits:
             seen[faces[h.face].ravel()] = True
-        colours = np.zeros_like(verts)
-        colours[seen] = bake_colours(ray_colour, verts[seen], normals[seen], offset, background)
-        mesh = ColouredMesh(vertices=verts, faces=faces, normals=normals, colours=colours)
+        colours, done = colour(verts, faces, normals, seen)
+        mesh = ColouredMesh(vertices=verts, faces=faces, normals=normals, colours=np.asarray(colours, np.float32))
         value = float(np.mean([psnr(shade(mesh, h, background).rgb, im.target, im.region)
                                for h, im in zip(hits, images)]))
         pieces, largest = mesh_pieces(faces, verts.shape[0])
         scores[k] = LevelScore(step=k, level=round(level, 4), psnr=round(value, 4), faces=int(faces.shape[0]),
                                pieces=pieces, largest_piece=round(largest, 4), baked=int(seen.sum()))
-        kept[k] = _Candidate(mesh=mesh, baked=seen)
+        kept[k] = _Candidate(mesh=mesh, baked=done)
         return value
 
     best = search_steps(score, steps)
@@ -175,7 +175,9 @@ def choose_level(grid: DensityGrid, body_level: float, ray_colour: RayColourFn, 
     chosen = kept[best]
     rest = ~chosen.baked
     colours = chosen.mesh.colours.copy()
-    colours[rest] = bake_colours(ray_colour, chosen.mesh.vertices[rest], chosen.mesh.normals[rest], offset, background)
+    if rest.any():
+        m = chosen.mesh
+        colours[rest] = colour(m.vertices, m.faces, m.normals, rest)[0][rest]
     level = body_level * step ** best
     choice = LevelChoice(body_level=round(body_level, 4), step=best, level=round(level, 4), factor=step ** best,
                          candidates=tuple(scores.values()), views=tuple(im.view for im in images),

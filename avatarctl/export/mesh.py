@@ -30,7 +30,8 @@ Steps (`extract_mesh`):
    17.31 dB vs volume 22.03 dB), the composite is within 5 levels (20.51 dB). For an opaque field the two agree.
    One view direction per vertex: the view dependence of the colour head (Eq. 7) is frozen into the colour seen
    along the normal. Without a background (`background=None`) the colour is the composite divided by its opacity
-   (the colour of what is hit).
+   (the colour of what is hit). A Gaussian-field avatar's mesh is coloured from its rasterized images instead
+   (`export.view_colours`; `stages.export` picks the colouring by the field: `VertexColourFn`).
 
 The field is passed as callables (`DensityFn`, `RayColourFn`) so the extraction is tested on an analytic sphere;
 `slrf_density` / `slrf_ray_colour` adapt a fitted `SlrfAvatar` and one frame of its `NodeState`.
@@ -55,9 +56,14 @@ BODY_DEPTH = 0.01  # metres: `body_level` probes this far inside the skin
 BAKE_LENGTH = 0.3  # metres of the head-on colour ray (module docstring, step 4)
 BAKE_SAMPLES = 32
 DEFAULT_VOXEL = 0.008  # metres
+BAKE_RULE = (f"volume render of a {BAKE_LENGTH * 100:g} cm ray ({BAKE_SAMPLES} samples) looking at each vertex along "
+             "-normal from 2 voxels outside, composited over the fit's background (one view direction per vertex)")
 DensityFn = Callable[[np.ndarray], np.ndarray]  # points [points, 3] -> sigma [points] (1/metre)
 RayColourFn = Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]  # (origins, dirs) [rays, 3] ->
 #                                                                          (rgb [rays, 3] over black, alpha [rays])
+VertexColourFn = Callable[[np.ndarray, np.ndarray, np.ndarray, "np.ndarray | None"], tuple[np.ndarray, np.ndarray]]
+# (vertices [V, 3], faces [F, 3], normals [V, 3], which [V] bool or None = all) -> (colours [V, 3] in [0, 1], done
+# [V] bool: the vertices coloured, at least `which`; `head_on_bake` computes only those, `export.view_colours` all)
 
 
 @dataclass(frozen=True)
@@ -293,13 +299,29 @@ def bake_colours(ray_colour: RayColourFn, vertices: np.ndarray, normals: np.ndar
     return out
 
 
-def extract_mesh(density: DensityFn, ray_colour: RayColourFn, centers: np.ndarray, radius: float, voxel: float,
-                 threshold: float = DEFAULT_THRESHOLD, min_component: float = 0.01,
-                 background: tuple[float, float, float] | None = None) -> tuple[ColouredMesh, int]:
-    """Steps 1-4 of the module docstring -> (the coloured mesh, grid points queried)."""
+def head_on_bake(ray_colour: RayColourFn, offset: float, background: tuple[float, float, float] | None = None
+                 ) -> VertexColourFn:
+    """Step 4 as a `VertexColourFn`: `bake_colours` of the vertices asked for (the rest stay black)."""
+
+    def colour(vertices: np.ndarray, faces: np.ndarray, normals: np.ndarray, which: np.ndarray | None = None
+               ) -> tuple[np.ndarray, np.ndarray]:
+        if which is None:
+            return (bake_colours(ray_colour, vertices, normals, offset, background),
+                    np.ones(vertices.shape[0], bool))
+        out = np.zeros((vertices.shape[0], 3), np.float32)
+        out[which] = bake_colours(ray_colour, vertices[which], normals[which], offset, background)
+        return out, np.asarray(which, bool)
+
+    return colour
+
+
+def extract_mesh(density: DensityFn, colour: VertexColourFn, centers: np.ndarray, radius: float, voxel: float,
+                 threshold: float = DEFAULT_THRESHOLD, min_component: float = 0.01) -> tuple[ColouredMesh, int]:
+    """Steps 1-4 of the module docstring -> (the coloured mesh, grid points queried). `colour`: step 4's
+    `head_on_bake(ray_colour, 2 * voxel, background)`, or another colouring (`export.view_colours`)."""
     grid = density_grid(density, centers, radius, voxel, level=threshold)
     verts, faces, normals = marching_cubes(grid, threshold, min_component)
-    colours = bake_colours(ray_colour, verts, normals, offset=2.0 * voxel, background=background)
+    colours, _ = colour(verts, faces, normals, None)
     return ColouredMesh(vertices=verts, faces=faces, normals=normals, colours=colours), grid.queried
 
 

@@ -12,7 +12,8 @@ Steps:
    is used as it is for every mesh;
 3. posed meshes (`--frames`, default the first training frame / the motion file's first frame): the density field
    of the frame sampled on a grid over the node supports, marching cubes at the level, vertex colours baked by
-   rendering each vertex head-on along its normal (`export.mesh`); written as GLB / PLY / OBJ (the scoring frame's
+   rendering each vertex head-on along its normal (`export.mesh`; a Gaussian field's from its rasterized images
+   around the mesh, `export.view_colours`); written as GLB / PLY / OBJ (the scoring frame's
    mesh is the chosen candidate of step 2, finished);
 4. the animatable avatar `avatar.glb`: one mesh extracted the same way in the canonical (rest) pose
    (`export.mesh.rest_node_state`: M_j = identity, z = 0), skinning weights transferred from the body template
@@ -341,13 +342,22 @@ def _require(module: str, what: str, alternative: str = "") -> None:
                          fix=f"pip install 'avatarctl[export]' {alternative}".strip())
 
 
-def _field(avatar: Any, state: Any) -> tuple[Any, Any]:
-    """(density, ray colour) callables of frame slot 0 of `state` (`export.mesh` adapters): the same bake for every
-    field (the Gaussian field's density at points is `splat.density`'s binned kernel, fast enough for the 30 cm ray:
-    22.06 dB against the 6 cm / 12-sample ray's 21.69 on synth small, docs/fit.md)."""
-    from avatarctl.export.mesh import slrf_density, slrf_ray_colour
+def _field(avatar: Any, state: Any, voxel: float) -> tuple[Any, Any]:
+    """(density, vertex colouring) of frame slot 0 of `state` (`export.mesh` callables). The density of every field
+    at points (the Gaussian field's is `splat.density`'s binned kernel); the colours of a ray-marched field's mesh
+    baked head-on (`mesh.head_on_bake`, rays from 2 voxels outside), a Gaussian field's from its rasterized images
+    around the mesh (`export.view_colours`: 21.14 dB against the bake's 20.18 on the demo capture, docs/export_view.md)."""
+    from avatarctl.export.mesh import head_on_bake, slrf_density, slrf_ray_colour
+    from avatarctl.render.trajectories import up_from_cameras
 
-    return slrf_density(avatar.model, state), slrf_ray_colour(avatar.model, state)
+    model = avatar.model
+    if model.cfg.ray_marched:
+        background = tuple(float(c) for c in avatar.background)
+        return slrf_density(model, state), head_on_bake(slrf_ray_colour(model, state), 2.0 * voxel, background)
+    from avatarctl.export.view_colours import gaussian_views, view_colouring
+
+    up = up_from_cameras(list(avatar.capture.cameras.values()))
+    return slrf_density(model, state), view_colouring(gaussian_views(model, state), up)
 
 
 @contextmanager
@@ -372,13 +382,12 @@ def _extract(avatar: Any, state: Any, cfg: ExportConfig, what: str, body: np.nda
     from avatarctl.export.mesh import body_level, extract_mesh
 
     model = avatar.model
-    density, bake = _field(avatar, state)
+    density, colour = _field(avatar, state, cfg.voxel)
     with _surface_errors(what):
         level = cfg.threshold if cfg.threshold is not None else factor * body_level(
             density, body, avatar.template.faces.cpu().numpy())
-        mesh, queried = extract_mesh(density, bake, state.centers[0].detach().float().cpu().numpy(),
-                                     float(model.cfg.support_radius), cfg.voxel, level, cfg.min_component,
-                                     background=tuple(float(c) for c in avatar.background))
+        mesh, queried = extract_mesh(density, colour, state.centers[0].detach().float().cpu().numpy(),
+                                     float(model.cfg.support_radius), cfg.voxel, level, cfg.min_component)
     return mesh, queried, level
 
 
@@ -401,12 +410,12 @@ def _choose_level(avatar: Any, cfg: ExportConfig, frames: list[int], train_set: 
     images = [scoring_image(v, cap.cameras[v], cap.image(v, frame), cap.mask(v, frame), background, body)
               for v in pick_views(list(cap.split.train_views) or sorted(cap.cameras))]
     model = avatar.model
-    density, bake = _field(avatar, state)
+    density, colour = _field(avatar, state, cfg.voxel)
     with _surface_errors(f"frame {frame}"):
         base = body_level(density, body, avatar.template.faces.cpu().numpy())
         grid = density_grid(density, state.centers[0].detach().float().cpu().numpy(),
                             float(model.cfg.support_radius), cfg.voxel, level=base)
-        choice, mesh = choose_level(grid, base, bake, images, background, 2.0 * cfg.voxel, cfg.min_component)
+        choice, mesh = choose_level(grid, base, colour, images, background, cfg.min_component)
     return ChosenLevel(frame=frame, choice=choice), ((mesh, grid.queried) if frame in frames else None)
 
 
@@ -568,6 +577,17 @@ def _reload_check(path: Path, mesh_y: Any, weights: Any, dense: np.ndarray, M_y:
             "vs_lbs_dense_weights_max_m": float(ed.max()), "vs_lbs_dense_weights_mean_m": float(ed.mean())}
 
 
+def _colour_rule(avatar: Any) -> str:
+    """export.json's words for how the meshes' vertex colours were made (`_field`)."""
+    if avatar.model.cfg.ray_marched:
+        from avatarctl.export.mesh import BAKE_RULE
+
+        return BAKE_RULE
+    from avatarctl.export.view_colours import VIEW_RULE
+
+    return VIEW_RULE
+
+
 def _record(cfg: ExportConfig, avatar: Any, res: ExportResult, frame: np.ndarray, source: str,
             retarget: str | None) -> dict[str, Any]:
     import torch
@@ -580,8 +600,7 @@ def _record(cfg: ExportConfig, avatar: Any, res: ExportResult, frame: np.ndarray
                         "most 10) times the factor whose mesh scored best in training views (level_choice); per mesh: "
                         "meshes[].threshold, avatar.threshold",
                         "voxel_m": cfg.voxel, "min_component": cfg.min_component,
-                        "colour": "volume render of a 30 cm ray (32 samples) looking at each vertex along -normal from 2 "
-                                  "voxels outside, composited over the fit's background (one view direction per vertex)"},
+                        "colour": _colour_rule(avatar)},
             "glb_frame": frame.tolist(), "glb_basis": frame[:3, :3].tolist(),
             "glb_origin": "on the ground (the lowest point of the body template over the motion) under the middle "
                           "of the body's footprint in the motion's first frame; +Y up",

@@ -149,14 +149,14 @@ def _motion(avatar: Any, cfg: ViewConfig, name: str) -> Any:
 
 def _mesh_fn(avatar: Any, cfg: ViewConfig) -> Callable[[Any], Any]:
     """The posed mesh of a node state (export.mesh at `mesh_voxel`), for the page to draw (ray-marched fields)."""
-    from avatarctl.export.mesh import DEFAULT_THRESHOLD, extract_mesh, slrf_density, slrf_ray_colour
+    from avatarctl.export.mesh import DEFAULT_THRESHOLD, extract_mesh, head_on_bake, slrf_density, slrf_ray_colour
 
     model = avatar.model
 
     def mesh(state: Any) -> Any:
-        return extract_mesh(slrf_density(model, state), slrf_ray_colour(model, state),
-                            state.centers[0].detach().float().cpu().numpy(), float(model.cfg.support_radius),
-                            cfg.mesh_voxel, DEFAULT_THRESHOLD)[0]
+        colour = head_on_bake(slrf_ray_colour(model, state), 2.0 * cfg.mesh_voxel)
+        return extract_mesh(slrf_density(model, state), colour, state.centers[0].detach().float().cpu().numpy(),
+                            float(model.cfg.support_radius), cfg.mesh_voxel, DEFAULT_THRESHOLD)[0]
 
     return mesh
 
