@@ -1,7 +1,7 @@
 """Benchmark: sparse (supplement Sec. C.2, packed) vs dense node evaluation, and training throughput.
 
     python -m benchmarks.bench [--out bench.json] [--device cpu|cuda] [--rays-paper N] [--rays-cpu N]
-        [--rays-throughput N] [--repeats 2] [--steps 3] [--presets paper,cpu] [--body anny|toy]
+        [--rays-throughput N] [--repeats 2] [--steps 3] [--presets paper,cpu-mlp] [--body anny|toy]
 
 (run from the repository root: `benchmarks/` is not part of the installed package).
 
@@ -10,13 +10,13 @@ reference pose (`--body toy`: the tests' sphere, unbent) with different time sta
 circle around the body aimed at points drawn uniformly in each frame's posed bounding box (so nearly every ray
 crosses the body), 64 uniform samples per ray.
 
-For each preset ("paper", "cpu") and each path (sparse, dense) on the SAME batch, in the same process:
+For each preset of the ray-marched MLP fields ("paper", "cpu-mlp": the cpu preset until 2026-11-27) and each path (sparse, dense) on the SAME batch, in the same process:
 - time per training step = node_state (cVAE posterior) + render + Eq. 11 loss + backward (median of repeats);
 - peak step memory = the peak of tensor memory allocated during one step, excluding parameters and inputs
   (CUDA: `torch.cuda.max_memory_allocated` minus the allocation before the step; CPU: the allocation timeline of
   `torch.profiler` with `profile_memory=True`, since tracemalloc cannot see torch's allocator and RSS is noisy);
 - the sparse/dense agreement of the rendered colours (max abs difference).
-Then training throughput (rays/s, sparse, including an Adam step) at the cpu preset.
+Then training throughput (rays/s, sparse, including an Adam step) at the cpu-mlp preset.
 
 The dense path needs ~N x P x C floats per layer, so on CPU the default ray counts are smaller than the paper's
 2048 (they are printed); on CUDA the default is the paper's 2048 rays in 4 frames.
@@ -166,7 +166,7 @@ def compare(preset: str, template, batch: Batch, device: torch.device, repeats: 
 
 
 def throughput(template, batch: Batch, device: torch.device, steps: int) -> dict[str, Any]:
-    cfg = fit_preset("cpu").model.with_(pose_refine={"enabled": False})
+    cfg = fit_preset("cpu-mlp").model.with_(pose_refine={"enabled": False})
     torch.manual_seed(0)
     model = SlrfAvatar(cfg, template, num_frames=4).to(device)
     opt = torch.optim.Adam(model.parameters(), lr=5e-4)
@@ -179,7 +179,7 @@ def throughput(template, batch: Batch, device: torch.device, steps: int) -> dict
         opt.step()
     _sync(device)
     dt = (time.perf_counter() - t0) / steps
-    return {"preset": "cpu", "rays": len(batch.rays), "step_s": dt, "rays_per_s": len(batch.rays) / dt}
+    return {"preset": "cpu-mlp", "rays": len(batch.rays), "step_s": dt, "rays_per_s": len(batch.rays) / dt}
 
 
 def main(argv: list[str] | None = None) -> dict[str, Any]:
@@ -187,11 +187,11 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     ap.add_argument("--out", help="write the results as JSON here")
     ap.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     ap.add_argument("--rays-paper", type=int, default=None, help="rays for the paper preset (CPU 48, CUDA 2048)")
-    ap.add_argument("--rays-cpu", type=int, default=None, help="rays for the cpu preset (CPU 192, CUDA 2048)")
+    ap.add_argument("--rays-cpu", type=int, default=None, help="rays for the cpu-mlp preset (CPU 192, CUDA 2048)")
     ap.add_argument("--rays-throughput", type=int, default=1024, help="rays per step for the throughput run")
     ap.add_argument("--repeats", type=int, default=2, help="timed steps per path (median)")
     ap.add_argument("--steps", type=int, default=3, help="steps for the throughput run")
-    ap.add_argument("--presets", default="paper,cpu", help="the presets compared, sparse vs dense (comma list)")
+    ap.add_argument("--presets", default="paper,cpu-mlp", help="the presets compared, sparse vs dense (comma list)")
     ap.add_argument("--body", default="anny", choices=["anny", "toy"],
                     help="the body of the batch (toy: the 2-joint sphere of the tests, no anny cache)")
     args = ap.parse_args(argv)
@@ -208,10 +208,10 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
                                "comparisons": []}
     if cuda:
         results["gpu"] = torch.cuda.get_device_name(device)
-    rays = {"paper": rays_paper, "cpu": rays_cpu}
+    rays = {"paper": rays_paper, "cpu-mlp": rays_cpu}
     presets = list(split_list(args.presets))
     if not presets or not set(presets) <= set(rays):
-        ap.error(f"--presets {args.presets!r}: use paper, cpu or both")
+        ap.error(f"--presets {args.presets!r}: use paper, cpu-mlp or both")
     for preset in presets:
         batch = make_batch(M, feats, verts, rays[preset])
         results["comparisons"].append(compare(preset, template, batch, device, args.repeats))

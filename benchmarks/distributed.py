@@ -1,13 +1,13 @@
 """Benchmark: data-parallel fit throughput (steps/s, rays/s) on N = 1, 2 ranks of this machine.
 
-    python -m benchmarks.distributed [--project DIR] [--seconds 20] [--preset cpu] [--out bench_dist.json]
+    python -m benchmarks.distributed [--project DIR] [--seconds 20] [--preset cpu-mlp] [--out bench_dist.json]
         [--parts wall,cpu,phases,sync] [--ranks 1,2] [--cpu-steps 20]
 
 (run from the repository root: `benchmarks/` is not part of the installed package).
 
 Project: an ingested project (`--project`), else `avatarctl synth --preset tiny` + `ingest` into a cache folder
 (~30 s once). Runs, each a fresh fit of `--seconds` of training (FitConfig.time_budget_s; no validation, one
-checkpoint at the end), the global batch as the preset says (cpu: 512 rays over 4 images):
+checkpoint at the end), the global batch as the preset says (cpu-mlp: 512 rays over 4 images):
 
 - N = 1 with 1 thread, N = 1 with `--threads` threads (the whole CPU for one process),
 - N = 2, ranks of 1 thread each (`--nproc 2`, gloo), the same global batch (each rank: half the rays).
@@ -243,7 +243,8 @@ def main(argv: list[str] | None = None) -> DistBench:
     ap.add_argument("--cache", type=Path, default=Path(tempfile.gettempdir()) / "avatarctl_bench_dist")
     ap.add_argument("--seconds", type=float, default=20.0)
     ap.add_argument("--threads", type=int, default=2, help="threads of the one-process comparison run")
-    ap.add_argument("--preset", default="cpu")
+    ap.add_argument("--preset", default="cpu-mlp", help="cpu-mlp (the MLP fields: the cpu preset of the figures in "
+                                                        "docs/distributed.md) or cpu (the Gaussian fields)")
     ap.add_argument("--out", type=Path, default=Path("bench_dist.json"))
     ap.add_argument("--parts", default=",".join(PARTS), help="which measurements: wall, cpu, phases, sync (comma list)")
     ap.add_argument("--ranks", default="1,2", help="rank counts to measure: 1, 2 (comma list; sync needs 2)")

@@ -1,6 +1,6 @@
 """Profile training steps of the fit loop (torch profiler table, ms per step) on an ingested project.
 
-    OMP_NUM_THREADS=1 python -m benchmarks.profile_step PROJECT [key=value ...] [--preset cpu] [--warmup 30]
+    OMP_NUM_THREADS=1 python -m benchmarks.profile_step PROJECT [key=value ...] [--preset cpu-mlp] [--warmup 30]
         [--steps 10] [--rows 25]
 
 `key=value` are fit `--set` overrides. Builds the same pieces as `avatarctl fit` (the preset's config with
@@ -24,7 +24,7 @@ class StepProfile:
     table: str  # torch profiler: ops by self CPU time
 
 
-def profile_steps(project_dir: str, overrides: list[str], preset: str = "cpu", warmup: int = 30, steps: int = 10,
+def profile_steps(project_dir: str, overrides: list[str], preset: str = "cpu-mlp", warmup: int = 30, steps: int = 10,
                   rows: int = 25) -> StepProfile:
     import torch
     from torch.profiler import ProfilerActivity, profile
@@ -79,7 +79,8 @@ def main(argv: list[str] | None = None) -> StepProfile:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("project")
     ap.add_argument("overrides", nargs="*", help="fit --set overrides, key=value")
-    ap.add_argument("--preset", default="cpu")
+    ap.add_argument("--preset", default="cpu-mlp", help="cpu-mlp (the MLP fields; the cpu preset of the figures in "
+                                                        "docs/ before 2026-11-27) or cpu (the Gaussian fields)")
     ap.add_argument("--warmup", type=int, default=30)
     ap.add_argument("--steps", type=int, default=10)
     ap.add_argument("--rows", type=int, default=25)

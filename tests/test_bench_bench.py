@@ -1,4 +1,4 @@
-"""benchmarks/bench.py at toy scale (the sphere body, 8 rays, the cpu preset): sparse and dense node evaluation
+"""benchmarks/bench.py at toy scale (the sphere body, 8 rays, the cpu-mlp preset): sparse and dense node evaluation
 render the same colours, and every figure of the table is there."""
 
 from __future__ import annotations
@@ -10,11 +10,11 @@ def test_bench_compares_sparse_and_dense_on_the_toy_body(tmp_path):
     from benchmarks.bench import main
 
     out = tmp_path / "bench.json"
-    res = main(["--device", "cpu", "--body", "toy", "--presets", "cpu", "--rays-cpu", "8", "--rays-throughput", "8",
+    res = main(["--device", "cpu", "--body", "toy", "--presets", "cpu-mlp", "--rays-cpu", "8", "--rays-throughput", "8",
                 "--repeats", "1", "--steps", "1", "--out", str(out)])
     assert res["body"] == "toy" and res["joints"] == 2
     (c,) = res["comparisons"]
-    assert c["preset"] == "cpu" and c["rays"] == 8 and c["frames"] == 4
+    assert c["preset"] == "cpu-mlp" and c["rays"] == 8 and c["frames"] == 4
     for path in ("sparse", "dense"):
         assert c[path]["step_s"] > 0 and c[path]["peak_bytes"] > 0 and c[path]["samples"] > 0
     assert c["max_abs_rgb_diff"] < 1e-5  # the packed sparse path computes what the dense one does

@@ -71,13 +71,14 @@ def test_presets_are_stated_once_and_the_defaults_are_the_paper():
     from avatarctl.model import ModelConfig
 
     assert FitConfig() == preset("paper") and FitConfig().model == ModelConfig()
-    assert set(PRESETS) == {"paper", "cpu", "gaussians", "micro"} and DEFAULT_PRESET == "cpu"
+    assert set(PRESETS) == {"paper", "cpu", "cpu-mlp", "micro"} and DEFAULT_PRESET == "cpu"
     docs = (Path(__file__).parents[1] / "docs" / "fit.md").read_text()
     assert presets_markdown() in docs, "docs/fit.md's preset table is stale: paste presets_markdown()"
     assert all(f"'{name}'" in preset_help() for name in PRESETS)
-    # the gaussians preset is the cpu preset with the Gaussian local fields, nothing else
-    g, c = preset("gaussians"), preset("cpu")
-    assert g.model.field == "gaussians" and g.model.with_(field="mlp") == c.model and replace(g, model=c.model, preset="cpu") == c
+    # the cpu preset is cpu-mlp with the Gaussian local fields, nothing else; its old name still reads
+    g, c = preset("cpu"), preset("cpu-mlp")
+    assert g.model.field == "gaussians" and g.model.with_(field="mlp") == c.model
+    assert replace(g, model=c.model, preset="cpu-mlp") == c and preset("gaussians") == g
 
 
 def test_nested_overrides_and_the_flat_keys_of_older_configs():
@@ -106,11 +107,11 @@ def test_config_of_schema_version_1_reads_into_the_nested_one():
     old = json.loads((Path(__file__).parent / "fixtures" / "fit_config_v1.json").read_text())
     assert old["schema_version"] == 1 and "occ_res" in old["model"] and "lr_pose" in old
     cfg = FitConfig.from_json(old)
-    want = resolve_fit_config("cpu", iters=30, seed=1, overrides=["model.pose_refine.enabled=true",
-                                                                  "checkpoint_every=10",
-                                                                  "model.gaussians.sh_degree=1",  # its saved values
-                                                                  "model.gaussians.lambda_ssim=0.2"])
-    assert cfg == want
+    want = resolve_fit_config("cpu-mlp", iters=30, seed=1, overrides=["model.pose_refine.enabled=true",
+                                                                      "checkpoint_every=10",
+                                                                      "model.gaussians.sh_degree=1",  # its saved values
+                                                                      "model.gaussians.lambda_ssim=0.2"])
+    assert cfg == replace(want, preset="cpu"), "saved under the MLP preset's name of the time"
     assert FitConfig.from_json(json.loads(json.dumps(cfg.to_json()))) == cfg
     for key, value in (("pe_anneal_steps", 1000), ("occ_stop_eps", 1e-3)):
         with pytest.raises(InputError, match=f"{key}=.* was removed"):

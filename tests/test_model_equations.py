@@ -221,9 +221,9 @@ def test_config_defaults_presets_json_and_validation():
     assert (c.num_nodes, c.sigma, c.eps, c.embed_dim, c.latent_dim, c.samples_per_ray) == (128, 0.05, 0.001, 32, 8, 64)
     assert (c.lambda_rec, c.lambda_trans, c.lambda_ebd, c.lambda_kl) == (1.0, 0.02, 0.1, 1e-5)
     assert (c.pe_coords, c.pe_views, c.pe_time) == (6, 4, 12)
-    cpu = preset("cpu").model
+    cpu = preset("cpu-mlp").model
     assert cpu.node_width < c.node_width and cpu.num_nodes == 128
-    assert ModelConfig.from_json(cpu.to_json()) == cpu and cpu.field == "mlp"
+    assert ModelConfig.from_json(cpu.to_json()) == cpu and cpu.field == "mlp" and preset("cpu").model.field == "gaussians"
     # configs written before the grid field was removed (issue 28, schema_version 1) still read; a grid avatar is a
     # one-line error
     old = {**ModelConfig().to_json(), "schema_version": 1, "field": "mlp", "grid_levels": [8, 16, 32],

@@ -19,7 +19,7 @@ def register(app: typer.Typer) -> None:
         minutes: Optional[float] = typer.Option(None, "--minutes", help="Fit time in all, minutes, split evenly "
                                                 "over the fits (with --budget-steps: whichever ends first)."),
         seeds: int = typer.Option(2, "--seeds", help="Fit seeds per model (>= 2 gives mean ± half range)."),
-        scale: str = typer.Option("tiny", "--scale", help="tiny (synth tiny / tight / monocular, fit preset cpu) | "
+        scale: str = typer.Option("tiny", "--scale", help="tiny (synth tiny / tight / monocular, fit preset cpu-mlp) | "
                                   "micro (seconds; plumbing only, for tests)."),
         bench: bool = typer.Option(True, "--bench/--no-bench", help="Run `python -m benchmarks.bench` for the "
                                    "sparse-evaluation row (needs a source checkout)."),

@@ -35,7 +35,7 @@ from typing import Any
 
 from avatarctl.errors import InputError
 from avatarctl.lists import split_list
-from avatarctl.fit.presets import DEFAULT_PRESET, PRESETS
+from avatarctl.fit.presets import ALIASES, DEFAULT_PRESET, PRESETS
 from avatarctl.model.config import AUTO, LEGACY_KEYS, ModelConfig, nest_legacy_keys
 
 SCHEMA_VERSION = 2  # 2: lr_pose / pose_refine_start moved into model.pose_refine (1: read by `from_json`)
@@ -175,15 +175,16 @@ class FitConfig:
 
 
 def preset(name: str) -> FitConfig:
-    """The named preset (`PRESETS`)."""
+    """The named preset (`PRESETS`, or an old name of one: `ALIASES`)."""
+    name = ALIASES.get(name, name)
     if name not in PRESETS:
         raise InputError(f"unknown preset {name!r}", fix=f"use one of: {', '.join(PRESETS)}")
     p = PRESETS[name]
     return FitConfig(preset=name, **p.fit, model=ModelConfig().with_(**p.model))
 
 
-# the model of fit configs written before they held one: the cpu preset of that time (no pose refinement)
-_OLDEST_MODEL = ModelConfig().with_(**{**PRESETS["cpu"].model, "pose_refine": {"enabled": False}})
+# the model of fit configs written before they held one: the cpu preset of that time, cpu-mlp now (no pose refinement)
+_OLDEST_MODEL = ModelConfig().with_(**{**PRESETS["cpu-mlp"].model, "pose_refine": {"enabled": False}})
 
 
 def parse_ablations(spec: str | None) -> tuple[str, ...]:

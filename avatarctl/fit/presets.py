@@ -50,27 +50,30 @@ PRESETS: dict[str, Preset] = {
                 "300k iterations",
         fit={}, model={}),
     "cpu": Preset(
-        meant_for="a 2-core CPU",
+        meant_for="a 2-core CPU (or a GPU)",
+        summary="the structured local Gaussian fields (model.field=gaussians: 192 Gaussians per node, rasterized, "
+                "trained on 4 whole image crops per step; docs/fit.md), hull nodes and pose refinement decided from "
+                "the capture, the training frames' mean latent for novel poses; 20k iterations, validation on "
+                "half-size images every 1000 steps",
+        fit=_CPU_FIT,
+        model={**_CPU_MODEL, "field": "gaussians"}),
+    "cpu-mlp": Preset(
+        meant_for="a 2-core CPU, with the paper's MLP fields (the cpu preset until 2026-11-27; `reproduce` fits it)",
         summary="narrow networks (node 2 x 32 -> 32, heads 64, cVAE 32), empty-space skipping, hull nodes and pose "
                 "refinement decided from the capture, the training frames' mean latent for novel poses; 512 rays "
                 "over 4 images per step, 20k iterations, validation on half-size images every 1000 steps",
         fit=_CPU_FIT,
         model=_CPU_MODEL),
-    "gaussians": Preset(
-        meant_for="a 2-core CPU or a GPU: sharper held-out views and 100x faster renders than cpu on synth small",
-        summary="the cpu preset with the structured local Gaussian fields (model.field=gaussians: 192 Gaussians per "
-                "node, rasterized, trained on 4 whole image crops per step; docs/fit.md)",
-        fit=_CPU_FIT,
-        model={**_CPU_MODEL, "field": "gaussians"}),
     "micro": Preset(
         meant_for="CI smoke tests only; learns nothing useful",
-        summary="the cpu model with 32 nodes, all on the surface, 16 samples per ray; 128 rays over 2 images, "
+        summary="the cpu-mlp model with 32 nodes, all on the surface, 16 samples per ray; 128 rays over 2 images, "
                 "50 iterations, no validation during training",
         fit={"iters": 50, "rays_per_batch": 128, "images_per_batch": 2, "log_every": 10, "checkpoint_every": 50,
              "val_every": 0, "val_pairs": 1, "val_scale": 0.5},
         model={**_CPU_MODEL, "num_nodes": 32, "samples_per_ray": 16, "hull": {"nodes": 0}}),
 }
 DEFAULT_PRESET = "cpu"  # what `avatarctl fit` uses without --preset
+ALIASES = {"gaussians": "cpu"}  # old preset names still read (the cpu preset was "gaussians" until 2026-11-27)
 
 
 def preset_help() -> str:

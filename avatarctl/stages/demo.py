@@ -8,11 +8,13 @@ Presets (`DEMO_PRESETS`):
 
 - `ci` (alias `micro`): synth "micro" (4 views, 6 + 4 frames, 64 px), fit "micro" preset for 20 steps. About a
   minute on 2 cores; checks the plumbing, the avatar is not recognisable.
-- `tiny`: synth "tiny" (6 views, 24 + 12 frames, 96 px), fit "cpu" preset for 2000 steps or 330 s of training,
-  whichever comes first (6.0 min in all on an idle 2-core machine, novel-view bbox PSNR 22.16 dB; docs/render_eval.md).
-- `small`: synth "small" (12 views, 80 + 40 frames, 256 px), fit "cpu" preset for 3000 steps; 71.5 min measured
-  on one thread of a busy 2-core machine (synth then at 1x1 rays per pixel, ~1.5 min less), two thirds of it
-  rendering and eval (docs/render_eval.md).
+- `tiny`: synth "tiny" (6 views, 24 + 12 frames, 96 px), fit "cpu" preset (the Gaussian local fields) for 2000
+  steps or 90 s of training, whichever comes first: 1:55 in all on an idle 2-core machine, novel-view bbox PSNR
+  22.23-22.43 dB (docs/render_eval.md; until 2026-11-27 the MLP fields for 2000 steps / 330 s: 4.3-4.7 min,
+  22.28-22.51 dB).
+- `small`: synth "small" (12 views, 80 + 40 frames, 256 px), fit "cpu" preset for 3000 steps; with the MLP fields
+  (the cpu preset until 2026-11-27) 71.5 min measured on one thread of a busy 2-core machine, two thirds of it
+  rendering and eval (docs/render_eval.md); with the Gaussian fields not measured.
 
 OUT must not exist or be empty. Stage outputs are written atomically by each stage.
 """
@@ -49,7 +51,7 @@ DEMO_PRESETS: dict[str, DemoPreset] = {
                      orbit_views=4, orbit_resolution=48, eval_every=2),
     "tiny": DemoPreset(synth="tiny", fit_preset="cpu", iters=2000,
                        fit_settings={"rays_per_batch": 1024, "val_every": 500, "checkpoint_every": 500,
-                                     "time_budget_s": 330.0},
+                                     "time_budget_s": 90.0},
                        orbit_views=16, orbit_resolution=128, eval_every=2),
     "small": DemoPreset(synth="small", fit_preset="cpu", iters=3000,
                         fit_settings={"val_every": 500, "checkpoint_every": 500},

@@ -54,7 +54,7 @@ class ScaleSizes:
 
 SIZES: dict[str, ScaleSizes] = {
     "tiny": ScaleSizes(captures={"skirt": ("tiny", {}), "tight": ("tight", {}), "monocular": ("monocular", {})},
-                       fit_preset="cpu", fit_settings={"rays_per_batch": 1024, "val_every": 0},
+                       fit_preset="cpu-mlp", fit_settings={"rays_per_batch": 1024, "val_every": 0},
                        eval_every=4),
     "micro": ScaleSizes(captures={"skirt": ("micro", {}), "tight": ("micro", {"garment": "none"}),
                                   "monocular": ("micro", {"garment": "none", "motion": "turn", "train_views": 1})},
