@@ -79,6 +79,9 @@ def test_presets_are_stated_once_and_the_defaults_are_the_paper():
     g, c = preset("cpu"), preset("cpu-mlp")
     assert g.model.field == "gaussians" and g.model.with_(field="mlp") == c.model
     assert replace(g, model=c.model, preset="cpu-mlp") == c and preset("gaussians") == g
+    # configs saved under the old names read as the presets' names now (the settings are the saved ones)
+    assert FitConfig.from_json({**g.to_json(), "preset": "gaussians"}) == g
+    assert FitConfig.from_json({**c.to_json(), "preset": "cpu"}) == c
 
 
 def test_nested_overrides_and_the_flat_keys_of_older_configs():
@@ -111,7 +114,7 @@ def test_config_of_schema_version_1_reads_into_the_nested_one():
                                                                       "checkpoint_every=10",
                                                                       "model.gaussians.sh_degree=1",  # its saved values
                                                                       "model.gaussians.lambda_ssim=0.2"])
-    assert cfg == replace(want, preset="cpu"), "saved under the MLP preset's name of the time"
+    assert old["preset"] == "cpu" and cfg == want, "saved as cpu, the MLP fields' name then: read as cpu-mlp"
     assert FitConfig.from_json(json.loads(json.dumps(cfg.to_json()))) == cfg
     for key, value in (("pe_anneal_steps", 1000), ("occ_stop_eps", 1e-3)):
         with pytest.raises(InputError, match=f"{key}=.* was removed"):

@@ -168,10 +168,20 @@ class FitConfig:
             model = ModelConfig.from_json(d.pop("model")) if "model" in d else _OLDEST_MODEL
         except ValueError as e:
             raise InputError(str(e), fix="check the model section of the fit config") from None
+        d["preset"] = current_preset_name(str(d.get("preset", "paper")), model.field)
         d["background"] = tuple(d.get("background", (0.0, 0.0, 0.0)))
         d["ablations"] = tuple(d.get("ablations", ()))
         d["snapshot_at_s"] = tuple(d.get("snapshot_at_s", ()))
         return cls(**d, model=model)
+
+
+def current_preset_name(saved: str, field: str) -> str:
+    """The preset a saved config's name means now: configs written before 2026-11-27 called the MLP fields' CPU preset
+    "cpu" (now "cpu-mlp") and the Gaussian one "gaussians" (now "cpu"); the name is informational, the saved settings
+    are what is used."""
+    if saved == "cpu" and field == "mlp":
+        return "cpu-mlp"
+    return ALIASES.get(saved, saved)
 
 
 def preset(name: str) -> FitConfig:
