@@ -17,8 +17,8 @@ Steps (`view_colours`):
 3. a pixel's colour is rgb / alpha (the colour of what the field shows there) and goes to the hit face's three
    vertices with weight barycentric x cos^`power` (cos between the pixel's ray and the face's normal: pixels that
    see the surface head-on count most); a vertex's colour is its weighted mean;
-4. vertices no pixel reached (inner folds, under the arms: a few per cent) take the colour of the nearest vertex that
-   was reached (scipy's cKDTree); with none reached at all, every vertex is black and `seen` says so.
+4. vertices no pixel reached (inner folds, under the arms) take the colour of the nearest vertex that was reached
+   (scipy's cKDTree); with none reached at all, every vertex is black and `seen` says so.
 
 Measured (docs/export_view.md, step 4): on the demo capture's 90 s Gaussian fit the exported meshes score 21.14 dB
 against the bake's 20.18 on the same surface (frames 0, 8, 16, 28, 2 held-out views each; the MLP fields' mesh at the
