@@ -230,7 +230,7 @@ def _run(project_dir: str | Path, cfg: ExportConfig, progress: ProgressFn | None
     splat_formats = tuple(f for f in cfg.formats if f in SPLAT_FORMATS)
     if splat_formats and avatar.model.cfg.ray_marched:
         raise InputError(f"--format {','.join(splat_formats)} needs a Gaussian-field avatar", where="--format",
-                         fix="fit with --set model.field=gaussians, or export glb / ply / obj")
+                         fix="fit with the cpu preset (the Gaussian fields), or export glb / ply / obj")
     if "player" in splat_formats and cfg.frames is None:
         default = pool[:PLAYER_FRAMES]
     frame_glb = glb_frame(basis, _ground_origin(avatar, motion, basis))
