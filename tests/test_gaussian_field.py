@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import math
 import sys
 
@@ -209,6 +210,10 @@ def test_fit_render_eval_with_gaussian_fields_on_the_toy_body(tmp_path, monkeypa
 
     xr = export.run(proj, ExportConfig(frames="0", formats=("glb", "splat"), skinned=False, voxel=0.02, device="cpu"))
     assert xr.meshes and xr.meshes[0].faces > 100 and (xr.out_dir / "splats").is_dir()
+    from avatarctl.export.view_colours import VIEW_RULE
+
+    record = json.loads((xr.out_dir / "export.json").read_text())
+    assert record["surface"]["colour"] == VIEW_RULE, "a Gaussian avatar's mesh is coloured from its images"
 
 
 def _covariances_against_twin(device: str) -> None:
