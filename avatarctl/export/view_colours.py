@@ -70,8 +70,12 @@ class ViewColours:
 
 def surround_cameras(vertices: np.ndarray, up: np.ndarray, count: int = VIEW_COUNT, size: int = VIEW_SIZE,
                      distance: float = VIEW_DISTANCE, pole: float = POLE) -> list[Camera]:
-    """Step 1: pinhole cameras around the points `vertices` [V, 3] (world, metres), `up` [3] the capture's up."""
-    from avatarctl.geometry.cameras import look_at
+    """Step 1: pinhole cameras around the points `vertices` [V, 3] (world, metres), `up` [3] the capture's up. Each
+    direction is a one-view orbit (`render.trajectories.orbit_cameras`: its elevation and azimuth, the bounding
+    sphere framed to fill the image)."""
+    from dataclasses import replace
+
+    from avatarctl.render.trajectories import OrbitSpec, orbit_cameras
 
     if distance <= 1.0:
         raise ValueError(f"distance must exceed the bounding sphere's radius (1), got {distance}")
@@ -79,21 +83,17 @@ def surround_cameras(vertices: np.ndarray, up: np.ndarray, count: int = VIEW_COU
     centre = 0.5 * (v.min(0) + v.max(0))
     radius = max(float(np.linalg.norm(v - centre, axis=1).max()), 1e-6)
     u = np.asarray(up, np.float64) / np.linalg.norm(up)
-    e1 = np.cross(u, [1.0, 0.0, 0.0] if abs(u[0]) < 0.9 else [0.0, 1.0, 0.0])
-    e1 /= np.linalg.norm(e1)
-    e2 = np.cross(u, e1)
-    dist = distance * radius
-    f = 0.5 * size * np.sqrt(dist * dist - radius * radius) / radius
-    K = np.array([[f, 0.0, (size - 1) / 2], [0.0, f, (size - 1) / 2], [0.0, 0.0, 1.0]])
+    azimuth0 = np.cross(u, [1.0, 0.0, 0.0] if abs(u[0]) < 0.9 else [0.0, 1.0, 0.0])  # horizontal
     golden = np.pi * (3.0 - np.sqrt(5.0))
     cams = []
     for i in range(count):
         z = 1.0 - 2.0 * (i + 0.5) / count
         if abs(z) > pole:
             continue
-        d = z * u + np.sqrt(1.0 - z * z) * (np.cos(i * golden) * e1 + np.sin(i * golden) * e2)
-        R, T = look_at(centre + dist * d, centre, u)
-        cams.append(Camera(name=f"around{i:03d}", K=K, R=R, T=T, width=size, height=size))
+        spec = OrbitSpec(views=1, elevation_deg=float(np.degrees(np.arcsin(z))), resolution=size, fill=1.0,
+                         start_azimuth_deg=float(np.degrees(i * golden)))
+        (cam,) = orbit_cameras(spec, centre[None], radius, u, distance * radius, reference_dir=azimuth0)
+        cams.append(replace(cam, name=f"around{i:03d}"))
     return cams
 
 
