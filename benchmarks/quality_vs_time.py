@@ -225,7 +225,7 @@ def main(argv: list[str] | None = None) -> QualityVsTime:
     for r in rows:
         print(f"{r['backend']:>14} {r['minutes']:>5g} min  PSNR {r['psnr_bbox']:.2f} dB  SSIM {r['ssim_bbox']:.3f}  "
               f"{r['steps_per_s']:.2f} steps/s  {r['rays_per_s']:.0f} rays/s  "
-              f"{args.render_size}² render {r[f'render_{args.render_size}_s']:.1f} s")
+              f"{args.render_size}² render {r[f'render_{args.render_size}_s']:.3f} s")
     return QualityVsTime(rows=tuple(rows), csv=args.out / "results.csv", json=args.out / "results.json", plot=plot)
 
 
