@@ -58,7 +58,8 @@ PRESETS: dict[str, Preset] = {
                 "half-size images every 1000 steps",
         fit=_CPU_FIT,
         # the cVAE at the paper's width (128; the MLP fields' 32 was for their speed): at equal wall time synth small
-        # +0.15 dB held-out, synth tight +0.18 dB novel poses, the tiny demo +0.20 / +0.32 dB (docs/fit.md)
+        # +0.15 dB held-out, synth tight +0.18 dB novel poses, the tiny demo +0.20 / +0.32 dB; small's novel poses
+        # -0.03 / -0.06 dB, ~16 % more time per step (a trade: docs/fit.md "The cVAE at the paper's width")
         model={**_CPU_MODEL, "field": "gaussians", "cvae_width": 128}),
     "cpu-mlp": Preset(
         meant_for="a 2-core CPU, with the paper's MLP fields (the cpu preset until 2026-11-27; `reproduce` fits it)",
