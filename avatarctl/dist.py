@@ -208,26 +208,43 @@ def free_port() -> int:
 
 def _rank_main(rank: int, fn: Callable, world: int, port: int, channel: RankChannel, args: tuple) -> None:
     """Entry point of a spawned rank: set the torchrun variables, run `fn(env, channel, *args)`, report."""
-    import sys
     import traceback
 
     os.environ.update({"RANK": str(rank), "WORLD_SIZE": str(world), "LOCAL_RANK": str(rank),
                        "MASTER_ADDR": "127.0.0.1", "MASTER_PORT": str(port)})
     env = DistEnv.from_env()
     assert env is not None
+    code = 0
     try:
         result = fn(env, channel, *args)
         if env.is_main:
             channel.queue.put(("result", result))
     except AvatarError as e:
         channel.queue.put(("error", rank, type(e).__name__, e.what, e.where, e.fix))
-        sys.exit(1)
+        code = 1
     except KeyboardInterrupt:  # Ctrl-C in a stage that does not stop gracefully (render, eval): the launcher says so
-        sys.exit(130)
+        code = 130
     except BaseException as e:  # a lost peer, or a bug: the launcher names the rank
         last = traceback.format_exception_only(type(e), e)[-1].strip().splitlines()[0][:300]
         channel.queue.put(("crash", rank, last, _lost_peer(e), traceback.format_exc()))
-        sys.exit(1)
+        code = 1
+    _leave(channel, code)
+
+
+def _leave(channel: RankChannel, code: int) -> None:
+    """End a spawned rank once its messages are delivered: flush, then `os._exit` without the interpreter's
+    teardown (as multiprocessing's forked workers end). The rank's work and files are complete by now; what the
+    teardown would do is destroy the native thread pools of torch / gloo, and there a rank of a finished run
+    occasionally aborted ("terminate called without an active exception", SIGABRT: 2 of 6 full test runs), which
+    the launcher had to report as a failed run."""
+    import sys
+
+    channel.queue.close()
+    channel.queue.join_thread()  # the result / error message is in the pipe before the process ends
+    for stream in (sys.stdout, sys.stderr):
+        with contextlib.suppress(Exception):
+            stream.flush()
+    os._exit(code)
 
 
 def _lost_peer(e: BaseException) -> bool:
