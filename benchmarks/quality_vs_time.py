@@ -125,8 +125,7 @@ def main(argv: list[str] | None = None) -> QualityVsTime:
     ap.add_argument("--minutes", default="2,5,10", help="snapshot times, minutes of training")
     ap.add_argument("--preset", default="cpu-mlp",
                     help="the fit preset the backends' overrides apply to (cpu-mlp: the MLP fields, as the commands in "
-                         "docs/ were run when it was called cpu; a backend 'model.field=gaussians "
-                         "model.cvae_width=128' is the cpu preset)")
+                         "docs/ were run when it was called cpu; a backend model.field=gaussians is the cpu preset)")
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--parallel", type=int, default=2, help="fits / evals run at the same time")
     ap.add_argument("--every", type=int, default=10, help="eval: keep every N-th training frame")

@@ -75,11 +75,9 @@ def test_presets_are_stated_once_and_the_defaults_are_the_paper():
     docs = (Path(__file__).parents[1] / "docs" / "fit.md").read_text()
     assert presets_markdown() in docs, "docs/fit.md's preset table is stale: paste presets_markdown()"
     assert all(f"'{name}'" in preset_help() for name in PRESETS)
-    # the cpu preset is cpu-mlp with the Gaussian local fields and the paper's cVAE width, nothing else; its old
-    # name still reads
+    # the cpu preset is cpu-mlp with the Gaussian local fields, nothing else; its old name still reads
     g, c = preset("cpu"), preset("cpu-mlp")
-    assert g.model.field == "gaussians" and g.model.cvae_width == ModelConfig().cvae_width == 128
-    assert g.model.with_(field="mlp", cvae_width=c.model.cvae_width) == c.model
+    assert g.model.field == "gaussians" and g.model.with_(field="mlp") == c.model
     assert replace(g, model=c.model, preset="cpu-mlp") == c and preset("gaussians") == g
     # configs saved under the old names read as the presets' names now (the settings are the saved ones)
     assert FitConfig.from_json({**g.to_json(), "preset": "gaussians"}) == g

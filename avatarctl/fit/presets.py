@@ -52,15 +52,11 @@ PRESETS: dict[str, Preset] = {
     "cpu": Preset(
         meant_for="a 2-core CPU (or a GPU)",
         summary="the structured local Gaussian fields (model.field=gaussians: 192 Gaussians per node, rasterized, "
-                "trained on 4 whole image crops per step; docs/fit.md), the paper's cVAE width (128), hull nodes and "
-                "pose refinement decided from "
+                "trained on 4 whole image crops per step; docs/fit.md), hull nodes and pose refinement decided from "
                 "the capture, the training frames' mean latent for novel poses; 20k iterations, validation on "
                 "half-size images every 1000 steps",
         fit=_CPU_FIT,
-        # the cVAE at the paper's width (128; the MLP fields' 32 was for their speed): at equal wall time synth small
-        # +0.15 dB held-out, synth tight +0.18 dB novel poses, the tiny demo +0.20 / +0.32 dB; small's novel poses
-        # -0.03 / -0.06 dB, ~16 % more time per step (a trade: docs/fit.md "The cVAE at the paper's width")
-        model={**_CPU_MODEL, "field": "gaussians", "cvae_width": 128}),
+        model={**_CPU_MODEL, "field": "gaussians"}),
     "cpu-mlp": Preset(
         meant_for="a 2-core CPU, with the paper's MLP fields (the cpu preset until 2026-11-27; `reproduce` fits it)",
         summary="narrow networks (node 2 x 32 -> 32, heads 64, cVAE 32), empty-space skipping, hull nodes and pose "
