@@ -10,7 +10,8 @@ reference pose (`--body toy`: the tests' sphere, unbent) with different time sta
 circle around the body aimed at points drawn uniformly in each frame's posed bounding box (so nearly every ray
 crosses the body), 64 uniform samples per ray.
 
-For each preset of the ray-marched MLP fields ("paper", "cpu-mlp": the cpu preset until 2026-11-27) and each path (sparse, dense) on the SAME batch, in the same process:
+For each preset of the ray-marched MLP fields ("paper", "cpu-mlp": the cpu preset until 2026-11-27) and each path
+(sparse, dense) on the SAME batch, in the same process:
 - time per training step = node_state (cVAE posterior) + render + Eq. 11 loss + backward (median of repeats);
 - peak step memory = the peak of tensor memory allocated during one step, excluding parameters and inputs
   (CUDA: `torch.cuda.max_memory_allocated` minus the allocation before the step; CPU: the allocation timeline of
