@@ -62,7 +62,7 @@ def _toy_avatar(device: str, per_node: int, nodes: int, seed: int = 0, frames: i
 
     template = sphere_template(num_vertices=max(4 * nodes, 400), radius=0.5)
     cfg = preset("cpu").model.with_(field="gaussians", num_nodes=nodes, hull={"nodes": 0},
-                                    pose_refine={"enabled": False})
+                                    pose_refine={"enabled": False}).with_cvae_width_for(train_views=2)  # multi-view
     cfg = cfg.with_(gaussians=cfg.gaussians.__class__(per_node=per_node))
     torch.manual_seed(seed)
     model = SlrfAvatar(cfg, template, num_frames=frames, seed=seed)

@@ -75,13 +75,50 @@ def test_presets_are_stated_once_and_the_defaults_are_the_paper():
     docs = (Path(__file__).parents[1] / "docs" / "fit.md").read_text()
     assert presets_markdown() in docs, "docs/fit.md's preset table is stale: paste presets_markdown()"
     assert all(f"'{name}'" in preset_help() for name in PRESETS)
-    # the cpu preset is cpu-mlp with the Gaussian local fields, nothing else; its old name still reads
+    # the cpu preset is cpu-mlp with the Gaussian local fields and the cVAE's width decided from the capture, nothing
+    # else; its old name still reads
     g, c = preset("cpu"), preset("cpu-mlp")
-    assert g.model.field == "gaussians" and g.model.with_(field="mlp") == c.model
+    assert g.model.field == "gaussians" and g.model.cvae_width == "auto"
+    assert g.model.with_(field="mlp", cvae_width=c.model.cvae_width) == c.model
     assert replace(g, model=c.model, preset="cpu-mlp") == c and preset("gaussians") == g
     # configs saved under the old names read as the presets' names now (the settings are the saved ones)
     assert FitConfig.from_json({**g.to_json(), "preset": "gaussians"}) == g
     assert FitConfig.from_json({**c.to_json(), "preset": "cpu"}) == c
+
+
+def test_the_cvae_width_is_decided_by_the_training_views_per_frame(tmp_path):
+    """`model.cvae_width = "auto"` (the cpu preset): the paper's 128 from two training views per frame on, 32 with one
+    (a monocular capture); decided at fit start from the project's split, saved decided; a number is kept."""
+    from fixtures.toy_capture import make_toy_capture
+
+    from avatarctl.fit.loop import decide_auto
+    from avatarctl.io.project_io import load_split, save_split
+    from avatarctl.model.config import ModelConfig
+    from avatarctl.model.cvae import NodeCVAE
+    from avatarctl.stages import ingest
+    from avatarctl.stages.fit import FitRequest, fit_config
+    from avatarctl.stages.ingest import IngestConfig
+
+    cap, proj = make_toy_capture(tmp_path / "cap"), tmp_path / "proj"
+    ingest.run(proj, IngestConfig(capture=cap, project=proj))
+    p = Project.open(proj)
+
+    def width(req: FitRequest) -> int | str:
+        return decide_auto(fit_config(p, req), p).model.cvae_width
+
+    split = load_split(p.paths.split)
+    assert len(split.train_views) >= 2 and fit_config(p, FitRequest()).model.cvae_width == "auto"
+    assert width(FitRequest()) == 128
+    assert width(FitRequest(overrides=("model.cvae_width=64",))) == 64
+    assert width(FitRequest(preset="cpu-mlp")) == 32 and width(FitRequest(preset="paper")) == 128
+    save_split(p.paths.split, replace(split, train_views=split.train_views[:1]))  # one camera: monocular
+    assert width(FitRequest()) == 32
+    assert width(FitRequest(overrides=("model.cvae_width=128",))) == 128
+    with pytest.raises(ValueError, match="decided from the capture's training views"):
+        NodeCVAE(ModelConfig(cvae_width="auto"), num_joints=2, num_frames=1)
+    for bad in (0, "wide", True):
+        with pytest.raises(ValueError, match="cvae_width must be a positive int or 'auto'"):
+            ModelConfig(cvae_width=bad)
 
 
 def test_nested_overrides_and_the_flat_keys_of_older_configs():

@@ -349,7 +349,7 @@ def test_density_query_of_the_gaussians_for_mesh_export():
     from avatarctl.splat.density import CUTOFF
 
     cfg = preset("cpu").model.with_(field="gaussians", num_nodes=64, hull={"nodes": 0}, pose_refine={"enabled": False},
-                                    gaussians=GaussianConfig(per_node=16))
+                                    cvae_width=32, gaussians=GaussianConfig(per_node=16))
     torch.manual_seed(0)
     model = SlrfAvatar(cfg, sphere_template(), num_frames=1)
     M, feats = toy_joint_transforms(torch.tensor([0.3]))

@@ -43,7 +43,7 @@ def _overfit() -> None:
     torch.manual_seed(0)
     g = torch.Generator().manual_seed(0)
     rb, target = sphere_scene()
-    model = SlrfAvatar(preset("cpu").model.with_(num_nodes=32, samples_per_ray=32, field="mlp",
+    model = SlrfAvatar(preset("cpu-mlp").model.with_(num_nodes=32, samples_per_ray=32,
                                                  pose_refine={"enabled": False}),
                        sphere_template(400),
                        num_frames=1)

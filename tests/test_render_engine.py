@@ -20,7 +20,7 @@ BG = (0.1, 0.5, 0.9)
 @pytest.fixture(scope="module")
 def scene():
     torch.manual_seed(0)
-    cfg = preset("cpu").model.with_(num_nodes=12, samples_per_ray=8, field="mlp", pose_refine={"enabled": False})
+    cfg = preset("cpu-mlp").model.with_(num_nodes=12, samples_per_ray=8, pose_refine={"enabled": False})
     model = SlrfAvatar(cfg, sphere_template(120, radius=0.2), num_frames=2, seed=0).eval()
     M, aa = toy_joint_transforms(torch.tensor([0.0, 0.6]))
     cond = FrameConditioning(M, aa, time=torch.tensor([0.0, 0.5]), frame_ids=torch.tensor([0, 1]))

@@ -10,8 +10,8 @@ Defaults, one rule for both configs: the class defaults of `FitConfig` and `Mode
 stated once in `PRESETS` (avatarctl/fit/presets.py); `avatarctl fit --help` (`preset_help`) and the table in
 docs/fit.md (`presets_markdown`, checked by tests/test_fit.py) are made from it. The CLI's default preset is
 `DEFAULT_PRESET` ("cpu"). A default that depends on the capture is a value "auto" in the config (`model.hull.nodes`,
-`model.pose_refine.enabled`), decided at fit start; for pose refinement the decision replaces "auto" in the saved
-config.
+`model.pose_refine.enabled`, `model.cvae_width`), decided at fit start; for pose refinement and the cVAE's width the
+decision replaces "auto" in the saved config.
 
 Training target (stated convention): real captures have real backgrounds, so the target of a ray is the masked
 image composited over a fixed `background` colour (black by default: rgb * mask + background * (1 - mask)), and
@@ -229,7 +229,7 @@ def _model_with(model: ModelConfig, changes: dict[str, Any]) -> ModelConfig:
 
 
 _NOT_SETTABLE = {"ablations": "use --ablation", "model": "use model.<field>=value", "preset": "use --preset"}
-_AUTO_KEYS = ("model.hull.nodes", "model.pose_refine.enabled")  # may be "auto": decided from the capture
+_AUTO_KEYS = ("model.hull.nodes", "model.pose_refine.enabled", "model.cvae_width")  # may be "auto": from the capture
 
 
 def _parse_value(key: str, text: str, current: Any) -> Any:

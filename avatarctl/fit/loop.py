@@ -208,15 +208,21 @@ def _place_hull_nodes(model_cfg: ModelConfig, seed: int, capture, body, template
 
 
 def decide_auto(cfg: FitConfig, project: Project) -> FitConfig:
-    """`cfg` with `model.pose_refine.enabled = "auto"` decided from the project's capture: on when its body fits are
-    not ground truth (real captures, synth with --fit-noise). The saved config holds the decision."""
-    refine = cfg.model.pose_refine
-    if refine.enabled != AUTO:
-        return cfg
-    from avatarctl.io.gt_geometry import fits_are_ground_truth
+    """`cfg` with the "auto" values of the model decided from the project's capture (the saved config holds the
+    decisions): `model.pose_refine.enabled` on when its body fits are not ground truth (real captures, synth with
+    --fit-noise); `model.cvae_width` from the number of training views of each frame
+    (`ModelConfig.with_cvae_width_for`). `model.hull.nodes` is decided later, from the masks (`_place_hull_nodes`)."""
+    model = cfg.model
+    if model.pose_refine.enabled == AUTO:
+        from avatarctl.io.gt_geometry import fits_are_ground_truth
 
-    decided = refine.resolved(fits_are_ground_truth(project.manifest.source.path))
-    return replace(cfg, model=cfg.model.with_(pose_refine=decided))
+        model = model.with_(pose_refine=model.pose_refine.resolved(
+            fits_are_ground_truth(project.manifest.source.path)))
+    if model.cvae_width == AUTO:
+        from avatarctl.io.project_io import load_split
+
+        model = model.with_cvae_width_for(len(load_split(project.paths.split).train_views))
+    return cfg if model is cfg.model else replace(cfg, model=model)
 
 
 # ---- set-up ------------------------------------------------------------------------------------------------------

@@ -3,8 +3,8 @@
 builds the config; `avatarctl fit --help` (`preset_help`) and docs/fit.md's table (`presets_markdown`, checked by
 tests/test_fit.py) are made from this table. Plain data, no torch: the CLI reads it at start-up.
 
-"auto" (`model.hull.nodes`, `model.pose_refine.enabled`) is decided from the capture at fit start
-(`fit.loop.decide_auto`, fit/hull_nodes.py).
+"auto" (`model.hull.nodes`, `model.pose_refine.enabled`, `model.cvae_width`) is decided from the capture at fit
+start (`fit.loop.decide_auto`, fit/hull_nodes.py).
 """
 
 from __future__ import annotations
@@ -52,11 +52,14 @@ PRESETS: dict[str, Preset] = {
     "cpu": Preset(
         meant_for="a 2-core CPU (or a GPU)",
         summary="the structured local Gaussian fields (model.field=gaussians: 192 Gaussians per node, rasterized, "
-                "trained on 4 whole image crops per step; docs/fit.md), hull nodes and pose refinement decided from "
-                "the capture, the training frames' mean latent for novel poses; 20k iterations, validation on "
-                "half-size images every 1000 steps",
+                "trained on 4 whole image crops per step; docs/fit.md), hull nodes, pose refinement and the cVAE's "
+                "width (the paper's 128 from two training views per frame, 32 from one) decided from the capture, the "
+                "training frames' mean latent for novel poses; 20k iterations, validation on half-size images every "
+                "1000 steps",
         fit=_CPU_FIT,
-        model={**_CPU_MODEL, "field": "gaussians"}),
+        # the cVAE's width from the views (model/config.py CVAE_AUTO_WIDTHS): 128 is +0.15-0.32 dB on the multi-view
+        # captures, 32 ahead on a monocular one (docs/fit.md "The cVAE at the paper's width")
+        model={**_CPU_MODEL, "field": "gaussians", "cvae_width": "auto"}),
     "cpu-mlp": Preset(
         meant_for="a 2-core CPU, with the paper's MLP fields (the cpu preset until 2026-11-27; `reproduce` fits it)",
         summary="narrow networks (node 2 x 32 -> 32, heads 64, cVAE 32), empty-space skipping, hull nodes and pose "

@@ -47,7 +47,10 @@ VARIANTS = ("slrf", "lbs_baseline")
 FIELDS = ("mlp", "gaussians")
 REC_REDUCTIONS = ("sum", "mean")  # Eq. 12 as written (sum over rays) | plain MSE, see model/losses.py
 NOVEL_LATENTS = ("zero", "train_mean")  # z of novel poses: the paper's 0 | the mean of mu over the training frames
-AUTO = "auto"  # `hull.nodes` / `pose_refine.enabled`: decided from the capture at fit start
+AUTO = "auto"  # `hull.nodes` / `pose_refine.enabled` / `cvae_width`: decided from the capture at fit start
+# `cvae_width = "auto"`: (one training view per frame, two or more) -> width. The paper's 128 is ahead on every
+# multi-view capture measured and behind on the monocular one (docs/fit.md "The cVAE at the paper's width")
+CVAE_AUTO_WIDTHS = (32, 128)
 
 # Switches removed after measuring them (docs/fit.md, "Tried and removed"; code at the commit named there). A saved
 # config may still hold one: it is dropped on reading when it holds the value the code now has built in (None: any
@@ -297,7 +300,7 @@ class ModelConfig:
     node_depth: int = 3  # F_i hidden ReLU layers
     feature_dim: int = 128  # F_i output feature f (Eq. 5)
     head_width: int = 128  # G and H hidden channels (Eq. 7)
-    cvae_width: int = 128  # per-node encoder / decoder hidden channels
+    cvae_width: int | str = 128  # per-node encoder / decoder hidden channels | "auto": from the training views
     # local-field backend (deviation when "gaussians", see model/gaussian_field.py and docs/fit.md)
     field: str = "mlp"  # "mlp": the paper's F_i MLPs | "gaussians": per-node 3D Gaussians, see `gaussians`
     gaussians: GaussianConfig = GaussianConfig()  # options of field "gaussians" (model/gaussian_field.py)
@@ -342,7 +345,10 @@ class ModelConfig:
         for name in ("num_nodes", "embed_dim", "latent_dim", "node_width", "node_depth", "feature_dim",
                      "head_width", "cvae_width", "samples_per_ray"):
             v = getattr(self, name)
-            need(isinstance(v, int) and not isinstance(v, bool) and v > 0, f"{name} must be a positive int, got {v!r}")
+            if name == "cvae_width" and v == AUTO:
+                continue
+            need(isinstance(v, int) and not isinstance(v, bool) and v > 0, f"{name} must be a positive int"
+                 f"{' or ' + repr(AUTO) if name == 'cvae_width' else ''}, got {v!r}")
         for name in ("pe_coords", "pe_views", "pe_time", "pose_attention_hops"):
             v = getattr(self, name)
             need(isinstance(v, int) and not isinstance(v, bool) and v >= 0, f"{name} must be an int >= 0, got {v!r}")
@@ -373,6 +379,22 @@ class ModelConfig:
              f"rec_reduction must be one of {REC_REDUCTIONS}, got {self.rec_reduction!r}")
         need(isinstance(self.rec_reference_rays, int) and self.rec_reference_rays > 0,
              f"rec_reference_rays must be a positive int, got {self.rec_reference_rays!r}")
+
+    @property
+    def cvae_channels(self) -> int:
+        """The cVAE's hidden width; "auto" must have been decided (`with_cvae_width_for`) before a model is built."""
+        if self.cvae_width == AUTO:
+            raise ValueError("model.cvae_width='auto' is decided from the capture's training views at fit start "
+                             "(`ModelConfig.with_cvae_width_for`); pass a number to build a model directly")
+        return self.cvae_width
+
+    def with_cvae_width_for(self, train_views: int) -> "ModelConfig":
+        """`cvae_width = "auto"` decided from the number of training views of each frame: `CVAE_AUTO_WIDTHS[0]` (32)
+        with one (a monocular capture, a phone video), `CVAE_AUTO_WIDTHS[1]` (the paper's 128) with two or more; a
+        number unchanged."""
+        if self.cvae_width != AUTO:
+            return self
+        return self.with_(cvae_width=CVAE_AUTO_WIDTHS[1] if train_views >= 2 else CVAE_AUTO_WIDTHS[0])
 
     @property
     def hull_auto_nodes(self) -> int:

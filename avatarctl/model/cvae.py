@@ -42,7 +42,7 @@ class NodeCVAE(nn.Module):
     def __init__(self, cfg: ModelConfig, num_joints: int, num_frames: int):
         super().__init__()
         self.cfg = cfg
-        N, Z, W = cfg.num_nodes, cfg.latent_dim, cfg.cvae_width
+        N, Z, W = cfg.num_nodes, cfg.latent_dim, cfg.cvae_channels
         cond = 3 * num_joints
         time_dim = encoded_dim(1, cfg.pe_time)
         self.num_frames = num_frames
