@@ -21,6 +21,7 @@ from __future__ import annotations
 import argparse
 import csv
 import json
+import math
 import os
 import shutil
 import subprocess
@@ -229,7 +230,16 @@ def main(argv: list[str] | None = None) -> QualityVsTime:
     return QualityVsTime(rows=tuple(rows), csv=args.out / "results.csv", json=args.out / "results.json", plot=plot)
 
 
+def _region_names(rows: list[dict]) -> list[str]:
+    """The eval regions the rows were scored by (`--region`: e.g. garment, body), in their first row's order."""
+    return [k[:-len("_psnr")] for k in rows[0] if k.endswith("_psnr") and k != "psnr_bbox"
+            and not k.endswith("_flat_colour_psnr")]
+
+
 def _plot(rows: list[dict], path: Path, protocol: str) -> Path | None:
+    """PSNR against minutes of fit, one line per backend: the bbox PSNR, then one panel per region (`--region`) with
+    the region's flat-colour PSNR (what a single colour would score there) in its title, and as a dashed line where it
+    lies within 2 dB of the curves."""
     try:
         import matplotlib
 
@@ -238,17 +248,28 @@ def _plot(rows: list[dict], path: Path, protocol: str) -> Path | None:
     except ImportError:
         print("matplotlib not installed (pip install -e .[bench]): no plot written")
         return None
-    fig, ax = plt.subplots(figsize=(7, 4.5))
-    for name in dict.fromkeys(r["backend"] for r in rows):
-        pts = sorted((r["minutes"], r["psnr_bbox"]) for r in rows if r["backend"] == name)
-        ax.plot([p[0] for p in pts], [p[1] for p in pts], marker="o", label=name)
-    ax.set_xlabel("minutes of fit (wall time)")
-    ax.set_ylabel("PSNR (dB)")
-    ax.set_title("held-out-view PSNR vs fit time", fontsize=10)
-    ax.text(0.0, -0.18, protocol, transform=ax.transAxes, fontsize=6, wrap=True)
-    ax.grid(alpha=0.3)
-    ax.legend()
-    fig.tight_layout()
+    regions = _region_names(rows)
+    fig, axes = plt.subplots(1, 1 + len(regions), figsize=(7 + 4.5 * len(regions), 4.5), squeeze=False)
+    panels = [("psnr_bbox", "held-out-view PSNR (bbox) vs fit time")] + [
+        (f"{r}_psnr", f"{r} region") for r in regions]
+    for ax, (key, title) in zip(axes[0], panels):
+        low = math.inf
+        for name in dict.fromkeys(r["backend"] for r in rows):
+            pts = sorted((r["minutes"], r[key]) for r in rows if r["backend"] == name and r.get(key) is not None)
+            ax.plot([p[0] for p in pts], [p[1] for p in pts], marker="o", label=name)
+            low = min([low] + [p[1] for p in pts])
+        flat = rows[0].get(key.replace("_psnr", "_flat_colour_psnr")) if key != "psnr_bbox" else None
+        if flat is not None:
+            title += f" (flat colour {flat:.2f} dB)"
+            if flat > low - 2:
+                ax.axhline(flat, color="grey", linestyle="--", linewidth=1, label="flat colour")
+        ax.set_xlabel("minutes of fit (wall time)")
+        ax.set_ylabel("PSNR (dB)")
+        ax.set_title(title, fontsize=10)
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=8)
+    fig.text(0.01, 0.01, protocol, fontsize=6)
+    fig.tight_layout(rect=(0, 0.04, 1, 1))
     tmp = path.with_suffix(".tmp.png")
     fig.savefig(tmp, dpi=120)
     plt.close(fig)

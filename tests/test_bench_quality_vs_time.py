@@ -31,3 +31,23 @@ def test_quality_vs_time_fits_scores_and_tabulates_a_toy_backend(toy_fitted_proj
         assert res.plot is None
     else:
         assert res.plot.is_file() and res.plot.stat().st_size > 0
+
+
+def test_the_plot_has_a_panel_per_region_with_its_flat_colour(tmp_path):
+    """`--region garment` rows (garment and body PSNR, each with its flat-colour PSNR) -> the bbox panel and one panel
+    per region, in the rows' order; without regions, the bbox panel alone."""
+    import pytest
+
+    from benchmarks.quality_vs_time import _plot, _region_names
+
+    rows = [{"backend": b, "minutes": m, "psnr_bbox": 21 + m / 10 + i, "garment_psnr": 15.6 + m / 20,
+             "body_psnr": 29 + m / 5, "garment_flat_colour_psnr": 15.5, "body_flat_colour_psnr": 20.2}
+            for i, b in enumerate(("gaussians", "mlp")) for m in (2, 5)]
+    assert _region_names(rows) == ["garment", "body"]
+    assert _region_names([{"backend": "a", "minutes": 1, "psnr_bbox": 20.0}]) == []
+    pytest.importorskip("matplotlib")
+    from PIL import Image
+
+    wide, narrow = _plot(rows, tmp_path / "r.png", "protocol"), _plot(
+        [{k: v for k, v in r.items() if not k.startswith(("garment", "body"))} for r in rows], tmp_path / "b.png", "p")
+    assert Image.open(wide).width > 2 * Image.open(narrow).width  # three panels against one
