@@ -343,12 +343,12 @@ class ModelConfig:
              "pose-only baseline is the ray-marched canonical MLP)")
 
         for name in ("num_nodes", "embed_dim", "latent_dim", "node_width", "node_depth", "feature_dim",
-                     "head_width", "cvae_width", "samples_per_ray"):
+                     "head_width", "samples_per_ray"):
             v = getattr(self, name)
-            if name == "cvae_width" and v == AUTO:
-                continue
-            need(isinstance(v, int) and not isinstance(v, bool) and v > 0, f"{name} must be a positive int"
-                 f"{' or ' + repr(AUTO) if name == 'cvae_width' else ''}, got {v!r}")
+            need(isinstance(v, int) and not isinstance(v, bool) and v > 0, f"{name} must be a positive int, got {v!r}")
+        w = self.cvae_width
+        need(w == AUTO or (isinstance(w, int) and not isinstance(w, bool) and w > 0),
+             f"cvae_width must be a positive int or {AUTO!r}, got {w!r}")
         for name in ("pe_coords", "pe_views", "pe_time", "pose_attention_hops"):
             v = getattr(self, name)
             need(isinstance(v, int) and not isinstance(v, bool) and v >= 0, f"{name} must be an int >= 0, got {v!r}")
