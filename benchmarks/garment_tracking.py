@@ -1,5 +1,5 @@
 """Do an avatar's nodes follow its loose garment? Measured against the capture's ground-truth garment (synth captures,
-`CAPTURE/gt/geometry.npz`), over the project's training frames. Four parts (issue 28, docs/fit.md "Why the skirt
+`CAPTURE/gt/geometry.npz`), over the project's training frames. Five parts (issue 28, docs/fit.md "Why the skirt
 stays a blur"):
 
 1. **What node motion could explain** (no model needed): each garment vertex is taken to the canonical space with a
@@ -68,6 +68,18 @@ class FlowError:
 
 
 @dataclass(frozen=True)
+class TrackError:
+    gap: int  # frames from the reference frame
+    vertices: int  # garment vertex projections followed, over the views and both directions
+    motion_px: float  # median true projected motion since the reference frame
+    direct_px: float  # median end-point error of one flow from the reference frame straight to the frame
+    direct_p90_px: float
+    tracked: float  # fraction of the chained tracks still alive (forward-backward check, mask)
+    chained_px: float  # median end-point error of the live chained tracks
+    chained_p90_px: float
+
+
+@dataclass(frozen=True)
 class GaussianMotion:
     gaussians: int  # Gaussians within 2 cm of the garment, summed over the frames measured
     motion_px: float  # median projected motion of their garment vertices t -> t + 1
@@ -85,6 +97,7 @@ class TrackingReport:
     drift: tuple[NodeDrift, ...]
     flow: FlowError | None = None
     gaussian_motion: GaussianMotion | None = None  # Gaussian-field avatars only
+    tracks: tuple[TrackError, ...] | None = None  # part 5 (--tracks)
 
 
 def _canonical(points: torch.Tensor, weights: torch.Tensor, joints: torch.Tensor) -> torch.Tensor:
@@ -146,50 +159,118 @@ def node_drift(centers: torch.Tensor, linear: torch.Tensor, garment: torch.Tenso
     return (off - off.mean(0)).norm(dim=-1).T
 
 
-def flow_error(capture, gt, frames: list[int], views: list[str], max_pairs: int = 64) -> FlowError:
-    """Part 3 of the module docstring over at most `max_pairs` (view, frame pair) images spread over the capture."""
+def _facing_inside(capture, gt, view: str, frame: int, P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The garment vertices of `frame` seen by `view`: -> (pixels [P, 2], keep [P] bool: the vertex faces the camera
+    (the garment's faces turn away from the body: its outside) and projects inside the frame's mask)."""
+    from avatarctl.geometry.triangulate import project
+
+    cam = capture.cameras[view]
+    x = gt.garment_vertices[gt.row(frame)].astype(np.float64)
+    faces = gt.garment_faces
+    p, _ = project(P, x)
+    p = p[:, 0]
+    n = np.zeros_like(x)
+    fn = np.cross(x[faces[:, 1]] - x[faces[:, 0]], x[faces[:, 2]] - x[faces[:, 0]])
+    for k in range(3):
+        np.add.at(n, faces[:, k], fn)
+    to_cam = cam.center[None] - x
+    facing = (n * to_cam).sum(-1) > 0.3 * np.linalg.norm(n, axis=-1) * np.linalg.norm(to_cam, axis=-1)
+    return p, facing & _in_mask(capture.mask(view, frame), p)
+
+
+def _in_mask(mask: np.ndarray, p: np.ndarray) -> np.ndarray:
+    """[n] bool: the pixels p [n, 2] (rounded) lie inside the image and its mask."""
+    u, v = np.round(p[:, 0]).astype(int), np.round(p[:, 1]).astype(int)
+    inside = (u >= 0) & (v >= 0) & (u < mask.shape[1]) & (v < mask.shape[0])
+    inside[inside] &= mask[v[inside], u[inside]] > 0
+    return inside
+
+
+def _farneback(capture, view: str, a: int, b: int) -> np.ndarray:
+    """OpenCV's Farneback flow [H, W, 2] (pixels) from frame a to frame b of one view (the parameters of part 3)."""
     import cv2
 
+    ga = cv2.cvtColor(capture.image(view, a), cv2.COLOR_RGB2GRAY)
+    gb = cv2.cvtColor(capture.image(view, b), cv2.COLOR_RGB2GRAY)
+    return cv2.calcOpticalFlowFarneback(ga, gb, None, 0.5, 4, 15, 5, 5, 1.1, 0)
+
+
+def _sample(flow: np.ndarray, p: np.ndarray) -> np.ndarray:
+    """The flow [H, W, 2] read at pixels p [n, 2] (bilinear, border replicated) -> [n, 2]."""
+    import cv2
+
+    q = p.astype(np.float32)
+    return np.stack([cv2.remap(flow[..., k], q[:, 0:1], q[:, 1:2], cv2.INTER_LINEAR,
+                               borderMode=cv2.BORDER_REPLICATE)[:, 0] for k in range(2)], -1)
+
+
+def flow_error(capture, gt, frames: list[int], views: list[str], max_pairs: int = 64) -> FlowError:
+    """Part 3 of the module docstring over at most `max_pairs` (view, frame pair) images spread over the capture."""
     from avatarctl.geometry.triangulate import project, projection_matrices
 
     pairs = [(v, a, b) for v in views for a, b in zip(frames, frames[1:]) if b == a + 1]
     pairs = [pairs[i] for i in np.unique(np.linspace(0, len(pairs) - 1, min(max_pairs, len(pairs))).astype(int))]
-    faces = gt.garment_faces
     errors, motions = [], []
     for view, a, b in pairs:
-        cam = capture.cameras[view]
-        xa = gt.garment_vertices[gt.row(a)].astype(np.float64)
-        xb = gt.garment_vertices[gt.row(b)].astype(np.float64)
-        P = projection_matrices([cam])
-        pa, _ = project(P, xa)
-        pb, _ = project(P, xb)
-        pa, pb = pa[:, 0], pb[:, 0]
-        n = np.zeros_like(xa)  # vertex normals (the garment's faces turn away from the body: its outside)
-        fn = np.cross(xa[faces[:, 1]] - xa[faces[:, 0]], xa[faces[:, 2]] - xa[faces[:, 0]])
-        for k in range(3):
-            np.add.at(n, faces[:, k], fn)
-        to_cam = cam.center[None] - xa
-        facing = (n * to_cam).sum(-1) > 0.3 * np.linalg.norm(n, axis=-1) * np.linalg.norm(to_cam, axis=-1)
-        mask = capture.mask(view, a)
-        u, v = np.round(pa[:, 0]).astype(int), np.round(pa[:, 1]).astype(int)
-        inside = (u >= 0) & (v >= 0) & (u < mask.shape[1]) & (v < mask.shape[0])
-        inside[inside] &= mask[v[inside], u[inside]] > 0
-        keep = facing & inside
+        P = projection_matrices([capture.cameras[view]])
+        pa, keep = _facing_inside(capture, gt, view, a, P)
+        pb = project(P, gt.garment_vertices[gt.row(b)].astype(np.float64))[0][:, 0]
         if not keep.any():
             continue
-        ga = cv2.cvtColor(capture.image(view, a), cv2.COLOR_RGB2GRAY)
-        gb = cv2.cvtColor(capture.image(view, b), cv2.COLOR_RGB2GRAY)
-        flow = cv2.calcOpticalFlowFarneback(ga, gb, None, 0.5, 4, 15, 5, 5, 1.1, 0)  # [H, W, 2] pixels, a -> b
-        q = pa[keep].astype(np.float32)
-        fx = cv2.remap(flow[..., 0], q[:, 0:1], q[:, 1:2], cv2.INTER_LINEAR)[:, 0]
-        fy = cv2.remap(flow[..., 1], q[:, 0:1], q[:, 1:2], cv2.INTER_LINEAR)[:, 0]
+        flow = _farneback(capture, view, a, b)  # [H, W, 2] pixels, a -> b
         true = pb[keep] - pa[keep]
-        errors.append(np.hypot(fx - true[:, 0], fy - true[:, 1]))
+        errors.append(np.linalg.norm(_sample(flow, pa[keep]) - true, axis=-1))
         motions.append(np.linalg.norm(true, axis=-1))
     e, m = (np.concatenate(x) if x else np.zeros(0) for x in (errors, motions))
     med = (lambda x, q=50: float(np.percentile(x, q)) if len(x) else float("nan"))
     return FlowError(pairs=len(errors), vertices=int(len(e)), motion_px=med(m), motion_p90_px=med(m, 90),
                      error_px=med(e), error_p90_px=med(e, 90), still_error_px=med(m))
+
+
+def long_range_tracks(capture, gt, frames: list[int], views: list[str], gaps: tuple[int, ...] = (1, 2, 3, 5, 8, 12, 20),
+                      fb_px: float = 1.0) -> tuple[TrackError, ...]:
+    """Part 5 of the module docstring: from the middle training frame r, the garment vertices each view sees there,
+    followed to r -/+ gap by the flow chained over consecutive frames (a track ends where the forward-backward check
+    of a step fails by more than `fb_px` pixels or it leaves the mask) and by one flow from r straight to r -/+ gap;
+    the end-point error against the vertices' true projections there, beside their true motion since r."""
+    from avatarctl.geometry.triangulate import project, projection_matrices
+
+    have = set(frames)
+    r = frames[len(frames) // 2]
+    rows = {g: {"chained": [], "direct": [], "motion": [], "started": 0} for g in gaps}
+    for view in views:
+        P = projection_matrices([capture.cameras[view]])
+        p0, keep = _facing_inside(capture, gt, view, r, P)
+        truth = {f: project(P, gt.garment_vertices[gt.row(f)].astype(np.float64))[0][:, 0] for f in frames}
+        for step in (1, -1):
+            p, alive, t = p0[keep].copy(), np.ones(int(keep.sum()), dtype=bool), r
+            for gap in range(1, max(gaps) + 1):
+                if t + step not in have:
+                    break
+                fwd, bwd = _farneback(capture, view, t, t + step), _farneback(capture, view, t + step, t)
+                d = _sample(fwd, p)
+                alive &= np.linalg.norm(d + _sample(bwd, p + d), axis=-1) < fb_px
+                p, t = p + d, t + step
+                alive &= _in_mask(capture.mask(view, t), p)
+                if gap in rows:
+                    true = truth[t][keep]
+                    row = rows[gap]
+                    row["started"] += len(alive)
+                    row["chained"].append(np.linalg.norm(p[alive] - true[alive], axis=-1))
+                    row["direct"].append(np.linalg.norm(p0[keep] + _sample(_farneback(capture, view, r, t), p0[keep])
+                                                        - true, axis=-1))
+                    row["motion"].append(np.linalg.norm(true - p0[keep], axis=-1))
+    q = (lambda x, p: float(np.quantile(x, p)) if len(x) else float("nan"))
+    out = []
+    for g in gaps:
+        row = rows[g]
+        if not row["started"]:
+            continue
+        c, d, m = (np.concatenate(row[k]) for k in ("chained", "direct", "motion"))
+        out.append(TrackError(gap=g, vertices=len(d), motion_px=q(m, 0.5), direct_px=q(d, 0.5),
+                              direct_p90_px=q(d, 0.9), tracked=len(c) / row["started"], chained_px=q(c, 0.5),
+                              chained_p90_px=q(c, 0.9)))
+    return tuple(out)
 
 
 def gaussian_motion(av, gt, frames: list[int], views: list[str], every: int = 5, near: float = 0.02,
@@ -222,8 +303,8 @@ def gaussian_motion(av, gt, frames: list[int], views: list[str], every: int = 5,
                           error_p90_px=q(e, 0.9))
 
 
-def measure(project_dir: str | Path, patch_counts: tuple[int, ...] = (32, 64, 128), flow: bool = False
-            ) -> TrackingReport:
+def measure(project_dir: str | Path, patch_counts: tuple[int, ...] = (32, 64, 128), flow: bool = False,
+            tracks: bool = False) -> TrackingReport:
     from scipy.spatial import cKDTree
 
     from avatarctl.fit.checkpoint import load_avatar
@@ -274,7 +355,9 @@ def measure(project_dir: str | Path, patch_counts: tuple[int, ...] = (32, 64, 12
                           residuals=tuple(residuals), drift=tuple(drift),
                           flow=flow_error(av.capture, gt, frames, list(av.capture.split.train_views)) if flow else None,
                           gaussian_motion=gaussian_motion(av, gt, frames, list(av.capture.split.train_views))
-                          if not m.cfg.ray_marched else None)
+                          if not m.cfg.ray_marched else None,
+                          tracks=long_range_tracks(av.capture, gt, frames, list(av.capture.split.train_views))
+                          if tracks else None)
 
 
 def main(argv: list[str] | None = None) -> TrackingReport:
@@ -282,9 +365,10 @@ def main(argv: list[str] | None = None) -> TrackingReport:
     ap.add_argument("project")
     ap.add_argument("--patches", default="32,64,128", help="patch counts, comma list")
     ap.add_argument("--flow", action="store_true", help="also part 3: the optical flow against the garment's motion")
+    ap.add_argument("--tracks", action="store_true", help="also part 5: long-range tracks (chained and direct flow)")
     ap.add_argument("--json", type=Path, default=None)
     args = ap.parse_args(argv)
-    report = measure(args.project, tuple(int(x) for x in args.patches.split(",")), flow=args.flow)
+    report = measure(args.project, tuple(int(x) for x in args.patches.split(",")), flow=args.flow, tracks=args.tracks)
     print(f"{report.frames} training frames, {report.garment_vertices} garment vertices (CAPTURE/gt/geometry.npz)")
     print("residual of the garment's canonical motion after each patch's best per-frame motion, cm (mean / p90):")
     print(f"  {'skinning':<15} {'patches':>7}  {'translation':>15}  {'rigid':>15}")
@@ -305,6 +389,12 @@ def main(argv: list[str] | None = None) -> TrackingReport:
         print(f"the {g.gaussians:,} Gaussians on the garment (every 5th training frame, each training view): projected "
               f"motion t -> t + 1 errs {g.error_px:.2f} px (p90 {g.error_p90_px:.2f}) against the garment's "
               f"{g.motion_px:.2f} px (p90 {g.motion_p90_px:.2f})")
+    if report.tracks is not None:
+        print("garment vertices followed from the middle training frame (px; median / p90):")
+        print(f"  {'gap':>3} {'vertices':>8} {'motion':>7}  {'one flow':>13}  {'tracked':>7}  {'chained flow':>13}")
+        for t in report.tracks:
+            print(f"  {t.gap:>3} {t.vertices:>8,} {t.motion_px:7.2f}  {t.direct_px:6.2f} / {t.direct_p90_px:5.2f}  "
+                  f"{100 * t.tracked:6.1f}%  {t.chained_px:6.2f} / {t.chained_p90_px:5.2f}")
     if args.json is not None:
         args.json.write_text(json.dumps(asdict(report), indent=1))
     return report

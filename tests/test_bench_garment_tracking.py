@@ -69,7 +69,7 @@ def test_the_benchmark_measures_a_toy_project(tmp_path):
     np.savez(cap / GT_GEOMETRY, frame_index=np.arange(4), body_vertices=verts, body_faces=faces,
              garment_vertices=verts * 1.02, garment_faces=faces)
     out = tmp_path / "tracking.json"
-    report = main([str(proj), "--patches", "4,8", "--flow", "--json", str(out)])
+    report = main([str(proj), "--patches", "4,8", "--flow", "--tracks", "--json", str(out)])
     assert report.frames >= 1 and report.garment_vertices == verts.shape[1]
     assert [(r.skinning, r.patches) for r in report.residuals] == [
         ("nearest vertex", 4), ("nearest vertex", 8), ("root", 4), ("root", 8)]
@@ -82,6 +82,12 @@ def test_the_benchmark_measures_a_toy_project(tmp_path):
     assert math.isfinite(f.error_px) and f.error_px >= 0 and f.still_error_px == f.motion_px >= 0
     g = report.gaussian_motion  # a Gaussian-field avatar: part 4 measured
     assert g is not None and g.gaussians > 0 and math.isfinite(g.error_px) and g.error_px >= 0
+    tracks = report.tracks  # part 5: a few training frames, so only the first gaps from the middle one
+    assert tracks is not None and tracks[0].gap == 1 and all(t.gap in (1, 2) for t in tracks)
+    for t in tracks:
+        assert t.vertices > 0 and 0.0 <= t.tracked <= 1.0 and t.motion_px >= 0
+        assert math.isfinite(t.direct_px) and t.direct_px >= 0 and t.direct_p90_px >= t.direct_px
     saved = json.loads(out.read_text())
     assert saved["nodes_on_garment"] == report.nodes_on_garment and len(saved["residuals"]) == 4
     assert saved["flow"]["pairs"] == f.pairs
+    assert [t["gap"] for t in saved["tracks"]] == [t.gap for t in tracks]
