@@ -261,3 +261,17 @@ def test_reconstruction_loss_is_eq12_sum_at_the_reference_batch():
     assert ModelConfig.from_json(old).rec_reduction == "mean"
     with pytest.raises(ValueError, match="rec_reduction"):
         ModelConfig(rec_reduction="max")
+
+
+def test_the_splats_low_pass_is_an_option_and_old_gaussian_configs_keep_3dgs_value():
+    """`model.gaussians.low_pass` (px^2 added to each splat's 2D covariance): 0.1 by default, kept through JSON; a
+    Gaussian-field config saved before the option was trained with 3DGS's 0.3 and reads back as such."""
+    cfg = ModelConfig(field="gaussians")
+    assert cfg.gaussians.low_pass == 0.1 and ModelConfig.from_json(cfg.to_json()) == cfg
+    assert cfg.with_(gaussians={"per_node": 16}).gaussians.low_pass == 0.1  # a partial sub-config: the default
+    old = cfg.to_json()
+    del old["gaussians"]["low_pass"]
+    assert ModelConfig.from_json(old).gaussians.low_pass == 0.3
+    assert ModelConfig.from_json({**old, "field": "mlp"}).gaussians.low_pass == 0.1  # no splats to draw
+    with pytest.raises(ValueError, match="low_pass must be >= 0"):
+        ModelConfig(field="gaussians", gaussians={"low_pass": -0.1})

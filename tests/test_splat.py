@@ -80,6 +80,10 @@ def test_projection_by_hand():
     assert torch.allclose(proj.depths, means[:, 2])
     far_off = project_gaussians(torch.tensor([[5.0, 0.0, 2.0]]), 1e-4 * torch.eye(3)[None], cam)
     assert far_off.radii[0] == 0  # footprint misses the image
+    # the low-pass is the caller's: 0.1 px^2 instead of 3DGS's 0.3 on the same Gaussians
+    sharp = project_gaussians(means, (s * s) * torch.eye(3).expand(4, 3, 3), cam, low_pass=0.1)
+    var = torch.tensor([(100 * s / 2) ** 2 + 0.1, (120 * s / 2) ** 2 + 0.1])
+    assert torch.allclose(sharp.conics[0], torch.tensor([1 / var[0], 0.0, 1 / var[1]]))
 
 
 def test_projection_agrees_with_the_calibrated_camera_and_crop():
@@ -357,6 +361,11 @@ def test_rendering_without_gradients_uses_the_fused_projection(monkeypatch):
     with torch.no_grad():
         out = render_gaussians(means, covars, colors, opacities, _camera(), bg)
     assert calls and (out.rgb - ref.rgb).abs().max() < 1e-5 and (out.alpha - ref.alpha).abs().max() < 1e-5
+    # a smaller low-pass reaches the fused kernel too: sharper splats, the torch path's image, not the default's
+    sharp = render_gaussians(means, covars, colors, opacities, _camera(), bg, backend="torch", low_pass=0.05)
+    with torch.no_grad():
+        out = render_gaussians(means, covars, colors, opacities, _camera(), bg, low_pass=0.05)
+    assert (out.rgb - sharp.rgb).abs().max() < 1e-5 and (sharp.rgb - ref.rgb).abs().max() > 1e-3
     calls.clear()
     render_gaussians(means.requires_grad_(), covars, colors, opacities, _camera(), bg)
     assert not calls

@@ -169,7 +169,8 @@ def gaussian_views(model: "SlrfAvatar", state: "NodeState", slot: int = 0) -> Vi
     def render(camera: Camera) -> tuple[np.ndarray, np.ndarray]:
         sc = SplatCamera.from_camera(camera, device=means.device)
         with torch.no_grad():
-            out = render_gaussians(means, covars, posed.colors(slot, sc.center).float(), opacities, sc, black)
+            out = render_gaussians(means, covars, posed.colors(slot, sc.center).float(), opacities, sc, black,
+                                   low_pass=model.cfg.gaussians.low_pass)
         return out.rgb.float().cpu().numpy(), out.alpha.float().cpu().numpy()
 
     return render

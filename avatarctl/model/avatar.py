@@ -284,7 +284,7 @@ class SlrfAvatar(nn.Module):
 
         colors = posed.colors(slot, camera.center)
         out = render_gaussians(posed.means[slot], posed.covars[slot], colors, posed.opacities[slot], camera,
-                               background.to(colors), backend=backend)
+                               background.to(colors), backend=backend, low_pass=self.cfg.gaussians.low_pass)
         return out.rgb, out.alpha
 
     def render_images(self, posed: "PosedGaussians", cameras: list["SplatCamera"], background: torch.Tensor,
@@ -298,7 +298,7 @@ class SlrfAvatar(nn.Module):
         centers = torch.stack([c.center for c in cameras])
         colors = posed.colors_batch(list(range(B)), centers)
         out = render_gaussians_batch(posed.means, posed.covars, colors, posed.opacities, cameras,
-                                     background.to(colors), backend=backend)
+                                     background.to(colors), backend=backend, low_pass=self.cfg.gaussians.low_pass)
         return [o[0] for o in out], [o[1] for o in out]
 
     def image_losses(self, rgb: list[torch.Tensor], alpha: list[torch.Tensor], target: list[torch.Tensor],

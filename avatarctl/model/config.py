@@ -217,6 +217,9 @@ def nest_legacy_keys(d: dict[str, Any]) -> dict[str, Any]:
     return d
 
 
+LOW_PASS_BEFORE = 0.3  # GaussianConfig.low_pass of configs written before the option (3DGS's value)
+
+
 @dataclass(frozen=True)
 class GaussianConfig:
     """Options of the structured local Gaussian fields (`ModelConfig.field = "gaussians"`, a deviation: model/
@@ -230,6 +233,10 @@ class GaussianConfig:
     sh_degree: int = 0
     init_opacity: float = 0.3
     offset_scale: float = 0.02  # metres: the decoder's offset output is multiplied by this (detail motion)
+    # px^2 added to every splat's 2D covariance when rasterized (splat/project.py), in training and rendering alike;
+    # 3DGS's 0.3 blurs silhouettes, 0.1 measured better (docs/fit.md "The splats' low-pass"); a saved config from
+    # before the option reads 0.3, the value it was trained with (`ModelConfig.from_json`)
+    low_pass: float = 0.1
     # losses: (1 - lambda_ssim) L1 + lambda_ssim D-SSIM per image; lambda_mask |alpha - mask| (deviation). 3DGS's
     # lambda_ssim is 0.2; 0.1 measured better on all three synth captures, 0 better still with a skirt but not on
     # tight clothing (docs/fit.md, docs/experiments/gaussian_tiny_2026-11-27)
@@ -261,7 +268,7 @@ class GaussianConfig:
         need(0 <= self.min_opacity < self.init_opacity, f"min_opacity must be in [0, init_opacity), got "
              f"{self.min_opacity}")
         need(0 <= self.lambda_ssim <= 1, f"lambda_ssim must be in [0, 1], got {self.lambda_ssim}")
-        for name in ("offset_scale", "lambda_mask"):
+        for name in ("offset_scale", "lambda_mask", "low_pass"):
             need(getattr(self, name) >= 0, f"{name} must be >= 0, got {getattr(self, name)}")
         for name in ("lr_means", "lr_scales", "lr_quats", "lr_opacity", "lr_colors"):
             need(getattr(self, name) > 0, f"{name} must be > 0, got {getattr(self, name)}")
@@ -442,6 +449,8 @@ class ModelConfig:
             raise ValueError(f"ModelConfig: unknown keys {unknown}; known keys are {sorted(known)}")
         if "rec_reduction" not in d:  # configs written before the key existed were trained with the mean
             d["rec_reduction"] = "mean"
+        if d.get("field") == "gaussians" and "low_pass" not in (d.get("gaussians") or {}):
+            d["gaussians"] = {**(d.get("gaussians") or {}), "low_pass": LOW_PASS_BEFORE}  # trained with 3DGS's 0.3
         return cls(**d)
 
     def with_(self, **changes: Any) -> "ModelConfig":

@@ -19,7 +19,7 @@ from dataclasses import dataclass
 import torch
 
 from avatarctl.splat.camera import SplatCamera
-from avatarctl.splat.project import Projected, project_gaussians, project_gaussians_batch
+from avatarctl.splat.project import LOW_PASS, Projected, project_gaussians, project_gaussians_batch
 from avatarctl.splat.rasterizer import project_and_reach, rasterize, rasterize_batch
 
 
@@ -38,15 +38,15 @@ def render_gaussians(means: torch.Tensor,  # [G, 3] world, metres
                      colors: torch.Tensor,  # [G, C]
                      opacities: torch.Tensor,  # [G] in [0, 1]
                      cam: SplatCamera, background: torch.Tensor,  # [C]
-                     backend: str = "auto") -> SplatRender:
-    """Project and rasterize: the image of the Gaussians seen by `cam` (cam.width x cam.height). Without gradients
-    to keep (no grad mode, or no input that requires one) a Warp backend projects with the fused kernel
-    (`rasterizer.project_and_reach`)."""
+                     backend: str = "auto", low_pass: float = LOW_PASS) -> SplatRender:
+    """Project and rasterize: the image of the Gaussians seen by `cam` (cam.width x cam.height); `low_pass` px^2
+    added to every 2D covariance (project.py). Without gradients to keep (no grad mode, or no input that requires
+    one) a Warp backend projects with the fused kernel (`rasterizer.project_and_reach`)."""
     grads = torch.is_grad_enabled() and any(t.requires_grad for t in (means, covars, colors, opacities))
     if backend != "torch" and not grads and means.dtype == torch.float32:
-        proj = project_and_reach(means, covars, opacities, cam)
+        proj = project_and_reach(means, covars, opacities, cam, low_pass=low_pass)
     else:
-        proj = project_gaussians(means, covars, cam)
+        proj = project_gaussians(means, covars, cam, low_pass=low_pass)
     rgb, alpha = rasterize(proj, colors, opacities, cam.width, cam.height, background, backend=backend)
     return SplatRender(rgb=rgb, alpha=alpha, radii=proj.radii, means2d=proj.means2d)
 
@@ -56,10 +56,10 @@ def render_gaussians_batch(means: torch.Tensor,  # [B, G, 3] world, metres: the 
                            colors: torch.Tensor,  # [B, G, C]
                            opacities: torch.Tensor,  # [B, G]
                            cams: list[SplatCamera], background: torch.Tensor,  # [C]
-                           backend: str = "auto") -> list[tuple[torch.Tensor, torch.Tensor]]:
+                           backend: str = "auto", low_pass: float = LOW_PASS) -> list[tuple[torch.Tensor, torch.Tensor]]:
     """`render_gaussians` of B images in one projection and one rasterization (`rasterize_batch`) -> [(rgb [H_b, W_b,
     C], alpha [H_b, W_b])], image b of cams[b] (each its own window size)."""
-    proj = project_gaussians_batch(means, covars, cams)
+    proj = project_gaussians_batch(means, covars, cams, low_pass=low_pass)
     return rasterize_batch(proj, colors, opacities, [(c.width, c.height) for c in cams], background, backend)
 
 

@@ -5,7 +5,8 @@ For a Gaussian with world mean mu and covariance Sigma seen by camera (K, R, T):
     t = R mu + T                         camera coordinates, metres (z = depth)
     mean2d = K[:2, :2] (t_x / t_z, t_y / t_z) + K[:2, 2]           pixels
     J = K[:2, :2] [[1/t_z, 0, -t_x/t_z^2], [0, 1/t_z, -t_y/t_z^2]]   Jacobian of the projection at t
-    Sigma2d = J R Sigma R^T J^T + 0.3 I  (3DGS's low-pass: every splat is at least ~1 px wide)
+    Sigma2d = J R Sigma R^T J^T + s I    (the low-pass s, px^2: 3DGS's 0.3 makes every splat at least ~1 px wide;
+                                          the callers choose it, `LOW_PASS` by default)
     conic = Sigma2d^-1 = [[a, b], [b, c]]  stored as (a, b, c)
     radius = ceil(3 sqrt(lambda_max(Sigma2d)))  pixels
 
@@ -23,7 +24,7 @@ import torch
 
 from avatarctl.splat.camera import SplatCamera
 
-LOW_PASS = 0.3  # px^2 added to the diagonal of Sigma2d (3DGS)
+LOW_PASS = 0.3  # px^2 added to the diagonal of Sigma2d by default (3DGS's value)
 FOV_CLAMP = 1.3  # J is evaluated inside 1.3x the half field of view (3DGS)
 
 
@@ -71,19 +72,21 @@ def within_bounds(box: torch.Tensor, proj: Projected) -> torch.Tensor:
 
 def project_gaussians(means: torch.Tensor,  # [G, 3] world, metres
                       covars: torch.Tensor,  # [G, 3, 3] world covariance, metres^2 (symmetric PSD)
-                      cam: SplatCamera, near: float = 0.01) -> Projected:
-    """World Gaussians -> screen-space Gaussians (see the module docstring). Differentiable w.r.t. means and covars
-    through autograd; radii carry no gradient. Works in the dtype of `means` (float32 or float64)."""
+                      cam: SplatCamera, near: float = 0.01, low_pass: float = LOW_PASS) -> Projected:
+    """World Gaussians -> screen-space Gaussians (see the module docstring; `low_pass` px^2 added to Sigma2d's
+    diagonal). Differentiable w.r.t. means and covars through autograd; radii carry no gradient. Works in the dtype
+    of `means` (float32 or float64)."""
     assert means.ndim == 2 and means.shape[-1] == 3, f"means: expected [G, 3], got {list(means.shape)}"
     assert covars.shape == (means.shape[0], 3, 3), \
         f"covars: expected [{means.shape[0]}, 3, 3], got {list(covars.shape)}"
-    p = project_gaussians_batch(means[None], covars[None], [cam], near)
+    p = project_gaussians_batch(means[None], covars[None], [cam], near, low_pass)
     return Projected(means2d=p.means2d[0], conics=p.conics[0], depths=p.depths[0], radii=p.radii[0])
 
 
 def project_gaussians_batch(means: torch.Tensor,  # [B, G, 3] world, metres: the Gaussians seen by camera b
                             covars: torch.Tensor,  # [B, G, 3, 3] world covariance, metres^2
-                            cams: Sequence[SplatCamera], near: float = 0.01) -> Projected:
+                            cams: Sequence[SplatCamera], near: float = 0.01, low_pass: float = LOW_PASS
+                            ) -> Projected:
     """`project_gaussians` for B cameras at once (one set of operations, whatever B; each camera its own window
     size) -> a `Projected` whose fields have a leading [B] dimension."""
     B, G = means.shape[:2]
@@ -113,9 +116,9 @@ def project_gaussians_batch(means: torch.Tensor,  # [B, G, 3] world, metres: the
     m0, m1 = fx[..., None] * row_x + skew[..., None] * row_y, fy[..., None] * row_y  # [B, G, 3] each
     cov_m = torch.bmm(covars.reshape(B * G, 3, 3), torch.stack([m0, m1], dim=-1).reshape(B * G, 3, 2))
     cov_m = cov_m.reshape(B, G, 3, 2)  # Sigma M^T
-    a = (m0 * cov_m[..., 0]).sum(-1) + LOW_PASS  # Sigma2d = M Sigma M^T + LOW_PASS I = [[a, b], [b, c]]
+    a = (m0 * cov_m[..., 0]).sum(-1) + low_pass  # Sigma2d = M Sigma M^T + low_pass I = [[a, b], [b, c]]
     b = (m1 * cov_m[..., 0]).sum(-1)
-    c = (m1 * cov_m[..., 1]).sum(-1) + LOW_PASS
+    c = (m1 * cov_m[..., 1]).sum(-1) + low_pass
     det = a * c - b * b
     ok = in_front & (det > 0) & torch.isfinite(det)
     inv_det = torch.where(ok, 1.0 / torch.where(ok, det, torch.ones_like(det)), torch.zeros_like(det))

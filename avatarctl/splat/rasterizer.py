@@ -65,7 +65,7 @@ def reach(proj: Projected, opacities: torch.Tensor, width: int, height: int) -> 
 def project_and_reach(means: torch.Tensor,  # [G, 3] world, metres
                       covars: torch.Tensor,  # [G, 3, 3] world covariance, metres^2
                       opacities: torch.Tensor,  # [G] in [0, 1]
-                      cam: SplatCamera, near: float = 0.01) -> Projected:
+                      cam: SplatCamera, near: float = 0.01, low_pass: float = LOW_PASS) -> Projected:
     """`project.project_gaussians` and `reach` in one Warp kernel (`_warp_kernels.project_reach`), for rendering
     without gradients (float32, no autograd): one launch where the pure-torch pair issues ~180 small operations, the
     cost that bounds a single render on a GPU. Same numbers up to float rounding (`tests/test_splat.py`); the
@@ -85,7 +85,7 @@ def project_and_reach(means: torch.Tensor,  # [G, 3] world, metres
     if G:
         inputs = [wp.from_torch(f32[0], dtype=wp.vec3), wp.from_torch(f32[1], dtype=wp.mat33), wp.from_torch(f32[2]),
                   wp.from_torch(K, dtype=wp.mat33), wp.from_torch(R, dtype=wp.mat33), wp.from_torch(T, dtype=wp.vec3),
-                  int(cam.width), int(cam.height), float(near), LOW_PASS, FOV_CLAMP - 1.0]
+                  int(cam.width), int(cam.height), float(near), float(low_pass), FOV_CLAMP - 1.0]
         outputs = [wp.from_torch(means2d, dtype=wp.vec2), wp.from_torch(conics, dtype=wp.vec3), wp.from_torch(depths),
                    wp.from_torch(radii), wp.from_torch(boxes, dtype=wp.vec4i)]
         with torch_stream(dev):
