@@ -1,4 +1,5 @@
-"""`avatarctl eval --region garment|body`: the garment's own score from a capture's ground-truth geometry."""
+"""`avatarctl eval --region garment|body`: the garment's own score from a capture's ground-truth geometry; `--region
+edge|inner`: the silhouette band's and the rest's, from the masks."""
 
 from __future__ import annotations
 
@@ -35,6 +36,23 @@ def test_garment_mask_is_depth_ordered_and_grown():
     assert (parts["garment"] | parts["body"]).sum() == box.sum() and not (parts["garment"] & parts["body"]).any()
 
 
+def test_silhouette_band_is_the_mask_boundary_either_side():
+    from avatarctl.evaluate.regions import EDGE_PX, silhouette_band, split_silhouette
+
+    m = np.zeros((20, 30), bool)
+    m[5:15, 8:20] = True  # 10 x 12
+    band = silhouette_band(m)
+    assert EDGE_PX == 1 and band.sum() == 12 * 14 - 8 * 10  # dilated by one minus eroded by one
+    assert band[5, 10] and band[4, 10] and not band[6, 10] and not band[3, 10] and not band[10, 14]
+    edge = np.zeros((20, 30), bool)
+    edge[:, :10] = True  # touches the image's left border: only its right side is a silhouette
+    assert silhouette_band(edge).sum() == 20 * 2 and not silhouette_band(edge)[:, 0].any()
+    box = np.zeros((20, 30), bool)
+    box[2:18, 2:28] = True
+    parts = split_silhouette(box, band)
+    assert (parts["edge"] | parts["inner"]).sum() == box.sum() and not (parts["edge"] & parts["inner"]).any()
+
+
 def _write_gt(cap, tmp_path):
     """gt/geometry.npz for the toy capture: the body and, as its 'garment', the lower half of the body grown 2 %."""
     from fixtures.toy_capture import toy_motion
@@ -65,6 +83,14 @@ def test_eval_reports_garment_and_body_regions(tmp_path):
         evaluate.run(proj, EvalConfig(region="garment", device="cpu", sheet_rows=0))
     plain = evaluate.run(proj, EvalConfig(device="cpu", sheet_rows=0, name="plain"))
     assert plain.metrics.regions is None and plain.metrics.region == "all"
+    # the silhouette split needs only the masks: edge + inner recombine into the whole region
+    sil = evaluate.run(proj, EvalConfig(region="edge", device="cpu", sheet_rows=0, name="edge"))
+    e, i = sil.metrics.regions["edge"], sil.metrics.regions["inner"]
+    assert sil.metrics.psnr == pytest.approx(e["psnr"]) and 0 < e["share_of_pixels"] < 1
+    assert e["pixels"] + i["pixels"] == sum(s.pixels for s in sil.scores)
+    assert e["share_of_error"] + i["share_of_error"] == pytest.approx(1.0)
+    header = (sil.out_dir / "per_frame.csv").read_text().splitlines()[0]
+    assert header.endswith("edge_psnr,edge_pixels,inner_psnr,inner_pixels")
 
     _write_gt(cap, tmp_path)
     res = evaluate.run(proj, EvalConfig(region="garment", device="cpu", sheet_rows=0))

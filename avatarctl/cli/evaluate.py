@@ -36,8 +36,10 @@ def register(app: typer.Typer) -> None:
                                          "eval/NAME/renders/<frame>_<view>.png (bbox protocol: only the box is "
                                          "rendered, the rest is background)."),
         region: str = typer.Option("all", "--region", help="What the headline PSNR is over: all (the protocol's "
-                                   "region) | garment | body. garment/body need the capture's ground-truth "
-                                   "geometry (synth writes gt/geometry.npz); with it every eval also reports both."),
+                                   "region) | garment | body | edge | inner. garment/body need the capture's "
+                                   "ground-truth geometry (synth writes gt/geometry.npz); with it every eval also "
+                                   "reports both. edge (within 1 px of the mask's silhouette, either side) / inner "
+                                   "(the rest): any capture, both reported."),
         knockout: Optional[str] = typer.Option(None, "--knockout", help="Render-time knockout of the trained "
                                                "model (paper Fig. 3 / supp. node-variable table): delta-n and/or embedding, comma-separated: "
                                                "that variable is set to zero when rendering."),

@@ -1,11 +1,16 @@
-"""Score regions inside the protocol's pixels: the garment and the rest of the body (`avatarctl eval --region`).
+"""Score regions inside the protocol's pixels (`avatarctl eval --region`). Two splits, each of which covers the
+protocol's region exactly (its two parts add up to "all"):
 
-Needs ground-truth geometry (`io.gt_geometry`, written by `avatarctl synth`). For one camera and frame the body and
-garment meshes are drawn together, far triangles first (painter's algorithm on the triangle centroid depth), so an
-arm in front of the skirt counts as body and the skirt behind a leg as nothing. The garment region is the pixels
-whose nearest surface is the garment, grown by `GROW_PX` pixels so its silhouette edge (where most of a blurry
-render's error sits) counts as garment; "body" is the rest of the protocol's region (body, face, hands and the
-background inside the box). Both are intersected with the protocol's region, so garment + body = all.
+- garment / body: needs ground-truth geometry (`io.gt_geometry`, written by `avatarctl synth`). For one camera and
+  frame the body and garment meshes are drawn together, far triangles first (painter's algorithm on the triangle
+  centroid depth), so an arm in front of the skirt counts as body and the skirt behind a leg as nothing. The garment
+  region is the pixels whose nearest surface is the garment, grown by `GROW_PX` pixels so its silhouette edge (where
+  most of a blurry render's error sits) counts as garment; "body" is the rest of the protocol's region (body, face,
+  hands and the background inside the box).
+- edge / inner: any capture (its masks only). "edge" is the pixels within `EDGE_PX` of the ground-truth mask's
+  boundary, on either side (the mask dilated minus the mask eroded, a (2 EDGE_PX + 1)-square kernel): where a
+  render's silhouette and the mask's disagree, and where a supersampled or real image mixes the subject with what
+  is behind it; "inner" is the rest (the subject inside that band, and the background beyond it).
 """
 
 from __future__ import annotations
@@ -14,8 +19,11 @@ import numpy as np
 
 from avatarctl.geometry.cameras import Camera
 
-REGIONS = ("all", "garment", "body")  # all = the protocol's whole region (the box for bbox)
+REGIONS = ("all", "garment", "body", "edge", "inner")  # all = the protocol's whole region (the box for bbox)
+GEOMETRY_REGIONS = ("garment", "body")  # need the capture's ground-truth geometry
+SILHOUETTE_REGIONS = ("edge", "inner")  # need only its masks
 GROW_PX = 1
+EDGE_PX = 1
 _SHIFT = 4  # cv2 sub-pixel bits
 REGION_DETAILS = (f"garment: pixels whose nearest surface is the ground-truth garment mesh (depth-ordered with the "
                   f"body mesh), grown by {GROW_PX} px, inside the protocol's region; body: the rest of that region")
@@ -48,3 +56,18 @@ def garment_mask(cam: Camera, body_vertices: np.ndarray, body_faces: np.ndarray,
 def split_region(region_mask: np.ndarray, garment: np.ndarray) -> dict[str, np.ndarray]:
     """{"all": region, "garment": region & garment, "body": region & ~garment} ([H, W] bool each)."""
     return {"all": region_mask, "garment": region_mask & garment, "body": region_mask & ~garment}
+
+
+def silhouette_band(mask: np.ndarray, px: int = EDGE_PX) -> np.ndarray:
+    """[H, W] bool: the pixels within `px` of the boundary of `mask` ([H, W] bool), on either side (the image's own
+    border is not a boundary)."""
+    import cv2
+
+    m = np.asarray(mask).astype(np.uint8)
+    kernel = np.ones((2 * px + 1, 2 * px + 1), np.uint8)
+    return cv2.dilate(m, kernel) > cv2.erode(m, kernel)
+
+
+def split_silhouette(region_mask: np.ndarray, band: np.ndarray) -> dict[str, np.ndarray]:
+    """{"all": region, "edge": region & band, "inner": region & ~band} ([H, W] bool each)."""
+    return {"all": region_mask, "edge": region_mask & band, "inner": region_mask & ~band}

@@ -65,7 +65,7 @@ class EvalConfig:
     device: str = "auto"  # auto | cpu | cuda
     checkpoint: str | None = None  # None = fit/checkpoints/latest.pt
     save_images: bool = False  # also write every render to eval/<name>/renders/<frame:06d>_<view>.png
-    region: str = "all"  # what the headline PSNR is over: all (the protocol's region) | garment | body
+    region: str = "all"  # what the headline PSNR is over: all (the protocol's region) | garment | body | edge | inner
     knockout: tuple[str, ...] = ()  # render-time knockout of a trained model: delta-n and/or embedding (Fig. 3)
 
     def __post_init__(self) -> None:
@@ -172,6 +172,7 @@ def _run(env: Any, progress: ProgressFn | None, project_dir: str, cfg: EvalConfi
     from avatarctl.dist import active, broadcast_from_main, gather_to_main
     from avatarctl.evaluate.metrics import lpips_status, metric_settings, psnr_from_mse
     from avatarctl.evaluate.protocols import GROUND_TRUTH
+    from avatarctl.evaluate.regions import SILHOUETTE_REGIONS
     from avatarctl.evaluate.report import per_frame_csv, region_scores
     from avatarctl.evaluate.sheet import comparison_sheet
 
@@ -184,7 +185,7 @@ def _run(env: Any, progress: ProgressFn | None, project_dir: str, cfg: EvalConfi
     latent = latent_for(cfg.latent, is_train)
     background = avatar.background
     lpips_fn, lpips_reason = lpips_status()
-    geometry = _gt_geometry(project, cfg.region)
+    geometry = None if cfg.region in SILHOUETTE_REGIONS else _gt_geometry(project, cfg.region)
     cams = {v: cap.cameras[v].pinhole() for v in views}
     total = len(frames) * len(views)
     sheet_at = set(np.linspace(0, total - 1, min(cfg.sheet_rows, total)).round().astype(int).tolist()) \
@@ -284,6 +285,7 @@ def _score_image(avatar: Any, cfg: EvalConfig, project: Project, state: Any, ver
     """Render one (frame, view) over the protocol's region and score it against the ground truth."""
     from avatarctl.evaluate.metrics import mse, psnr_from_mse, ssim
     from avatarctl.evaluate.protocols import bbox_region, full_region, ground_truth
+    from avatarctl.evaluate.regions import SILHOUETTE_REGIONS, silhouette_band, split_silhouette
     from avatarctl.evaluate.sheet import SheetRow
     from avatarctl.render.engine import render_view
     from avatarctl.render.images import write_png
@@ -301,7 +303,8 @@ def _score_image(avatar: Any, cfg: EvalConfig, project: Project, state: Any, ver
         render_mask[y0:y1, x0:x1] = True
     view_out = render_view(avatar.model, state, 0, cam, background, max_rays_per_chunk=cfg.max_rays_per_chunk,
                            pixel_mask=render_mask)
-    gt = ground_truth(cap.image(view, frame), cap.mask(view, frame), background)  # [H, W, 3]
+    mask = cap.mask(view, frame)
+    gt = ground_truth(cap.image(view, frame), mask, background)  # [H, W, 3]
     e = mse(view_out.rgb, gt, region.mask)
     pred_crop, gt_crop = region.crop_image(view_out.rgb), region.crop_image(gt)
     try:
@@ -310,8 +313,11 @@ def _score_image(avatar: Any, cfg: EvalConfig, project: Project, state: Any, ver
         raise InputError(f"cannot score frame {frame} view {view}: {err}", where=str(project.root),
                          fix="use --protocol full or a higher-resolution capture") from None
     region_mse = region_pixels = None
-    if geometry is not None:
-        region_mse, region_pixels = _region_errors(view_out.rgb, gt, region.mask, cam, geometry, frame)
+    if cfg.region in SILHOUETTE_REGIONS:
+        region_mse, region_pixels = _part_errors(view_out.rgb, gt, split_silhouette(region.mask, silhouette_band(mask)),
+                                                 SILHOUETTE_REGIONS)
+    elif geometry is not None:
+        region_mse, region_pixels = _garment_errors(view_out.rgb, gt, region.mask, cam, geometry, frame)
     score = ImageScore(frame=frame, view=view, psnr=psnr_from_mse(e), ssim=s, mse=e, pixels=int(region.mask.sum()),
                        latent=latent, seconds=round(view_out.seconds, 4), region_mse=region_mse,
                        region_pixels=region_pixels)
@@ -325,7 +331,7 @@ def _score_image(avatar: Any, cfg: EvalConfig, project: Project, state: Any, ver
 
 
 def _gt_geometry(project: Project, region: str) -> Any:
-    """The source capture's ground-truth geometry (`io.gt_geometry`), or None; required when `region` is not all."""
+    """The source capture's ground-truth geometry (`io.gt_geometry`), or None; required for garment / body."""
     from avatarctl.io.gt_geometry import find_gt_geometry, load_gt_geometry
 
     path = find_gt_geometry(project.manifest.source.path)
@@ -333,22 +339,29 @@ def _gt_geometry(project: Project, region: str) -> Any:
         if region != "all":
             raise InputError(f"--region {region} needs the capture's ground-truth garment geometry, and "
                              f"{project.manifest.source.path} has none", where="--region",
-                             fix="use --region all, or a capture made by `avatarctl synth` (it writes gt/geometry.npz)")
+                             fix="use --region all, edge or inner (the masks' silhouette: any capture), or a capture "
+                                 "made by `avatarctl synth` (it writes gt/geometry.npz)")
         return None
     return load_gt_geometry(path)
 
 
-def _region_errors(rgb: np.ndarray, gt: np.ndarray, mask: np.ndarray, cam: Any, geometry: Any, frame: int
-                   ) -> tuple[dict[str, float], dict[str, int]]:
-    """({"garment": mse, "body": mse, "garment_flat": mse, "body_flat": mse}, {"garment": pixels, "body": pixels})
-    inside the protocol's `mask`; *_flat: the error of the region's best flat colour (its mean ground truth)."""
-    from avatarctl.evaluate.metrics import mse
-    from avatarctl.evaluate.regions import garment_mask, split_region
+def _garment_errors(rgb: np.ndarray, gt: np.ndarray, mask: np.ndarray, cam: Any, geometry: Any, frame: int
+                    ) -> tuple[dict[str, float], dict[str, int]]:
+    """`_part_errors` of the garment / body split of the protocol's `mask` (`evaluate.regions`)."""
+    from avatarctl.evaluate.regions import GEOMETRY_REGIONS, garment_mask, split_region
 
     r = geometry.row(frame)
     parts = split_region(mask, garment_mask(cam, geometry.body_vertices[r], geometry.body_faces,
                                             geometry.garment_vertices[r], geometry.garment_faces))
-    names = ("garment", "body")
+    return _part_errors(rgb, gt, parts, GEOMETRY_REGIONS)
+
+
+def _part_errors(rgb: np.ndarray, gt: np.ndarray, parts: dict[str, np.ndarray], names: tuple[str, ...]
+                 ) -> tuple[dict[str, float], dict[str, int]]:
+    """({n: mse, n + "_flat": mse}, {n: pixels}) for each region n of `names` ([H, W] bool masks in `parts`);
+    *_flat: the error of the region's best flat colour (its mean ground truth)."""
+    from avatarctl.evaluate.metrics import mse
+
     err = {n: mse(rgb, gt, parts[n]) if parts[n].any() else 0.0 for n in names}
     # the region's best flat colour (its mean ground-truth colour): the floor a useful render must beat
     err.update({f"{n}_flat": float(((gt[parts[n]] - gt[parts[n]].mean(0)) ** 2).mean()) if parts[n].any() else 0.0
