@@ -56,7 +56,8 @@ def render_gaussians_batch(means: torch.Tensor,  # [B, G, 3] world, metres: the 
                            colors: torch.Tensor,  # [B, G, C]
                            opacities: torch.Tensor,  # [B, G]
                            cams: list[SplatCamera], background: torch.Tensor,  # [C]
-                           backend: str = "auto", low_pass: float = LOW_PASS) -> list[tuple[torch.Tensor, torch.Tensor]]:
+                           backend: str = "auto", low_pass: float = LOW_PASS
+                           ) -> list[tuple[torch.Tensor, torch.Tensor]]:
     """`render_gaussians` of B images in one projection and one rasterization (`rasterize_batch`) -> [(rgb [H_b, W_b,
     C], alpha [H_b, W_b])], image b of cams[b] (each its own window size)."""
     proj = project_gaussians_batch(means, covars, cams, low_pass=low_pass)
