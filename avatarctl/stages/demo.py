@@ -10,7 +10,7 @@ Presets (`DEMO_PRESETS`):
   minute on 2 cores; checks the plumbing, the avatar is not recognisable.
 - `tiny`: synth "tiny" (6 views, 24 + 12 frames, 96 px), fit "cpu" preset (the Gaussian local fields) for 2000
   steps or 90 s of training, whichever comes first: 1:55 in all on an idle 2-core machine, novel-view bbox PSNR
-  22.23-22.43 dB (docs/render_eval.md; until 2026-11-27 the MLP fields for 2000 steps / 330 s: 4.3-4.7 min,
+  22.48-22.57 dB (seeds 0 / 1, 2026-11-27; docs/render_eval.md; until 2026-11-27 the MLP fields for 2000 steps / 330 s: 4.3-4.7 min,
   22.28-22.51 dB).
 - `small`: synth "small" (12 views, 80 + 40 frames, 256 px), fit "cpu" preset for 3000 steps: 13.2 min in all on an
   idle 2-core machine (the fit 10.6 min), novel-view bbox PSNR 22.78 dB (docs/render_eval.md; with the MLP fields,
