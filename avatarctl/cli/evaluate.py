@@ -39,7 +39,7 @@ def register(app: typer.Typer) -> None:
                                    "region) | garment | body | edge | inner. garment/body need the capture's "
                                    "ground-truth geometry (synth writes gt/geometry.npz); with it every eval also "
                                    "reports both. edge (within 1 px of the mask's silhouette, either side) / inner "
-                                   "(the rest): any capture, both reported."),
+                                   "(the rest): any capture; reports these two instead."),
         knockout: Optional[str] = typer.Option(None, "--knockout", help="Render-time knockout of the trained "
                                                "model (paper Fig. 3 / supp. node-variable table): delta-n and/or embedding, comma-separated: "
                                                "that variable is set to zero when rendering."),
