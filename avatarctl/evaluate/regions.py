@@ -25,8 +25,6 @@ SILHOUETTE_REGIONS = ("edge", "inner")  # need only its masks
 GROW_PX = 1
 EDGE_PX = 1
 _SHIFT = 4  # cv2 sub-pixel bits
-REGION_DETAILS = (f"garment: pixels whose nearest surface is the ground-truth garment mesh (depth-ordered with the "
-                  f"body mesh), grown by {GROW_PX} px, inside the protocol's region; body: the rest of that region")
 
 
 def garment_mask(cam: Camera, body_vertices: np.ndarray, body_faces: np.ndarray, garment_vertices: np.ndarray,
