@@ -186,12 +186,17 @@ def _in_mask(mask: np.ndarray, p: np.ndarray) -> np.ndarray:
     return inside
 
 
-def _farneback(capture, view: str, a: int, b: int) -> np.ndarray:
-    """OpenCV's Farneback flow [H, W, 2] (pixels) from frame a to frame b of one view (the parameters of part 3)."""
+def _gray(capture, view: str, frame: int) -> np.ndarray:
+    """The frame of one view as an 8-bit grey image (what the flow reads)."""
     import cv2
 
-    ga = cv2.cvtColor(capture.image(view, a), cv2.COLOR_RGB2GRAY)
-    gb = cv2.cvtColor(capture.image(view, b), cv2.COLOR_RGB2GRAY)
+    return cv2.cvtColor(capture.image(view, frame), cv2.COLOR_RGB2GRAY)
+
+
+def _farneback(ga: np.ndarray, gb: np.ndarray) -> np.ndarray:
+    """OpenCV's Farneback flow [H, W, 2] (pixels) from grey image ga to gb (the parameters of part 3)."""
+    import cv2
+
     return cv2.calcOpticalFlowFarneback(ga, gb, None, 0.5, 4, 15, 5, 5, 1.1, 0)
 
 
@@ -217,7 +222,7 @@ def flow_error(capture, gt, frames: list[int], views: list[str], max_pairs: int 
         pb = project(P, gt.garment_vertices[gt.row(b)].astype(np.float64))[0][:, 0]
         if not keep.any():
             continue
-        flow = _farneback(capture, view, a, b)  # [H, W, 2] pixels, a -> b
+        flow = _farneback(_gray(capture, view, a), _gray(capture, view, b))  # [H, W, 2] pixels, a -> b
         true = pb[keep] - pa[keep]
         errors.append(np.linalg.norm(_sample(flow, pa[keep]) - true, axis=-1))
         motions.append(np.linalg.norm(true, axis=-1))
@@ -237,38 +242,35 @@ def long_range_tracks(capture, gt, frames: list[int], views: list[str], gaps: tu
 
     have = set(frames)
     r = frames[len(frames) // 2]
-    rows = {g: {"chained": [], "direct": [], "motion": [], "started": 0} for g in gaps}
+    rows = {g: {"chained": [], "direct": [], "motion": []} for g in gaps}
     for view in views:
         P = projection_matrices([capture.cameras[view]])
         p0, keep = _facing_inside(capture, gt, view, r, P)
-        truth = {f: project(P, gt.garment_vertices[gt.row(f)].astype(np.float64))[0][:, 0] for f in frames}
+        start, g0 = p0[keep], _gray(capture, view, r)
         for step in (1, -1):
-            p, alive, t = p0[keep].copy(), np.ones(int(keep.sum()), dtype=bool), r
+            p, alive, t, prev = start.copy(), np.ones(len(start), dtype=bool), r, g0
             for gap in range(1, max(gaps) + 1):
                 if t + step not in have:
                     break
-                fwd, bwd = _farneback(capture, view, t, t + step), _farneback(capture, view, t + step, t)
-                d = _sample(fwd, p)
-                alive &= np.linalg.norm(d + _sample(bwd, p + d), axis=-1) < fb_px
-                p, t = p + d, t + step
+                g1 = _gray(capture, view, t + step)
+                d = _sample(_farneback(prev, g1), p)
+                alive &= np.linalg.norm(d + _sample(_farneback(g1, prev), p + d), axis=-1) < fb_px
+                p, t, prev = p + d, t + step, g1
                 alive &= _in_mask(capture.mask(view, t), p)
                 if gap in rows:
-                    true = truth[t][keep]
+                    true = project(P, gt.garment_vertices[gt.row(t)].astype(np.float64))[0][:, 0][keep]
                     row = rows[gap]
-                    row["started"] += len(alive)
                     row["chained"].append(np.linalg.norm(p[alive] - true[alive], axis=-1))
-                    row["direct"].append(np.linalg.norm(p0[keep] + _sample(_farneback(capture, view, r, t), p0[keep])
-                                                        - true, axis=-1))
-                    row["motion"].append(np.linalg.norm(true - p0[keep], axis=-1))
+                    row["direct"].append(np.linalg.norm(start + _sample(_farneback(g0, g1), start) - true, axis=-1))
+                    row["motion"].append(np.linalg.norm(true - start, axis=-1))
     q = (lambda x, p: float(np.quantile(x, p)) if len(x) else float("nan"))
     out = []
     for g in gaps:
-        row = rows[g]
-        if not row["started"]:
+        if not sum(len(x) for x in rows[g]["direct"]):  # no vertex followed this far
             continue
-        c, d, m = (np.concatenate(row[k]) for k in ("chained", "direct", "motion"))
+        c, d, m = (np.concatenate(rows[g][k]) for k in ("chained", "direct", "motion"))
         out.append(TrackError(gap=g, vertices=len(d), motion_px=q(m, 0.5), direct_px=q(d, 0.5),
-                              direct_p90_px=q(d, 0.9), tracked=len(c) / row["started"], chained_px=q(c, 0.5),
+                              direct_p90_px=q(d, 0.9), tracked=len(c) / len(d), chained_px=q(c, 0.5),
                               chained_p90_px=q(c, 0.9)))
     return tuple(out)
 
