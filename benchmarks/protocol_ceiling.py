@@ -9,11 +9,15 @@ perfect avatars of a capture made by `avatarctl synth` and scores them as the ev
 saved renders when given:
 
 - **perfect (physical)**: the true scene (`CAPTURE/gt/geometry.npz`, the synth's own textures and shading) rendered
-  by the synth's renderer through the project's undistorted camera, supersampled as the capture was, over the
-  background colour: true geometry, colour and anti-aliasing. What an ideal renderer of the true avatar scores.
+  by the synth's renderer through the capture's own (distorted) camera, supersampled as the capture was, over the
+  background colour, then saved as the capture's JPEG, undistorted as ingest undistorts
+  (`ingest.undistort.Undistorter`) and saved as the project's JPEG: the capture's own picture of the subject with the
+  room replaced by the background colour — true geometry, colour and anti-aliasing, the same resampling and the
+  same compression (its chroma subsampling blurs colour edges alike). It differs from the ground truth only on the
+  mask's edge (and by the JPEG noise of a different surround).
 - **perfect (mask-sharp)**: the true subject's own colour (its coverage divided out) on every pixel of the eval's
   binary mask and the background colour elsewhere: an edge as hard as the mask. Not physical; the protocol's
-  ceiling (what remains is the room mixed into the mask's edge pixels, resampling and JPEG).
+  ceiling (what remains is the room mixed into the mask's edge pixels, and JPEG noise).
 - **avatar** (`--eval P/eval/NAME`, an eval run with `--save-images`): its renders, on its frames, views,
   background and box padding.
 
@@ -92,6 +96,16 @@ def part_masks(box: np.ndarray, mask: np.ndarray) -> dict[str, np.ndarray]:
             "edge_out_of_mask": edge & ~mask}
 
 
+def jpeg(image: np.ndarray, quality: int) -> np.ndarray:
+    """[H, W, 3] RGB float in [0, 1] or uint8 -> uint8 after a JPEG round trip at `quality` (OpenCV, as written)."""
+    import cv2
+
+    u8 = image if image.dtype == np.uint8 else np.clip(np.round(image * 255.0), 0, 255).astype(np.uint8)
+    ok, buf = cv2.imencode(".jpg", u8[..., ::-1], [int(cv2.IMWRITE_JPEG_QUALITY), int(quality)])
+    assert ok
+    return cv2.imdecode(buf, cv2.IMREAD_COLOR)[..., ::-1]
+
+
 class _Tally:
     """Summed squared error per part and per-image PSNRs of one avatar."""
 
@@ -135,8 +149,10 @@ def measure(project_dir: str | Path, split: str = "novel_pose", every: int = 1,
 
     from avatarctl.body.registry import load_body_model
     from avatarctl.evaluate.protocols import bbox_region, ground_truth
+    from avatarctl.ingest.undistort import Undistorter
+    from avatarctl.io.easymocap import read_easymocap_cameras
     from avatarctl.io.gt_geometry import find_gt_geometry, load_gt_geometry
-    from avatarctl.io.project_io import load_project_capture
+    from avatarctl.io.project_io import JPEG_QUALITY, load_project_capture
     from avatarctl.project import Project
     from avatarctl.synth.capture import SceneRenderer, load_scene
 
@@ -162,8 +178,10 @@ def measure(project_dir: str | Path, split: str = "novel_pose", every: int = 1,
         views = list(s.train_views if split == "train" else s.test_views)
     scene, geometry = load_scene(capture_dir), load_gt_geometry(gt_path)
     cams = [cap.cameras[v] for v in views]
+    source = {c.name: c for c in read_easymocap_cameras(capture_dir)}
+    undistort = [Undistorter.for_camera(source[v], cap.cameras[v].width / source[v].width) for v in views]
     supersample = int(info["config"]["supersample"])
-    renderer = SceneRenderer(scene, cams, supersample, int(info["seed"]))
+    renderer = SceneRenderer(scene, [source[v] for v in views], supersample, int(info["seed"]))
     renderer.bg = [np.broadcast_to(background, b.shape).copy() for b in renderer.bg]  # the subject over the colour
     body = load_body_model(cap.body_model, cap.body_model_path)
     tallies = {name: _Tally() for name in ("perfect (physical)", "perfect (mask-sharp)")}
@@ -173,7 +191,10 @@ def measure(project_dir: str | Path, split: str = "novel_pose", every: int = 1,
     for frame in frames:
         verts = body.pose(cap.motion.select(cap.motion.rows_for([frame]))).vertices[0].detach().double().numpy()
         shots = renderer.render_frame(geometry.row(frame))
-        for view, cam, (physical, coverage) in zip(views, cams, shots):
+        for view, cam, und, (image, cover) in zip(views, cams, undistort, shots):
+            physical = jpeg(und.image(jpeg(image, int(info["config"]["jpeg_quality"]))), JPEG_QUALITY
+                            ).astype(np.float32) / 255.0
+            coverage = np.clip(und.image(np.repeat(cover[..., None], 3, -1).astype(np.float32))[..., 0], 0.0, 1.0)
             mask = cap.mask(view, frame).astype(bool)
             gt = ground_truth(cap.image(view, frame), mask, background).astype(np.float64)
             parts = part_masks(bbox_region(cam, verts, pad=pad).mask, mask)
@@ -184,7 +205,8 @@ def measure(project_dir: str | Path, split: str = "novel_pose", every: int = 1,
             if renders is not None:
                 png = cv2.imread(str(renders / f"{frame:06d}_{view}.png"))
                 if png is None:
-                    raise SystemExit(f"{renders / f'{frame:06d}_{view}.png'} missing: re-run the eval with --save-images")
+                    raise SystemExit(f"{renders / f'{frame:06d}_{view}.png'} missing: re-run the eval with "
+                                     "--save-images")
                 images["avatar"] = png[..., ::-1].astype(np.float32) / 255.0
             for name, image in images.items():
                 tallies[name].add(image, gt, parts)

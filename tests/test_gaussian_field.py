@@ -70,7 +70,7 @@ def test_initial_gaussians_start_on_the_surface_within_their_node():
 
 def _fields(N: int = 3, K: int = 5, E: int = 4, sh_degree: int = 1) -> NodeGaussians:
     torch.manual_seed(0)
-    cfg = GaussianConfig(per_node=K, feature_dim=6, decoder_width=8, sh_degree=sh_degree)
+    cfg = GaussianConfig(per_node=K, feature_dim=6, decoder_width=8, sh_degree=sh_degree, shading="none")
     return NodeGaussians(cfg, N, E, 0.05 * torch.randn(N, K, 3), torch.full((N, K, 3), math.log(0.02)))
 
 
@@ -113,6 +113,63 @@ def test_view_dependent_colour_turns_with_the_node():
     assert not torch.allclose(posed.colors(0, cam), posed.colors(1, -cam1 + 2 * posed.means[1, 0]))
 
 
+def test_irradiance_shading_turns_with_the_node_and_starts_neutral():
+    """shading "irradiance": c = E(A_i n_ik) (0.5 + SH) with E(m) = max(0, 1 + sum_j l_j Y_j(m)); l = 0 at the start."""
+    from avatarctl.model.gaussian_field import irradiance_basis, shade
+
+    torch.manual_seed(0)
+    N, K, E = 2, 3, 4
+    cfg = GaussianConfig(per_node=K, feature_dim=6, decoder_width=8, shading="irradiance")
+    normals = torch.nn.functional.normalize(torch.randn(N, K, 3), dim=-1)
+    g = NodeGaussians(cfg, N, E, 0.05 * torch.randn(N, K, 3), torch.full((N, K, 3), math.log(0.02)),
+                      init_normals=normals)
+    plain = NodeGaussians(GaussianConfig(per_node=K, feature_dim=6, decoder_width=8, shading="none"), N, E,
+                          g.means.detach(), g.log_scales.detach())
+    plain.load_state_dict({k: v for k, v in g.state_dict().items() if k not in ("normals", "light")})
+    with torch.no_grad():
+        g.sh.uniform_(-1, 1)
+        plain.sh.copy_(g.sh)
+    rot = torch.tensor([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])  # 90 degrees about z
+    T = torch.eye(4).repeat(2, N, 1, 1)
+    T[1, :, :3, :3] = rot
+    args = (T, torch.zeros(2, N, 3), torch.zeros(2, N, E))
+    assert torch.allclose(g(*args).sh, plain(*args).sh)  # l = 0: the unshaded colours
+    with torch.no_grad():
+        g.light.normal_(0, 0.3)
+    posed, ref = g(*args), plain(*args)
+    for b, A in ((0, torch.eye(3)), (1, rot)):
+        m = normals @ A.T  # the world normal: A_i n_ik
+        shading = (1 + irradiance_basis(m) @ g.light.detach()).clamp(min=0)  # [N, K, 3]
+        want = shading.reshape(-1, 3) * ref.colors(b, torch.zeros(3))
+        assert torch.allclose(posed.colors(b, torch.zeros(3)), want, atol=1e-5)
+    assert not torch.allclose(posed.colors(0, torch.zeros(3)), posed.colors(1, torch.zeros(3)))  # turned: shaded anew
+    # the view-dependent bands are scaled alike (degree 1): c = E (0.5 + SH(d))
+    sh1 = torch.randn(1, 1, 1, 4, 3)
+    lin = torch.eye(3).expand(1, 1, 3, 3)
+    n1, l1 = torch.tensor([[[0.0, 0.0, 1.0]]]), torch.randn(8, 3)
+    d = torch.nn.functional.normalize(torch.randn(1, 1, 1, 3), dim=-1)
+    e1 = (1 + irradiance_basis(n1[0, 0]) @ l1).clamp(min=0)
+    assert torch.allclose(eval_sh(shade(sh1, lin, n1, l1), d), e1 * eval_sh(sh1, d), atol=1e-5)
+    # the light trains at the colours' rate; the normals are fixed (a buffer, saved with the weights)
+    assert any(p is g.light for p in g.gaussian_parameters()["lr_colors"])
+    assert "normals" in dict(g.named_buffers()) and "normals" in g.state_dict()
+    with pytest.raises(ValueError, match="initial normals"):
+        NodeGaussians(cfg, N, E, g.means.detach(), g.log_scales.detach())
+
+
+def test_initial_normals_are_the_templates_vertex_normals():
+    from avatarctl.model.gaussian_field import initial_normals
+
+    v, f = _sphere()
+    d = torch.nn.functional.normalize(torch.randn(64, 3) * torch.tensor([1.0, 0.5, 1.0]), dim=-1)  # off the poles (y)
+    pts = 0.32 * d  # just outside the sphere of radius 0.3
+    n = initial_normals(v, f, pts)
+    assert torch.allclose(n.norm(dim=-1), torch.ones(64), atol=1e-5)
+    cos = torch.nn.functional.cosine_similarity(n, d, dim=-1)
+    assert (cos < -0.95).all()  # radial; inward here because this sphere's faces are wound inward
+    assert torch.allclose(initial_normals(v, f.flip(-1), pts), -n)  # the winding gives the side
+
+
 def test_relocation_moves_dead_gaussians_onto_live_ones_of_their_node():
     from avatarctl.fit.densify import relocate_dead
 
@@ -143,6 +200,24 @@ def test_relocation_moves_dead_gaussians_onto_live_ones_of_their_node():
     g2.load_state_dict({n: before[n] for n in before})
     relocate_dead(g2, torch.optim.Adam(g2.parameters()), min_opacity=0.005, seed=0, step=100)
     assert all(torch.equal(a, b) for a, b in zip(g.parameters(), g2.parameters()))
+
+
+def test_relocated_gaussians_take_their_sources_normal():
+    from avatarctl.fit.densify import relocate_dead
+
+    torch.manual_seed(0)
+    N, K = 2, 4
+    cfg = GaussianConfig(per_node=K, feature_dim=6, decoder_width=8, shading="irradiance")
+    g = NodeGaussians(cfg, N, 4, 0.05 * torch.randn(N, K, 3), torch.full((N, K, 3), math.log(0.02)),
+                      init_normals=torch.nn.functional.normalize(torch.randn(N, K, 3), dim=-1))
+    with torch.no_grad():
+        g.opacity_logits.copy_(torch.logit(torch.tensor([[0.001, 0.5, 0.001, 0.3], [0.5, 0.5, 0.5, 0.5]])))
+    before = {n: p.detach().clone() for n, p in g.state_dict().items()}
+    assert relocate_dead(g, torch.optim.Adam(g.parameters()), min_opacity=0.005, seed=0, step=100) == 2
+    for k in (0, 2):
+        src = [j for j in (1, 3) if torch.equal(g.features[0, k], before["features"][0, j])]
+        assert src and torch.equal(g.normals[0, k], before["normals"][0, src[0]])
+    assert torch.equal(g.normals[1], before["normals"][1])
 
 
 def test_model_config_keeps_the_gaussian_options_in_their_own_config():

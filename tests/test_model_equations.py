@@ -263,6 +263,20 @@ def test_reconstruction_loss_is_eq12_sum_at_the_reference_batch():
         ModelConfig(rec_reduction="max")
 
 
+def test_the_gaussians_shading_is_an_option_and_old_configs_read_none():
+    """`model.gaussians.shading`: "irradiance" by default, checked, kept through JSON; a Gaussian-field config saved
+    before the option was trained unshaded and reads "none"."""
+    cfg = ModelConfig(field="gaussians")
+    assert cfg.gaussians.shading == "irradiance" and ModelConfig.from_json(cfg.to_json()) == cfg
+    none = cfg.with_(gaussians={"shading": "none"})
+    assert ModelConfig.from_json(none.to_json()).gaussians.shading == "none"
+    old = cfg.to_json()
+    del old["gaussians"]["shading"]
+    assert ModelConfig.from_json(old).gaussians.shading == "none"
+    with pytest.raises(ValueError, match="shading must be one of none, irradiance"):
+        ModelConfig(field="gaussians", gaussians={"shading": "phong"})
+
+
 def test_the_splats_low_pass_is_an_option_and_old_gaussian_configs_keep_3dgs_value():
     """`model.gaussians.low_pass` (px^2 added to each splat's 2D covariance): 0.1 by default, kept through JSON; a
     Gaussian-field config saved before the option was trained with 3DGS's 0.3 and reads back as such."""

@@ -48,6 +48,8 @@ def relocate_dead(fields: NodeGaussians, optimizer: torch.optim.Optimizer, min_o
     targets = {"means": moved, "log_scales": fields.log_scales[node, src], "quats": fields.quats[node, src],
                "opacity_logits": torch.logit(o_new.clamp(1e-6, 1 - 1e-6)), "sh": fields.sh[node, src],
                "features": fields.features[node, src]}
+    if fields.shaded:
+        targets["normals"] = fields.normals[node, src]
     for name, value in targets.items():
         p = getattr(fields, name)
         block = p[rows]

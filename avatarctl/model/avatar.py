@@ -183,12 +183,15 @@ class SlrfAvatar(nn.Module):
         if cfg.variant == "slrf":
             self.latent = NodeCVAE(cfg, J, num_frames)
             if cfg.field == "gaussians":  # rasterized local fields (model/gaussian_field.py); no ray-marching heads
-                from avatarctl.model.gaussian_field import NodeGaussians, initial_gaussians
+                from avatarctl.model.gaussian_field import NodeGaussians, initial_gaussians, initial_normals
 
                 means, log_scales = initial_gaussians(template.vertices, template.faces, rest,
                                                       cfg.gaussians.per_node, cfg.support_radius, seed, off_body)
+                normals = initial_normals(template.vertices, template.faces,
+                                          (means + rest.detach().float().cpu()[:, None]).reshape(-1, 3)
+                                          ).reshape(means.shape) if cfg.gaussians.shading == "irradiance" else None
                 self.fields = NodeGaussians(cfg.gaussians, cfg.num_nodes, cfg.embed_dim, means, log_scales,
-                                            cfg.sigma)
+                                            cfg.sigma, normals)
             else:
                 self.fields = NodeFields(cfg.num_nodes, cfg.pe_coords, cfg.embed_dim, cfg.node_width,
                                          cfg.node_depth, cfg.feature_dim)

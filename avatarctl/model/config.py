@@ -218,6 +218,8 @@ def nest_legacy_keys(d: dict[str, Any]) -> dict[str, Any]:
 
 
 LOW_PASS_BEFORE = 0.3  # GaussianConfig.low_pass of configs written before the option (3DGS's value)
+SHADING_BEFORE = "none"  # GaussianConfig.shading of configs written before the option
+SHADINGS = ("none", "irradiance")
 
 
 @dataclass(frozen=True)
@@ -237,6 +239,11 @@ class GaussianConfig:
     # 3DGS's 0.3 blurs silhouettes, 0.1 measured better (docs/fit.md "The splats' low-pass"); a saved config from
     # before the option reads 0.3, the value it was trained with (`ModelConfig.from_json`)
     low_pass: float = 0.1
+    # "irradiance": a Gaussian's colour is its own (an albedo) times the shading of its world-space normal under one
+    # learned order-2 spherical-harmonic irradiance of the whole avatar (fixed world lights; model/gaussian_field.py);
+    # "none": its colour whatever the pose. "irradiance" measured better (synth tight's novel poses +1.2 dB at 10 min;
+    # docs/fit.md "Shading under fixed lights"); a saved config from before the option reads "none"
+    shading: str = "irradiance"
     # losses: (1 - lambda_ssim) L1 + lambda_ssim D-SSIM per image; lambda_mask |alpha - mask| (deviation). 3DGS's
     # lambda_ssim is 0.2; 0.1 measured better on all three synth captures, 0 better still with a skirt but not on
     # tight clothing (docs/fit.md, docs/experiments/gaussian_tiny_2026-11-27)
@@ -262,6 +269,7 @@ class GaussianConfig:
             v = getattr(self, name)
             need(isinstance(v, int) and not isinstance(v, bool) and v > 0, f"{name} must be a positive int, got {v!r}")
         need(self.sh_degree in (0, 1), f"sh_degree must be 0 or 1, got {self.sh_degree!r}")
+        need(self.shading in SHADINGS, f"shading must be one of {', '.join(SHADINGS)}, got {self.shading!r}")
         need(isinstance(self.relocate_every, int) and self.relocate_every >= 0,
              f"relocate_every must be an int >= 0, got {self.relocate_every!r}")
         need(0 < self.init_opacity < 1, f"init_opacity must be in (0, 1), got {self.init_opacity}")
@@ -449,8 +457,9 @@ class ModelConfig:
             raise ValueError(f"ModelConfig: unknown keys {unknown}; known keys are {sorted(known)}")
         if "rec_reduction" not in d:  # configs written before the key existed were trained with the mean
             d["rec_reduction"] = "mean"
-        if d.get("field") == "gaussians" and "low_pass" not in (d.get("gaussians") or {}):
-            d["gaussians"] = {**(d.get("gaussians") or {}), "low_pass": LOW_PASS_BEFORE}  # trained with 3DGS's 0.3
+        if d.get("field") == "gaussians":  # options an avatar saved before them was trained without
+            before = {"low_pass": LOW_PASS_BEFORE, "shading": SHADING_BEFORE}
+            d["gaussians"] = {**before, **(d.get("gaussians") or {})}
         return cls(**d)
 
     def with_(self, **changes: Any) -> "ModelConfig":

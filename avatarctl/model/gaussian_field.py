@@ -17,6 +17,18 @@ metres), its opacity sigmoid(logit_ik + delta_ik), its colour c = 0.5 + SH(d_loc
 d_local = A_i^-1 d (normalised) in the node's frame, so the view dependence turns with the body. The last decoder
 layer starts at zero: at initialisation every frame renders the same static Gaussians.
 
+Shading (`GaussianConfig.shading = "irradiance"`, a deviation beyond the paper): a capture's lights stay fixed in the
+world while the body turns under them, and a Gaussian keeps one colour for every frame, so an unshaded field
+averages each body part's shading over the training poses and cannot change it in a new one. With shading, a Gaussian
+also has a unit normal n_ik in its node's frame (the template's normal nearest to where it starts; fixed, and a
+relocated Gaussian takes its source's), its colour is read as an albedo, and the rendered colour is
+    c = E(m_ik) (0.5 + SH(d_local)),   m_ik = A_i n_ik / |A_i n_ik|,   E(m) = max(0, 1 + sum_j l_j Y_j(m))
+per colour channel, with Y_j the eight real spherical harmonics of orders 1 and 2 and l_j [8, 3] one learned
+irradiance of the whole avatar (Ramamoorthi and Hanrahan 2001: order 2 holds a Lambertian surface's irradiance
+under distant light to a few per cent; the order-0 term is the albedo's scale). l starts at zero (E = 1): the
+first frames render as without it. E is folded into the colour coefficients (c is linear in them), so a posed
+Gaussian's `sh` carries its shaded colour for every consumer (rasterizer, `.ply` export, density queries).
+
 Initialisation: points drawn uniformly on the canonical template surface, each given to its nearest node (so a
 node's Gaussians start within its support); K per node drawn from them (with replacement when a node has fewer);
 nodes with no surface point (hull nodes off the body, fit/hull_nodes.py) get K points uniformly in a ball of a third of
@@ -134,11 +146,43 @@ def initial_gaussians(vertices: torch.Tensor, faces: torch.Tensor, node_rest: to
     return means, log_scales
 
 
+def irradiance_basis(normals: torch.Tensor) -> torch.Tensor:
+    """[..., 3] unit normals -> [..., 8] the real spherical harmonics of orders 1 and 2, without their constant factors
+    (the learned irradiance absorbs them): y, z, x, xy, yz, 3z^2 - 1, xz, x^2 - y^2."""
+    x, y, z = normals.unbind(-1)
+    return torch.stack([y, z, x, x * y, y * z, 3 * z * z - 1, x * z, x * x - y * y], -1)
+
+
+def initial_normals(vertices: torch.Tensor, faces: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
+    """[P, 3] canonical points -> [P, 3] unit normals: the area-weighted vertex normal of the template vertex nearest to
+    each (vertices [V, 3], faces [F, 3] of the canonical template). The faces' winding gives the side (outward for
+    anny's); a template wound inward flips every normal alike, which the learned irradiance absorbs (its order-1 terms
+    change sign, its order-2 terms are even)."""
+    v, f = vertices.detach().float().cpu(), faces.cpu()
+    tri = v[f]
+    face_normal = torch.linalg.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])  # [F, 3], length 2 x area
+    vn = torch.zeros_like(v).index_add_(0, f.reshape(-1), face_normal.repeat_interleave(3, 0))
+    vn = vn / vn.norm(dim=-1, keepdim=True).clamp(min=1e-12)
+    nearest = torch.cat([torch.cdist(c, v).argmin(dim=1) for c in points.detach().float().cpu().split(8_192)])
+    return vn[nearest]
+
+
+def shade(sh: torch.Tensor, linear: torch.Tensor, normals: torch.Tensor, light: torch.Tensor) -> torch.Tensor:
+    """The module docstring's shading folded into the colour coefficients: sh [B, N, K, S, 3] (albedo), linear
+    [B, N, 3, 3] A_i, normals [N, K, 3] n_ik (node frame), light [8, 3] l -> [B, N, K, S, 3] whose colour is E(m) times
+    the albedo's."""
+    m = (linear[:, :, None] * normals[None, :, :, None, :]).sum(-1)  # [B, N, K, 3] A_i n_ik
+    m = m / m.norm(dim=-1, keepdim=True).clamp(min=1e-12)
+    E = (1.0 + irradiance_basis(m) @ light).clamp(min=0.0)  # [B, N, K, 3]
+    dc = (E * (0.5 + SH_C0 * sh[..., 0, :]) - 0.5) / SH_C0  # E (0.5 + SH_C0 sh_0) = 0.5 + SH_C0 dc
+    return torch.cat([dc[..., None, :], E[..., None, :] * sh[..., 1:, :]], dim=-2)
+
+
 class NodeGaussians(nn.Module):
     """The N nodes' K Gaussians and their per-node decoder (see the module docstring)."""
 
     def __init__(self, cfg: GaussianConfig, num_nodes: int, embed_dim: int, init_means: torch.Tensor,
-                 init_log_scales: torch.Tensor, sigma: float = 0.05):
+                 init_log_scales: torch.Tensor, sigma: float = 0.05, init_normals: torch.Tensor | None = None):
         super().__init__()
         N, K = num_nodes, cfg.per_node
         assert init_means.shape == (N, K, 3), f"init_means: expected [{N}, {K}, 3], got {tuple(init_means.shape)}"
@@ -156,11 +200,19 @@ class NodeGaussians(nn.Module):
         self.embed = BatchedLinear(N, embed_dim, cfg.decoder_width, bias=False)  # e_i's first-layer term
         self.coord_scale = 1.0 / sigma  # the decoder sees mu_ik / sigma (Eq. 6 sigma, metres)
         self.decoder = BatchedMLP(N, [cfg.feature_dim + 3, cfg.decoder_width, 3 * S + 3 + 1], last_init_scale=0.0)
+        self.shaded = cfg.shading == "irradiance"
+        if self.shaded:
+            if init_normals is None:
+                raise ValueError("shading 'irradiance' needs the Gaussians' initial normals")
+            assert init_normals.shape == (N, K, 3), f"init_normals {list(init_normals.shape)}, expected [{N}, {K}, 3]"
+            self.register_buffer("normals", init_normals.clone().float())  # [N, K, 3] n_ik, node frame (fixed)
+            self.light = nn.Parameter(torch.zeros(8, 3))  # l: E = 1 + sum_j l_j Y_j, per colour channel
 
     def gaussian_parameters(self) -> dict[str, list[nn.Parameter]]:
         """The per-Gaussian parameters by learning-rate group (names of `GaussianConfig.lr_*`)."""
         return {"lr_means": [self.means], "lr_scales": [self.log_scales], "lr_quats": [self.quats],
-                "lr_opacity": [self.opacity_logits], "lr_colors": [self.sh, self.features]}
+                "lr_opacity": [self.opacity_logits],
+                "lr_colors": [self.sh, self.features] + ([self.light] if self.shaded else [])}
 
     def forward(self, transforms: torch.Tensor, centers: torch.Tensor, embed: torch.Tensor) -> PosedGaussians:
         """transforms [B, N, 4, 4] T_i (Eq. 1), centers [B, N, 3] posed nodes n_i (Eq. 3), embed [B, N, E] e_i ->
@@ -176,6 +228,8 @@ class NodeGaussians(nn.Module):
         offset = out[..., 3 * S:3 * S + 3] * self.cfg.offset_scale
         opacity = torch.sigmoid(self.opacity_logits[None] + out[..., -1])  # [B, N, K]
         A = transforms[..., :3, :3]  # [B, N, 3, 3]
+        if self.shaded:
+            sh = shade(sh, A, self.normals, self.light)
         local = self.means[None] + offset  # [B, N, K, 3]
         means = centers[:, :, None, :] + (A[:, :, None] * local[..., None, :]).sum(-1)
         covars = transformed_covariances(A, self.quats, self.log_scales)  # [B, N, K, 3, 3] M M^T, M = A R S
