@@ -216,6 +216,8 @@ def measure(project_dir: str | Path, split: str = "novel_pose", every: int = 1,
 
 
 def main(argv: list[str] | None = None) -> CeilingReport:
+    from avatarctl.atomic import write_json
+
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("project")
     ap.add_argument("--split", default="novel_pose", choices=("novel_pose", "novel_view", "train"))
@@ -237,7 +239,7 @@ def main(argv: list[str] | None = None) -> CeilingReport:
         print(f"  {row.avatar:<21} {row.mean_image_psnr:9.2f}  {p['all']:11.2f} {p['edge']:6.2f} {p['inner']:6.2f} "
               f"{p['edge_in_mask']:7.2f} {p['edge_out_of_mask']:8.2f}  {100 * row.edge_share_of_error:9.1f}%")
     if args.json is not None:
-        args.json.write_text(json.dumps(asdict(r), indent=1))
+        write_json(args.json, asdict(r), indent=1)  # atomic
     return r
 
 
