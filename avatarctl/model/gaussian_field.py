@@ -158,13 +158,15 @@ def initial_normals(vertices: torch.Tensor, faces: torch.Tensor, points: torch.T
     each (vertices [V, 3], faces [F, 3] of the canonical template). The faces' winding gives the side (outward for
     anny's); a template wound inward flips every normal alike, which the learned irradiance absorbs (its order-1 terms
     change sign, its order-2 terms are even)."""
+    from scipy.spatial import cKDTree
+
     v, f = vertices.detach().float().cpu(), faces.cpu()
     tri = v[f]
     face_normal = torch.linalg.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])  # [F, 3], length 2 x area
     vn = torch.zeros_like(v).index_add_(0, f.reshape(-1), face_normal.repeat_interleave(3, 0))
     vn = vn / vn.norm(dim=-1, keepdim=True).clamp(min=1e-12)
-    nearest = torch.cat([torch.cdist(c, v).argmin(dim=1) for c in points.detach().float().cpu().split(8_192)])
-    return vn[nearest]
+    _, nearest = cKDTree(v.numpy()).query(points.detach().float().cpu().numpy())  # a tree: no [P, V] distance matrix
+    return vn[torch.as_tensor(nearest, dtype=torch.long)]
 
 
 def shade(sh: torch.Tensor, linear: torch.Tensor, normals: torch.Tensor, light: torch.Tensor) -> torch.Tensor:

@@ -9,8 +9,8 @@ Presets (`DEMO_PRESETS`):
 - `ci` (alias `micro`): synth "micro" (4 views, 6 + 4 frames, 64 px), fit "micro" preset for 20 steps. About a
   minute on 2 cores; checks the plumbing, the avatar is not recognisable.
 - `tiny`: synth "tiny" (6 views, 24 + 12 frames, 96 px), fit "cpu" preset (the Gaussian local fields) for 2000
-  steps or 90 s of training, whichever comes first: 1:56-1:58 in all on an idle 2-core machine, novel-view bbox PSNR
-  22.68-22.84 dB (seeds 0 / 1, 2026-11-28, the Gaussians shaded; docs/render_eval.md; until 2026-11-27 the MLP fields
+  steps or 90 s of training, whichever comes first: 1:55-1:59 in all on an idle 2-core machine, novel-view bbox PSNR
+  22.56-22.89 dB (seeds 0 / 1, 2026-11-28, the Gaussians shaded; docs/render_eval.md; until 2026-11-27 the MLP fields
   for 2000 steps / 330 s: 4.3-4.7 min, 22.28-22.51 dB).
 - `small`: synth "small" (12 views, 80 + 40 frames, 256 px), fit "cpu" preset for 3000 steps: 13.2 min in all on an
   idle 2-core machine (the fit 10.6 min), novel-view bbox PSNR 22.78 dB (docs/render_eval.md; with the MLP fields,
