@@ -194,7 +194,7 @@ def measure(project_dir: str | Path, split: str = "novel_pose", every: int = 1,
         for view, cam, und, (image, cover) in zip(views, cams, undistort, shots):
             physical = jpeg(und.image(jpeg(image, int(info["config"]["jpeg_quality"]))), JPEG_QUALITY
                             ).astype(np.float32) / 255.0
-            coverage = np.clip(und.image(np.repeat(cover[..., None], 3, -1).astype(np.float32))[..., 0], 0.0, 1.0)
+            coverage = np.clip(und.image(cover.astype(np.float32)), 0.0, 1.0)
             mask = cap.mask(view, frame).astype(bool)
             gt = ground_truth(cap.image(view, frame), mask, background).astype(np.float64)
             parts = part_masks(bbox_region(cam, verts, pad=pad).mask, mask)

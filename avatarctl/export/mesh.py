@@ -109,17 +109,6 @@ class GridTooLargeError(ValueError):
     """The grid over the node supports would hold more points than allowed at this voxel size."""
 
 
-def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """[verts, 3] unit area-weighted vertex normals of a mesh wound counter-clockwise from outside."""
-    v = np.asarray(vertices, np.float64)
-    tri = v[np.asarray(faces)]
-    fn = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])  # [faces, 3], length = 2 * area
-    n = np.zeros_like(v)
-    for k in range(3):
-        np.add.at(n, np.asarray(faces)[:, k], fn)
-    return n / np.maximum(np.linalg.norm(n, axis=-1, keepdims=True), 1e-12)
-
-
 def body_level(density: DensityFn, body_vertices: np.ndarray, body_faces: np.ndarray,
                quantile: float = BODY_QUANTILE, depth: float = BODY_DEPTH,
                ceiling: float = DEFAULT_THRESHOLD) -> float:
@@ -128,8 +117,10 @@ def body_level(density: DensityFn, body_vertices: np.ndarray, body_faces: np.nda
 
     body_vertices [V, 3] in the field's frame (the body posed like the field), body_faces [faces, 3]
     counter-clockwise from outside. Raises `NoSurfaceError` when the field is empty at the body."""
+    from avatarctl.geometry.normals import vertex_normals
+
     v = np.asarray(body_vertices, np.float64)
-    probes = v - depth * vertex_normals(v, body_faces)
+    probes = v - depth * vertex_normals(v, np.asarray(body_faces))
     sigma = np.asarray(density(probes.astype(np.float32)), np.float64)
     level = float(np.quantile(sigma, quantile))
     if not level > 0:

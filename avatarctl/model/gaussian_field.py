@@ -160,13 +160,12 @@ def initial_normals(vertices: torch.Tensor, faces: torch.Tensor, points: torch.T
     change sign, its order-2 terms are even)."""
     from scipy.spatial import cKDTree
 
-    v, f = vertices.detach().float().cpu(), faces.cpu()
-    tri = v[f]
-    face_normal = torch.linalg.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])  # [F, 3], length 2 x area
-    vn = torch.zeros_like(v).index_add_(0, f.reshape(-1), face_normal.repeat_interleave(3, 0))
-    vn = vn / vn.norm(dim=-1, keepdim=True).clamp(min=1e-12)
-    _, nearest = cKDTree(v.numpy()).query(points.detach().float().cpu().numpy())  # a tree: no [P, V] distance matrix
-    return vn[torch.as_tensor(nearest, dtype=torch.long)]
+    from avatarctl.geometry.normals import vertex_normals
+
+    v = vertices.detach().cpu().double().numpy()
+    vn = vertex_normals(v, faces.cpu().numpy())
+    _, nearest = cKDTree(v).query(points.detach().cpu().double().numpy())  # a tree: no [P, V] distance matrix
+    return torch.as_tensor(vn[nearest], dtype=torch.float32)
 
 
 def shade(sh: torch.Tensor, linear: torch.Tensor, normals: torch.Tensor, light: torch.Tensor) -> torch.Tensor:

@@ -280,7 +280,7 @@ class SceneRenderer:
 
     def render_frame(self, k: int, cams: list[int] | None = None) -> list[tuple[np.ndarray, np.ndarray]]:
         """Written frame k -> per camera (image [H, W, 3] float32 in [0, 1], coverage [H, W] float32)."""
-        from avatarctl.synth.geometry import vertex_normals
+        from avatarctl.geometry.normals import vertex_normals
 
         verts = self._verts(k)
         normals = vertex_normals(verts.astype(np.float64), self.faces)

@@ -19,7 +19,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from avatarctl.synth.geometry import signed_volume, vertex_normals
+from avatarctl.geometry.normals import vertex_normals
+from avatarctl.synth.geometry import signed_volume
 
 
 @dataclass(frozen=True)
