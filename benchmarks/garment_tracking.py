@@ -11,7 +11,8 @@ stays a blur"):
 2. **What the fitted nodes do**: for every node within 3 cm of the garment at the first training frame (posed with
    its learned Delta n), the garment vertex nearest to it there; over the training frames, the spread (distance
    from its mean) of that vertex's offset in the node's frame (A_i^-1 (x - n_i)), with the learned Delta n (latent
-   mean) and with Delta n = 0 (the skeleton alone). A node that follows the cloth has a small spread.
+   mean) and with Delta n = 0 (the skeleton alone). A node that follows the cloth has a small spread. Per frame
+   (median and p90 over the nodes) and per node (mean over the frames): where the motion loses the cloth.
 3. **Would optical flow tell where the cloth moves?** (`--flow`, no model needed): OpenCV's Farnebäck optical flow
    (pyramid of 4 levels at scale 0.5, window 15, 5 iterations; better here than DIS at any preset: median error 0.55
    px against DIS medium 0.69, fast 1.27, ultrafast 1.30, all with a p90 of 6.6-6.9 px) between
@@ -54,6 +55,9 @@ class NodeDrift:
     motion: str  # "learned" (Delta n of the latent mean) | "skeleton" (Delta n = 0)
     mean_cm: float
     p90_cm: float
+    frame_median_cm: tuple[float, ...] = ()  # [F] per training frame, over the nodes on the garment
+    frame_p90_cm: tuple[float, ...] = ()
+    node_mean_cm: tuple[float, ...] = ()  # [M] per node on the garment, over the frames
 
 
 @dataclass(frozen=True)
@@ -95,6 +99,7 @@ class TrackingReport:
     nodes_on_garment: int  # nodes within 3 cm of the garment at the first training frame
     residuals: tuple[PatchResidual, ...]
     drift: tuple[NodeDrift, ...]
+    nodes: tuple[int, ...] = ()  # the nodes on the garment (hull nodes are the last ones)
     flow: FlowError | None = None
     gaussian_motion: GaussianMotion | None = None  # Gaussian-field avatars only
     tracks: tuple[TrackError, ...] | None = None  # part 5 (--tracks)
@@ -348,18 +353,26 @@ def measure(project_dir: str | Path, patch_counts: tuple[int, ...] = (32, 64, 12
     T = state.transforms.double()
     skeleton = (T[..., :3, :3] @ m.node_rest.double()[None, :, :, None])[..., 0] + T[..., :3, 3]
     on = nodes_on_garment(state.centers.double(), garment)
-    drift = []
-    for name, centers in (("learned", state.centers.double()), ("skeleton", skeleton)):
-        spread = node_drift(centers, T[..., :3, :3], garment, on)
-        drift.append(NodeDrift(name, float(spread.mean() * 100) if len(on) else float("nan"),
-                               float(spread.quantile(0.9) * 100) if len(on) else float("nan")))
+    drift = [_drift(name, node_drift(centers, T[..., :3, :3], garment, on))
+             for name, centers in (("learned", state.centers.double()), ("skeleton", skeleton))]
     return TrackingReport(frames=len(frames), garment_vertices=int(garment.shape[1]), nodes_on_garment=len(on),
+                          nodes=tuple(on.tolist()),
                           residuals=tuple(residuals), drift=tuple(drift),
                           flow=flow_error(av.capture, gt, frames, list(av.capture.split.train_views)) if flow else None,
                           gaussian_motion=gaussian_motion(av, gt, frames, list(av.capture.split.train_views))
                           if not m.cfg.ray_marched else None,
                           tracks=long_range_tracks(av.capture, gt, frames, list(av.capture.split.train_views))
                           if tracks else None)
+
+
+def _drift(motion: str, spread: torch.Tensor) -> NodeDrift:
+    """spread [M, F] metres (`node_drift`) -> its summary in centimetres."""
+    if not spread.numel():
+        return NodeDrift(motion, float("nan"), float("nan"))
+    cm = spread * 100
+    return NodeDrift(motion, float(cm.mean()), float(cm.quantile(0.9)),
+                     tuple(cm.median(0).values.tolist()), tuple(cm.quantile(0.9, dim=0).tolist()),
+                     tuple(cm.mean(1).tolist()))
 
 
 def main(argv: list[str] | None = None) -> TrackingReport:
@@ -377,9 +390,14 @@ def main(argv: list[str] | None = None) -> TrackingReport:
     for r in report.residuals:
         print(f"  {r.skinning:<15} {r.patches:>7}  {r.translation_cm:6.2f} / {r.translation_p90_cm:6.2f}  "
               f"{r.rigid_cm:6.2f} / {r.rigid_p90_cm:6.2f}")
-    print(f"spread of the garment in the frames of the {report.nodes_on_garment} nodes on it, cm (mean / p90):")
+    print(f"spread of the garment in the frames of the {report.nodes_on_garment} nodes on it, cm "
+          f"(mean / p90; the 5 frames and nodes with the largest):")
     for d in report.drift:
-        print(f"  {d.motion:<9} {d.mean_cm:6.2f} / {d.p90_cm:6.2f}")
+        worst = np.argsort(d.frame_median_cm)[::-1][:5] if d.frame_median_cm else []
+        nodes = np.argsort(d.node_mean_cm)[::-1][:5] if d.node_mean_cm else []
+        print(f"  {d.motion:<9} {d.mean_cm:6.2f} / {d.p90_cm:6.2f}   frames "
+              + ", ".join(f"{i} ({d.frame_median_cm[i]:.1f})" for i in worst) + "   nodes "
+              + ", ".join(f"{report.nodes[i]} ({d.node_mean_cm[i]:.1f})" for i in nodes))
     if report.flow is not None:
         f = report.flow
         print(f"optical flow (OpenCV Farneback) between consecutive training frames, {f.pairs} view pairs, "

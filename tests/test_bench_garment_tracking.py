@@ -77,6 +77,12 @@ def test_the_benchmark_measures_a_toy_project(tmp_path):
         assert all(math.isfinite(v) and v >= 0 for v in (r.translation_cm, r.rigid_cm, r.translation_p90_cm))
     assert [d.motion for d in report.drift] == ["learned", "skeleton"]
     assert report.nodes_on_garment > 0 and all(math.isfinite(d.mean_cm) for d in report.drift)
+    assert len(report.nodes) == report.nodes_on_garment
+    for d in report.drift:  # where the motion loses the cloth: per training frame and per node on the garment
+        assert len(d.frame_median_cm) == len(d.frame_p90_cm) == report.frames
+        assert len(d.node_mean_cm) == report.nodes_on_garment
+        assert all(p >= m >= 0 for m, p in zip(d.frame_median_cm, d.frame_p90_cm))
+        assert math.isclose(sum(d.node_mean_cm) / len(d.node_mean_cm), d.mean_cm, rel_tol=1e-6)
     f = report.flow
     assert f is not None and f.pairs >= 1 and f.vertices > 0
     assert math.isfinite(f.error_px) and f.error_px >= 0 and f.still_error_px == f.motion_px >= 0
