@@ -30,7 +30,7 @@ def test_splat_and_player_files(exported, toy_gaussian_project):
     assert len(plys) == 4 and "player.html" in exported.splats, "the toy's 4 frames (player default: up to 30)"
     assert not exported.meshes and exported.avatar is None, "no mesh products with splat formats alone"
     head = (exported.out_dir / plys[0]).read_bytes()[:2000].decode("latin-1")
-    assert head.startswith("ply\nformat binary_little_endian 1.0\nelement vertex 768\n")
+    assert head.startswith("ply\nformat binary_little_endian 1.0\ncomment avatarctl low_pass 0.1\nelement vertex 768\n")
     html = (exported.out_dir / "player.html").read_text()
     assert "http://" not in html and "https://" not in html, "self-contained: nothing fetched"
     assert exported.splats["player.html"] < 4 * 768 * BYTES_PER_GAUSSIAN * 1.4 + 30_000
@@ -170,3 +170,59 @@ def test_player_draws_a_splat_budget_while_playing_and_all_at_rest(exported):
         browser.close()
     assert rest.std() > 2, "something is drawn"
     assert np.abs(rest - without).max() <= 2, "at rest the budget draws the no-budget picture"
+
+
+def test_the_low_pass_is_one_value_from_the_model_to_every_renderer(tmp_path, monkeypatch):
+    """Issue 49: the screen-space low-pass an avatar was trained with (`model.gaussians.low_pass`, here 0.17 px^2, neither
+    the default 0.1 nor 3DGS's 0.3) is the one its training rasterizer, `render`, the `.ply` export, the player page
+    and the viewer page use; the browser renderer holds no value of its own."""
+    import base64
+    import gzip
+    import re
+
+    import avatarctl.splat as splat
+    from fixtures.toy_capture import make_toy_capture
+
+    from avatarctl.splat.webgl import RENDERER_JS
+    from avatarctl.stages import export, fit, ingest
+    from avatarctl.stages.export import ExportConfig
+    from avatarctl.stages.fit import FitRequest
+    from avatarctl.stages.ingest import IngestConfig
+    from avatarctl.stages.view import ViewConfig, prepare
+    from avatarctl.viewer.controller import ViewerController
+    from avatarctl.viewer.splat_server import SplatPageServer
+
+    value = 0.17
+    used: list[float] = []
+    for name in ("render_gaussians", "render_gaussians_batch"):  # every rasterization the model asks for
+        real = getattr(splat, name)
+        monkeypatch.setattr(splat, name, lambda *a, _real=real, **k: (used.append(k["low_pass"]), _real(*a, **k))[1])
+    cap, proj = make_toy_capture(tmp_path / "cap"), tmp_path / "proj"
+    ingest.run(proj, IngestConfig(capture=cap, project=proj, contact_sheet=False))
+    fit.run(proj, FitRequest(preset="micro", iters=2, device="cpu", overrides=(
+        "model.field=gaussians", "model.gaussians.per_node=8", f"model.gaussians.low_pass={value}", "val_every=0")),
+        handle_sigint=False)
+    assert used and set(used) == {value}, "training (and its validation) rasterize with the model's low-pass"
+    res = export.run(proj, ExportConfig(name="splats", formats=("splat", "player"), device="cpu"))
+    ply = res.out_dir / sorted(f for f in res.splats if f.startswith("splats/"))[0]
+    head = ply.read_bytes().split(b"end_header")[0].decode("ascii")
+    assert f"comment avatarctl low_pass {value!r}" in head
+    html = (res.out_dir / "player.html").read_text()
+    block = gzip.decompress(base64.b64decode(re.search(r'<script id="data" type="application/octet-stream">([^<]+)</script>', html).group(1)))
+    header = json.loads(block[4:4 + int.from_bytes(block[:4], "little")])
+    assert header["low_pass"] == value and "{lowPass: head.low_pass}" in html
+    shader = RENDERER_JS.split("const SPLAT_FS")[0]
+    assert "+ lowPass" in shader and not re.search(r"\+ ?0\.3\b", shader), "no hard-coded low-pass in the browser"
+    setup = prepare(proj, ViewConfig(device="cpu"))
+    assert setup.session.model.cfg.gaussians.low_pass == value
+    try:
+        import websockets  # noqa: F401  (the viewer's extra: `pip install 'avatarctl[view]'`)
+    except ImportError:
+        pytest.skip("the viewer page's low-pass needs websockets (avatarctl[view]); the rest is checked above")
+    controller = ViewerController(setup.session)
+    server = SplatPageServer(controller, setup.initial, port=0)
+    try:
+        assert f"{{lowPass: {value}}}" in server.page.decode()
+    finally:
+        server.stop()
+        controller.stop()

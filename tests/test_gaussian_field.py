@@ -349,7 +349,7 @@ def test_splat_ply_holds_the_posed_gaussians_in_the_world_frame(tmp_path):
     T[0, 1, :3, :3] = quaternion_to_matrix(torch.tensor([0.8, 0.1, -0.5, 0.3]))
     posed = g(T, torch.randn(1, 2, 3), torch.zeros(1, 2, 4))
     cols = splat_arrays(posed.means[0], posed.covars[0], posed.sh[0], posed.opacities[0], T[0, :, :3, :3], 3)
-    v = trimesh.load(write_splat_ply(tmp_path / "f.ply", cols)).metadata["_ply_raw"]["vertex"]["data"]
+    v = trimesh.load(write_splat_ply(tmp_path / "f.ply", cols, 0.1)).metadata["_ply_raw"]["vertex"]["data"]
     col = lambda n: torch.tensor(v[n], dtype=torch.float64)  # noqa: E731
     xyz = torch.stack([col("x"), col("y"), col("z")], -1)
     assert torch.allclose(xyz, posed.means[0].double(), atol=1e-6)

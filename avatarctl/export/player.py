@@ -3,7 +3,8 @@
 packed into the page, drawn by a small WebGL2 splat renderer of our own (`export/player_page.py`).
 
 Packing (little-endian; one gzip'd, base64 block in the page; G_f Gaussians in frame f, opacity >= 1/255 kept):
-    header: uint32 length + UTF-8 JSON {frames, fps, counts, lo, hi, up, target, radius, labels}
+    header: uint32 length + UTF-8 JSON {frames, fps, counts, lo, hi, up, target, radius, labels, log_scale,
+            low_pass}
     per frame, per Gaussian:
       position  3 x uint16, quantised in the box [lo, hi] of all frames (metres; step (hi - lo) / 65535)
       rotation  4 x int8, the unit quaternion (w, x, y, z) of the `.ply` `rot_*` times 127
@@ -11,7 +12,8 @@ Packing (little-endian; one gzip'd, base64 block in the page; G_f Gaussians in f
       colour    4 x uint8, RGB = 0.5 + 0.28209479 f_dc (the DC band: no view dependence), A = sigmoid(opacity)
     = 17 bytes a Gaussian (the `.ply` row holds 248).
 The page rebuilds each covariance R S^2 R^T, sorts the Gaussians back to front when the view or frame changes, and
-composits them with the 3DGS splat equations (EWA projection, a 0.3 px^2 low-pass, 3 sigma quads).
+composits them with the 3DGS splat equations (EWA projection, the avatar's low-pass `model.gaussians.low_pass` in
+px^2 from the header, 3 sigma quads).
 """
 
 from __future__ import annotations
@@ -31,8 +33,9 @@ BYTES_PER_GAUSSIAN = 17
 
 
 def pack_frames(columns: list[dict[str, np.ndarray]], fps: float, up: np.ndarray, labels: list[str],
-                min_opacity: float = 1.0 / 255.0) -> bytes:
-    """The packed block of the module docstring from `splat_arrays` columns of each frame (world frame, metres)."""
+                low_pass: float, min_opacity: float = 1.0 / 255.0) -> bytes:
+    """The packed block of the module docstring from `splat_arrays` columns of each frame (world frame, metres);
+    `low_pass` px^2, the avatar's (`model.gaussians.low_pass`)."""
     if not columns:
         raise ValueError("the player needs at least one frame")
     keep = [1.0 / (1.0 + np.exp(-c["opacity"].astype(np.float64))) >= min_opacity for c in columns]
@@ -55,7 +58,7 @@ def pack_frames(columns: list[dict[str, np.ndarray]], fps: float, up: np.ndarray
     header = {"frames": len(columns), "fps": float(fps), "counts": [int(k.sum()) for k in keep],
               "lo": lo.tolist(), "hi": hi.tolist(), "up": np.asarray(up, float).tolist(), "target": centre.tolist(),
               "radius": float(np.linalg.norm(hi - lo)) * 1.2, "labels": list(labels),
-              "log_scale": [LOG_SCALE_MIN, LOG_SCALE_MAX]}
+              "log_scale": [LOG_SCALE_MIN, LOG_SCALE_MAX], "low_pass": float(low_pass)}
     head = json.dumps(header).encode()
     return len(head).to_bytes(4, "little") + head + b"".join(parts)
 

@@ -72,7 +72,8 @@ async function main() {
   const {head, frames} = await unpack();
   const canvas = document.getElementById("view");
   let renderer;
-  try { renderer = new SplatRenderer(canvas, [0.957, 0.957, 0.957]); } catch (e) { fail(e.message); }
+  try { renderer = new SplatRenderer(canvas, [0.957, 0.957, 0.957], {lowPass: head.low_pass}); }
+  catch (e) { fail(e.message); }
   renderer.movingScale = MOVING_SCALE;
   // orbit camera around the motion's centre, the capture's up
   const cam = {target: head.target, up: head.up, az: 0, el: 0.15, radius: head.radius, fov: 0.8};

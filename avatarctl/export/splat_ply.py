@@ -6,7 +6,8 @@ One `vertex` element, binary little-endian float32 properties
 with opacity a logit, scales log metres, rotation a unit quaternion (w, x, y, z), colour = 0.5 + 0.28209479 f_dc, and
 `f_rest` channel-major (red's 15 coefficients, then green's, then blue's) for SH degree 3; with `sh_degree` 1 our
 degree-1 bands fill the first 3 of each channel, the rest are 0 (all 0 with the default degree 0: view-independent
-colour). Normals are 0 (unused by splat viewers).
+colour). Normals are 0 (unused by splat viewers). The header's comment `avatarctl low_pass <px^2>` names the
+screen-space low-pass the avatar was trained with (`model.gaussians.low_pass`; 3DGS viewers add their own, 0.3).
 
 World frame: the capture's (metres), as the posed meshes' PLY. The model keeps its SH in each node's local frame (the
 view dependence turns with the body, model/gaussian_field.py); here the degree-1 band is turned into the world frame
@@ -61,8 +62,8 @@ def splat_arrays(means: torch.Tensor, covars: torch.Tensor, sh: torch.Tensor, op
     return out
 
 
-def write_splat_ply(dest: str | Path, cols: dict[str, np.ndarray]) -> Path:
-    """Write `splat_arrays` columns as a binary 3DGS `.ply`, atomically."""
+def write_splat_ply(dest: str | Path, cols: dict[str, np.ndarray], low_pass: float) -> Path:
+    """Write `splat_arrays` columns as a binary 3DGS `.ply`, atomically; `low_pass` (px^2) goes in a header comment."""
     G = cols["xyz"].shape[0]
     names = (["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"]
              + [f"f_rest_{i}" for i in range(3 * REST_PER_CHANNEL)]
@@ -70,7 +71,8 @@ def write_splat_ply(dest: str | Path, cols: dict[str, np.ndarray]) -> Path:
     data = np.concatenate([cols["xyz"], np.zeros((G, 3), np.float32), cols["f_dc"], cols["f_rest"],
                            cols["opacity"][:, None], cols["scale"], cols["rot"]], axis=1).astype("<f4")
     assert data.shape == (G, len(names)), f"{data.shape} vs {len(names)} properties"
-    header = "ply\nformat binary_little_endian 1.0\n" + f"element vertex {G}\n" \
+    header = "ply\nformat binary_little_endian 1.0\n" + f"comment avatarctl low_pass {float(low_pass)!r}\n" \
+        + f"element vertex {G}\n" \
         + "".join(f"property float {n}\n" for n in names) + "end_header\n"
     with atomic_path(dest) as tmp:
         with tmp.open("wb") as f:

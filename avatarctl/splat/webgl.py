@@ -2,7 +2,9 @@
 no network), shared by every page that draws Gaussians (`export --format player`, the live page of `avatarctl view`).
 
 `RENDERER_JS` defines, in the page's scope:
-- `SplatRenderer(canvas, background, {lod} = {})`: `setSplats(centers, cov, rgba)` (Float32Array [G*3] metres,
+- `SplatRenderer(canvas, background, {lowPass, lod})`: `lowPass` (px^2, required) is the avatar's
+  `model.gaussians.low_pass`, the value it was trained and is rendered with (one value from the model to every
+  renderer: tests/test_splat.py); `setSplats(centers, cov, rgba)` (Float32Array [G*3] metres,
   Float32Array [G*6] upper triangles of the world covariances (xx, xy, xz, yy, yz, zz) in metres^2, Uint8Array [G*4]
   RGBA), then `draw(view)` with `view = {eye, right, down, fwd, fov}` (world vectors: the OpenCV camera axes x right,
   y down, z forward; `fov` the vertical field of view, radians). `moved()` when the camera moves: for 0.25 s after it
@@ -32,7 +34,7 @@ no network), shared by every page that draws Gaussians (`export --format player`
   `orbitView(camera)` -> the `view` of an orbit camera {target, up, az, el, radius, fov}.
 
 Drawing (the 3DGS splat equations, as `splat.project` / `splat.rasterizer`): per Gaussian its camera-space centre p
-and covariance W Sigma W^T; the 2D covariance J W Sigma W^T J^T + 0.3 I (J the Jacobian of the pinhole projection at
+and covariance W Sigma W^T; the 2D covariance J W Sigma W^T J^T + lowPass I (J the Jacobian of the pinhole projection at
 p; focal length from the vertical field of view, pixels); a quad along its eigenvectors out to the radius where
 a exp(-d^2 / 2) falls under 1/255 (at most 3 sigma); premultiplied alpha composited back to front (a 16-bit counting
 sort of the view depths on the CPU whenever the view or the Gaussians change; only the order is uploaded).
@@ -48,6 +50,7 @@ const SPLAT_VS = `#version 300 es
 precision highp float; precision highp int; precision highp usampler2D; precision highp sampler2D;
 uniform sampler2D data; uniform usampler2D order; uniform sampler2D colors;
 uniform mat3 rot; uniform vec3 eye; uniform vec2 size; uniform float focal; uniform float grow;
+uniform float lowPass;
 out vec4 vColor; out vec2 vQ;
 const vec2 CORNERS[4] = vec2[4](vec2(-1.0, -1.0), vec2(1.0, -1.0), vec2(-1.0, 1.0), vec2(1.0, 1.0));
 ivec2 at(int k) { return ivec2(k & 4095, k >> 12); }
@@ -64,9 +67,9 @@ void main() {
   float iz = 1.0 / p.z;
   vec3 j0 = vec3(focal * iz, 0.0, -focal * p.x * iz * iz);
   vec3 j1 = vec3(0.0, focal * iz, -focal * p.y * iz * iz);
-  // the 2D covariance (grown for a preview sample, splat budget below) + 0.3 px^2
-  float a = grow * dot(j0, C * j0) + 0.3, b = grow * dot(j0, C * j1);
-  float c = grow * dot(j1, C * j1) + 0.3;
+  // the 2D covariance (grown for a preview sample, splat budget below) + the avatar's low-pass, px^2
+  float a = grow * dot(j0, C * j0) + lowPass, b = grow * dot(j0, C * j1);
+  float c = grow * dot(j1, C * j1) + lowPass;
   float mid = 0.5 * (a + c), rad = sqrt(max(0.25 * (a - c) * (a - c) + b * b, 0.0));
   float l1 = mid + rad, l2 = max(mid - rad, 0.1);
   vec2 v1 = abs(b) > 1e-12 ? normalize(vec2(b, l1 - a)) : (a >= c ? vec2(1.0, 0.0) : vec2(0.0, 1.0));
@@ -95,6 +98,8 @@ class SplatRenderer {
     if (!gl) throw new Error("this browser has no WebGL2");
     this.gl = gl; this.canvas = canvas; this.background = background; this.count = 0;
     this.movingScale = 1; this.lastMoved = -Infinity; this.drawnScale = 1; this.animating = false;
+    if (!(options.lowPass >= 0)) throw new Error("SplatRenderer: options.lowPass (px^2, the avatar's) is required");
+    this.lowPass = options.lowPass;
     this.lod = {...SPLAT_LOD, ...(options.lod || {})};
     this.msPerSplat = null; this.untimed = 0; this.drawnSplats = 0; this.draws = 0; this.ranked = 0; this.due = false;
     this.stats = {gaussians: 0, budget: 0, drawn: 0, moving: 0, rest: 0, usPerSplat: null, timed: 0};
@@ -118,7 +123,7 @@ class SplatRenderer {
       this.tex[name] = [t, unit];
     }
     this.U = {};
-    for (const name of ["rot", "eye", "size", "focal", "grow"]) this.U[name] = gl.getUniformLocation(prog, name);
+    for (const name of ["rot", "eye", "size", "focal", "grow", "lowPass"]) this.U[name] = gl.getUniformLocation(prog, name);
     gl.disable(gl.DEPTH_TEST); gl.enable(gl.BLEND); gl.blendFunc(gl.ONE, gl.ONE_MINUS_SRC_ALPHA);
     this.sortedFor = null;
   }
@@ -225,7 +230,7 @@ class SplatRenderer {
     const r = view.right, d = view.down, f = view.fwd;
     gl.uniformMatrix3fv(this.U.rot, false, new Float32Array([r[0], d[0], f[0], r[1], d[1], f[1], r[2], d[2], f[2]]));
     gl.uniform3fv(this.U.eye, view.eye); gl.uniform2f(this.U.size, w, h);
-    gl.uniform1f(this.U.focal, 0.5 * h / Math.tan(view.fov / 2));
+    gl.uniform1f(this.U.focal, 0.5 * h / Math.tan(view.fov / 2)); gl.uniform1f(this.U.lowPass, this.lowPass);
     gl.uniform1f(this.U.grow, m < this.count ? (this.count / m) ** SPLAT_PREVIEW_GROW : 1);
     gl.drawElements(gl.TRIANGLES, 6 * m, gl.UNSIGNED_INT, 0);
     this.drawnSplats = m; this.draws++;

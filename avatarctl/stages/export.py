@@ -293,7 +293,8 @@ def _run(project_dir: str | Path, cfg: ExportConfig, progress: ProgressFn | None
             from avatarctl.render.trajectories import up_from_cameras as _up
 
             fps = float(motion.fps) if motion.fps > 0 else 30.0
-            block = pack_frames(splat_columns, fps, _up(list(cap.cameras.values())), [f"frame {f}" for f in frames])
+            block = pack_frames(splat_columns, fps, _up(list(cap.cameras.values())), [f"frame {f}" for f in frames],
+                                avatar.model.cfg.gaussians.low_pass)
             write_player(tmp / "player.html", block, f"avatarctl player: {project.root.name}")
             splat_files["player.html"] = (tmp / "player.html").stat().st_size
         if cfg.skinned and mesh_formats:  # the skinned avatar is a mesh product: not with splat formats alone
@@ -329,7 +330,7 @@ def _splats(tmp: Path, frame: int, avatar: Any, state: Any, write: bool, files: 
     if write:
         rel = f"splats/{frame:06d}.ply"
         (tmp / "splats").mkdir(exist_ok=True)
-        write_splat_ply(tmp / rel, cols)
+        write_splat_ply(tmp / rel, cols, avatar.model.cfg.gaussians.low_pass)
         files[rel] = (tmp / rel).stat().st_size
     return cols
 

@@ -62,7 +62,7 @@ border-left:1px solid #ddd;display:flex;flex-direction:column;gap:7px}
 __RENDERER__
 const $ = id => document.getElementById(id);
 const canvas = $("view"), exact = $("exact"), statusEl = $("status"), slider = $("frame");
-const renderer = new SplatRenderer(canvas, __BACKGROUND__);
+const renderer = new SplatRenderer(canvas, __BACKGROUND__, {lowPass: __LOW_PASS__});
 renderer.movingScale = MOVING_SCALE;
 const init = __INITIAL__;
 const vdot = (a, b) => a[0] * b[0] + a[1] * b[1] + a[2] * b[2];
@@ -193,9 +193,11 @@ requestAnimationFrame(tick);
 
 
 def page_html(background: tuple[float, float, float], position: tuple[float, float, float],
-              look_at: tuple[float, float, float], up: tuple[float, float, float], fov_y: float) -> str:
-    """The page for one avatar: its background colour (RGB in [0, 1]) and where the orbit camera starts (world,
-    metres; `fov_y` the vertical field of view, radians)."""
+              look_at: tuple[float, float, float], up: tuple[float, float, float], fov_y: float,
+              low_pass: float) -> str:
+    """The page for one avatar: its background colour (RGB in [0, 1]), where the orbit camera starts (world,
+    metres; `fov_y` the vertical field of view, radians) and its splats' low-pass (px^2, `model.gaussians.low_pass`)."""
     initial = {"position": list(position), "look_at": list(look_at), "up": list(up), "fov": float(fov_y)}
     return (PAGE.replace("__BACKGROUND__", json.dumps([float(c) for c in background]))
+            .replace("__LOW_PASS__", json.dumps(float(low_pass)))
             .replace("__INITIAL__", json.dumps(initial)))

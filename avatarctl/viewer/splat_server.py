@@ -122,7 +122,8 @@ class SplatPageServer:
             raise ValueError("a ray-marched avatar is served by viewer.server.ViewerServer")
         fov = initial.fov_y if initial.fov_y is not None else 0.8
         self.controller, self.session, self.host = controller, session, host
-        self.page = page_html(session.background, initial.position, initial.look_at, initial.up, fov).encode()
+        self.page = page_html(session.background, initial.position, initial.look_at, initial.up, fov,
+                              session.model.cfg.gaussians.low_pass).encode()
         self.pushes: list[tuple[float, int]] = []  # (monotonic time, seq) of every frame sent to a tab
         self._tabs: dict[int, _Tab] = {}
         self._lock = threading.Lock()
