@@ -80,3 +80,18 @@ def test_a_checkpoint_of_another_version_is_a_one_line_error(toy_gaussian_projec
         out = res.output.strip()
         assert res.exit_code != 0 and "not ones this avatarctl reads" in out and "future_option" in out, out
         assert "internal error" not in out and "Traceback" not in out, out
+
+
+def test_warp_is_quiet_unless_debugging(tmp_path):
+    """Issue 49: a command that runs Warp kernels (synth: anny's skinning, the cloth solver, the ray caster) prints
+    neither Warp's banner and per-module lines nor, on a machine without a CUDA driver, Warp's native warning about
+    it; with --debug Warp speaks as it does by itself."""
+    def run(*extra: str) -> str:
+        res = subprocess.run([sys.executable, "-m", "avatarctl", *extra, "synth", str(tmp_path / f"s{len(extra)}"),
+                              "--preset", "micro"], capture_output=True, text=True, timeout=600)
+        assert res.returncode == 0, res.stderr[-2000:]
+        return res.stdout + res.stderr
+
+    quiet = run()
+    assert "Warp " not in quiet and "CUDA driver" not in quiet and "load on device" not in quiet, quiet[-2000:]
+    assert "initialized:" in run("--debug")

@@ -38,6 +38,8 @@ def test_demo_ci_preset_end_to_end(tmp_path):
     for stage in ("synth", "ingest", "fit", "render orbit", "render novel_pose", "eval novel_view",
                   "eval novel_pose"):
         assert stage in res.output, stage
+    assert "fit micro for 20 steps," in res.output  # the ci demo has no time budget: the step count ends its fit
+    assert "stopped by" in res.output and "the step count" in res.output
     project = Project.open(out / "project")
     assert [r.stage for r in project.manifest.stages] == ["ingest", "fit", "render", "render", "eval", "eval"]
     for name in ("orbit", "novel_pose"):

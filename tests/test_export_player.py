@@ -175,7 +175,7 @@ def test_player_draws_a_splat_budget_while_playing_and_all_at_rest(exported):
 def test_the_low_pass_is_one_value_from_the_model_to_every_renderer(tmp_path, monkeypatch):
     """Issue 49: the screen-space low-pass an avatar was trained with (`model.gaussians.low_pass`, here 0.17 px^2, neither
     the default 0.1 nor 3DGS's 0.3) is the one its training rasterizer, `render`, the `.ply` export, the player page
-    and the viewer page use; the browser renderer holds no value of its own."""
+    and the viewer page use (the page: the next test); the browser renderer holds no value of its own."""
     import base64
     import gzip
     import re
@@ -189,8 +189,6 @@ def test_the_low_pass_is_one_value_from_the_model_to_every_renderer(tmp_path, mo
     from avatarctl.stages.fit import FitRequest
     from avatarctl.stages.ingest import IngestConfig
     from avatarctl.stages.view import ViewConfig, prepare
-    from avatarctl.viewer.controller import ViewerController
-    from avatarctl.viewer.splat_server import SplatPageServer
 
     value = 0.17
     used: list[float] = []
@@ -213,12 +211,20 @@ def test_the_low_pass_is_one_value_from_the_model_to_every_renderer(tmp_path, mo
     assert header["low_pass"] == value and "{lowPass: head.low_pass}" in html
     shader = RENDERER_JS.split("const SPLAT_FS")[0]
     assert "+ lowPass" in shader and not re.search(r"\+ ?0\.3\b", shader), "no hard-coded low-pass in the browser"
-    setup = prepare(proj, ViewConfig(device="cpu"))
+    setup = prepare(proj, ViewConfig(device="cpu"))  # what the viewer serves
     assert setup.session.model.cfg.gaussians.low_pass == value
-    try:
-        import websockets  # noqa: F401  (the viewer's extra: `pip install 'avatarctl[view]'`)
-    except ImportError:
-        pytest.skip("the viewer page's low-pass needs websockets (avatarctl[view]); the rest is checked above")
+
+
+def test_the_viewer_page_draws_with_the_served_avatars_low_pass(toy_gaussian_project):
+    """The `avatarctl view` page of a Gaussian avatar hands the browser renderer that avatar's low-pass."""
+    pytest.importorskip("websockets", reason="the viewer's extra: pip install 'avatarctl[view]'")
+    from avatarctl.stages.view import ViewConfig, prepare
+    from avatarctl.viewer.controller import ViewerController
+    from avatarctl.viewer.splat_server import SplatPageServer
+
+    setup = prepare(toy_gaussian_project, ViewConfig(device="cpu"))
+    value = setup.session.model.cfg.gaussians.low_pass
+    assert value != 0.3  # the old hard-coded value, so the check below can fail
     controller = ViewerController(setup.session)
     server = SplatPageServer(controller, setup.initial, port=0)
     try:

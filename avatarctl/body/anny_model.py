@@ -23,6 +23,9 @@ from avatarctl.body.motion import BodyMotion
 
 @functools.lru_cache(maxsize=2)
 def _anny(device: str):
+    from avatarctl.device import init_warp
+
+    init_warp()  # anny compiles Warp kernels: Warp initialised the project's way first
     import anny  # heavy: imported only when a body is needed
 
     return anny.Anny().to(device)

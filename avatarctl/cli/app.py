@@ -29,11 +29,14 @@ def _root(ctx: typer.Context,
           debug: bool = typer.Option(False, "--debug", help="Show Python tracebacks instead of one-line errors "
                                                             "(same as AVATARCTL_DEBUG=1).")) -> None:
     """Animatable clothed human avatars from calibrated RGB video."""
+    import os
+
+    from avatarctl.cli.common import DEBUG_ENV
+    from avatarctl.device import WARP_QUIET_ENV
+
+    # Warp's banner and module lines only when debugging (device.init_warp)
+    os.environ[WARP_QUIET_ENV] = "0" if debug or os.environ.get(DEBUG_ENV, "") not in ("", "0") else "1"
     if debug:
-        import os
-
-        from avatarctl.cli.common import DEBUG_ENV
-
         previous = os.environ.get(DEBUG_ENV)
         os.environ[DEBUG_ENV] = "1"  # read by cli.common.user_errors in the command that follows
 

@@ -35,8 +35,10 @@ def _run(cfg, console) -> None:
     from avatarctl.stages.demo import StageDone
 
     s = cfg.sizes
-    console.print(f"[bold]avatarctl demo[/] preset {cfg.preset}: synth {s.synth}, fit {s.fit_preset} x {s.iters} "
-                  f"steps, orbit {s.orbit_views} views at {s.orbit_resolution} px -> {cfg.out}")
+    budget = s.fit_settings.get("time_budget_s")
+    steps = f"{s.iters} steps" + (f" or {budget:g} s, whichever comes first" if budget else "")
+    console.print(f"[bold]avatarctl demo[/] preset {cfg.preset}: synth {s.synth}, fit {s.fit_preset} for {steps}, "
+                  f"orbit {s.orbit_views} views at {s.orbit_resolution} px -> {cfg.out}")
     with Progress(TextColumn("{task.description:<18}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
                   console=console) as bar:
         tasks: dict[str, int] = {}
@@ -47,6 +49,10 @@ def _run(cfg, console) -> None:
             bar.update(tasks[p.stage], completed=p.done, total=p.total)
 
         def on_stage(st: StageDone) -> None:
+            if st.stage in tasks and "stopped by" in st.summary:  # a fit the time budget ended: the bar ends full
+                done = int(st.summary["steps"])
+                bar.update(tasks[st.stage], total=done, completed=done,
+                           description=f"{st.stage} ({st.summary['stopped by'].split(' (')[0]})")
             t = Table(title=f"{st.stage}  ({st.seconds:.1f} s)", show_header=False, title_justify="left")
             for k, v in st.summary.items():
                 t.add_row(k, str(v))

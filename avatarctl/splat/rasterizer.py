@@ -222,11 +222,10 @@ def rasterize_batch(proj: Projected,  # fields with a leading [B]: `project.proj
 
 def _kernels():
     """The Warp kernel module, imported on first use; Warp initialised (it builds the kernels on first launch)."""
-    import warp as wp
+    from avatarctl.device import init_warp
 
+    init_warp()
     from avatarctl.splat import _warp_kernels
-
-    wp.init()
 
     return _warp_kernels
 

@@ -156,7 +156,10 @@ def run(out: str | Path, cfg: DemoConfig, progress: ProgressFn | None = None,
                  progress=progress, handle_sigint=False)
     fit_cfg = fr.config
     val = None if fr.val is None else fr.val.psnr
-    done("fit", t0, {"steps": fr.step, "preset": fit_cfg.preset, "rays/step": fit_cfg.rays_per_batch,
+    stopped = {"time_budget": f"the time budget ({fit_cfg.time_budget_s:g} s)", "done": "the step count",
+               "interrupted": "interrupted"}[fr.stop_reason]
+    done("fit", t0, {"steps": fr.step, "stopped by": stopped, "preset": fit_cfg.preset,
+                     "rays/step": fit_cfg.rays_per_batch,
                      "rays/s": round(fr.rays_per_s), "loss": round(fr.losses.get("total", float("nan")), 5),
                      "held-out PSNR (bbox)": None if val is None else round(val, 2)})
 

@@ -168,7 +168,9 @@ class ClothParams:
 
 def _kernels():
     """Define the Warp kernels on first use (no compilation at import time)."""
-    import warp as wp
+    from avatarctl.device import init_warp
+
+    wp = init_warp()
 
     @wp.kernel
     def predict(x: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3), inv_m: wp.array(dtype=wp.float32),

@@ -64,7 +64,9 @@ def camera_rays(cam: Camera, ss: int = 1) -> RayGrid:
 
 
 def _cast_kernel():
-    import warp as wp
+    from avatarctl.device import init_warp
+
+    wp = init_warp()
 
     @wp.kernel
     def cast(mesh: wp.uint64, origin: wp.vec3, dirs: wp.array(dtype=wp.vec3), max_t: float,
