@@ -32,10 +32,9 @@ def _root(ctx: typer.Context,
     import os
 
     from avatarctl.cli.common import DEBUG_ENV
-    from avatarctl.device import WARP_QUIET_ENV
+    from avatarctl.stages.common import quiet_kernels
 
-    # Warp's banner and module lines only when debugging (device.init_warp)
-    os.environ[WARP_QUIET_ENV] = "0" if debug or os.environ.get(DEBUG_ENV, "") not in ("", "0") else "1"
+    quiet_kernels(not (debug or os.environ.get(DEBUG_ENV, "") not in ("", "0")))  # Warp's lines only when debugging
     if debug:
         previous = os.environ.get(DEBUG_ENV)
         os.environ[DEBUG_ENV] = "1"  # read by cli.common.user_errors in the command that follows

@@ -137,9 +137,10 @@ class Replicas:
 
     # ---- one step -----------------------------------------------------------------------------------------------
     def forward(self, model: "SlrfAvatar", background: torch.Tensor, jitter: bool
-                ) -> tuple["LossTerms", "RenderOutputs", int]:
-        """Sample the local shards, compute node states, render and the loss of Eq. 11 over this rank's rays.
-        -> (loss terms, render outputs, rays of the whole step over all ranks)."""
+                ) -> tuple["LossTerms", "RenderOutputs | ImageOutputs", int]:
+        """Sample the local shards, compute node states, render and the loss of Eq. 11 over this rank's rays (or
+        crops). -> (loss terms, render outputs: `RenderOutputs` of rays, `ImageOutputs` of the rasterized field's
+        crops; rays or pixels of the whole step over all ranks)."""
         from avatarctl.fit.data import ImageBatch
 
         parts = [(k, self.samplers[k].sample(self.sampler_gens[k], self.device)) for k in self.local]

@@ -10,8 +10,9 @@ our choice because the paper's architecture figure (supp. Fig. A) is not availab
   G(f, v) = Linear([f, gamma(v)], head_width) -> ReLU -> Linear(head_width // 2) -> ReLU -> Linear(3) -> sigmoid;
 - per-node cVAE encoder and decoder: two ReLU layers of `cvae_width` channels each.
 
-The class defaults are the paper's (supplement) settings, here and in `FitConfig`; the presets (`cpu`, `micro`)
-are named sets of changes from them, stated once in `avatarctl/fit/presets.py` (`PRESETS`).
+The class defaults are the paper's (supplement) settings, here and in `FitConfig` (the `paper` preset); the other
+presets (`cpu`, `cpu-mlp`, `micro`) are named sets of changes from them, stated once in `avatarctl/fit/presets.py`
+(`PRESETS`).
 
 The options of one part that only matter when it is used sit in small frozen sub-configs: `hull` (`HullConfig`,
 nodes off the body), `occupancy` (`OccupancyConfig`, empty-space skipping), `pose_refine` (`PoseRefineConfig`,
@@ -56,7 +57,7 @@ CVAE_AUTO_WIDTHS = (32, 128)
 # config may still hold one: it is dropped on reading when it holds the value the code now has built in (None: any
 # value, the key only shaped the initialisation or an option of removed code), else it is a one-line error.
 REMOVED_KEYS: dict[str, Any] = {
-    "grid_levels": None, "grid_channels": None,  # the grid field (issue 28, commit 7a07028)
+    "grid_levels": None, "grid_channels": None,  # the grid field (issue 28; its last commit e4ec5be)
     "pe_anneal_steps": 0, "pe_anneal_start": None,  # coarse-to-fine gamma(p) (issue 30, commit 0081142)
     "occ_stop_eps": 0.0,  # early ray termination from the occupancy grids' densities (issue 30, commit 0081142)
     "posterior_logvar_init": None,  # initial log-variance of the cVAE posterior (issue 30, commit 0081142)
@@ -223,7 +224,7 @@ SHADINGS = ("none", "irradiance")
 
 
 @dataclass(frozen=True)
-class GaussianConfig:
+class GaussianConfig(_SubConfig):
     """Options of the structured local Gaussian fields (`ModelConfig.field = "gaussians"`, a deviation: model/
     gaussian_field.py, docs/fit.md). Used by no other backend."""
 
@@ -280,14 +281,6 @@ class GaussianConfig:
             need(getattr(self, name) >= 0, f"{name} must be >= 0, got {getattr(self, name)}")
         for name in ("lr_means", "lr_scales", "lr_quats", "lr_opacity", "lr_colors"):
             need(getattr(self, name) > 0, f"{name} must be > 0, got {getattr(self, name)}")
-
-    @classmethod
-    def from_json(cls, d: dict[str, Any]) -> "GaussianConfig":
-        known = {f.name for f in fields(cls)}
-        unknown = sorted(set(d) - known)
-        if unknown:
-            raise ValueError(f"GaussianConfig: unknown keys {unknown}; known keys are {sorted(known)}")
-        return cls(**d)
 
 
 _SUB_CONFIGS = {"hull": HullConfig, "occupancy": OccupancyConfig, "pose_refine": PoseRefineConfig,

@@ -30,9 +30,11 @@ first frames render as without it. E is folded into the colour coefficients (c i
 Gaussian's `sh` carries its shaded colour for every consumer (rasterizer, `.ply` export, density queries).
 
 Initialisation: points drawn uniformly on the canonical template surface, each given to its nearest node (so a
-node's Gaussians start within its support); K per node drawn from them (with replacement when a node has fewer);
-nodes with no surface point (hull nodes off the body, fit/hull_nodes.py) get K points uniformly in a ball of a third of
-the support radius around them. Scales from the area each point covers.
+node's Gaussians start within its support); K per node drawn from them (with replacement when a node has fewer).
+A fit with hull nodes (fit/hull_nodes.py) adds points drawn uniformly in the hull survey's off-body cells (the loose
+garment's volume, `off_body` of `initial_gaussians`), so the hull nodes nearest to them start there; a node that no
+point falls to (an avatar built without the survey, e.g. before a checkpoint's weights replace its placeholders) gets
+K points uniformly in a ball of a third of the support radius around it. Scales from the area each point covers.
 
 Units: metres, world frame of the capture; colours in [0, 1]; SH constants of 3DGS (degree 0: 0.28209479).
 """

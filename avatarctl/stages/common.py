@@ -24,6 +24,16 @@ if TYPE_CHECKING:
     from avatarctl.model.avatar import NodeState
     from avatarctl.project import Project
 
+def quiet_kernels(quiet: bool) -> None:
+    """Whether Warp is initialised quietly in this process (`device.init_warp`: no banner, no per-module lines, no
+    missing-driver warning); the CLI asks for it unless debugging."""
+    import os
+
+    from avatarctl.device import WARP_QUIET_ENV
+
+    os.environ[WARP_QUIET_ENV] = "1" if quiet else "0"
+
+
 LATENT_MODES = ("auto", "mean", "zero", "sample")
 KNOCKOUTS = ("delta-n", "embedding")
 """Render-time knockouts of a trained model (`render` / `eval --knockout`): that variable is set to zero when
