@@ -30,15 +30,22 @@ _WARP_NOISE = (b"Could not find or load the NVIDIA CUDA driver",)  # normal on a
 WARP_QUIET_ENV = "AVATARCTL_QUIET_WARP"  # "1" (set by the CLI unless --debug): `init_warp` initialises it quietly
 
 
+_warp_ready = False  # init_warp ran in this process
+
+
 def init_warp() -> Any:
     """The `warp` module, initialised: quietly (`quiet_warp`) when `AVATARCTL_QUIET_WARP` is "1" (the CLI sets it
-    unless `--debug`), else as Warp does by itself. Called before avatarctl's (and anny's) first kernel."""
+    unless `--debug`), else as Warp does by itself. Called before avatarctl's (and anny's) kernels (the rasterizer
+    on every call: after the first, only the import's lookup)."""
+    global _warp_ready
     import warp as wp
 
-    if os.environ.get(WARP_QUIET_ENV) == "1":
-        quiet_warp()
-    else:
-        wp.init()
+    if not _warp_ready:
+        if os.environ.get(WARP_QUIET_ENV) == "1":
+            quiet_warp()
+        else:
+            wp.init()
+        _warp_ready = True
     return wp
 
 
