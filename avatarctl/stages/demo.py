@@ -9,9 +9,10 @@ Presets (`DEMO_PRESETS`):
 - `ci` (alias `micro`): synth "micro" (4 views, 6 + 4 frames, 64 px), fit "micro" preset for 20 steps. About a
   minute on 2 cores; checks the plumbing, the avatar is not recognisable.
 - `tiny`: synth "tiny" (6 views, 24 + 12 frames, 96 px), fit "cpu" preset (the Gaussian local fields) for 2000
-  steps or 90 s of training, whichever comes first: 1:55-1:59 in all on an idle 2-core machine, novel-view bbox PSNR
-  22.56-22.89 dB (seeds 0 / 1, 2026-11-28, the Gaussians shaded; docs/render_eval.md; until 2026-11-27 the MLP fields
-  for 2000 steps / 330 s: 4.3-4.7 min, 22.28-22.51 dB).
+  steps or 90 s of training, whichever comes first, an orbit video of 48 views at 256 px: 1:55-1:59 in all on an
+  idle 2-core machine with the 16 x 128 px orbit of before (2:12 with this one on a slower day, the orbit's render
+  3.7 s), novel-view bbox PSNR 22.56-22.89 dB (seeds 0 / 1, 2026-11-28, the Gaussians shaded; docs/render_eval.md;
+  until 2026-11-27 the MLP fields for 2000 steps / 330 s: 4.3-4.7 min, 22.28-22.51 dB).
 - `small`: synth "small" (12 views, 80 + 40 frames, 256 px), fit "cpu" preset for 3000 steps: 13.2 min in all on an
   idle 2-core machine (the fit 10.6 min), novel-view bbox PSNR 22.78 dB (docs/render_eval.md; with the MLP fields,
   the cpu preset until 2026-11-27, 71.5 min on one thread of a busy machine, two thirds of it rendering and eval).
@@ -52,7 +53,7 @@ DEMO_PRESETS: dict[str, DemoPreset] = {
     "tiny": DemoPreset(synth="tiny", fit_preset="cpu", iters=2000,
                        fit_settings={"rays_per_batch": 1024, "val_every": 500, "checkpoint_every": 500,
                                      "time_budget_s": 90.0},
-                       orbit_views=16, orbit_resolution=128, eval_every=2),
+                       orbit_views=48, orbit_resolution=256, eval_every=2),
     "small": DemoPreset(synth="small", fit_preset="cpu", iters=3000,
                         fit_settings={"val_every": 500, "checkpoint_every": 500},
                         orbit_views=36, orbit_resolution=256, eval_every=4),
