@@ -31,10 +31,10 @@ def _root(ctx: typer.Context,
     """Animatable clothed human avatars from calibrated RGB video."""
     import os
 
-    from avatarctl.cli.common import DEBUG_ENV
+    from avatarctl.cli.common import DEBUG_ENV, debug_enabled
     from avatarctl.stages.common import quiet_kernels
 
-    quiet_kernels(not (debug or os.environ.get(DEBUG_ENV, "") not in ("", "0")))  # Warp's lines only when debugging
+    quiet_kernels(not (debug or debug_enabled()))  # Warp's lines only when debugging
     if debug:
         previous = os.environ.get(DEBUG_ENV)
         os.environ[DEBUG_ENV] = "1"  # read by cli.common.user_errors in the command that follows
