@@ -360,7 +360,7 @@ def measure(project_dir: str | Path, patch_counts: tuple[int, ...] = (32, 64, 12
                           residuals=tuple(residuals), drift=tuple(drift),
                           flow=flow_error(av.capture, gt, frames, list(av.capture.split.train_views)) if flow else None,
                           gaussian_motion=gaussian_motion(av, gt, frames, list(av.capture.split.train_views))
-                          if not m.cfg.ray_marched else None,
+                          if m.field_kind.splats else None,
                           tracks=long_range_tracks(av.capture, gt, frames, list(av.capture.split.train_views))
                           if tracks else None)
 

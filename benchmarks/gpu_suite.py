@@ -161,7 +161,7 @@ def part_train(device: str, quick: bool) -> dict:
         def step() -> None:
             state = model.node_state(cond, "posterior", generator=gen)
             posed = model.posed_gaussians(state)
-            rgb, alpha = model.render_images(posed, [cam] * batch, bg)  # as fit.distributed.render_crops
+            rgb, alpha = model.render_images(posed, [cam] * batch, bg)  # as fit.steps.render_crops
             terms = model.image_losses(rgb, alpha, target, mask, state)
             opt.zero_grad(set_to_none=True)
             terms.total.backward()

@@ -32,8 +32,9 @@ def profile_steps(project_dir: str, overrides: list[str], preset: str = "cpu-mlp
     from avatarctl.body.registry import load_body_model
     from avatarctl.fit.conditioning import build_pose_table
     from avatarctl.fit.config import MASK_DILATE_PX, resolve_fit_config
-    from avatarctl.fit.data import FrameStore, ImageSampler, RaySampler
+    from avatarctl.fit.data import FrameStore
     from avatarctl.fit.distributed import Replicas
+    from avatarctl.fit.steps import training_steps
     from avatarctl.fit.loop import decide_auto
     from avatarctl.fit.schedule import make_optimizer, param_groups
     from avatarctl.io.project_io import load_project_capture
@@ -47,11 +48,11 @@ def profile_steps(project_dir: str, overrides: list[str], preset: str = "cpu-mlp
     body = load_body_model(cap.body_model, cap.body_model_path)
     poses = build_pose_table(body, cap.motion, frames)
     store = FrameStore(cap, poses, cfg.crop_pad, 2**31, MASK_DILATE_PX)
-    Sampler = RaySampler if cfg.model.ray_marched else ImageSampler
+    steps = training_steps(cfg.model)
     views = list(cap.split.train_views)
-    replicas = Replicas(None, 1, lambda pairs, rays, images: Sampler(
-        store, frames, views, rays, images, cfg.box_fraction, cfg.background, cfg.mask_fraction, pairs),
-        frames, views, cfg.rays_per_batch, cfg.images_per_batch, 0, torch.device("cpu"))
+    replicas = Replicas(None, 1, steps, lambda pairs, rays, images: steps.sampler(
+        store, cfg, frames, views, pairs, rays, images), frames, views, cfg.rays_per_batch, cfg.images_per_batch, 0,
+        torch.device("cpu"))
     torch.manual_seed(0)
     model = SlrfAvatar(cfg.model, body.template(cap.motion), num_frames=len(frames)).train()
     opt = make_optimizer(cfg, param_groups(cfg, model))

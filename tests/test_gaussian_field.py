@@ -1,4 +1,4 @@
-"""The structured local Gaussian fields (model/gaussian_field.py, fit/densify.py) and their whole chain on the toy body."""
+"""The structured local Gaussian fields (model/gaussian_field.py, model/densify.py) and their whole chain on the toy body."""
 
 from __future__ import annotations
 
@@ -171,7 +171,7 @@ def test_initial_normals_are_the_templates_vertex_normals():
 
 
 def test_relocation_moves_dead_gaussians_onto_live_ones_of_their_node():
-    from avatarctl.fit.densify import relocate_dead
+    from avatarctl.model.densify import relocate_dead
 
     g = _fields(N=2, K=4)
     opt = torch.optim.Adam(g.parameters(), lr=1e-3)
@@ -203,7 +203,7 @@ def test_relocation_moves_dead_gaussians_onto_live_ones_of_their_node():
 
 
 def test_relocated_gaussians_take_their_sources_normal():
-    from avatarctl.fit.densify import relocate_dead
+    from avatarctl.model.densify import relocate_dead
 
     torch.manual_seed(0)
     N, K = 2, 4

@@ -130,3 +130,32 @@ def test_a_type_only_import_running_up_is_caught():
     found = _imports(PKG / "render" / "engine.py", src)
     assert found == [(3, "avatarctl.model.avatar")]
     assert LAYER[_room("avatarctl.model.avatar")] > LAYER[_room("avatarctl.render.engine")]
+
+
+# where the kind of local field may be named: the configs (which keys a field reads, old saved presets) and the one
+# interface (model/local_field.py)
+FIELD_KIND_HOME = {"avatarctl/model/config.py", "avatarctl/fit/config.py", "avatarctl/model/local_field.py"}
+_ASKS_KIND = ("ray_marched", 'field == "gaussians"', 'field != "gaussians"', 'field == "mlp"', 'field != "mlp"',
+              "ImageBatch)")
+
+
+def _asks_which_field(path: Path, text: str) -> list[str]:
+    return [f"{path}:{i} {line.strip()}" for i, line in enumerate(text.splitlines(), 1)
+            if any(a in line for a in _ASKS_KIND) and not line.lstrip().startswith("#")]
+
+
+def test_only_the_field_interface_asks_which_kind_of_field():
+    """The fit, render, eval, export and the viewer call `model.field_kind` (`LocalField`) and never test which kind
+    of local field they hold (issue 49: the kind was decided in ~14 places outside the field)."""
+    bad = []
+    for path in sorted(PKG.rglob("*.py")):
+        rel = path.relative_to(PKG.parent).as_posix()
+        if rel not in FIELD_KIND_HOME:
+            bad += _asks_which_field(path.relative_to(PKG.parent), path.read_text())
+    assert not bad, "ask model.field_kind (model/local_field.py) instead:\n" + "\n".join(bad)
+
+
+def test_the_field_kind_check_catches_a_branch():
+    """Not vacuous: the branch the loop used to hold is caught."""
+    src = "    Sampler = RaySampler if cfg.model.ray_marched else ImageSampler\n"
+    assert len(_asks_which_field(Path("avatarctl/fit/loop.py"), src)) == 1

@@ -1,4 +1,4 @@
-"""Training data: a RAM-bounded LRU store of cropped frames and the ray sampler.
+"""Training data: a RAM-bounded LRU store of cropped frames, the ray sampler and the image-crop sampler.
 
 Frames are read lazily from the project (`ProjectCapture.image / mask`), cropped to the projection of the posed
 body's 3D bounding box grown by `FitConfig.crop_pad` metres, and kept in an LRU cache bounded by
@@ -139,20 +139,16 @@ def target_colours(crop: FrameCrop, px: np.ndarray, py: np.ndarray, background: 
     return out
 
 
-class RaySampler:
-    """Draws `TrainBatch`es (see the module docstring for the sampling rule)."""
+class PairSampler:
+    """What both samplers share: the step's (training frame, training view) pairs and their conditioning."""
 
-    def __init__(self, store: FrameStore, train_frames: list[int], train_views: list[str], rays_per_batch: int,
-                 images_per_batch: int, box_fraction: float, background: tuple[float, float, float],
-                 mask_fraction: float = 0.0, pairs: list[tuple[int, str]] | None = None):
+    def __init__(self, store: FrameStore, train_frames: list[int], train_views: list[str], images_per_batch: int,
+                 background: tuple[float, float, float], pairs: list[tuple[int, str]] | None = None):
         self.store = store
         self.pairs = None if pairs is None else [(int(f), str(v)) for f, v in pairs]  # None = every pair
-        self.mask_fraction = float(mask_fraction)
         self.train_frames = sorted(int(f) for f in train_frames)
         self.train_views = list(train_views)
-        self.rays_per_batch = int(rays_per_batch)
         self.images_per_batch = int(images_per_batch)
-        self.box_fraction = float(box_fraction)
         self.background = np.asarray(background, dtype=np.float32)
         cams = store.capture.cameras
         for v in self.train_views:
@@ -174,6 +170,18 @@ class RaySampler:
         time, ids = time_stamps(frames, self.train_frames, are_training=True)
         return make_conditioning(self.store.poses.joint_transforms[rows], self.store.poses.pose_features[rows],
                                  time, ids, device)
+
+
+class RaySampler(PairSampler):
+    """Draws `TrainBatch`es of scattered rays (see the module docstring for the sampling rule)."""
+
+    def __init__(self, store: FrameStore, train_frames: list[int], train_views: list[str], rays_per_batch: int,
+                 images_per_batch: int, box_fraction: float, background: tuple[float, float, float],
+                 mask_fraction: float = 0.0, pairs: list[tuple[int, str]] | None = None):
+        super().__init__(store, train_frames, train_views, images_per_batch, background, pairs)
+        self.mask_fraction = float(mask_fraction)
+        self.rays_per_batch = int(rays_per_batch)
+        self.box_fraction = float(box_fraction)
 
     def sample(self, generator: torch.Generator, device: str | torch.device = "cpu") -> TrainBatch:
         B, R = self.images_per_batch, self.rays_per_batch
@@ -233,11 +241,11 @@ class ImageBatch:
         return sum(int(c.mask.numel()) for c in self.crops)
 
 
-class ImageSampler(RaySampler):
+class ImageSampler(PairSampler):
     """Draws `ImageBatch`es: the same (frame, view) pairs as `RaySampler` (`draw_images`), each image's whole crop
     (the posed body's box grown by `crop_pad`, see the module docstring) as its target instead of scattered rays."""
 
-    def sample(self, generator: torch.Generator, device: str | torch.device = "cpu") -> ImageBatch:  # type: ignore[override]
+    def sample(self, generator: torch.Generator, device: str | torch.device = "cpu") -> ImageBatch:
         frames, views = self.draw_images(generator)
         crops = []
         for frame, view in zip(frames, views):

@@ -47,7 +47,8 @@ from avatarctl.dist import DistEnv, active
 from avatarctl.errors import InputError
 
 if TYPE_CHECKING:
-    from avatarctl.fit.data import ImageBatch, RaySampler, TrainBatch
+    from avatarctl.fit.data import PairSampler
+    from avatarctl.fit.steps import TrainingSteps
     from avatarctl.model.avatar import ImageOutputs, NodeState, RenderOutputs, SlrfAvatar
     from avatarctl.model.losses import LossTerms
 
@@ -113,13 +114,15 @@ class Replicas:
     """This rank's share of a data-parallel fit: its ray shards (each a sampler and two generators), the step's
     forward pass over them, and the synchronisation after the backward pass (see the module docstring)."""
 
-    def __init__(self, env: DistEnv | None, shards: int, make_sampler: Callable[[list | None, int, int], "RaySampler"],
-                 train_frames: list[int], train_views: list[str], rays: int, images: int, seed: int,
-                 device: torch.device):
+    def __init__(self, env: DistEnv | None, shards: int, steps: "TrainingSteps",
+                 make_sampler: Callable[[list | None, int, int], "PairSampler"], train_frames: list[int],
+                 train_views: list[str], rays: int, images: int, seed: int, device: torch.device):
+        """`make_sampler(pairs, rays, images)`: a sampler of `steps` over `pairs` (None: all) drawing that many rays
+        (ray-marched fields) and images per step."""
         world = env.world_size if env is not None else 1
         pairs = [(f, v) for f in train_frames for v in train_views]
         check_shards(shards, world, rays, images, len(pairs))
-        self.env, self.shards, self.world, self.device = env, shards, world, device
+        self.env, self.shards, self.world, self.device, self.steps = env, shards, world, device, steps
         self.local = [k for k in range(shards) if k % world == (env.rank if env is not None else 0)]
         self.samplers = {k: make_sampler(None if shards == 1 else pairs[k::shards], rays // shards, images // shards)
                          for k in self.local}
@@ -139,64 +142,10 @@ class Replicas:
     def forward(self, model: "SlrfAvatar", background: torch.Tensor, jitter: bool
                 ) -> tuple["LossTerms", "RenderOutputs | ImageOutputs", int]:
         """Sample the local shards, compute node states, render and the loss of Eq. 11 over this rank's rays (or
-        crops). -> (loss terms, render outputs: `RenderOutputs` of rays, `ImageOutputs` of the rasterized field's
-        crops; rays or pixels of the whole step over all ranks)."""
-        from avatarctl.fit.data import ImageBatch
-
+        crops): `TrainingSteps.forward` (fit/steps.py). -> (loss terms, render outputs: `RenderOutputs` of rays,
+        `ImageOutputs` of the rasterized field's crops; rays or pixels of the whole step over all ranks)."""
         parts = [(k, self.samplers[k].sample(self.sampler_gens[k], self.device)) for k in self.local]
-        if isinstance(parts[0][1], ImageBatch):  # the rasterized field: whole crops (`model.field = "gaussians"`)
-            return self._forward_images(model, parts, background)
-        if len(parts) == 1:
-            k, b = parts[0]
-            state = model.node_state(b.cond, mode="posterior", generator=self.noise_gens[k])
-            out = model.render(b.rays, state, background, jitter=jitter, generator=self.noise_gens[k])
-            terms = model.losses(out, b.target, state)
-            return terms, out, b.target.shape[0] * self.world
-        state, out, target = self._forward_shards(model, parts, background, jitter)
-        return model.losses(out, target, state), out, target.shape[0] * self.world
-
-    def _forward_images(self, model: "SlrfAvatar", parts: list[tuple[int, "ImageBatch"]], background: torch.Tensor
-                        ) -> tuple["LossTerms", "ImageOutputs", int]:
-        """The rasterized field's step: each shard's node state (its noise generator), its crops rasterized, the
-        image loss over all of this rank's crops. -> (loss terms, outputs, pixels of the whole step over all ranks)."""
-        from avatarctl.model.avatar import ImageOutputs
-
-        states, outs, counts = [], [], []
-        for k, b in parts:
-            st = model.node_state(b.cond, mode="posterior", generator=self.noise_gens[k])
-            states.append(st)
-            outs.append(render_crops(model, b, st, background))
-            counts.append(int((b.cond.frame_ids >= 0).sum()))
-        state = states[0] if len(states) == 1 else _cat_states(states, counts)
-        out = ImageOutputs.cat(outs)
-        batches = [b for _, b in parts]
-        targets = [c.target for b in batches for c in b.crops]
-        masks = [c.mask for b in batches for c in b.crops]
-        terms = model.image_losses(out.rgb, out.alpha, targets, masks, state)
-        return terms, out, sum(b.pixels for b in batches) * self.world
-
-    def _forward_shards(self, model: "SlrfAvatar", parts: list[tuple[int, "TrainBatch"]], background: torch.Tensor,
-                        jitter: bool) -> tuple["NodeState", "RenderOutputs", torch.Tensor]:
-        """Several shards on this rank: each rendered as its own rank would (its noise generator, the occupancy grid
-        of the step's start), then concatenated; the grids merged as across ranks."""
-        from avatarctl.model.avatar import RenderOutputs
-
-        occ = getattr(model, "occupancy", None) if model.cfg.uses_occupancy else None
-        start = (occ.clone(), model.occupancy_updates.clone()) if occ is not None else None
-        states, outs, afters = [], [], []
-        for k, b in parts:
-            if start is not None:
-                model.occupancy.copy_(start[0])
-                model.occupancy_updates.copy_(start[1])
-            st = model.node_state(b.cond, mode="posterior", generator=self.noise_gens[k])
-            states.append(st)
-            outs.append(model.render(b.rays, st, background, jitter=jitter, generator=self.noise_gens[k]))
-            if start is not None:
-                afters.append(model.occupancy.clone())
-        if start is not None:
-            model.occupancy.copy_(merge_occupancy(start[0], afters))
-        counts = [int((b.cond.frame_ids >= 0).sum()) for _, b in parts]
-        return _cat_states(states, counts), RenderOutputs.cat(outs), torch.cat([b.target for _, b in parts])
+        return self.steps.forward(model, parts, background, jitter, self.noise_gens, self.world)
 
     def begin_step(self, model: "SlrfAvatar") -> torch.Tensor | None:
         """Call before `forward`: the occupancy grid of the step's start, for the cross-rank merge in `sync`."""
@@ -272,26 +221,12 @@ class Replicas:
         return True
 
 
-def render_crops(model: "SlrfAvatar", batch: "ImageBatch", state: "NodeState", background: torch.Tensor
-                 ) -> "ImageOutputs":
-    """Rasterize every crop of `batch` (crop b is frame slot b of `state`) with the avatar's posed Gaussians."""
-    from avatarctl.model.avatar import ImageOutputs
-    from avatarctl.splat import SplatCamera
-
-    posed = model.posed_gaussians(state)
-    cams = [SplatCamera.from_camera(c.camera, device=c.target.device).crop(c.x0, c.y0, c.mask.shape[1], c.mask.shape[0])
-            for c in batch.crops]
-    rgb, alpha = model.render_images(posed, cams, background)
-    return ImageOutputs(rgb=rgb, alpha=alpha, stats={"images": float(len(rgb)), "gaussians": float(
-        posed.means.shape[1]), "pixels": float(batch.pixels)})
-
-
 def saved_shards(rng: dict) -> int:
     """The number of ray shards a checkpoint's `rng` was written with."""
     return int(rng["sampler_shards"].shape[0]) if "sampler_shards" in rng else 1
 
 
-def _cat_states(states: list["NodeState"], train_counts: list[int]) -> "NodeState":
+def cat_states(states: list["NodeState"], train_counts: list[int]) -> "NodeState":
     """The node states of several shards as one batch. The pose-refinement penalty is a mean over each shard's
     training frames (`train_counts`): their count-weighted mean is the penalty of the whole batch."""
     from avatarctl.model.avatar import NodeState

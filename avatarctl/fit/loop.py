@@ -351,8 +351,9 @@ def _set_up(project: Project, cfg: FitConfig | None, device: str, resume: bool, 
     checkpoint on resume)."""
     from avatarctl.body.registry import load_body_model
     from avatarctl.fit.conditioning import build_pose_table, make_conditioning, time_stamps
-    from avatarctl.fit.data import FrameStore, ImageSampler, RaySampler
+    from avatarctl.fit.data import FrameStore
     from avatarctl.fit.distributed import Replicas, saved_shards
+    from avatarctl.fit.steps import training_steps
     from avatarctl.fit.schedule import make_optimizer, make_scheduler, param_groups
     from avatarctl.fit.validate import Validator, choose_val_pairs
 
@@ -374,10 +375,10 @@ def _set_up(project: Project, cfg: FitConfig | None, device: str, resume: bool, 
     poses = build_pose_table(body, capture.motion, train_frames)
     store = FrameStore(capture, poses, cfg.crop_pad, cfg.cache_mb * 2**20, MASK_DILATE_PX)
     # the ray-marched fields learn from scattered rays, the rasterized one (model.field = "gaussians") from whole crops
-    Sampler = RaySampler if cfg.model.ray_marched else ImageSampler
-    replicas = Replicas(env, shards, lambda pairs, rays, images: Sampler(
-        store, train_frames, split.train_views, rays, images, cfg.box_fraction, cfg.background, cfg.mask_fraction,
-        pairs), train_frames, list(split.train_views), cfg.rays_per_batch, cfg.images_per_batch, cfg.seed, dev)
+    steps = training_steps(cfg.model)
+    replicas = Replicas(env, shards, steps, lambda pairs, rays, images: steps.sampler(
+        store, cfg, train_frames, list(split.train_views), pairs, rays, images), train_frames,
+        list(split.train_views), cfg.rays_per_batch, cfg.images_per_batch, cfg.seed, dev)
     pairs = choose_val_pairs(split.test_views, train_frames, cfg.val_pairs) if main else []
     validator = Validator(capture, body, pairs, train_frames, cfg.background, cfg.val_scale) if pairs else None
 
@@ -437,11 +438,7 @@ def _train_step(t: _Trainer, step: int, elapsed_s: Callable[[], float], stop: St
                              snapshot=t.main and next_snapshot_s is not None and elapsed >= next_snapshot_s)
     t.optimizer.step()
     t.scheduler.step()
-    relocate_every = 0 if cfg.model.ray_marched else cfg.model.gaussians.relocate_every
-    if relocate_every and (step + 1) % relocate_every == 0:  # the Gaussians' density control (fit/densify.py)
-        from avatarctl.fit.densify import relocate_dead
-
-        relocate_dead(model.fields, t.optimizer, cfg.model.gaussians.min_opacity, cfg.seed, step + 1)
+    model.field_kind.density_control(model, t.optimizer, step + 1, cfg.seed)  # e.g. the Gaussians' relocation
     return _Step(terms, out, step_rays, agreed)
 
 

@@ -32,9 +32,9 @@ from avatarctl.model.cvae import MODES, NodeCVAE
 from avatarctl.model.deformer import (blending_weights, candidate_pairs, farthest_point_sampling,
                                       local_coordinates_centered, node_pose_attention, node_pose_condition,
                                       node_transforms, pose_attention_map, posed_node_centers, ray_sphere_bounds)
-from avatarctl.model.field import (BlockPacking, CanonicalField, NodeFields, Packing,
-                                   RadianceHeads, fuse_features, fuse_features_dense)
-from avatarctl.model.occupancy import UNSEEN, cell_index, occupancy_estimate, select_samples, update_occupancy
+from avatarctl.model.field import BlockPacking, Packing, fuse_features, fuse_features_dense
+from avatarctl.model.local_field import field_kind
+from avatarctl.model.occupancy import cell_index, occupancy_estimate, select_samples, update_occupancy
 from avatarctl.model.losses import (LossTerms, embedding_loss, image_reconstruction_loss, kl_loss,
                                     reconstruction_loss, total_loss, translation_loss)
 from avatarctl.geometry.rays import RayBatch
@@ -182,27 +182,8 @@ class SlrfAvatar(nn.Module):
             self.pose_refine.set_centres(skin_weighted_centroids(template.vertices.detach().float(), weights))
         if cfg.variant == "slrf":
             self.latent = NodeCVAE(cfg, J, num_frames)
-            if cfg.field == "gaussians":  # rasterized local fields (model/gaussian_field.py); no ray-marching heads
-                from avatarctl.model.gaussian_field import NodeGaussians, initial_gaussians, initial_normals
-
-                means, log_scales = initial_gaussians(template.vertices, template.faces, rest,
-                                                      cfg.gaussians.per_node, cfg.support_radius, seed, off_body)
-                normals = initial_normals(template.vertices, template.faces,
-                                          (means + rest.detach().float().cpu()[:, None]).reshape(-1, 3)
-                                          ).reshape(means.shape) if cfg.gaussians.shading == "irradiance" else None
-                self.fields = NodeGaussians(cfg.gaussians, cfg.num_nodes, cfg.embed_dim, means, log_scales,
-                                            cfg.sigma, normals)
-            else:
-                self.fields = NodeFields(cfg.num_nodes, cfg.pe_coords, cfg.embed_dim, cfg.node_width,
-                                         cfg.node_depth, cfg.feature_dim)
-        else:
-            # one canonical network of comparable total capacity: twice as wide and two layers deeper than an F_i
-            self.canonical = CanonicalField(cfg.pe_coords, 2 * cfg.node_width, cfg.node_depth + 2, cfg.feature_dim)
-        if cfg.ray_marched:
-            self.heads = RadianceHeads(cfg.feature_dim, cfg.head_width, cfg.pe_views)
-        if cfg.uses_occupancy:  # [N * res^3] per-node occupancy grids (model/occupancy.py), saved with the weights
-            self.register_buffer("occupancy", torch.full((cfg.num_nodes * cfg.occupancy.res ** 3,), UNSEEN))
-            self.register_buffer("occupancy_updates", torch.zeros((), dtype=torch.long))  # training steps seen
+        self.field_kind = field_kind(cfg)  # the local fields' kind: every difference between them (local_field.py)
+        self.field_kind.build(self, template, rest, seed, off_body)
 
     def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):
         # checkpoints written before `occupancy_updates` existed: their grids are past any warm-up
@@ -274,7 +255,7 @@ class SlrfAvatar(nn.Module):
     # ---- step 2 (field "gaussians"): rasterizing ------------------------------------------------------------------
     def posed_gaussians(self, state: NodeState) -> "PosedGaussians":
         """The Gaussians of every frame of `state`, posed by T_i, n_i and decoded with e_i (model/gaussian_field.py)."""
-        if self.cfg.field != "gaussians":
+        if not self.field_kind.splats:
             raise ValueError(f"posed_gaussians needs model.field = 'gaussians', this avatar's is {self.cfg.field!r}")
         with _float32_geometry(state.transforms.device):
             return self.fields(state.transforms, state.centers, state.embed)
@@ -320,7 +301,7 @@ class SlrfAvatar(nn.Module):
 
         Rays that miss every node sphere return the background with alpha 0. `chunk` bounds memory (rays per chunk).
         """
-        if not self.cfg.ray_marched:
+        if self.field_kind.trains_on != "rays":
             raise ValueError("model.field 'gaussians' is rasterized, not ray-marched: use render_image")
         dev, dt = self.node_rest.device, self.node_rest.dtype
         rays = RayBatch(rays.origins.to(dev, dt), rays.dirs.to(dev, dt), rays.frame_slot.to(dev))
@@ -409,9 +390,12 @@ class SlrfAvatar(nn.Module):
         `cfg.occupancy.enabled`, the densities found update the occupancy grids (model/occupancy.py). `candidates`
         (point_idx, node_idx) [pairs]: the pairs in range, already found (sparse path only).
         """
-        if not self.cfg.ray_marched:
-            rgb, sigma = self._query_gaussians(points, dirs, point_frame, state)
-            return rgb, sigma, {"samples": float(points.shape[0]), "valid_samples": float((sigma > 0).sum())}
+        return self.field_kind.query(self, points, dirs, point_frame, state, candidates)
+
+    def _query_heads(self, points: torch.Tensor, dirs: torch.Tensor, point_frame: torch.Tensor, state: NodeState,
+                     candidates: tuple[torch.Tensor, torch.Tensor] | None = None
+                     ) -> tuple[torch.Tensor, torch.Tensor, dict[str, float]]:
+        """`query` of the ray-marched fields: the fused feature of the nodes in range (Eq. 5), then the heads (Eq. 7)."""
         if self.cfg.sparse:
             f, wsum, stats, occ_pairs = self._features_sparse(points, point_frame, state, candidates)
             valid = (wsum > 0).nonzero(as_tuple=True)[0]

@@ -1,6 +1,9 @@
-"""Render one whole view of a fitted avatar: `render_view`.
+"""Render one whole view of a fitted avatar: `render_view`, which asks the model's kind of local field
+(`model.field_kind`, model/local_field.py) to render it with one of the two renderers here:
 
-Steps:
+`rasterize_view` (the Gaussian local fields): the whole image rasterized at once (avatarctl/splat).
+
+`march_view` (the ray-marched fields):
 1. candidate pixels: every pixel (or those of `pixel_mask`) whose camera ray passes within the node-support radius
    sigma * sqrt(-2 ln eps) of at least one posed node of the frame (Eq. 6: the blending weight is exactly zero
    farther away, so no other ray can see the avatar). The test is exact for the spheres (ray-to-centre distance),
@@ -40,22 +43,32 @@ class NodeFrames(Protocol):
 
 
 class SupportConfig(Protocol):
-    """The two settings of a model's config the engine reads (`model.config.ModelConfig` is one)."""
+    """The setting of a model's config the engine reads (`model.config.ModelConfig` is one)."""
 
     @property
     def support_radius(self) -> float: ...  # Eq. 6 support radius of a node, metres
 
-    @property
-    def ray_marched(self) -> bool: ...  # True: volume-rendered rays; False: rasterized Gaussians
+
+class ViewField(Protocol):
+    """How a model's kind of local field renders a whole view (`model.local_field.LocalField` is one): it calls
+    `march_view` or `rasterize_view` below."""
+
+    def render_view(self, model: Any, state: Any, slot: int, camera: Camera, background: tuple[float, float, float],
+                    max_rays_per_chunk: int, pixel_mask: np.ndarray | None, progress: ProgressFn | None
+                    ) -> "ViewRender": ...
 
 
 class ViewModel(Protocol):
-    """What `render_view` needs of a model (`model.avatar.SlrfAvatar` is one): rays rendered against the nodes of a
-    frame (ray-marched fields), or the posed Gaussians rasterized (Gaussian fields). The engine knows no more of the
-    model than this, so `render/` sits below `model/` (which composites with `render.volume`)."""
+    """What `render_view` needs of a model (`model.avatar.SlrfAvatar` is one): its kind of local field, and rays
+    rendered against the nodes of a frame (ray-marched fields) or the posed Gaussians rasterized (Gaussian fields).
+    The engine knows no more of the model than this, so `render/` sits below `model/` (which composites with
+    `render.volume`)."""
 
     @property
     def cfg(self) -> SupportConfig: ...
+
+    @property
+    def field_kind(self) -> ViewField: ...
 
     def render(self, rays: "RayBatch", state: Any, background: torch.Tensor, *, jitter: bool = False) -> Any: ...
     # -> outputs with .rgb [rays, 3] and .alpha [rays]
@@ -109,16 +122,25 @@ def render_view(model: ViewModel, state: NodeFrames, slot: int, camera: Camera,
     `background` with alpha 0. `progress` gets a report after each chunk (`part` "rays": rays rendered of the rays
     to render).
     """
-    from avatarctl.geometry.rays import RayBatch, camera_rays, image_pixels
-
-    t0 = time.perf_counter()
     if not camera.is_pinhole:
         raise ValueError(f"render_view needs a pinhole camera (camera {camera.name} has distortion); "
                          "use camera.pinhole() for undistorted images")
     if not 0 <= slot < state.centers.shape[0]:
         raise IndexError(f"slot {slot} outside the NodeState batch of {state.centers.shape[0]} frames")
-    if not model.cfg.ray_marched:  # the rasterized local fields (model.field = "gaussians")
-        return _rasterize_view(model, state, slot, camera, background, pixel_mask, progress, t0)
+    if pixel_mask is not None and np.asarray(pixel_mask).shape != (int(camera.height), int(camera.width)):
+        raise ValueError(f"pixel_mask {np.asarray(pixel_mask).shape} does not match the camera's image "
+                         f"({int(camera.height)}, {int(camera.width)})")
+    return model.field_kind.render_view(model, state, slot, camera, background, max_rays_per_chunk, pixel_mask,
+                                        progress)
+
+
+def march_view(model: ViewModel, state: NodeFrames, slot: int, camera: Camera,
+               background: tuple[float, float, float], max_rays_per_chunk: int = 8192,
+               pixel_mask: np.ndarray | None = None, progress: ProgressFn | None = None) -> ViewRender:
+    """`render_view` for the ray-marched fields: steps 1-3 of the module docstring."""
+    from avatarctl.geometry.rays import RayBatch, camera_rays, image_pixels
+
+    t0 = time.perf_counter()
     H, W = int(camera.height), int(camera.width)
     device = state.centers.device
     bg = torch.tensor(background, dtype=torch.float32, device=device)
@@ -130,8 +152,6 @@ def render_view(model: ViewModel, state: NodeFrames, slot: int, camera: Camera,
     candidates = torch.arange(H * W, device=device)
     if pixel_mask is not None:
         m = np.asarray(pixel_mask, dtype=bool)
-        if m.shape != (H, W):
-            raise ValueError(f"pixel_mask {m.shape} does not match the camera's image ({H}, {W})")
         candidates = torch.from_numpy(np.flatnonzero(m)).to(device)
     with torch.no_grad():
         if candidates.numel():
@@ -153,16 +173,15 @@ def render_view(model: ViewModel, state: NodeFrames, slot: int, camera: Camera,
                       seconds=time.perf_counter() - t0, rays=total)
 
 
-def _rasterize_view(model: ViewModel, state: NodeFrames, slot: int, camera: Camera,
-                    background: tuple[float, float, float], pixel_mask: np.ndarray | None,
-                    progress: ProgressFn | None, t0: float) -> ViewRender:
+def rasterize_view(model: ViewModel, state: NodeFrames, slot: int, camera: Camera,
+                   background: tuple[float, float, float], pixel_mask: np.ndarray | None = None,
+                   progress: ProgressFn | None = None) -> ViewRender:
     """`render_view` for the Gaussian local fields: the whole image rasterized at once (avatarctl/splat); pixels
     outside `pixel_mask` set to the background with alpha 0 afterwards. `rays` counts the pixels rendered."""
     from avatarctl.splat import SplatCamera
 
+    t0 = time.perf_counter()
     H, W = int(camera.height), int(camera.width)
-    if pixel_mask is not None and np.asarray(pixel_mask).shape != (H, W):
-        raise ValueError(f"pixel_mask {np.asarray(pixel_mask).shape} does not match the camera's image ({H}, {W})")
     state = state.frame(slot)
     device = state.centers.device
     with torch.no_grad():

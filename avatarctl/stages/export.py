@@ -228,7 +228,7 @@ def _run(project_dir: str | Path, cfg: ExportConfig, progress: ProgressFn | None
         default = pool[:1]
     mesh_formats = tuple(f for f in cfg.formats if f in MESH_FORMATS)
     splat_formats = tuple(f for f in cfg.formats if f in SPLAT_FORMATS)
-    if splat_formats and avatar.model.cfg.ray_marched:
+    if splat_formats and not avatar.model.field_kind.splats:
         raise InputError(f"--format {','.join(splat_formats)} needs a Gaussian-field avatar", where="--format",
                          fix="fit with the cpu preset (the Gaussian fields), or export glb / ply / obj")
     if "player" in splat_formats and cfg.frames is None:
@@ -352,7 +352,7 @@ def _field(avatar: Any, state: Any, voxel: float) -> tuple[Any, Any]:
     from avatarctl.render.trajectories import up_from_cameras
 
     model = avatar.model
-    if model.cfg.ray_marched:
+    if not model.field_kind.splats:
         background = tuple(float(c) for c in avatar.background)
         return slrf_density(model, state), head_on_bake(slrf_ray_colour(model, state), 2.0 * voxel, background)
     from avatarctl.export.view_colours import gaussian_views, view_colouring
@@ -580,7 +580,7 @@ def _reload_check(path: Path, mesh_y: Any, weights: Any, dense: np.ndarray, M_y:
 
 def _colour_rule(avatar: Any) -> str:
     """export.json's words for how the meshes' vertex colours were made (`_field`)."""
-    if avatar.model.cfg.ray_marched:
+    if not avatar.model.field_kind.splats:
         from avatarctl.export.mesh import BAKE_RULE
 
         return BAKE_RULE

@@ -91,7 +91,7 @@ def prepare(project_dir: str | Path, cfg: ViewConfig) -> ViewerSetup:
     avatar = load_fitted(project, cfg.device, cfg.checkpoint)
     cap = avatar.capture
     first = _motion(avatar, cfg, cfg.poses[0] if cfg.poses else PROJECT)
-    mesh_fn = _mesh_fn(avatar, cfg) if cfg.mesh_preview and avatar.model.cfg.ray_marched else None
+    mesh_fn = _mesh_fn(avatar, cfg) if cfg.mesh_preview and not avatar.model.field_kind.splats else None
     session = ViewerSession(avatar.model, first, avatar.background, cfg.max_rays_per_chunk,
                             load_motion=lambda name: _motion(avatar, cfg, name), mesh_fn=mesh_fn)
     cams = list(cap.cameras.values())

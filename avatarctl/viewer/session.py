@@ -134,7 +134,7 @@ class ViewerSession:
     @property
     def gaussian(self) -> bool:
         """True for the Gaussian local fields (the page draws splats), False for the ray-marched fields."""
-        return not self.model.cfg.ray_marched
+        return self.model.field_kind.splats
 
     def set_motion(self, name: str) -> ViewerMotion:
         """Play another motion (the stage's loader; its errors pass through); empties the node-state cache."""
