@@ -100,7 +100,8 @@ def _decode(data: np.ndarray, what: str, where: str) -> np.ndarray:
 
 @dataclass
 class _SmcDatasets:
-    """Lazily opened SMC file; `key(cam, frame)` -> the HDF5 path of one encoded image (None: absent)."""
+    """One SMC file, opened on the first `load` and kept open; `paths` maps (camera, frame) to the HDF5 dataset of
+    one encoded image."""
 
     path: Path
     paths: dict[tuple[str, int], str]  # (camera name, frame) -> HDF5 dataset path
@@ -224,7 +225,8 @@ def read_dna_rendering_fits(annots: Any, where: str) -> tuple[BodyMotion | None,
 
 
 def _image_size(main: Any, key: str, where: str) -> tuple[int, int]:
-    """(width, height) of one encoded image, read from its header (PIL) without decoding the pixels."""
+    """(width, height) of one encoded image, read from its header without decoding the pixels (Pillow: imageio and
+    scikit-image require it)."""
     import io
 
     from PIL import Image, UnidentifiedImageError
