@@ -51,3 +51,15 @@ def toy_gaussian_project(tmp_path_factory):
     from fixtures.toy_fitted import make_toy_fitted_gaussians
 
     return make_toy_fitted_gaussians(tmp_path_factory.mktemp("toy_gaussians"))
+
+
+@pytest.fixture(scope="session")
+def random_smplx(tmp_path_factory):
+    """(model file, `SmplBody`) of a random SMPL-X model (`fixtures.smpl`, seed 4; never a licensed file), shared by
+    the dataset-layout tests (DNA-Rendering, 4D-DRESS)."""
+    from fixtures.smpl import write_random_smpl_npz
+
+    from avatarctl.body.smpl import SmplBody
+
+    path = write_random_smpl_npz(tmp_path_factory.mktemp("smplx") / "SMPLX_NEUTRAL.npz", "smplx", seed=4)
+    return path, SmplBody.from_file(path, kind="smplx")

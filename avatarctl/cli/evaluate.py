@@ -37,7 +37,8 @@ def register(app: typer.Typer) -> None:
                                          "rendered, the rest is background)."),
         region: str = typer.Option("all", "--region", help="What the headline PSNR is over: all (the protocol's "
                                    "region) | garment | body | edge | inner. garment/body need the capture's "
-                                   "ground-truth geometry (synth writes gt/geometry.npz); with it every eval also "
+                                   "ground-truth geometry (synth writes gt/geometry.npz; a 4D-DRESS take has "
+                                   "labelled scans); with it every eval also "
                                    "reports both. edge (within 1 px of the mask's silhouette, either side) / inner "
                                    "(the rest): any capture; reports these two instead."),
         knockout: Optional[str] = typer.Option(None, "--knockout", help="Render-time knockout of the trained "

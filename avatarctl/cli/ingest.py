@@ -18,7 +18,8 @@ def register(app: typer.Typer) -> None:
                                                  "folder of its frames) from a static phone. Never modified."),
         project: Path = typer.Argument(..., help="Project directory to create (must not exist or be empty)."),
         format: str = typer.Option("auto", "--format",
-                                   help="auto | easymocap | zju | thuman4 | peoplesnapshot | colmap | video"),
+                                   help="auto | easymocap | zju | thuman4 | peoplesnapshot | colmap | dna_rendering | "
+                                        "4d_dress | video"),
         body_model: Optional[str] = typer.Option(None, "--body-model",
                                                  help="anny | smpl | smplx (default: what the capture's fits are; "
                                                       "anny for --fits keypoints)"),

@@ -11,7 +11,8 @@ from avatarctl.errors import InputError
 from avatarctl.frames import parse_frame_spec
 
 SCHEMA_VERSION = 1
-FORMAT_CHOICES = ("auto", "easymocap", "zju", "thuman4", "peoplesnapshot", "colmap", "video")
+FORMAT_CHOICES = ("auto", "easymocap", "zju", "thuman4", "peoplesnapshot", "colmap", "dna_rendering", "4d_dress",
+                  "video")
 BODY_MODEL_CHOICES = ("anny", "smpl", "smplx", "toy")
 MASK_CHOICES = ("auto", "files", "background", "mediapipe")
 FITS_CHOICES = ("auto", "files", "keypoints")

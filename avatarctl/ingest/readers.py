@@ -19,7 +19,7 @@ from pathlib import Path
 from typing import Callable
 
 from avatarctl.errors import InputError
-from avatarctl.io.capture import CaptureSource, FileImages, FileMasks, scan_numbered
+from avatarctl.io.capture import CaptureSource, FileImages, FileMasks, first_image_sizes, scan_numbered
 from avatarctl.io.project_io import Split
 
 
@@ -36,8 +36,6 @@ def read_capture_split(root: Path) -> Split | None:
 
 
 def read_easymocap(root: Path) -> CaptureSource:
-    import cv2
-
     from avatarctl.io.easymocap import read_easymocap_cameras
     from avatarctl.io.easymocap_fits import has_capture_fits, read_capture_fits
 
@@ -50,15 +48,7 @@ def read_easymocap(root: Path) -> CaptureSource:
                          fix="EasyMocap captures keep frames in images/<cam>/%06d.jpg or videos/<cam>.mp4")
     else:
         per_cam = {d.name: scan_numbered(d) for d in sorted(img_root.iterdir()) if d.is_dir()}
-        sizes = {}
-        for cam, found in per_cam.items():
-            if found:
-                first = found[min(found)]
-                img = cv2.imread(str(first), cv2.IMREAD_UNCHANGED)
-                if img is None:
-                    raise InputError(f"image unreadable or corrupt: camera {cam}", where=str(first),
-                                     fix="re-export this image, or leave the frame out with --frames")
-                sizes[cam] = (int(img.shape[1]), int(img.shape[0]))
+        sizes = first_image_sizes(per_cam)
         images, fps = None, 0.0
     cameras = read_easymocap_cameras(root, image_size=sizes)
     names = [c.name for c in cameras]
@@ -120,5 +110,14 @@ def reader_for(fmt: str) -> Callable[[Path], CaptureSource]:
         from avatarctl.io.colmap import read_colmap
 
         return read_colmap
+    if fmt == "dna_rendering":
+        from avatarctl.io.dna_rendering import read_dna_rendering
+
+        return read_dna_rendering
+    if fmt == "4d_dress":
+        from avatarctl.io.four_d_dress import read_four_d_dress
+
+        return read_four_d_dress
     raise InputError(f"unknown capture format {fmt!r}",
-                     fix="use --format auto, easymocap, zju, thuman4, peoplesnapshot or colmap")
+                     fix="use --format auto, easymocap, zju, thuman4, peoplesnapshot, colmap, dna_rendering or "
+                         "4d_dress")

@@ -153,7 +153,7 @@ class FileMasks:
 class CaptureSource:
     """A raw capture as described by its reader (nothing is loaded but calibration and fits)."""
 
-    format: str  # "easymocap" | "zju" | "thuman4" | "peoplesnapshot" | "colmap"
+    format: str  # avatarctl.io.detect.FORMATS, or "video"
     root: Path
     cameras: list[Camera]  # as calibrated (distorted), in the capture's order; names are project-safe
     image_frames: dict[str, set[int]]  # camera -> frame numbers that have an image (empty: camera has none)
@@ -176,6 +176,23 @@ class CaptureSource:
     def all_frames(self) -> list[int]:
         """Every frame number that has an image in at least one camera, ascending."""
         return sorted(set().union(*self.image_frames.values())) if self.image_frames else []
+
+
+def first_image_sizes(per_cam: dict[str, dict[int, Path]]) -> dict[str, tuple[int, int]]:
+    """{camera: (width, height)} of each camera's first image file ({camera: {frame: file}}; cameras without files
+    are left out); an unreadable file is a one-line error naming it."""
+    import cv2
+
+    sizes = {}
+    for cam, found in per_cam.items():
+        if found:
+            first = found[min(found)]
+            img = cv2.imread(str(first), cv2.IMREAD_UNCHANGED)
+            if img is None:
+                raise InputError(f"image unreadable or corrupt: camera {cam}", where=str(first),
+                                 fix="re-export this image, or leave the frame out with --frames")
+            sizes[cam] = (int(img.shape[1]), int(img.shape[0]))
+    return sizes
 
 
 def frame_number(path: Path) -> int | None:

@@ -1,6 +1,9 @@
 """Which capture format a folder holds (``--format auto``), with the evidence, checked in this order:
 
 ========================  =====================================================================
+dna_rendering             a ``<seq>.smc`` file (its ``<seq>_annots.smc`` beside it or in the release's
+                          annotations folder; ``avatarctl.io.dna_rendering``)
+4d_dress                  ``Capture/cameras.pkl`` + ``basic_info.pkl`` (a 4D-DRESS take folder)
 zju                       ``annots.npy``
 thuman4                   ``calibration.json``
 peoplesnapshot            ``camera.pkl`` (and ``masks.hdf5``)
@@ -17,7 +20,7 @@ from pathlib import Path
 
 from avatarctl.errors import InputError
 
-FORMATS = ("easymocap", "zju", "thuman4", "peoplesnapshot", "colmap")
+FORMATS = ("easymocap", "zju", "thuman4", "peoplesnapshot", "colmap", "dna_rendering", "4d_dress")
 
 
 def detect_format(root: str | Path) -> tuple[str, str]:
@@ -30,6 +33,11 @@ def detect_format(root: str | Path) -> tuple[str, str]:
             ": one static camera"
     if not root.is_dir():
         raise InputError("capture folder not found", where=str(root), fix="pass the folder that holds the capture")
+    smc = sorted(p.name for p in root.glob("*.smc") if not p.name.endswith("_annots.smc"))
+    if smc:
+        return "dna_rendering", f"found {smc[0]} (DNA-Rendering)"
+    if (root / "Capture" / "cameras.pkl").is_file() and (root / "basic_info.pkl").is_file():
+        return "4d_dress", "found Capture/cameras.pkl + basic_info.pkl (4D-DRESS)"
     if (root / "annots.npy").is_file():
         return "zju", "found annots.npy (ZJU-MoCap)"
     if (root / "calibration.json").is_file():
@@ -45,5 +53,6 @@ def detect_format(root: str | Path) -> tuple[str, str]:
                 return "colmap", f"found {rel} (COLMAP)"
     raise InputError("unknown capture format", where=str(root),
                      fix="expected intri.yml+extri.yml (EasyMocap), annots.npy (ZJU-MoCap), calibration.json "
-                         "(THuman4.0), camera.pkl (PeopleSnapshot) or sparse/0/cameras.bin (COLMAP); "
+                         "(THuman4.0), camera.pkl (PeopleSnapshot), sparse/0/cameras.bin (COLMAP), <seq>.smc "
+                         "(DNA-Rendering) or Capture/cameras.pkl + basic_info.pkl (4D-DRESS); "
                          "or pass --format")

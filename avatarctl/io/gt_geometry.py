@@ -1,14 +1,18 @@
-"""Ground-truth geometry a capture may carry: `gt/geometry.npz` (written by `avatarctl synth`).
+"""Ground-truth geometry a capture may carry: `gt/geometry.npz` (written by `avatarctl synth`), or the labelled
+scans of a 4D-DRESS take (`avatarctl.io.four_d_dress.ScanGeometry`).
 
-Keys read here (others are ignored): `frame_index` [F] capture frame ids, `body_vertices` [F, Vb, 3] and
-`garment_vertices` [F, Vg, 3] (world metres, the capture's calibration frame), `body_faces` [Fb, 3],
-`garment_faces` [Fg, 3]. Used by `avatarctl eval --region` to score the garment and the rest of the body apart.
+Keys read from `gt/geometry.npz` (others are ignored): `frame_index` [F] capture frame ids, `body_vertices`
+[F, Vb, 3] and `garment_vertices` [F, Vg, 3] (world metres, the capture's calibration frame), `body_faces` [Fb, 3],
+`garment_faces` [Fg, 3]. Used by `avatarctl eval --region` to score the garment and the rest of the body apart,
+through `open_gt_geometry(capture_dir).frame(frame)` -> `FrameGeometry` (one frame's meshes; scans change topology
+from frame to frame, so only the synth's fixed-topology file offers the stacked arrays).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Protocol
 
 import numpy as np
 
@@ -17,6 +21,26 @@ from avatarctl.errors import InputError
 GT_GEOMETRY = Path("gt") / "geometry.npz"  # relative to the capture folder
 GT_MOTION = Path("gt") / "motion.npz"  # the true body fits, when the capture's motion.npz was written with noise
 _KEYS = ("frame_index", "body_vertices", "garment_vertices", "body_faces", "garment_faces")
+
+
+@dataclass(frozen=True)
+class FrameGeometry:
+    """One frame's body and garment meshes (world metres)."""
+
+    body_vertices: np.ndarray  # [Vb, 3] float32
+    body_faces: np.ndarray  # [Fb, 3] int
+    garment_vertices: np.ndarray  # [Vg, 3] float32
+    garment_faces: np.ndarray  # [Fg, 3] int
+
+
+class GeometrySource(Protocol):
+    """What `eval --region garment|body` needs of a capture's ground truth."""
+
+    path: Path
+
+    def frame(self, frame: int) -> FrameGeometry:
+        """The meshes of capture frame `frame`; InputError when the ground truth does not cover it."""
+        ...
 
 
 @dataclass(frozen=True)
@@ -38,6 +62,11 @@ class GroundTruthGeometry:
                              fix="score only frames the capture's gt/geometry.npz covers (--frames)")
         return int(hit[0])
 
+    def frame(self, frame: int) -> FrameGeometry:
+        r = self.row(frame)
+        return FrameGeometry(body_vertices=self.body_vertices[r], body_faces=self.body_faces,
+                             garment_vertices=self.garment_vertices[r], garment_faces=self.garment_faces)
+
 
 def fits_are_ground_truth(capture_dir: str | Path) -> bool:
     """True for a capture made by `avatarctl synth` with exact body fits (no `--fit-noise`): its motion.npz is the
@@ -57,6 +86,17 @@ def find_gt_geometry(capture_dir: str | Path) -> Path | None:
     """The capture's ground-truth geometry file, or None when it carries none."""
     p = Path(capture_dir) / GT_GEOMETRY
     return p if p.is_file() else None
+
+
+def open_gt_geometry(capture_dir: str | Path) -> GeometrySource | None:
+    """The capture's ground-truth geometry: `gt/geometry.npz` (synth), else a 4D-DRESS take's labelled scans (read
+    per frame); None when it carries neither."""
+    path = find_gt_geometry(capture_dir)
+    if path is not None:
+        return load_gt_geometry(path)
+    from avatarctl.io.four_d_dress import ScanGeometry, has_scan_geometry
+
+    return ScanGeometry(Path(capture_dir)) if has_scan_geometry(capture_dir) else None
 
 
 def load_gt_geometry(path: str | Path) -> GroundTruthGeometry:

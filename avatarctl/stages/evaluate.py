@@ -332,17 +332,15 @@ def _score_image(avatar: Any, cfg: EvalConfig, project: Project, state: Any, ver
 
 def _gt_geometry(project: Project, region: str) -> Any:
     """The source capture's ground-truth geometry (`io.gt_geometry`), or None; required for garment / body."""
-    from avatarctl.io.gt_geometry import find_gt_geometry, load_gt_geometry
+    from avatarctl.io.gt_geometry import open_gt_geometry
 
-    path = find_gt_geometry(project.manifest.source.path)
-    if path is None:
-        if region != "all":
-            raise InputError(f"--region {region} needs the capture's ground-truth garment geometry, and "
-                             f"{project.manifest.source.path} has none", where="--region",
-                             fix="use --region all, edge or inner (the masks' silhouette: any capture), or a capture "
-                                 "made by `avatarctl synth` (it writes gt/geometry.npz)")
-        return None
-    return load_gt_geometry(path)
+    geometry = open_gt_geometry(project.manifest.source.path)
+    if geometry is None and region != "all":
+        raise InputError(f"--region {region} needs the capture's ground-truth garment geometry, and "
+                         f"{project.manifest.source.path} has none", where="--region",
+                         fix="use --region all, edge or inner (the masks' silhouette: any capture), or a capture "
+                             "made by `avatarctl synth` (gt/geometry.npz) or a 4D-DRESS take (its labelled scans)")
+    return geometry
 
 
 def _garment_errors(rgb: np.ndarray, gt: np.ndarray, mask: np.ndarray, cam: Any, geometry: Any, frame: int
@@ -350,9 +348,8 @@ def _garment_errors(rgb: np.ndarray, gt: np.ndarray, mask: np.ndarray, cam: Any,
     """`_part_errors` of the garment / body split of the protocol's `mask` (`evaluate.regions`)."""
     from avatarctl.evaluate.regions import GEOMETRY_REGIONS, garment_mask, split_region
 
-    r = geometry.row(frame)
-    parts = split_region(mask, garment_mask(cam, geometry.body_vertices[r], geometry.body_faces,
-                                            geometry.garment_vertices[r], geometry.garment_faces))
+    g = geometry.frame(frame)
+    parts = split_region(mask, garment_mask(cam, g.body_vertices, g.body_faces, g.garment_vertices, g.garment_faces))
     return _part_errors(rgb, gt, parts, GEOMETRY_REGIONS)
 
 
