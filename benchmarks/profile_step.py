@@ -31,7 +31,7 @@ def profile_steps(project_dir: str, overrides: list[str], preset: str = "cpu-mlp
 
     from avatarctl.body.registry import load_body_model
     from avatarctl.fit.conditioning import build_pose_table
-    from avatarctl.fit.config import MASK_DILATE_PX, resolve_fit_config
+    from avatarctl.fit.config import resolve_fit_config
     from avatarctl.fit.data import FrameStore
     from avatarctl.fit.distributed import Replicas
     from avatarctl.fit.steps import training_steps
@@ -47,10 +47,10 @@ def profile_steps(project_dir: str, overrides: list[str], preset: str = "cpu-mlp
     frames = sorted(int(f) for f in cap.split.train_frames)
     body = load_body_model(cap.body_model, cap.body_model_path)
     poses = build_pose_table(body, cap.motion, frames)
-    store = FrameStore(cap, poses, cfg.crop_pad, 2**31, MASK_DILATE_PX)
-    steps = training_steps(cfg.model)
+    store = FrameStore(cap, poses, cfg.crop_pad, 2**31)
+    scheme = training_steps(cfg.model)
     views = list(cap.split.train_views)
-    replicas = Replicas(None, 1, steps, lambda pairs, rays, images: steps.sampler(
+    replicas = Replicas(None, 1, scheme, lambda pairs, rays, images: scheme.sampler(
         store, cfg, frames, views, pairs, rays, images), frames, views, cfg.rays_per_batch, cfg.images_per_batch, 0,
         torch.device("cpu"))
     torch.manual_seed(0)

@@ -122,8 +122,8 @@ def test_gaussian_field_on_two_ranks_matches_one_rank_of_the_same_shards(toy_pro
     from avatarctl.stages.fit import FitRequest
 
     one, two = _copy(toy_project, tmp_path / "one"), _copy(toy_project, tmp_path / "two")
-    sets = TINY + ("model.field=gaussians", "model.gaussians.per_node=16", "model.gaussians.relocate_every=2")
-    base = dict(preset="micro", overrides=sets, device="cpu")
+    sets = TINY + ("model.field=gaussians", "model.gaussians.per_node=16")
+    base = dict(preset="micro", overrides=sets, model_settings={"gaussians": {"relocate_every": 2}}, device="cpu")
     fit.run(one, FitRequest(iters=3, shards=2, **base), handle_sigint=False)
     t0 = time.perf_counter()
     r2 = fit.run(two, FitRequest(iters=3, nproc=2, **base))

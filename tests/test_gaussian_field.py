@@ -236,8 +236,8 @@ def test_model_config_keeps_the_gaussian_options_in_their_own_config():
         resolve_fit_config("cpu", ablation="lbs-baseline", overrides=["model.field=gaussians"])
 
 
-_TOY_SETS = ("model.field=gaussians", "model.gaussians.per_node=24", "model.gaussians.relocate_every=2",
-             "val_every=0", "log_every=2", "checkpoint_every=3")
+_TOY_SETS = ("model.field=gaussians", "model.gaussians.per_node=24", "val_every=0", "log_every=2", "checkpoint_every=3")
+_TOY_MODEL = {"gaussians": {"relocate_every": 2}}  # a fixed setting: from Python
 
 
 def _toy_project(tmp_path, monkeypatch, name: str = "proj"):
@@ -265,13 +265,15 @@ def test_fit_render_eval_with_gaussian_fields_on_the_toy_body(tmp_path, monkeypa
 
     cap, proj = _toy_project(tmp_path, monkeypatch)
     sets = _TOY_SETS
-    fr = fit.run(proj, FitRequest(preset="micro", iters=6, overrides=sets, device="cpu"), handle_sigint=False)
+    fr = fit.run(proj, FitRequest(preset="micro", iters=6, overrides=sets, model_settings=_TOY_MODEL, device="cpu"),
+                 handle_sigint=False)
     assert fr.step == 6 and math.isfinite(fr.losses["total"]) and fr.val is not None and 0 < fr.val.psnr < 100
     straight = read_checkpoint(Project.open(proj).paths.latest_checkpoint)["model"]
     # the same 6 steps as 3 + resume 3: bitwise (relocation at steps 2, 4, 6 included)
     proj2 = tmp_path / "proj2"
     ingest.run(proj2, IngestConfig(capture=cap, project=proj2))
-    fit.run(proj2, FitRequest(preset="micro", iters=3, overrides=sets, device="cpu"), handle_sigint=False)
+    fit.run(proj2, FitRequest(preset="micro", iters=3, overrides=sets, model_settings=_TOY_MODEL, device="cpu"),
+            handle_sigint=False)
     fit.run(proj2, FitRequest(iters=6, resume=True, device="cpu"), handle_sigint=False)
     resumed = read_checkpoint(Project.open(proj2).paths.latest_checkpoint)["model"]
     assert straight.keys() == resumed.keys() and all(torch.equal(straight[k], resumed[k]) for k in straight)
@@ -328,7 +330,8 @@ def test_fit_eval_with_gaussian_fields_on_cuda(tmp_path, monkeypatch):
     from avatarctl.stages.fit import FitRequest
 
     _, proj = _toy_project(tmp_path, monkeypatch)
-    fr = fit.run(proj, FitRequest(preset="micro", iters=4, overrides=_TOY_SETS, device="cuda"), handle_sigint=False)
+    fr = fit.run(proj, FitRequest(preset="micro", iters=4, overrides=_TOY_SETS, model_settings=_TOY_MODEL,
+                                  device="cuda"), handle_sigint=False)
     assert fr.step == 4 and math.isfinite(fr.losses["total"])
     er = evaluate.run(proj, EvalConfig(split="novel_view", device="cuda"))
     assert er.metrics.images == 6 and 0 < er.psnr < 100

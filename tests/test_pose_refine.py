@@ -124,8 +124,8 @@ def test_fit_with_pose_refinement_on_the_toy_chain(tmp_path):
     cap, proj = make_toy_capture(tmp_path / "cap"), tmp_path / "proj"
     ingest.run(proj, IngestConfig(capture=cap, project=proj))
     res = fit.run(proj, FitRequest(preset="micro", iters=6, device="cpu",
-                                   overrides=("model.pose_refine.enabled=true", "model.pose_refine.lr=0.01",
-                                              "val_every=0", "log_every=2")),
+                                   overrides=("model.pose_refine.enabled=true", "val_every=0", "log_every=2"),
+                                   model_settings={"pose_refine": {"lr": 0.01}}),
                   handle_sigint=False)
     assert "pose" in res.losses and "pose_accel" in res.losses  # the smoothness term is on by default
     r = res.refinement  # the toy body cannot invert its transforms: a summary, no motion file

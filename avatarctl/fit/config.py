@@ -1,9 +1,9 @@
 """`FitConfig`: everything that decides how an avatar is trained, resolved once and saved as `fit/config.json`.
 
 Resolution order (`resolve_fit_config`): preset -> `--ablation` switches -> `--iters` / `--seed` -> `--set key=value`
-overrides. Keys of `--set` are `FitConfig` field names, `model.<ModelConfig field>` or `model.<group>.<field>`
-(`settable_keys`); an unknown key is an `InputError` naming the closest known keys (a typo never silently falls back
-to a default).
+overrides. Keys of `--set` are the knobs (`fit.presets.KNOBS`: `FitConfig` field names, `model.<ModelConfig field>`
+or `model.<group>.<field>`); an unknown key is an `InputError` naming the closest knobs (a typo never silently falls
+back to a default), a fixed setting or a knob that does nothing for the selected local fields is refused in one line.
 
 Defaults, one rule for both configs: the class defaults of `FitConfig` and `ModelConfig` are the paper's
 (supplement) settings, so `FitConfig()` is the `paper` preset. Every other preset is a named set of changes from them,
@@ -35,18 +35,21 @@ from typing import Any
 
 from avatarctl.errors import InputError
 from avatarctl.lists import split_list
-from avatarctl.fit.presets import ALIASES, DEFAULT_PRESET, PRESETS
+from avatarctl.fit.presets import ALIASES, DEFAULT_PRESET, FIELD_NAMES, KNOBS, PRESETS
 from avatarctl.model.config import AUTO, LEGACY_KEYS, ModelConfig, nest_legacy_keys
 
 SCHEMA_VERSION = 2  # 2: lr_pose / pose_refine_start moved into model.pose_refine (1: read by `from_json`)
-MASK_DILATE_PX = 4  # dilation (pixels) of the mask `mask_fraction` rays are drawn from (a knob until issue 30)
-# Knobs of configs of schema_version 1 that nothing set, now fixed (docs/fit.md "Tried and removed"), with the value
-# the code keeps; dropped on reading when they hold it (None: any value, an option of removed code), else an error.
-_REMOVED_KEYS: dict[str, Any] = {
-    "lr_grid": None,  # the grid field's rate (issue 28 removed that field)
-    "mask_dilate_px": MASK_DILATE_PX,
-    "jitter": True,  # stratified jitter of the training samples: always
-    "grad_clip": 0.0,  # no gradient clipping (the paper clips none)
+# Keys of saved configs that are gone, now fixed (docs/fit.md "Tried and removed"): key -> (the value the code keeps,
+# the last commit that had the key). Dropped on reading when they hold that value (None: any value, an option of
+# removed code), else a one-line error naming the commit.
+_REMOVED_KEYS: dict[str, tuple[Any, str]] = {
+    "lr_grid": (None, "0081142"),  # the grid field's rate (issue 28 removed that field)
+    "mask_dilate_px": (4, "0081142"),  # the dilation of the mask that mask_fraction's rays were drawn from
+    "jitter": (True, "0081142"),  # stratified jitter of the training samples: always
+    "grad_clip": (0.0, "0081142"),  # no gradient clipping (the paper clips none)
+    # focused sampling on the dilated mask: +0.26 dB at equal steps for 1.5x the time per step, 0 in every preset
+    # (issue 49: a switch no preset uses and that measured worse at equal time goes)
+    "mask_fraction": (0.0, "3519fa5"),
 }
 
 
@@ -74,9 +77,6 @@ class FitConfig:
     rays_per_batch: int = 2048  # rays per step, over all images of the batch
     images_per_batch: int = 4  # (training frame, training view) images per step; each gets its own frame slot
     box_fraction: float = 0.9  # share of rays drawn inside the projected body box (the rest: whole image)
-    # focused sampling: share of each image's rays drawn on the foreground mask dilated by 4 px, before the box split
-    # (0 in every preset; +0.26 dB at equal steps, 1.5x the time per step: docs/fit.md)
-    mask_fraction: float = 0.0
     crop_pad: float = 0.25  # metres the posed body's 3D box is grown by, for the crop and the "inside" region
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)  # target = rgb * mask + background * (1 - mask)
     # optimiser (paper: Adam lr 5e-4, betas 0.9 / 0.999, exponential decay every 20k iterations)
@@ -120,7 +120,6 @@ class FitConfig:
         need(self.rays_per_batch >= self.images_per_batch,
              f"rays_per_batch ({self.rays_per_batch}) must be >= images_per_batch ({self.images_per_batch})")
         need(0.0 <= self.box_fraction <= 1.0, f"box_fraction must be in [0, 1], got {self.box_fraction}")
-        need(0.0 <= self.mask_fraction <= 1.0, f"mask_fraction must be in [0, 1], got {self.mask_fraction}")
         need(self.crop_pad >= 0.0, f"crop_pad must be >= 0 metres, got {self.crop_pad}")
         need(len(self.background) == 3 and all(0.0 <= c <= 1.0 for c in self.background),
              f"background must be 3 values in [0, 1], got {self.background}")
@@ -151,11 +150,11 @@ class FitConfig:
         if version not in (1, SCHEMA_VERSION):
             raise InputError(f"fit config schema_version {version} is not supported (expected {SCHEMA_VERSION})",
                              fix="re-run `avatarctl fit` with this avatarctl version")
+        for key, (neutral, commit) in _REMOVED_KEYS.items():
+            if key in d and d.pop(key) != neutral and neutral is not None:
+                raise InputError(f"fit config: {key} was removed (what it set is now fixed: {neutral!r})",
+                                 fix=f"fit again, or use avatarctl at commit {commit}")
         if version == 1:
-            for key, neutral in _REMOVED_KEYS.items():
-                if key in d and d.pop(key) != neutral and neutral is not None:
-                    raise InputError(f"fit config: {key} was removed in issue 30 (what it set is now fixed: "
-                                     f"{neutral!r})", fix="fit again, or use avatarctl at commit 0081142")
             moved = {LEGACY_KEYS[k][1]: d.pop(k) for k in ("lr_pose", "pose_refine_start") if k in d}
             if moved and "model" in d:  # into model.pose_refine (the model dict is version 1 too)
                 model = nest_legacy_keys(d["model"])
@@ -268,13 +267,49 @@ def _parse_value(key: str, text: str, current: Any) -> Any:
             from None
 
 
-def settable_keys() -> list[str]:
-    """Every key `--set` takes: FitConfig fields, `model.<field>` and `model.<sub-config>.<field>`."""
+def config_keys() -> list[str]:
+    """Every field of the configs as a dotted key: FitConfig fields, `model.<field>` and `model.<sub-config>.<field>`."""
     keys = [f.name for f in fields(FitConfig) if f.name not in _NOT_SETTABLE]
     for f in fields(ModelConfig):
         sub = f.default if is_dataclass(f.default) else None
         keys += [f"model.{f.name}.{g.name}" for g in fields(sub)] if sub is not None else [f"model.{f.name}"]
     return keys
+
+
+def settable_keys() -> list[str]:
+    """Every key `--set` takes: the knobs (`fit.presets.KNOBS`)."""
+    return list(KNOBS)
+
+
+def _check_knob(given: str, key: str) -> None:
+    """`key` (`given` as the user wrote it) must be a knob: a one-line error for a fixed setting or an ablation switch."""
+    if key in KNOBS:
+        return
+    if key in _ABLATION_KEYS:
+        raise InputError(f"{given!r} is switched by --ablation, not --set", where="--set",
+                         fix=f"use --ablation {_ABLATION_KEYS[key]}")
+    if key in config_keys():
+        raise InputError(f"{given!r} is a fixed setting, not a knob (recorded in fit/config.json)", where="--set",
+                         fix="the knobs are listed in docs/fit.md \"Knobs\"; an experiment changes a fixed setting "
+                             "from Python (FitRequest.model_settings, ModelConfig.with_)")
+    close = difflib.get_close_matches(given, list(KNOBS), n=3)
+    hint = f"did you mean {' or '.join(repr(c) for c in close)}? " if close else ""
+    raise InputError(f"unknown config key {given!r}", where="--set",
+                     fix=f"{hint}the knobs are listed in docs/fit.md \"Knobs\"")
+
+
+def check_live(keys: list[str], field: str) -> None:
+    """Each knob of `keys` must act on the local fields `field` (`KNOBS`): one line naming the first that does not."""
+    for key in keys:
+        on = KNOBS[key][0]
+        if on not in ("any", field):
+            raise InputError(f"--set {key} does nothing for {FIELD_NAMES[field]}: it acts on {FIELD_NAMES[on]}",
+                             where="--set", fix=f"leave it out, or also set model.field={on}")
+
+
+# the ModelConfig fields the ablation switches set -> the switch (`ABLATIONS`)
+_ABLATION_KEYS = {"model.use_delta_n": "no-delta-n", "model.use_embedding": "no-embedding",
+                  "model.latent": "deterministic or per-frame-latent", "model.variant": "lbs-baseline"}
 
 
 def _canonical_key(key: str) -> str:
@@ -286,13 +321,13 @@ def _canonical_key(key: str) -> str:
 
 
 def apply_overrides(cfg: FitConfig, overrides: list[str]) -> FitConfig:
-    """Apply `key=value` overrides. Keys (`settable_keys`): `FitConfig` fields, `model.<ModelConfig field>` and
-    `model.<sub-config>.<field>` (e.g. `model.gaussians.per_node`, `model.occupancy.res`); the flat keys of older
-    configs (`model.occ_res`, `model.hull_nodes`, `lr_pose`, ...; `LEGACY_KEYS`) name the same fields."""
-    keys = settable_keys()
+    """Apply `key=value` overrides. Keys: the knobs (`settable_keys`, e.g. `lr`, `model.gaussians.per_node`); the
+    flat keys of older configs (`model.hull_nodes`, `model.occupancy`, ...; `LEGACY_KEYS`) name the same fields. Each
+    knob must act on the local fields the result selects (`check_live`)."""
     fit_changes: dict[str, Any] = {}
     model_changes: dict[str, Any] = {}
     sub_changes: dict[str, dict[str, Any]] = {}
+    set_keys: list[str] = []
     for item in overrides:
         if "=" not in item:
             raise InputError(f"override {item!r} is not key=value", where="--set", fix="write e.g. --set lr=1e-4")
@@ -300,12 +335,8 @@ def apply_overrides(cfg: FitConfig, overrides: list[str]) -> FitConfig:
         if given in _NOT_SETTABLE:
             raise InputError(f"{given!r} cannot be set with --set", where="--set", fix=_NOT_SETTABLE[given])
         key = _canonical_key(given)
-        if key not in keys:
-            close = difflib.get_close_matches(given, keys, n=3)
-            hint = f"did you mean {' or '.join(repr(c) for c in close)}? " if close else ""
-            raise InputError(f"unknown config key {given!r}", where="--set",
-                             fix=f"{hint}keys are FitConfig fields, model.<field> or model.<group>.<field> (see "
-                                 f"docs/fit.md)")
+        _check_knob(given, key)
+        set_keys.append(key)
         parts = key.split(".")
         if len(parts) == 1:
             fit_changes[key] = _parse_value(key, text, getattr(cfg, key))
@@ -316,6 +347,7 @@ def apply_overrides(cfg: FitConfig, overrides: list[str]) -> FitConfig:
                 key, text, getattr(getattr(cfg.model, parts[1]), parts[2]))
     model_changes.update(sub_changes)  # dicts of sub-config fields (`ModelConfig.with_`)
     model = _model_with(cfg.model, model_changes) if model_changes else cfg.model
+    check_live(set_keys, model.field)
     return replace(cfg, **fit_changes, model=model)
 
 

@@ -8,10 +8,8 @@ memory (only the per-frame `PoseTable` is resident).
 Ray sampling per step (`RaySampler.sample`): `images_per_batch` images, each a (training frame, training view)
 pair drawn uniformly with replacement (from all pairs, or from the sampler's own `pairs`: a ray shard of a
 data-parallel fit, fit/distributed.py); the step's `rays_per_batch` rays are split evenly over them. Of an image's
-rays, `mask_fraction` are drawn uniformly among the foreground pixels of the mask dilated by
-`fit.config.MASK_DILATE_PX` (focused sampling, a deviation; 0 in every preset, measured in docs/fit.md); of the
-others, `box_fraction` (default 90%) uniformly among the pixels inside the projected grown box (the crop's polygon),
-the rest uniformly over the whole image.
+rays, `box_fraction` (default 90%) are drawn uniformly among the pixels inside the projected grown box (the crop's
+polygon), the rest uniformly over the whole image.
 Rays go through pixel centres (OpenCV convention).
 
 Target colour (stated convention): the masked image over the fixed background colour,
@@ -47,22 +45,19 @@ class FrameCrop:
     rgb: np.ndarray  # [h, w, 3] uint8
     mask: np.ndarray  # [h, w] bool foreground
     inside: np.ndarray  # [n] int64 flat indices (into the crop) of the pixels inside the projected box polygon
-    near_fg: np.ndarray  # [m] int64 flat indices (into the crop) of the dilated foreground (mask_fraction rays)
 
     @property
     def nbytes(self) -> int:
-        return int(self.rgb.nbytes + self.mask.nbytes + self.inside.nbytes + self.near_fg.nbytes)
+        return int(self.rgb.nbytes + self.mask.nbytes + self.inside.nbytes)
 
 
 class FrameStore:
     """Lazy, LRU-cached access to cropped training frames under a RAM budget (bytes)."""
 
-    def __init__(self, capture: ProjectCapture, poses: PoseTable, crop_pad: float, budget_bytes: int,
-                 mask_dilate_px: int = 0):
+    def __init__(self, capture: ProjectCapture, poses: PoseTable, crop_pad: float, budget_bytes: int):
         self.capture = capture
         self.poses = poses
         self.crop_pad = float(crop_pad)
-        self.mask_dilate_px = int(mask_dilate_px)
         self.budget = int(budget_bytes)
         self._cache: OrderedDict[tuple[str, int], FrameCrop] = OrderedDict()
         self._bytes = 0
@@ -107,15 +102,8 @@ class FrameStore:
                                f"the camera's {camera.height}x{camera.width}", where=str(self.capture.project.root),
                                fix="re-run `avatarctl ingest`")
         inside = np.flatnonzero(region.mask[y0:y1, x0:x1])
-        fg = np.ascontiguousarray(mask[y0:y1, x0:x1])
-        if self.mask_dilate_px > 0:
-            import cv2
-
-            k = 2 * self.mask_dilate_px + 1
-            fg = cv2.dilate(fg.astype(np.uint8), np.ones((k, k), np.uint8)) > 0
         return FrameCrop(x0=x0, y0=y0, rgb=np.ascontiguousarray(img[y0:y1, x0:x1]),
-                         mask=np.ascontiguousarray(mask[y0:y1, x0:x1]), inside=inside.astype(np.int64),
-                         near_fg=np.flatnonzero(fg).astype(np.int64))
+                         mask=np.ascontiguousarray(mask[y0:y1, x0:x1]), inside=inside.astype(np.int64))
 
 
 @dataclass
@@ -177,9 +165,8 @@ class RaySampler(PairSampler):
 
     def __init__(self, store: FrameStore, train_frames: list[int], train_views: list[str], rays_per_batch: int,
                  images_per_batch: int, box_fraction: float, background: tuple[float, float, float],
-                 mask_fraction: float = 0.0, pairs: list[tuple[int, str]] | None = None):
+                 pairs: list[tuple[int, str]] | None = None):
         super().__init__(store, train_frames, train_views, images_per_batch, background, pairs)
-        self.mask_fraction = float(mask_fraction)
         self.rays_per_batch = int(rays_per_batch)
         self.box_fraction = float(box_fraction)
 
@@ -191,15 +178,10 @@ class RaySampler(PairSampler):
         for b, (frame, view, n) in enumerate(zip(frames, views, counts)):
             cam: Camera = self.store.capture.cameras[view]
             crop = self.store.get(view, frame)
-            n_fg = int(round(self.mask_fraction * n)) if crop.near_fg.size else 0
-            n_in = int(round(self.box_fraction * (n - n_fg))) if crop.inside.size else 0
-            flat = [np.zeros(0, np.int64)]
-            if n_fg:
-                flat.append(crop.near_fg[torch.randint(crop.near_fg.size, (n_fg,), generator=generator).numpy()])
+            n_in = int(round(self.box_fraction * n)) if crop.inside.size else 0
+            flat = np.zeros(0, np.int64)
             if n_in:
-                flat.append(crop.inside[torch.randint(crop.inside.size, (n_in,), generator=generator).numpy()])
-            flat = np.concatenate(flat)
-            n_in += n_fg
+                flat = crop.inside[torch.randint(crop.inside.size, (n_in,), generator=generator).numpy()]
             w = crop.mask.shape[1]
             u = torch.randint(cam.width * cam.height, (n - n_in,), generator=generator).numpy()
             px = np.concatenate([crop.x0 + flat % w, u % cam.width])

@@ -44,7 +44,7 @@ from avatarctl.atomic import remove_stale_temps, write_json, write_text
 from avatarctl.device import resolve_device
 from avatarctl.dist import rank_device
 from avatarctl.errors import AvatarError, InputError, ProjectError
-from avatarctl.fit.config import MASK_DILATE_PX, FitConfig, config_summary
+from avatarctl.fit.config import FitConfig, config_summary
 from avatarctl.model.config import AUTO, ModelConfig
 from avatarctl.project import Project, now_iso
 
@@ -373,7 +373,7 @@ def _set_up(project: Project, cfg: FitConfig | None, device: str, resume: bool, 
     body = load_body_model(capture.body_model, capture.body_model_path)
     template = body.template(capture.motion)
     poses = build_pose_table(body, capture.motion, train_frames)
-    store = FrameStore(capture, poses, cfg.crop_pad, cfg.cache_mb * 2**20, MASK_DILATE_PX)
+    store = FrameStore(capture, poses, cfg.crop_pad, cfg.cache_mb * 2**20)
     # the ray-marched fields learn from scattered rays, the rasterized one (model.field = "gaussians") from whole crops
     steps = training_steps(cfg.model)
     replicas = Replicas(env, shards, steps, lambda pairs, rays, images: steps.sampler(

@@ -38,9 +38,14 @@ _CPU_MODEL: dict[str, Any] = {
     "pose_refine": {"enabled": "auto"},
 }
 
-# 512 rays gave more rays/s than 1024 on a shared 2-core machine (~530 vs ~360)
-_CPU_FIT: dict[str, Any] = {"iters": 20_000, "rays_per_batch": 512, "log_every": 25, "checkpoint_every": 1000,
-                            "val_every": 1000, "val_scale": 0.5}
+_CPU_FIT: dict[str, Any] = {"iters": 20_000, "log_every": 25, "checkpoint_every": 1000, "val_every": 1000,
+                            "val_scale": 0.5}
+# the ray-marched fields' batch: 512 rays gave more rays/s than 1024 on a shared 2-core machine (~530 vs ~360)
+_CPU_MLP_FIT: dict[str, Any] = {**_CPU_FIT, "rays_per_batch": 512}
+# the Gaussian fields' own changes (the MLP widths, ray samples and empty-space skipping do nothing for them)
+_CPU_GAUSSIAN_MODEL: dict[str, Any] = {k: v for k, v in _CPU_MODEL.items()
+                                       if k not in ("node_width", "node_depth", "feature_dim", "head_width",
+                                                    "occupancy")}
 
 # Every preset, stated once (docs/fit.md's table and --help are made from this).
 PRESETS: dict[str, Preset] = {
@@ -59,13 +64,13 @@ PRESETS: dict[str, Preset] = {
         fit=_CPU_FIT,
         # the cVAE's width from the views (model/config.py CVAE_AUTO_WIDTHS): 128 is +0.15-0.32 dB on the multi-view
         # captures, 32 ahead on a monocular one (docs/fit.md "The cVAE at the paper's width")
-        model={**_CPU_MODEL, "field": "gaussians", "cvae_width": "auto"}),
+        model={**_CPU_GAUSSIAN_MODEL, "field": "gaussians", "cvae_width": "auto"}),
     "cpu-mlp": Preset(
         meant_for="a 2-core CPU, with the paper's MLP fields (the cpu preset until 2026-11-27; `reproduce` fits it)",
         summary="narrow networks (node 2 x 32 -> 32, heads 64, cVAE 32), empty-space skipping, hull nodes and pose "
                 "refinement decided from the capture, the training frames' mean latent for novel poses; 512 rays "
                 "over 4 images per step, 20k iterations, validation on half-size images every 1000 steps",
-        fit=_CPU_FIT,
+        fit=_CPU_MLP_FIT,
         model=_CPU_MODEL),
     "micro": Preset(
         meant_for="CI smoke tests only; learns nothing useful",
@@ -76,6 +81,69 @@ PRESETS: dict[str, Preset] = {
         model={**_CPU_MODEL, "num_nodes": 32, "samples_per_ray": 16, "hull": {"nodes": 0}}),
 }
 DEFAULT_PRESET = "cpu"  # what `avatarctl fit` uses without --preset
+
+# Every key `--set` takes, stated once: key -> (the local fields it acts on: "any" | "mlp" | "gaussians", what it is).
+# A key is here when it is one of the paper's hyperparameters, a preset changes it, or it is a knob the docs teach
+# (the budget, the logging, a deviation's switch); docs/fit.md's knob table is made from this (`knobs_markdown`).
+# Every other config field is a fixed setting: recorded in fit/config.json, changed only from Python
+# (`FitConfig` / `ModelConfig.with_`, e.g. an experiment), refused by `--set`. A knob that does nothing for the
+# selected field (model.field) is refused too, and no preset of that field writes it.
+KNOBS: dict[str, tuple[str, str]] = {
+    # the run
+    "iters": ("any", "total optimisation steps (the paper: 300k)"),
+    "time_budget_s": ("any", "stop after this many seconds of training, like Ctrl-C (0 = none)"),
+    "seed": ("any", "initialisation, sampling and noise"),
+    "snapshot_at_s": ("any", "extra checkpoints after these seconds of training (e.g. 120,300)"),
+    "amp": ("any", "bfloat16 autocast on CUDA"),
+    "cache_mb": ("any", "RAM budget of the cropped-frame cache"),
+    "log_every": ("any", "steps between fit/log.jsonl records"),
+    "checkpoint_every": ("any", "steps between checkpoints"),
+    "keep_checkpoints": ("any", "step checkpoints kept besides latest.pt"),
+    "val_every": ("any", "steps between held-out-view validations (0: only at the end)"),
+    "val_pairs": ("any", "(held-out view, training frame) pairs per validation (0: none)"),
+    "val_scale": ("any", "image scale of the validation renders"),
+    # the batch and the optimiser (the paper's)
+    "images_per_batch": ("any", "images per step (the paper: 4)"),
+    "rays_per_batch": ("mlp", "rays per step over those images (the paper: 2048)"),
+    "box_fraction": ("mlp", "share of the rays drawn inside the projected body box (deviation, 0.9)"),
+    "background": ("any", "the colour the target is composited over and the avatar rendered over"),
+    "lr": ("any", "Adam's learning rate (the paper: 5e-4)"),
+    "lr_decay_every": ("any", "iterations per decay period (the paper: 20k)"),
+    "lr_decay_factor": ("any", "decay per period (deviation: 0.5; the paper gives none; 1 = off)"),
+    # the model: the paper's hyperparameters
+    "model.num_nodes": ("any", "N nodes (Sec. 3.1)"),
+    "model.sigma": ("any", "Eq. 6 Gaussian width, metres"),
+    "model.eps": ("any", "Eq. 6 truncation"),
+    "model.embed_dim": ("any", "dim of the detail embedding e_i"),
+    "model.latent_dim": ("any", "dim of the cVAE latent z_i"),
+    "model.pe_coords": ("mlp", "positional-encoding frequencies of the local coordinates"),
+    "model.pe_views": ("mlp", "positional-encoding frequencies of the view direction"),
+    "model.pe_time": ("any", "positional-encoding frequencies of the time stamp (cVAE)"),
+    "model.lambda_rec": ("any", "Eq. 11 weight of the reconstruction term"),
+    "model.lambda_trans": ("any", "Eq. 11 weight of L_trans"),
+    "model.lambda_ebd": ("any", "Eq. 11 weight of L_ebd"),
+    "model.lambda_kl": ("any", "Eq. 11 weight of the KL term"),
+    "model.rec_reduction": ("mlp", "Eq. 12 as written (sum over rays) or the mean"),
+    # the model: what the presets change
+    "model.field": ("any", "the local fields: mlp (the paper's) | gaussians (deviation)"),
+    "model.node_width": ("mlp", "F_i hidden channels"),
+    "model.node_depth": ("mlp", "F_i hidden layers"),
+    "model.feature_dim": ("mlp", "F_i output feature"),
+    "model.head_width": ("mlp", "hidden channels of the heads G and H"),
+    "model.samples_per_ray": ("mlp", "uniform samples per ray"),
+    "model.cvae_width": ("any", "the per-node cVAE's hidden channels, or auto (from the training views)"),
+    "model.occupancy.enabled": ("mlp", "empty-space skipping (deviation)"),
+    "model.hull.nodes": ("any", "nodes off the body: K, 0 or auto (deviation)"),
+    "model.novel_latent": ("any", "z of novel poses: zero (the paper) | train_mean (deviation)"),
+    "model.pose_refine.enabled": ("any", "per-frame body-pose refinement: true, false or auto (deviation)"),
+    # the Gaussian fields' knobs the docs teach (each a measured choice against 3DGS's)
+    "model.gaussians.per_node": ("gaussians", "K Gaussians per node (memory and speed against detail)"),
+    "model.gaussians.low_pass": ("gaussians", "px^2 added to every splat's 2D covariance (3DGS: 0.3)"),
+    "model.gaussians.shading": ("gaussians", "irradiance (shading under fixed lights) or none"),
+    "model.gaussians.lambda_ssim": ("gaussians", "D-SSIM weight of the image loss (3DGS: 0.2)"),
+    "model.gaussians.sh_degree": ("gaussians", "spherical-harmonic degree of the colours (0 or 1)"),
+}
+FIELD_NAMES = {"mlp": "the MLP fields (model.field=mlp)", "gaussians": "the Gaussian fields (model.field=gaussians)"}
 ALIASES = {"gaussians": "cpu"}  # old preset names still read (the cpu preset was "gaussians" until 2026-11-27)
 
 
@@ -98,6 +166,13 @@ def presets_markdown() -> str:
                 changes.append(f"`model.{k}={_md_value(v)}`")
         default = " (default)" if name == DEFAULT_PRESET else ""
         rows.append(f"| `{name}`{default} | {p.summary} | {p.meant_for} | {', '.join(changes) or 'none'} |")
+    return "\n".join(rows)
+
+
+def knobs_markdown() -> str:
+    """docs/fit.md's knob table, from `KNOBS` (tests/test_fit.py checks that the docs hold it verbatim)."""
+    rows = ["| `--set` key | acts on | what it is |", "| --- | --- | --- |"]
+    rows += [f"| `{key}` | {'both fields' if on == 'any' else on} | {what} |" for key, (on, what) in KNOBS.items()]
     return "\n".join(rows)
 
 

@@ -48,7 +48,7 @@ class RaySteps:
     def sampler(self, store: FrameStore, cfg: "FitConfig", train_frames: list[int], train_views: list[str],
                 pairs: list[tuple[int, str]] | None, rays: int, images: int) -> RaySampler:
         return RaySampler(store, train_frames, train_views, rays, images, cfg.box_fraction, cfg.background,
-                          cfg.mask_fraction, pairs)
+                          pairs)
 
     def forward(self, model: "SlrfAvatar", parts: list[tuple[int, TrainBatch]], background: torch.Tensor,
                 jitter: bool, noise_gens: dict[int, torch.Generator], world: int

@@ -51,8 +51,7 @@ DEMO_PRESETS: dict[str, DemoPreset] = {
     "ci": DemoPreset(synth="micro", fit_preset="micro", iters=20, fit_settings={},
                      orbit_views=4, orbit_resolution=48, eval_every=2),
     "tiny": DemoPreset(synth="tiny", fit_preset="cpu", iters=2000,
-                       fit_settings={"rays_per_batch": 1024, "val_every": 500, "checkpoint_every": 500,
-                                     "time_budget_s": 90.0},
+                       fit_settings={"val_every": 500, "checkpoint_every": 500, "time_budget_s": 90.0},
                        orbit_views=48, orbit_resolution=256, eval_every=2),
     "small": DemoPreset(synth="small", fit_preset="cpu", iters=3000,
                         fit_settings={"val_every": 500, "checkpoint_every": 500},
@@ -160,8 +159,8 @@ def run(out: str | Path, cfg: DemoConfig, progress: ProgressFn | None = None,
     stopped = {"time_budget": f"the time budget ({fit_cfg.time_budget_s:g} s)", "done": "the step count",
                "interrupted": "interrupted"}[fr.stop_reason]
     done("fit", t0, {"steps": fr.step, "stopped by": stopped, "preset": fit_cfg.preset,
-                     "rays/step": fit_cfg.rays_per_batch,
-                     "rays/s": round(fr.rays_per_s), "loss": round(fr.losses.get("total", float("nan")), 5),
+                     "images/step": fit_cfg.images_per_batch,
+                     "rays (pixels)/s": round(fr.rays_per_s), "loss": round(fr.losses.get("total", float("nan")), 5),
                      "held-out PSNR (bbox)": None if val is None else round(val, 2)})
 
     # 4. render: an orbit over the training frames, and the novel poses from a held-out view

@@ -42,6 +42,8 @@ class FitRequest:
     overrides: tuple[str, ...] = ()  # `--set key=value` (the CLI's strings)
     settings: dict[str, Any] = field(default_factory=dict)  # typed FitConfig values of a caller in this process (a
     # chain: {"time_budget_s": 330.0, "val_every": 0}), applied after `overrides`
+    model_settings: dict[str, Any] = field(default_factory=dict)  # ModelConfig changes of a caller in this process,
+    # fixed settings included (an experiment, a test: {"gaussians": {"relocate_every": 2}}), applied last
     ablation: str | None = None  # comma list of --ablation switches
     device: str = "auto"  # auto | cpu | cuda
     resume: bool = False  # continue fit/checkpoints/latest.pt
@@ -53,6 +55,7 @@ class FitRequest:
     def __post_init__(self) -> None:
         object.__setattr__(self, "overrides", tuple(self.overrides))
         object.__setattr__(self, "settings", dict(self.settings))
+        object.__setattr__(self, "model_settings", dict(self.model_settings))
         if self.nproc < 1:
             raise InputError(f"--nproc must be >= 1, got {self.nproc}", where="--nproc", fix="e.g. --nproc 2")
         if self.shards is not None and self.shards < 1:
@@ -73,10 +76,16 @@ def fit_config(project: Project, cfg: FitRequest) -> "FitConfig | None":
     if not cfg.resume:
         fit_cfg = resolve_fit_config(cfg.preset or DEFAULT_PRESET, ablation=cfg.ablation, iters=cfg.iters,
                                      seed=cfg.seed, overrides=list(cfg.overrides))
-        return replace(fit_cfg, **cfg.settings) if cfg.settings else fit_cfg
+        fit_cfg = replace(fit_cfg, **cfg.settings) if cfg.settings else fit_cfg
+        if cfg.model_settings:
+            try:
+                fit_cfg = replace(fit_cfg, model=fit_cfg.model.with_(**cfg.model_settings))
+            except ValueError as e:
+                raise InputError(str(e), where="model_settings", fix="check the ModelConfig values") from None
+        return fit_cfg
     given = [n for n, v in (("--preset", cfg.preset), ("--seed", cfg.seed), ("--ablation", cfg.ablation))
              if v is not None]
-    if cfg.overrides or cfg.settings:
+    if cfg.overrides or cfg.settings or cfg.model_settings:
         given.append("--set")
     if given:
         raise InputError(f"{', '.join(given)} cannot change a fit being resumed",
