@@ -130,6 +130,15 @@ def test_ingest_fit_eval(random_smplx, capture, tmp_path):
     assert res.format == "dna_rendering" and res.body_model == "smplx" and res.masks_source == "files"
     assert res.cameras == ["00", "02", "48", "50"] and res.frames == [0, 1, 2]
     assert res.vertices_inside_masks > 0.97, res.vertices_inside_masks  # RT inverted, fullpose split right
+    # the hands stored as offsets from the model's hand mean are ingested as full axis-angle poses (+ the mean)
+    from avatarctl.io.project_io import load_project_capture
+    from avatarctl.project import Project
+
+    got = load_project_capture(Project.open(proj)).motion
+    mean = random_smplx[1].data.hands_mean.reshape(2, 45)
+    stored = capture.motion.select(capture.motion.rows_for([0, 1, 2]))
+    assert np.allclose(got.left_hand_pose, stored.left_hand_pose + mean[0], atol=1e-5)
+    assert np.allclose(got.right_hand_pose, stored.right_hand_pose + mean[1], atol=1e-5)
     fr = fit.run(proj, FitRequest(preset="micro", iters=2, overrides=("val_every=0",), device="cpu"),
                  handle_sigint=False)
     assert fr.step == 2

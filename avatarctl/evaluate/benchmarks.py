@@ -68,7 +68,6 @@ _DNA_RENDERING: tuple[BenchmarkProtocol, ...] = (
                "scoring; avatarctl's full protocol scores the render as it is",
                "ground truth is the image with mask == 0 set to black (mask != 0 is foreground, before the 0.25 "
                "INTER_AREA resize); avatarctl composites with the ingested mask (> 127 of the decoded mask)",
-               "SMPL-X hands in the annotations are offsets from the hand mean (flat_hand_mean=False)",
                "the paper does not state the frame range or scale; they are read from the released code"),
     ),
 )

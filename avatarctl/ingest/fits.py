@@ -66,6 +66,22 @@ def to_body_motion(fits: BodyFits, body_model_name: str, body, fps: float = 30.0
                       body_pose=fits.poses[:, 3:], transl=transl, betas=fits.shapes)
 
 
+def with_hand_mean(motion: BodyMotion, hands_mean: np.ndarray | None, where: str) -> BodyMotion:
+    """SMPL-X fits whose hand poses are offsets from the model's hand mean (smplx `flat_hand_mean=False`) -> full
+    axis-angle hand poses (the project's convention): + `hands_mean` [90] (left 45, then right 45) of the model file."""
+    from dataclasses import replace
+
+    if motion.body_model != "smplx" or motion.left_hand_pose is None or motion.right_hand_pose is None:
+        return motion
+    if hands_mean is None:
+        raise InputError("the capture's SMPL-X hand poses are offsets from the model's hand mean, and the model file "
+                         "has no hands_meanl / hands_meanr", where=where,
+                         fix="pass the SMPL-X model file of the smplx package (SMPLX_NEUTRAL.npz / .pkl)")
+    mean = np.asarray(hands_mean, dtype=np.float64).reshape(2, 45)
+    return replace(motion, left_hand_pose=np.asarray(motion.left_hand_pose) + mean[0],
+                   right_hand_pose=np.asarray(motion.right_hand_pose) + mean[1])
+
+
 def root_translation(motion: BodyMotion) -> np.ndarray:
     """[frames, 3] the root position the fits carry (anny: root delta translation; SMPL: transl)."""
     if motion.body_model == "anny":

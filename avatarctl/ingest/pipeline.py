@@ -105,7 +105,13 @@ def select_views(src: CaptureSource, views: tuple[str, ...] | None) -> list[str]
     return [n for n in names if n in set(views)]
 
 
-NO_FITS = "no body fits (motion.npz or smpl/*.json)"
+# where each format keeps the body fits it ships (for the one-line error of a capture without them)
+_FITS_AT = {"dna_rendering": "the annotations file's SMPLx group", "4d_dress": "SMPLX/ or SMPL/ pickles",
+            "zju": "params/ or new_params/", "thuman4": "smpl_params.npz", "peoplesnapshot": "reconstructed_poses.hdf5"}
+
+
+def _no_fits(fmt: str) -> str:
+    return f"no body fits ({_FITS_AT.get(fmt, 'motion.npz or smpl/*.json')})"
 
 
 def resolve_fits(cfg: IngestConfig, src: CaptureSource) -> str:
@@ -115,9 +121,10 @@ def resolve_fits(cfg: IngestConfig, src: CaptureSource) -> str:
     by default; smpl / smplx need `--body-model-path`)."""
     mode = cfg.fits if cfg.fits != "auto" else ("files" if src.fits is not None else "keypoints")
     if mode == "files" and src.fits is None:
-        raise InputError(NO_FITS, where=str(src.root),
+        raise InputError(_no_fits(src.format), where=str(src.root),
                          fix="add motion.npz (avatarctl BodyMotion) or EasyMocap smpl/%06d.json fits, or estimate "
-                             "them with --fits keypoints")
+                             "them with --fits keypoints" if src.format not in _FITS_AT else
+                             f"add the release's fits ({_FITS_AT[src.format]}), or estimate them with --fits keypoints")
     if mode == "keypoints":
         bm = cfg.body_model or "anny"
         if bm == "toy":
@@ -132,7 +139,7 @@ def resolve_fits(cfg: IngestConfig, src: CaptureSource) -> str:
                              fix="check --body-model-path")
         from avatarctl.ingest.keypoints import require_mediapipe
 
-        require_mediapipe(f"{NO_FITS if src.fits is None else '--fits keypoints'}: estimating them",
+        require_mediapipe(f"{_no_fits(src.format) if src.fits is None else '--fits keypoints'}: estimating them",
                           "add motion.npz / smpl/%06d.json fits")
     return mode
 
@@ -184,7 +191,7 @@ class IngestPlan:
 def plan_ingest(cfg: IngestConfig) -> IngestPlan:
     """Read the capture, select views / frames, validate everything, convert the fits. Writes nothing."""
     from avatarctl.body.registry import load_body_model, needs_model_file
-    from avatarctl.ingest.fits import check_cameras_metric, check_fits, to_body_motion
+    from avatarctl.ingest.fits import check_cameras_metric, check_fits, to_body_motion, with_hand_mean
 
     _check_project_dest(cfg)
     src, reason = read_capture(cfg)
@@ -226,6 +233,8 @@ def plan_ingest(cfg: IngestConfig) -> IngestPlan:
                          fix=f"pass --body-model-path /path/to/{bm_name.upper()}_NEUTRAL.pkl (or .npz)")
     body = load_body_model(bm_name, cfg.body_model_path if needs_model_file(bm_name) else None)
     motion_all = to_body_motion(src.fits, bm_name, body)
+    if src.hands_from_mean:
+        motion_all = with_hand_mean(motion_all, getattr(getattr(body, "data", None), "hands_mean", None), fits_where)
     motion = motion_all.select(motion_all.rows_for(frames))
     check_fits(motion, frames, fits_where)  # converted SMPL transl, anny root translation
     faces = body.template(motion.select([0])).faces.cpu().numpy()

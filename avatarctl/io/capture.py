@@ -167,6 +167,8 @@ class CaptureSource:
     split: Split | None = None  # the capture's own split, if it ships one
     notes: list[str] = field(default_factory=list)  # what the reader decided, shown to the user
     fps: float = 0.0  # frame rate when the capture states one (videos), else 0
+    hands_from_mean: bool = False  # SMPL-X fits whose hand poses are offsets from the model's hand mean (smplx's
+    # flat_hand_mean=False); ingest adds the model file's mean (projects store full axis-angle hand poses)
 
     @property
     def camera_names(self) -> list[str]:

@@ -220,7 +220,8 @@ def read_dna_rendering_fits(annots: Any, where: str) -> tuple[BodyMotion | None,
                         reye_pose=pose[:, 24], left_hand_pose=pose[:, 25:40].reshape(n, 45),
                         right_hand_pose=pose[:, 40:55].reshape(n, 45), transl=transl, betas=betas.mean(axis=0),
                         expression=expr)
-    notes.append("SMPL-X hand poses are offsets from the model's hand mean (smplx flat_hand_mean=False)")
+    notes.append("SMPL-X hand poses are offsets from the model's hand mean (smplx flat_hand_mean=False): ingest adds "
+                 "the model file's mean")
     return motion, notes
 
 
@@ -289,4 +290,5 @@ def read_dna_rendering(root: Path) -> CaptureSource:
                          fits_where=f"{annots_path}[SMPLx]",
                          masks=SmcMasks(_SmcDatasets(annots_path, mask_paths)) if has_masks else None,
                          mask_frames=mask_frames if has_masks else None,
-                         uncalibrated=sorted(set(image_frames) - set(names)), notes=notes)
+                         uncalibrated=sorted(set(image_frames) - set(names)), notes=notes,
+                         hands_from_mean=True)

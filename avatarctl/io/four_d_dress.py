@@ -180,7 +180,8 @@ def read_four_d_dress(root: Path) -> CaptureSource:
     if fits is not None:
         notes.append(f"{fits.body_model.upper()} fits from {Path(fits_where).name}/")
         if fits.body_model == "smplx":
-            notes.append("SMPL-X hand poses are offsets from the model's hand mean (smplx flat_hand_mean=False)")
+            notes.append("SMPL-X hand poses are offsets from the model's hand mean (smplx flat_hand_mean=False): "
+                         "ingest adds the model file's mean")
     if scan_frames is not None:
         dropped = sorted({f for d in per_cam.values() for f in d} - set(scan_frames))
         if dropped:
@@ -190,7 +191,7 @@ def read_four_d_dress(root: Path) -> CaptureSource:
                          images=FileImages(images), fits=fits, fits_where=fits_where,
                          masks=FileMasks(masks) if has_masks else None, mask_frames=mask_frames if has_masks else None,
                          uncalibrated=sorted({c for c, d in per_cam.items() if d} - set(names)),
-                         notes=notes)
+                         notes=notes, hands_from_mean=fits is not None and fits.body_model == "smplx")
 
 
 # --- ground-truth geometry: the labelled scans -------------------------------------------------------------------
