@@ -1,5 +1,5 @@
-"""Speed of the Gaussian splatting rasterizer (`avatarctl.splat`): ms per forward (projection, binning, compositing),
-backward and both, on a body-like scene, with one thread and with every core.
+"""Speed of the Gaussian splatting rasterizer (`avatarctl.splat.rasterization`): ms per forward (projection, binning,
+compositing), backward and both, on a body-like scene, with one thread and with every core.
 
 The scene: G random Gaussians uniform in a 0.5 x 1.7 x 0.3 m box (a standing person) seen from 3 m by a square camera
 whose image the box fills; scales log-uniform 0.4-3 cm per axis, random rotations, opacities sigmoid(N(1, 1.5)),
@@ -76,8 +76,9 @@ INPUTS = ("means", "covars", "colors", "opacities")
 def _time_case(side: int, n: int, device: str, backend: str, repeats: int, frozen: tuple[str, ...] = ()) -> dict:
     import torch
 
-    from avatarctl.splat import project_gaussians, rasterize
-    from avatarctl.splat.rasterizer import bin_gaussians
+    from avatarctl.splat import rasterization
+    from avatarctl.splat.project import project_gaussians
+    from avatarctl.splat.rasterizer import Canvas, bin_gaussians
 
     means, covars, colors, opacities, cam = body_scene(n, side, device)
     background = torch.ones(3, device=device)
@@ -96,16 +97,15 @@ def _time_case(side: int, n: int, device: str, backend: str, repeats: int, froze
             t.grad = None
         sync()
         t0 = time.perf_counter()
-        with torch.no_grad():
-            proj = project_gaussians(means, covars, cam)
-            bins = bin_gaussians(proj, opacities, side, side)
+        with torch.no_grad():  # the torch projection (the fused one has no backward) and the binning alone
+            canvas = Canvas.of(project_gaussians(means[None], covars[None], [cam]), [(side, side)])
+            bins = bin_gaussians(canvas.proj, opacities, side, side)
         sync()
         t1 = time.perf_counter()
-        proj = project_gaussians(means, covars, cam)
-        rgb, alpha = rasterize(proj, colors, opacities, side, side, background, backend=backend)
+        rgb, alpha, meta = rasterization(means, covars, colors, opacities, [cam], background, backend=backend)
         sync()
         t2 = time.perf_counter()
-        torch.autograd.backward([rgb, alpha], [g_rgb, g_alpha])
+        torch.autograd.backward([rgb[0], alpha[0]], [g_rgb, g_alpha])
         sync()
         t3 = time.perf_counter()
         if i:  # the first is the warm-up
@@ -113,7 +113,7 @@ def _time_case(side: int, n: int, device: str, backend: str, repeats: int, froze
             fwd.append(t2 - t1)
             bwd.append(t3 - t2)
     med = lambda v: 1e3 * sorted(v)[len(v) // 2]  # noqa: E731
-    visible = int((proj.radii > 0).sum())
+    visible = int((meta.radii > 0).sum())
     return {"side": side, "gaussians": n, "visible": visible, "tile_entries": int(bins.ids.shape[0]),
             "backend": backend, "frozen": list(frozen),
             "threads": torch.get_num_threads() if device == "cpu" else None,
