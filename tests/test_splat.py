@@ -254,7 +254,7 @@ def test_rejects_bad_input():
         _raster(proj, colors.double(), opacities, W, H, torch.zeros(3))
     # the entry point: each input with or without the leading [B], the rest of its shape that of means
     cams, bg = [_camera(), _camera()], torch.zeros(3)
-    with pytest.raises(AssertionError, match=r"colors: expected \[2, 60, 3\] or \[60, 3\]"):
+    with pytest.raises(AssertionError, match=r"colors: expected \[2, 60, 3\] or \[60, 3\] .*got \[5, 3\]"):
         rasterization(means, covars, colors[:5], opacities, cams, bg)
     with pytest.raises(AssertionError, match=r"opacities: expected 1 dims .* leading 2, got \[3, 60\]"):
         rasterization(means, covars, colors, opacities.expand(3, 60), cams, bg)

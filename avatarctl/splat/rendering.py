@@ -40,12 +40,13 @@ def rasterization(means: torch.Tensor,  # [B, G, 3] or [G, 3] world, metres
                   opacities: torch.Tensor,  # [B, G] or [G] in [0, 1]
                   cams: Sequence[SplatCamera],  # [B], each its own window size
                   background: torch.Tensor,  # [C]
-                  backend: str = "auto", low_pass: float = LOW_PASS, near: float = 0.01):
+                  backend: str = "auto", low_pass: float = LOW_PASS
+                  ) -> tuple[torch.Tensor | list[torch.Tensor], torch.Tensor | list[torch.Tensor], SplatMeta]:
     """The images of the Gaussians seen by `cams` over `background` -> (rgb, alpha, meta): rgb [B, H, W, C] and
     alpha [B, H, W] when the cameras share one size, else lists [[H_b, W_b, C]] and [[H_b, W_b]]; meta a
-    `SplatMeta`. `low_pass` px^2 is added to every 2D covariance (project.py); Gaussians not beyond `near` metres are
-    culled. `backend`: "auto" (the Warp kernels: the tile walk on the CPU, the pixel walk on CUDA), "warp",
-    "warp_tile", "warp_pixel" or "torch" (the dense twin, any dtype, tiny scenes); see rasterizer.py.
+    `SplatMeta`. `low_pass` px^2 is added to every 2D covariance (project.py). `backend`: "auto" (the Warp kernels:
+    the tile walk on the CPU, the pixel walk on CUDA), "warp", "warp_tile", "warp_pixel" or "torch" (the dense twin,
+    any dtype, tiny scenes); see rasterizer.py.
 
     Differentiable w.r.t. means, covars, colors and opacities; the backward computes only the gradients required
     (frozen colours: no colour gradient). Without gradients to keep (no grad mode, or no input that requires one) a
@@ -54,19 +55,21 @@ def rasterization(means: torch.Tensor,  # [B, G, 3] or [G, 3] world, metres
     """
     B = len(cams)
     assert B > 0, "rasterization: no camera"
+    given = {name: list(t.shape) for name, t in zip(("means", "covars", "colors", "opacities"),
+                                                     (means, covars, colors, opacities))}
     means, covars, colors, opacities = (_batched(t, B, n, name) for t, n, name in (
         (means, 2, "means"), (covars, 3, "covars"), (colors, 2, "colors"), (opacities, 1, "opacities")))
     G = means.shape[1]
-    assert means.shape == (B, G, 3), f"means: expected [{B}, G, 3] or [G, 3], got {list(means.shape)}"
+    assert means.shape == (B, G, 3), f"means: expected [{B}, G, 3] or [G, 3], got {given['means']}"
     for t, name, tail in ((covars, "covars", (3, 3)), (colors, "colors", colors.shape[2:]),
                           (opacities, "opacities", ())):
         assert t.shape == (B, G, *tail), \
-            f"{name}: expected {[B, G, *tail]} or {[G, *tail]} (as means {list(means.shape)}), got {list(t.shape)}"
+            f"{name}: expected {[B, G, *tail]} or {[G, *tail]} (as means {given['means']}), got {given[name]}"
     grads = torch.is_grad_enabled() and any(t.requires_grad for t in (means, covars, colors, opacities))
     if backend != "torch" and not grads and means.dtype == torch.float32:
-        proj = project_and_reach(means, covars, opacities, cams, near=near, low_pass=low_pass)
+        proj = project_and_reach(means, covars, opacities, cams, low_pass=low_pass)
     else:
-        proj = project_gaussians(means, covars, cams, near=near, low_pass=low_pass)
+        proj = project_gaussians(means, covars, cams, low_pass=low_pass)
     rgb, alpha = rasterize(proj, colors, opacities, [(c.width, c.height) for c in cams], background, backend)
     return rgb, alpha, SplatMeta(radii=proj.radii, means2d=proj.means2d, depths=proj.depths)
 
