@@ -98,7 +98,7 @@ def part_parity(device: str, quick: bool) -> dict:
     import torch
 
     from avatarctl.render.engine import render_view
-    from avatarctl.splat import SplatCamera, project_gaussians, rasterize
+    from avatarctl.splat import SplatCamera, rasterization
 
     gen = torch.Generator().manual_seed(0)
     G, size = (200, 48) if quick else (5000, 256)
@@ -113,8 +113,7 @@ def part_parity(device: str, quick: bool) -> dict:
     outs = {}
     for dev in ("cpu", device):
         m, c, o = (t.detach().to(dev).clone().requires_grad_() for t in (means, colors, opac))
-        proj = project_gaussians(m, covars.to(dev), cam.to(dev))
-        rgb, alpha = rasterize(proj, c, o, size, size, bg.to(dev))
+        rgb, alpha, _ = rasterization(m, covars.to(dev), c, o, [cam.to(dev)], bg.to(dev))
         (rgb * torch.linspace(0, 1, 3, device=dev)).sum().backward()
         outs[dev] = [t.detach().cpu() for t in (rgb, alpha, m.grad, c.grad, o.grad)]
     for name, a, b in zip(("rgb", "alpha", "grad_means", "grad_colors", "grad_opacities"), outs["cpu"], outs[device]):
@@ -202,22 +201,24 @@ def part_render(device: str, quick: bool) -> dict:
     sec = _timed(lambda: render_view(model, state, 0, cam, (0.0, 0.0, 0.0)), device, reps, 3)
     # where the time goes: posing (decoder, covariances), colours + projection + binning, the raster kernel; the
     # fused projection (what render_view uses) beside the pure-torch pair it replaces
-    from avatarctl.splat import SplatCamera, project_and_reach, project_gaussians, rasterize
-    from avatarctl.splat.rasterizer import bin_gaussians, reach
+    from avatarctl.splat import SplatCamera
+    from avatarctl.splat.project import project_gaussians
+    from avatarctl.splat.rasterizer import Canvas, bin_gaussians, project_and_reach, rasterize, reach
 
     scam = SplatCamera.from_camera(cam, device=device)
     bg = torch.zeros(3, device=device)
     with torch.no_grad():
         posed = model.posed_gaussians(state)
-        m, c, o = posed.means[0], posed.covars[0], posed.opacities[0]
-        proj = project_and_reach(m, c, o, scam)
-        colors = posed.colors(0, scam.center)
+        m, c, o = posed.means[:1], posed.covars[:1], posed.opacities[:1]  # [1, G, ...]: one image
+        proj = project_and_reach(m, c, o, [scam])
+        flat = Canvas.of(proj, [(size, size)]).proj
+        colors = posed.colors(0, scam.center)[None]
         parts = {"pose_ms": _timed(lambda: model.posed_gaussians(state), device, reps),
-                 "project_reach_fused_ms": _timed(lambda: project_and_reach(m, c, o, scam), device, reps),
-                 "project_torch_ms": _timed(lambda: project_gaussians(m, c, scam), device, reps),
-                 "reach_torch_ms": _timed(lambda: reach(proj, o, size, size), device, reps),
-                 "bin_ms": _timed(lambda: bin_gaussians(proj, o, size, size), device, reps),
-                 "raster_ms": _timed(lambda: rasterize(proj, colors, o, size, size, bg), device, reps)}
+                 "project_reach_fused_ms": _timed(lambda: project_and_reach(m, c, o, [scam]), device, reps),
+                 "project_torch_ms": _timed(lambda: project_gaussians(m, c, [scam]), device, reps),
+                 "reach_torch_ms": _timed(lambda: reach(flat, o[0], size, size), device, reps),
+                 "bin_ms": _timed(lambda: bin_gaussians(flat, o[0], size, size), device, reps),
+                 "raster_ms": _timed(lambda: rasterize(proj, colors, o, [(size, size)], bg), device, reps)}
     return {"image_size": size, "gaussians": int(posed.means.shape[1]), "ms_per_render": 1e3 * sec,
             **{k: 1e3 * v for k, v in parts.items()}}
 

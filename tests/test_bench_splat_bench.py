@@ -20,3 +20,17 @@ def test_splat_bench_times_both_backends_on_one_scene(tmp_path, capsys):
     assert (warp["visible"], warp["tile_entries"]) == (torch_row["visible"], torch_row["tile_entries"])
     assert json.loads(out.read_text())["rows"] == res["rows"]
     assert "backward" in capsys.readouterr().out  # the table's header
+
+
+def test_splat_bench_freezes_the_inputs_it_is_told():
+    """`--frozen colors`: the row records it; freezing every input (nothing to differentiate) or an unknown name is
+    refused."""
+    import pytest
+
+    from benchmarks.splat_bench import run
+
+    (row,) = run("cpu", sizes=((32, 200),), threads=(1,), repeats=1, frozen=("colors",))["rows"]
+    assert row["frozen"] == ["colors"] and row["backward_ms"] > 0
+    for frozen in (("means", "covars", "colors", "opacities"), ("colours",)):
+        with pytest.raises(ValueError, match="proper subset"):
+            run("cpu", sizes=((32, 200),), threads=(1,), repeats=1, frozen=frozen)

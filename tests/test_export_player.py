@@ -192,9 +192,8 @@ def test_the_low_pass_is_one_value_from_the_model_to_every_renderer(tmp_path, mo
 
     value = 0.17
     used: list[float] = []
-    for name in ("render_gaussians", "render_gaussians_batch"):  # every rasterization the model asks for
-        real = getattr(splat, name)
-        monkeypatch.setattr(splat, name, lambda *a, _real=real, **k: (used.append(k["low_pass"]), _real(*a, **k))[1])
+    real = splat.rasterization  # every rasterization the model asks for
+    monkeypatch.setattr(splat, "rasterization", lambda *a, **k: (used.append(k["low_pass"]), real(*a, **k))[1])
     cap, proj = make_toy_capture(tmp_path / "cap"), tmp_path / "proj"
     ingest.run(proj, IngestConfig(capture=cap, project=proj, contact_sheet=False))
     fit.run(proj, FitRequest(preset="micro", iters=2, device="cpu", overrides=(

@@ -154,11 +154,10 @@ def view_colouring(render: ViewRenderFn, up: np.ndarray, count: int = VIEW_COUNT
 
 # ---- adapter for a fitted Gaussian-field SlrfAvatar ---------------------------------------------------------------
 def gaussian_views(model: "SlrfAvatar", state: "NodeState", slot: int = 0) -> ViewRenderFn:
-    """The rasterized image (`splat.render_gaussians`, over black) of frame `slot` of `state`, posed once."""
+    """The rasterized image (`splat.rasterization`, over black) of frame `slot` of `state`, posed once."""
     import torch
 
-    from avatarctl.splat import render_gaussians
-    from avatarctl.splat.camera import SplatCamera
+    from avatarctl.splat import SplatCamera, rasterization
 
     with torch.no_grad():
         posed = model.posed_gaussians(state)
@@ -169,8 +168,8 @@ def gaussian_views(model: "SlrfAvatar", state: "NodeState", slot: int = 0) -> Vi
     def render(camera: Camera) -> tuple[np.ndarray, np.ndarray]:
         sc = SplatCamera.from_camera(camera, device=means.device)
         with torch.no_grad():
-            out = render_gaussians(means, covars, posed.colors(slot, sc.center).float(), opacities, sc, black,
-                                   low_pass=model.cfg.gaussians.low_pass)
-        return out.rgb.float().cpu().numpy(), out.alpha.float().cpu().numpy()
+            rgb, alpha, _ = rasterization(means, covars, posed.colors(slot, sc.center).float(), opacities, [sc], black,
+                                          low_pass=model.cfg.gaussians.low_pass)
+        return rgb[0].float().cpu().numpy(), alpha[0].float().cpu().numpy()
 
     return render

@@ -262,28 +262,28 @@ class SlrfAvatar(nn.Module):
 
     def render_image(self, posed: "PosedGaussians", slot: int, camera: "SplatCamera", background: torch.Tensor,
                      backend: str = "auto") -> tuple[torch.Tensor, torch.Tensor]:
-        """Rasterize frame `slot` of `posed` seen by `camera` (avatarctl/splat) over `background` [3]
-        -> rgb [H, W, 3], alpha [H, W]."""
-        from avatarctl.splat import render_gaussians
+        """Rasterize frame `slot` of `posed` seen by `camera` (`splat.rasterization`, a batch of one) over
+        `background` [3] -> rgb [H, W, 3], alpha [H, W]."""
+        from avatarctl.splat import rasterization
 
         colors = posed.colors(slot, camera.center)
-        out = render_gaussians(posed.means[slot], posed.covars[slot], colors, posed.opacities[slot], camera,
-                               background.to(colors), backend=backend, low_pass=self.cfg.gaussians.low_pass)
-        return out.rgb, out.alpha
+        rgb, alpha, _ = rasterization(posed.means[slot], posed.covars[slot], colors, posed.opacities[slot], [camera],
+                                      background.to(colors), backend=backend, low_pass=self.cfg.gaussians.low_pass)
+        return rgb[0], alpha[0]
 
     def render_images(self, posed: "PosedGaussians", cameras: list["SplatCamera"], background: torch.Tensor,
                       backend: str = "auto") -> tuple[list[torch.Tensor], list[torch.Tensor]]:
-        """Rasterize frame slot b of `posed` seen by cameras[b], for every b at once (`splat.render_gaussians_batch`:
-        one projection, one binning, one launch) -> rgb [[H_b, W_b, 3]], alpha [[H_b, W_b]]."""
-        from avatarctl.splat import render_gaussians_batch
+        """Rasterize frame slot b of `posed` seen by cameras[b], for every b at once (`splat.rasterization`: one
+        projection, one binning, one launch) -> rgb [[H_b, W_b, 3]], alpha [[H_b, W_b]]."""
+        from avatarctl.splat import rasterization
 
         B = len(cameras)
         assert B == posed.means.shape[0], f"render_images: {B} cameras for {posed.means.shape[0]} frame slots"
         centers = torch.stack([c.center for c in cameras])
         colors = posed.colors_batch(list(range(B)), centers)
-        out = render_gaussians_batch(posed.means, posed.covars, colors, posed.opacities, cameras,
-                                     background.to(colors), backend=backend, low_pass=self.cfg.gaussians.low_pass)
-        return [o[0] for o in out], [o[1] for o in out]
+        rgb, alpha, _ = rasterization(posed.means, posed.covars, colors, posed.opacities, cameras,
+                                      background.to(colors), backend=backend, low_pass=self.cfg.gaussians.low_pass)
+        return list(rgb), list(alpha)
 
     def image_losses(self, rgb: list[torch.Tensor], alpha: list[torch.Tensor], target: list[torch.Tensor],
                      mask: list[torch.Tensor], state: NodeState) -> LossTerms:

@@ -9,10 +9,11 @@
   are one tile, so they read the same splats); gradients are added with atomics, once per (splat, pixel).
 
 Both give the same numbers and both run on CPU and CUDA. The semantics are those of `_torch_impl` (its docstring);
-the gradients are derived in `backward_tiles`. Colours are Warp vectors of any length (vec3, vec4, ...): the kernels
-are generic over that type. A launch covers the tiles `tile_order[first + i * step]`, so several launches (one per
-CPU thread) can share an image; `tile_order` lists the busiest tiles first, which balances them. Warp's CPU atomics
-are plain adds: concurrent launches need their own gradient arrays.
+the gradients are derived in `backward_tiles`; the backward kernels compute only those they are asked for
+(`want_colors`, `want_alpha`: the colours' gradient, the ones through alpha). Colours are Warp vectors of any length
+(vec3, vec4, ...): the kernels are generic over that type. A launch covers the tiles `tile_order[first + i * step]`,
+so several launches (one per CPU thread) can share an image; `tile_order` lists the busiest tiles first, which
+balances them. Warp's CPU atomics are plain adds: concurrent launches need their own gradient arrays.
 
 `count_tiles` and `fill_tiles` bin the splats on the CPU without a sort of the (tile, depth) pairs: a bucket sort by
 tile of the splats taken in depth order.
@@ -176,7 +177,7 @@ def project_reach(means: wp.array(dtype=wp.vec3),  # [G] world, metres
                   means2d: wp.array(dtype=wp.vec2), conics: wp.array(dtype=wp.vec3),  # [G] out
                   depths: wp.array(dtype=float), radii: wp.array(dtype=wp.int32),  # [G] out
                   boxes: wp.array(dtype=wp.vec4i)):  # [G] out: rasterizer.reach
-    # project.project_gaussians_batch (one camera) followed by rasterizer.reach, fused for rendering without
+    # project.project_gaussians (one camera) followed by rasterizer.reach, fused for rendering without
     # gradients: the same formulas in the same order (their docstrings hold the maths).
     g = wp.tid()
     K = cam_K[0]
@@ -462,6 +463,8 @@ def backward_tiles(tile_order: wp.array(dtype=wp.int32), first: int, step: int, 
                    t_scratch: wp.array(dtype=float),  # [H * W] scratch: T in front of the current splat
                    behind_scratch: wp.array(dtype=Any),  # [H * W] vecC scratch: colour seen behind it
                    row_last: wp.array(dtype=wp.int32),  # [tiles * 16] scratch: the largest `last` of each tile row
+                   want_colors: int,  # 0: grad_colors is not required (left untouched)
+                   want_alpha: int,  # 0: grad_means2d, grad_conics, grad_opacities are not required (left untouched)
                    grad_means2d: wp.array(dtype=wp.vec2),  # [G] out, added to
                    grad_conics: wp.array(dtype=wp.vec3),  # [G] out, added to
                    grad_colors: wp.array(dtype=Any),  # [G] vecC out, added to
@@ -471,6 +474,8 @@ def backward_tiles(tile_order: wp.array(dtype=wp.int32), first: int, step: int, 
     #   drgb_c/dalpha_i = T_i (c_i,c - B_i,c),  dalpha_out/dalpha_i = T_final / (1 - alpha_i),  drgb/dc_i = T_i alpha_i;
     # alpha_i = o_i exp(power) (unclamped) -> dalpha/do = exp(power), dalpha/dpower = alpha_i,
     # dpower/dmean = (a dx + b dy, b dx + c dy), dpower/d(a, b, c) = (-dx^2 / 2, -dx dy, -dy^2 / 2).
+    # Only the gradients asked for (want_colors, want_alpha) are computed: T_i is needed by both, B_i only through
+    # alpha.
     tile = tile_order[first + wp.tid() * step]
     rect = _tile_rect(tile, tiles_x, width, height)
     tx0, ty0, tx1, ty1 = rect[0], rect[1], rect[2], rect[3]
@@ -517,20 +522,25 @@ def backward_tiles(tile_order: wp.array(dtype=wp.int32), first: int, step: int, 
                         t = t_scratch[p] / one_minus
                         t_scratch[p] = t
                         g_rgb = grad_rgb[p]
-                        behind = behind_scratch[p]
-                        g_color = g_color + g_rgb * (t * alpha)
-                        d_alpha = _grad_alpha(g_rgb, grad_alpha_out[p], color, behind, t, transmittance[p], one_minus)
-                        behind_scratch[p] = color * alpha + behind * one_minus
-                        if raw < _ALPHA_MAX:
-                            g_opacity += d_alpha * raw / opacity  # dalpha/do = exp(power)
-                            g_mean = g_mean + wp.vec2(conic[0] * dx + conic[1] * dy,
-                                                      conic[1] * dx + conic[2] * dy) * (d_alpha * raw)
-                            g_conic = g_conic + wp.vec3(-0.5 * dx * dx, -dx * dy, -0.5 * dy * dy) * (d_alpha * raw)
+                        if want_colors != 0:
+                            g_color = g_color + g_rgb * (t * alpha)
+                        if want_alpha != 0:
+                            behind = behind_scratch[p]
+                            d_alpha = _grad_alpha(g_rgb, grad_alpha_out[p], color, behind, t, transmittance[p],
+                                                  one_minus)
+                            behind_scratch[p] = color * alpha + behind * one_minus
+                            if raw < _ALPHA_MAX:
+                                g_opacity += d_alpha * raw / opacity  # dalpha/do = exp(power)
+                                g_mean = g_mean + wp.vec2(conic[0] * dx + conic[1] * dy,
+                                                          conic[1] * dx + conic[2] * dy) * (d_alpha * raw)
+                                g_conic = g_conic + wp.vec3(-0.5 * dx * dx, -dx * dy, -0.5 * dy * dy) * (d_alpha * raw)
         if hit != 0:
-            wp.atomic_add(grad_means2d, g, g_mean)
-            wp.atomic_add(grad_conics, g, g_conic)
-            wp.atomic_add(grad_colors, g, g_color)
-            wp.atomic_add(grad_opacities, g, g_opacity)
+            if want_alpha != 0:
+                wp.atomic_add(grad_means2d, g, g_mean)
+                wp.atomic_add(grad_conics, g, g_conic)
+                wp.atomic_add(grad_opacities, g, g_opacity)
+            if want_colors != 0:
+                wp.atomic_add(grad_colors, g, g_color)
 
 
 @wp.kernel
@@ -544,6 +554,7 @@ def backward_pixels(tile_order: wp.array(dtype=wp.int32), first: int, step: int,
                     grad_alpha_out: wp.array(dtype=float),
                     t_scratch: wp.array(dtype=float), behind_scratch: wp.array(dtype=Any),  # unused (same signature)
                     row_last: wp.array(dtype=wp.int32),  # unused
+                    want_colors: int, want_alpha: int,
                     grad_means2d: wp.array(dtype=wp.vec2), grad_conics: wp.array(dtype=wp.vec3),
                     grad_colors: wp.array(dtype=Any), grad_opacities: wp.array(dtype=float)):
     # The derivation is that of backward_tiles, walked per pixel.
@@ -574,15 +585,18 @@ def backward_pixels(tile_order: wp.array(dtype=wp.int32), first: int, step: int,
             if alpha >= _ALPHA_MIN:
                 one_minus = 1.0 - alpha
                 t = t / one_minus
-                color = colors[g]
-                wp.atomic_add(grad_colors, g, g_rgb * (t * alpha))
-                d_alpha = _grad_alpha(g_rgb, g_alpha, color, behind, t, t_final, one_minus)
-                behind = color * alpha + behind * one_minus
-                if raw < _ALPHA_MAX:
-                    wp.atomic_add(grad_opacities, g, d_alpha * raw / opacity)
-                    wp.atomic_add(grad_means2d, g, wp.vec2(conic[0] * dx + conic[1] * dy,
-                                                           conic[1] * dx + conic[2] * dy) * (d_alpha * raw))
-                    wp.atomic_add(grad_conics, g, wp.vec3(-0.5 * dx * dx, -dx * dy, -0.5 * dy * dy) * (d_alpha * raw))
+                if want_colors != 0:
+                    wp.atomic_add(grad_colors, g, g_rgb * (t * alpha))
+                if want_alpha != 0:
+                    color = colors[g]
+                    d_alpha = _grad_alpha(g_rgb, g_alpha, color, behind, t, t_final, one_minus)
+                    behind = color * alpha + behind * one_minus
+                    if raw < _ALPHA_MAX:
+                        wp.atomic_add(grad_opacities, g, d_alpha * raw / opacity)
+                        wp.atomic_add(grad_means2d, g, wp.vec2(conic[0] * dx + conic[1] * dy,
+                                                               conic[1] * dx + conic[2] * dy) * (d_alpha * raw))
+                        wp.atomic_add(grad_conics, g,
+                                      wp.vec3(-0.5 * dx * dx, -dx * dy, -0.5 * dy * dy) * (d_alpha * raw))
 
 
 _COLOR_ARGS = ("colors", "background", "rgb", "grad_rgb", "behind_scratch", "grad_colors")  # the generic arrays

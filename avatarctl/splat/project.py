@@ -30,14 +30,18 @@ FOV_CLAMP = 1.3  # J is evaluated inside 1.3x the half field of view (3DGS)
 
 @dataclass
 class Projected:
-    """Screen-space Gaussians, one row per input Gaussian (culled rows have radius 0 and zero conic)."""
+    """Screen-space Gaussians, one row per input Gaussian (culled rows have radius 0 and zero conic).
+
+    Two layouts, one type: `project_gaussians` returns rows per image, fields [B, G, ...] (B images of G Gaussians);
+    the compositing layer (`rasterizer.Canvas`, `rasterizer.bin_gaussians`, `_torch_impl.rasterize_torch`) takes the
+    B images laid out on one canvas, fields [B * G, ...], written [G, ...] below."""
 
     means2d: torch.Tensor  # [G, 2] pixels (pixel centres at integers)
     conics: torch.Tensor  # [G, 3] (a, b, c) of the inverse 2D covariance [[a, b], [b, c]], 1/px^2
     depths: torch.Tensor  # [G] camera z, metres (sort key, front to back)
     radii: torch.Tensor  # [G] int32 pixels, ceil(3 sqrt(lambda_max)); 0 = culled
     # [G, 4] int32 (x0, y0, x1, y1) inclusive: the window a splat may count in, where several images share one
-    # canvas (`rasterizer.rasterize_batch`); None = the whole image
+    # canvas (`rasterizer.Canvas`); None = the whole image
     bounds: torch.Tensor | None = None
     # [G, 4] int32: `rasterizer.reach` already computed (by the fused `rasterizer.project_and_reach`); None = binning
     # computes it
@@ -70,25 +74,13 @@ def within_bounds(box: torch.Tensor, proj: Projected) -> torch.Tensor:
     return torch.cat([torch.maximum(box[:, :2], proj.bounds[:, :2]), torch.minimum(box[:, 2:], proj.bounds[:, 2:])], -1)
 
 
-def project_gaussians(means: torch.Tensor,  # [G, 3] world, metres
-                      covars: torch.Tensor,  # [G, 3, 3] world covariance, metres^2 (symmetric PSD)
-                      cam: SplatCamera, near: float = 0.01, low_pass: float = LOW_PASS) -> Projected:
-    """World Gaussians -> screen-space Gaussians (see the module docstring; `low_pass` px^2 added to Sigma2d's
-    diagonal). Differentiable w.r.t. means and covars through autograd; radii carry no gradient. Works in the dtype
-    of `means` (float32 or float64)."""
-    assert means.ndim == 2 and means.shape[-1] == 3, f"means: expected [G, 3], got {list(means.shape)}"
-    assert covars.shape == (means.shape[0], 3, 3), \
-        f"covars: expected [{means.shape[0]}, 3, 3], got {list(covars.shape)}"
-    p = project_gaussians_batch(means[None], covars[None], [cam], near, low_pass)
-    return Projected(means2d=p.means2d[0], conics=p.conics[0], depths=p.depths[0], radii=p.radii[0])
-
-
-def project_gaussians_batch(means: torch.Tensor,  # [B, G, 3] world, metres: the Gaussians seen by camera b
-                            covars: torch.Tensor,  # [B, G, 3, 3] world covariance, metres^2
-                            cams: Sequence[SplatCamera], near: float = 0.01, low_pass: float = LOW_PASS
-                            ) -> Projected:
-    """`project_gaussians` for B cameras at once (one set of operations, whatever B; each camera its own window
-    size) -> a `Projected` whose fields have a leading [B] dimension."""
+def project_gaussians(means: torch.Tensor,  # [B, G, 3] world, metres: the Gaussians seen by camera b
+                      covars: torch.Tensor,  # [B, G, 3, 3] world covariance, metres^2 (symmetric PSD)
+                      cams: Sequence[SplatCamera], near: float = 0.01, low_pass: float = LOW_PASS) -> Projected:
+    """World Gaussians -> screen-space Gaussians seen by B cameras at once (one set of operations, whatever B; each
+    camera its own window size; one image is B = 1) -> a `Projected` with fields [B, G, ...]. See the module
+    docstring; `low_pass` px^2 is added to Sigma2d's diagonal. Differentiable w.r.t. means and covars through
+    autograd; radii carry no gradient. Works in the dtype of `means` (float32 or float64)."""
     B, G = means.shape[:2]
     assert means.shape == (B, G, 3) and len(cams) == B, \
         f"means: expected [{len(cams)}, G, 3] (one row per camera), got {list(means.shape)}"

@@ -1,9 +1,12 @@
-"""`rasterize`: screen-space Gaussians -> image, with the Warp kernels behind a `torch.autograd.Function`.
+"""`rasterize`: screen-space Gaussians of B images -> B images, with the Warp kernels behind a
+`torch.autograd.Function`.
 
-Steps: (1) `bin_gaussians` lists, for every 16x16 tile, the splats that may count in it, front to back (CPU: a
-bucket sort in Warp; CUDA: one torch.sort on the key (tile id << 32 | depth bits)); (2) the forward kernel
-composites each tile and keeps per pixel the final transmittance and the last contributor; (3) the backward kernel
-walks back from there.
+Steps: (0) `Canvas` lays the B images out on one canvas (one image is its own); (1) `bin_gaussians` lists, for every
+16x16 tile, the splats that may count in it, front to back (CPU: a bucket sort in Warp; CUDA: one torch.sort on the
+key (tile id << 32 | depth bits)); (2) the forward kernel composites each tile and keeps per pixel the final
+transmittance and the last contributor; (3) the backward kernel walks back from there, computing only the gradients
+autograd asks for (`ctx.needs_input_grad`: frozen colours cost no colour gradient, frozen geometry no alpha
+gradient).
 
 Backends: "torch" is the dense twin (`_torch_impl`, any dtype, tiny scenes); "warp" picks the kernel variant by
 device: the tile walk on CPU, the pixel walk on CUDA; "warp_tile" / "warp_pixel" force one (both run on either
@@ -62,35 +65,87 @@ def reach(proj: Projected, opacities: torch.Tensor, width: int, height: int) -> 
     return within_bounds(tight, proj)
 
 
-def project_and_reach(means: torch.Tensor,  # [G, 3] world, metres
-                      covars: torch.Tensor,  # [G, 3, 3] world covariance, metres^2
-                      opacities: torch.Tensor,  # [G] in [0, 1]
-                      cam: SplatCamera, near: float = 0.01, low_pass: float = LOW_PASS) -> Projected:
-    """`project.project_gaussians` and `reach` in one Warp kernel (`_warp_kernels.project_reach`), for rendering
-    without gradients (float32, no autograd): one launch where the pure-torch pair issues ~180 small operations, the
-    cost that bounds a single render on a GPU. Same numbers up to float rounding (`tests/test_splat.py`); the
-    result's `reach` holds the boxes, so binning does not compute them again."""
+def project_and_reach(means: torch.Tensor,  # [B, G, 3] world, metres: the Gaussians seen by camera b
+                      covars: torch.Tensor,  # [B, G, 3, 3] world covariance, metres^2
+                      opacities: torch.Tensor,  # [B, G] in [0, 1]
+                      cams: Sequence[SplatCamera], near: float = 0.01, low_pass: float = LOW_PASS) -> Projected:
+    """`project.project_gaussians` and `reach` in one Warp kernel (`_warp_kernels.project_reach`, one launch per
+    camera), for rendering without gradients (float32, no autograd): one launch where the pure-torch pair issues ~180
+    small operations, the cost that bounds a single render on a GPU. Same numbers up to float rounding
+    (`tests/test_splat.py`); fields [B, G, ...], and `reach` [B, G, 4] holds each image's boxes, so binning does not
+    compute them again."""
     import warp as wp
 
     k = _kernels()
-    G = means.shape[0]
-    assert means.shape == (G, 3) and covars.shape == (G, 3, 3) and opacities.shape == (G,), \
-        f"project_and_reach: means {list(means.shape)}, covars {list(covars.shape)}, opacities {list(opacities.shape)}"
+    B, G = means.shape[:2]
+    assert means.shape == (B, G, 3) and covars.shape == (B, G, 3, 3) and opacities.shape == (B, G) and \
+        len(cams) == B, f"project_and_reach: means {list(means.shape)}, covars {list(covars.shape)}, opacities " \
+                        f"{list(opacities.shape)} for {len(cams)} cameras"
     dev = means.device
     f32 = [t.detach().to(device=dev, dtype=torch.float32).contiguous() for t in (means, covars, opacities)]
-    K, R, T = (getattr(cam, n).to(device=dev, dtype=torch.float32).contiguous()[None] for n in ("K", "R", "T"))
-    means2d, conics = torch.empty(G, 2, device=dev), torch.empty(G, 3, device=dev)
-    depths, radii = torch.empty(G, device=dev), torch.empty(G, dtype=torch.int32, device=dev)
-    boxes = torch.empty(G, 4, dtype=torch.int32, device=dev)
-    if G:
-        inputs = [wp.from_torch(f32[0], dtype=wp.vec3), wp.from_torch(f32[1], dtype=wp.mat33), wp.from_torch(f32[2]),
-                  wp.from_torch(K, dtype=wp.mat33), wp.from_torch(R, dtype=wp.mat33), wp.from_torch(T, dtype=wp.vec3),
-                  int(cam.width), int(cam.height), float(near), float(low_pass), FOV_CLAMP - 1.0]
-        outputs = [wp.from_torch(means2d, dtype=wp.vec2), wp.from_torch(conics, dtype=wp.vec3), wp.from_torch(depths),
-                   wp.from_torch(radii), wp.from_torch(boxes, dtype=wp.vec4i)]
+    means2d, conics = torch.empty(B, G, 2, device=dev), torch.empty(B, G, 3, device=dev)
+    depths, radii = torch.empty(B, G, device=dev), torch.empty(B, G, dtype=torch.int32, device=dev)
+    boxes = torch.empty(B, G, 4, dtype=torch.int32, device=dev)
+    for b, cam in enumerate(cams if G else ()):
+        K, R, T = (getattr(cam, n).to(device=dev, dtype=torch.float32).contiguous()[None] for n in ("K", "R", "T"))
+        inputs = [wp.from_torch(f32[0][b], dtype=wp.vec3), wp.from_torch(f32[1][b], dtype=wp.mat33),
+                  wp.from_torch(f32[2][b]), wp.from_torch(K, dtype=wp.mat33), wp.from_torch(R, dtype=wp.mat33),
+                  wp.from_torch(T, dtype=wp.vec3), int(cam.width), int(cam.height), float(near), float(low_pass),
+                  FOV_CLAMP - 1.0]
+        outputs = [wp.from_torch(means2d[b], dtype=wp.vec2), wp.from_torch(conics[b], dtype=wp.vec3),
+                   wp.from_torch(depths[b]), wp.from_torch(radii[b]), wp.from_torch(boxes[b], dtype=wp.vec4i)]
         with torch_stream(dev):
             wp.launch(k.project_reach, dim=G, inputs=inputs + outputs, device=str(dev))
     return Projected(means2d=means2d, conics=conics, depths=depths, radii=radii, reach=boxes)
+
+
+@dataclass(frozen=True)
+class Canvas:
+    """B images laid out on one canvas, so that one binning and one set of launches composite them all (what
+    bounds small images on a GPU is the number of launches and synchronisations, not the pixels): image b's rows
+    start at canvas row tops[b], a multiple of the tile (no tile holds two images), its columns at 0; every splat is
+    confined to its image's window (`Projected.bounds`). One image is its own canvas (no bounds, no padding rows)."""
+
+    proj: Projected  # [B * G] rows: means2d shifted down to the image's rows, bounds set (None for one image)
+    width: int  # the widest image's
+    height: int  # tops[-1]
+    tops: tuple[int, ...]  # [B + 1] first canvas row of each image; tops[-1] = the canvas height
+    sizes: tuple[tuple[int, int], ...]  # [B] (width, height) of each image
+
+    @staticmethod
+    def of(proj: Projected, sizes: Sequence[tuple[int, int]]) -> "Canvas":
+        """The canvas of `proj` ([B, G, ...], `project.project_gaussians`) for images of `sizes` [(width, height)]."""
+        B, G = proj.means2d.shape[:2]
+        assert len(sizes) == B, f"Canvas: {len(sizes)} sizes for means2d {list(proj.means2d.shape)}"
+        sizes = tuple((int(w), int(h)) for w, h in sizes)
+        reach_ = proj.reach
+        if B == 1:
+            flat = Projected(means2d=proj.means2d[0], conics=proj.conics[0], depths=proj.depths[0],
+                             radii=proj.radii[0], reach=None if reach_ is None else reach_[0])
+            return Canvas(proj=flat, width=sizes[0][0], height=sizes[0][1], tops=(0, sizes[0][1]), sizes=sizes)
+        tops = [0]
+        for _, h in sizes:
+            tops.append(tops[-1] + -(-h // TILE) * TILE)
+        dev = proj.means2d.device
+        top = torch.tensor(tops[:-1], dtype=proj.means2d.dtype, device=dev)  # [B]
+        shift = torch.stack([torch.zeros_like(top), top], -1)[:, None, :]  # [B, 1, 2]
+        bounds = torch.tensor([[0, t, w - 1, t + h - 1] for t, (w, h) in zip(tops, sizes)], dtype=torch.int32,
+                              device=dev)  # [B, 4]
+        if reach_ is not None:  # each image's boxes, inside its window: moved down with it (empty ones stay empty)
+            rows = torch.tensor(tops[:-1], dtype=torch.int32, device=dev)
+            reach_ = (reach_ + torch.stack([torch.zeros_like(rows), rows] * 2, -1)[:, None, :]).reshape(B * G, 4)
+        flat = Projected(means2d=(proj.means2d + shift).reshape(B * G, 2), conics=proj.conics.reshape(B * G, 3),
+                         depths=proj.depths.reshape(B * G), radii=proj.radii.reshape(B * G),
+                         bounds=bounds[:, None, :].expand(B, G, 4).reshape(B * G, 4), reach=reach_)
+        return Canvas(proj=flat, width=max(w for w, _ in sizes), height=tops[-1], tops=tuple(tops), sizes=sizes)
+
+    def images(self, canvas: torch.Tensor):  # [height, width, ...] -> [B, H, W, ...] or [[H_b, W_b, ...]]
+        """The B images cut from a canvas-sized tensor: one tensor [B, H, W, ...] (a view) when they all have one
+        size, else a list of views [H_b, W_b, ...]; image b is `[b]` of either."""
+        if len(set(self.sizes)) == 1:
+            (w, h), B = self.sizes[0], len(self.sizes)
+            return canvas.reshape(B, self.height // B, *canvas.shape[1:])[:, :h, :w]
+        return [canvas[t:t + h, :w] for t, (w, h) in zip(self.tops, self.sizes)]
 
 
 def bin_gaussians(proj: Projected, opacities: torch.Tensor, width: int, height: int) -> TileBins:
@@ -155,15 +210,38 @@ def _bin_buckets(boxes: torch.Tensor, depths: torch.Tensor, tiles_x: int, tiles_
     return ids, counts
 
 
-def rasterize(proj: Projected, colors: torch.Tensor,  # [G, C]
-              opacities: torch.Tensor,  # [G] in [0, 1]
-              width: int, height: int, background: torch.Tensor,  # [C]
-              backend: str = "auto") -> tuple[torch.Tensor, torch.Tensor]:
-    """Alpha-composite the splats front to back (3DGS; the rules are in `_torch_impl`'s docstring).
+def rasterize(proj: Projected,  # fields [B, G, ...]: `project.project_gaussians`
+              colors: torch.Tensor,  # [B, G, C]
+              opacities: torch.Tensor,  # [B, G] in [0, 1]
+              sizes: Sequence[tuple[int, int]],  # [B] (width, height) of each image
+              background: torch.Tensor,  # [C]
+              backend: str = "auto"):
+    """Alpha-composite the splats of B images front to back (3DGS; the rules are in `_torch_impl`'s docstring), all
+    on one `Canvas`: one binning and one set of kernel launches whatever B.
 
-    -> rgb [H, W, C] over the background, alpha [H, W]. Differentiable w.r.t. proj.means2d, proj.conics, colors
-    and opacities (not the background). `backend`: see the module docstring.
+    -> (rgb, alpha) as `Canvas.images` cuts them: rgb [B, H, W, C] over the background and alpha [B, H, W] when the
+    images have one size, else lists of [H_b, W_b, C] and [H_b, W_b]. The same images as one call per image up to
+    the float rounding of the shifted pixel rows. Differentiable w.r.t. proj.means2d, proj.conics, colors and
+    opacities (not the background); the Warp backward computes only the gradients required. `backend`: see the
+    module docstring.
     """
+    B, G = proj.means2d.shape[:2]
+    assert colors.ndim == 3 and colors.shape[:2] == (B, G) and opacities.shape == (B, G), \
+        f"rasterize: colors {list(colors.shape)}, opacities {list(opacities.shape)} for means2d " \
+        f"{list(proj.means2d.shape)} (expected [{B}, {G}, C] and [{B}, {G}])"
+    canvas = Canvas.of(proj, sizes)
+    rgb, alpha = _composite(canvas.proj, colors.reshape(B * G, colors.shape[2]), opacities.reshape(B * G), canvas.width,
+                            canvas.height, background, backend)
+    return canvas.images(rgb), canvas.images(alpha)
+
+
+def _composite(proj: Projected,  # fields [G, ...]: one canvas (`Canvas.proj`)
+               colors: torch.Tensor,  # [G, C]
+               opacities: torch.Tensor,  # [G] in [0, 1]
+               width: int, height: int, background: torch.Tensor,  # [C]
+               backend: str) -> tuple[torch.Tensor, torch.Tensor]:
+    """One canvas composited -> rgb [height, width, C], alpha [height, width]: the twin, or binning and the Warp
+    kernels."""
     G = proj.means2d.shape[0]
     assert proj.means2d.shape == (G, 2), f"means2d: expected [G, 2], got {list(proj.means2d.shape)}"
     assert proj.conics.shape == (G, 3), f"conics: expected [{G}, 3], got {list(proj.conics.shape)}"
@@ -186,38 +264,6 @@ def rasterize(proj: Projected, colors: torch.Tensor,  # [G, C]
     bins = bin_gaussians(proj, opacities, width, height)
     return _RasterizeWarp.apply(proj.means2d, proj.conics, colors, opacities, background, bins, width, height,
                                 variant)
-
-
-def rasterize_batch(proj: Projected,  # fields with a leading [B]: `project.project_gaussians_batch`
-                    colors: torch.Tensor,  # [B, G, C]
-                    opacities: torch.Tensor,  # [B, G] in [0, 1]
-                    sizes: Sequence[tuple[int, int]],  # (width, height) of each image
-                    background: torch.Tensor,  # [C]
-                    backend: str = "auto") -> list[tuple[torch.Tensor, torch.Tensor]]:
-    """B images composited at once -> [(rgb [h_b, w_b, C], alpha [h_b, w_b])]: the images are stacked as rows of one
-    canvas (each starting on a tile row, so no tile holds two), every splat confined to its image's window
-    (`Projected.bounds`), then binned and composited by one `rasterize`. The same images as B `rasterize` calls up to
-    the float rounding of the shifted pixel rows; one set of launches and synchronisations instead of B (what bounds
-    small images on a GPU)."""
-    B, G = proj.means2d.shape[:2]
-    assert len(sizes) == B and colors.shape[:2] == (B, G) and opacities.shape == (B, G), \
-        f"rasterize_batch: {len(sizes)} sizes, colors {list(colors.shape)}, opacities {list(opacities.shape)} for " \
-        f"means2d {list(proj.means2d.shape)}"
-    tops = [0]
-    for _, h in sizes:
-        tops.append(tops[-1] + -(-int(h) // TILE) * TILE)
-    width = max(int(w) for w, _ in sizes)
-    dev = proj.means2d.device
-    top = torch.tensor(tops[:-1], dtype=proj.means2d.dtype, device=dev)  # [B]
-    shift = torch.stack([torch.zeros_like(top), top], -1)[:, None, :]  # [B, 1, 2]
-    bounds = torch.tensor([[0, t, int(w) - 1, t + int(h) - 1] for t, (w, h) in zip(tops, sizes)], dtype=torch.int32,
-                          device=dev)  # [B, 4]
-    flat = Projected(means2d=(proj.means2d + shift).reshape(B * G, 2), conics=proj.conics.reshape(B * G, 3),
-                     depths=proj.depths.reshape(B * G), radii=proj.radii.reshape(B * G),
-                     bounds=bounds[:, None, :].expand(B, G, 4).reshape(B * G, 4))
-    rgb, alpha = rasterize(flat, colors.reshape(B * G, -1), opacities.reshape(B * G), width, tops[-1], background,
-                           backend)
-    return [(rgb[t:t + int(h), :int(w)], alpha[t:t + int(h), :int(w)]) for t, (w, h) in zip(tops, sizes)]
 
 
 def _kernels():
@@ -321,7 +367,11 @@ class _RasterizeWarp(torch.autograd.Function):
         bins, (width, height) = ctx.bins, ctx.size
         device, (G, C), P = means2d.device, colors.shape, width * height
         jobs = _jobs(device)
-        grads = [torch.zeros(jobs, G, n, device=device) for n in (2, 3, C, 1)]  # per job: CPU atomics are plain adds
+        # what is required: the colours' gradient, and the ones through alpha (means2d, conics, opacities share it)
+        want = (ctx.needs_input_grad[2], any(ctx.needs_input_grad[i] for i in (0, 1, 3)))
+        computed = (want[1], want[1], want[0], want[1])  # of means2d, conics, colors, opacities
+        grads = [torch.zeros(jobs, G if c else 1, n, device=device)  # per job: CPU atomics are plain adds; an output
+                 for c, n in zip(computed, (2, 3, C, 1))]  # not computed: one row, never written
         if bins.ids.shape[0] > 0:
             vec = k.color_type(C)
             inputs = _inputs(bins, width, height, means2d, conics, colors, opacities, background, vec)
@@ -332,14 +382,15 @@ class _RasterizeWarp(torch.autograd.Function):
                        wp.from_torch(torch.empty(bins.tiles_x * bins.tiles_y * TILE, dtype=torch.int32, device=device))]
             state = [wp.from_torch(trans), wp.from_torch(last), wp.from_torch(grad_rgb, dtype=vec),
                      wp.from_torch(grad_alpha)]
-            outs = [[wp.from_torch(grads[0][j], dtype=wp.vec2), wp.from_torch(grads[1][j], dtype=wp.vec3),
-                     wp.from_torch(grads[2][j], dtype=vec), wp.from_torch(grads[3][j].reshape(G))]
-                    for j in range(jobs)]
+            outs = [[int(want[0]), int(want[1]), wp.from_torch(grads[0][j], dtype=wp.vec2),
+                     wp.from_torch(grads[1][j], dtype=wp.vec3), wp.from_torch(grads[2][j], dtype=vec),
+                     wp.from_torch(grads[3][j].reshape(-1))] for j in range(jobs)]
             kernel = k.backward_tiles if ctx.variant == "tiles" else k.backward_pixels
             per_tile = 1 if ctx.variant == "tiles" else TILE * TILE
             _launch(kernel, bins, per_tile, jobs, lambda j: inputs + state + scratch + outs[j], C, device)
-        g_means, g_conics, g_colors, g_opac = (g.sum(0) for g in grads)
-        return g_means, g_conics, g_colors, g_opac.reshape(G), None, None, None, None, None
+        g_means, g_conics, g_colors, g_opac = (g.sum(0) if ctx.needs_input_grad[i] else None
+                                               for i, g in zip((0, 1, 2, 3), grads))
+        return g_means, g_conics, g_colors, None if g_opac is None else g_opac.reshape(G), None, None, None, None, None
 
 
 def _inputs(bins: TileBins, width, height, means2d, conics, colors, opacities, background, vec) -> list:
