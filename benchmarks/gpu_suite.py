@@ -142,7 +142,7 @@ def part_train(device: str, quick: bool) -> dict:
     """Images per second of whole training steps, with 4 images per step (the cpu preset's batch) and with 16."""
     import torch
 
-    from avatarctl.fit.densify import relocate_dead
+    from avatarctl.model.densify import relocate_dead
     from avatarctl.splat import SplatCamera
 
     size, per_node, nodes, steps = (48, 8, 16, 3) if quick else (512, 192, 128, 30)
