@@ -120,5 +120,9 @@ def reader_for(fmt: str) -> Callable[[Path], CaptureSource]:
         from avatarctl.io.colmap import read_colmap
 
         return read_colmap
+    if fmt == "actorshq":
+        from avatarctl.io.actorshq import read_actorshq
+
+        return read_actorshq
     raise InputError(f"unknown capture format {fmt!r}",
-                     fix="use --format auto, easymocap, zju, thuman4, peoplesnapshot or colmap")
+                     fix="use --format auto, easymocap, zju, thuman4, peoplesnapshot, colmap or actorshq")

@@ -153,7 +153,7 @@ class FileMasks:
 class CaptureSource:
     """A raw capture as described by its reader (nothing is loaded but calibration and fits)."""
 
-    format: str  # "easymocap" | "zju" | "thuman4" | "peoplesnapshot" | "colmap"
+    format: str  # "easymocap" | "zju" | "thuman4" | "peoplesnapshot" | "colmap" | "actorshq"
     root: Path
     cameras: list[Camera]  # as calibrated (distorted), in the capture's order; names are project-safe
     image_frames: dict[str, set[int]]  # camera -> frame numbers that have an image (empty: camera has none)
@@ -167,6 +167,9 @@ class CaptureSource:
     split: Split | None = None  # the capture's own split, if it ships one
     notes: list[str] = field(default_factory=list)  # what the reader decided, shown to the user
     fps: float = 0.0  # frame rate when the capture states one (videos), else 0
+    sequence: str = ""  # the dataset's name of this recording when its folders say it (ActorsHQ "Actor01/Sequence1")
+    release_scale: float = 1.0  # scale of these images relative to the dataset's full-resolution release (ActorsHQ
+    # 4x folder: 0.25); `--benchmark` scales relative to the full release
 
     @property
     def camera_names(self) -> list[str]:

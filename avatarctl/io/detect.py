@@ -1,6 +1,8 @@
 """Which capture format a folder holds (``--format auto``), with the evidence, checked in this order:
 
 ========================  =====================================================================
+actorshq                  ``calibration.csv`` + ``rgbs/`` (a scale folder), or a sequence folder holding one
+                          ``Nx/calibration.csv`` (``avatarctl.io.actorshq``)
 zju                       ``annots.npy``
 thuman4                   ``calibration.json``
 peoplesnapshot            ``camera.pkl`` (and ``masks.hdf5``)
@@ -17,11 +19,12 @@ from pathlib import Path
 
 from avatarctl.errors import InputError
 
-FORMATS = ("easymocap", "zju", "thuman4", "peoplesnapshot", "colmap")
+FORMATS = ("easymocap", "zju", "thuman4", "peoplesnapshot", "colmap", "actorshq")
 
 
 def detect_format(root: str | Path) -> tuple[str, str]:
     """(format, reason) for the capture folder `root`; InputError if it is not a known layout."""
+    from avatarctl.io.actorshq import is_actorshq
     from avatarctl.io.monocular import is_monocular_source
 
     root = Path(root)
@@ -30,6 +33,8 @@ def detect_format(root: str | Path) -> tuple[str, str]:
             ": one static camera"
     if not root.is_dir():
         raise InputError("capture folder not found", where=str(root), fix="pass the folder that holds the capture")
+    if is_actorshq(root):
+        return "actorshq", "found calibration.csv + rgbs/ (ActorsHQ)"
     if (root / "annots.npy").is_file():
         return "zju", "found annots.npy (ZJU-MoCap)"
     if (root / "calibration.json").is_file():
@@ -45,5 +50,6 @@ def detect_format(root: str | Path) -> tuple[str, str]:
                 return "colmap", f"found {rel} (COLMAP)"
     raise InputError("unknown capture format", where=str(root),
                      fix="expected intri.yml+extri.yml (EasyMocap), annots.npy (ZJU-MoCap), calibration.json "
-                         "(THuman4.0), camera.pkl (PeopleSnapshot) or sparse/0/cameras.bin (COLMAP); "
+                         "(THuman4.0), camera.pkl (PeopleSnapshot), sparse/0/cameras.bin (COLMAP) or "
+                         "calibration.csv + rgbs/ (ActorsHQ, its scale folder e.g. Sequence1/4x); "
                          "or pass --format")
