@@ -30,5 +30,5 @@ def test_ingest_memory_removes_its_temporary_capture(tmp_path, monkeypatch):
     from benchmarks.ingest_memory import main
 
     monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
-    main(["--cams", "2", "--frames", "2", "--size", "32"])
-    assert list(tmp_path.iterdir()) == []
+    res = main(["--cams", "2", "--frames", "2", "--size", "32", "--no-contact-sheet"])
+    assert res.images == 4 and list(tmp_path.iterdir()) == []

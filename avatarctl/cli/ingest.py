@@ -14,7 +14,8 @@ def register(app: typer.Typer) -> None:
     @app.command("ingest", help="Turn a raw capture (frames, cameras, masks, body fits) into a project directory.")
     def ingest(
         capture: Path = typer.Argument(..., help="Capture folder (EasyMocap, ZJU-MoCap, THuman4.0, PeopleSnapshot, "
-                                                 "COLMAP, ActorsHQ, or `avatarctl synth` output), or ONE video file (or a "
+                                                 "COLMAP, ActorsHQ, or `avatarctl synth` output), or ONE video file "
+                                                 "(or a "
                                                  "folder of its frames) from a static phone. Never modified."),
         project: Path = typer.Argument(..., help="Project directory to create (must not exist or be empty)."),
         format: str = typer.Option("auto", "--format",

@@ -12,15 +12,15 @@ the same colour, so pixels outside the person score only the avatar's stray dens
 
 Protocols (`avatarctl.evaluate.protocols`): `bbox` (Neural Body / SLRF: PSNR over the projected 3D body box, SSIM on
 its bounding rectangle; only that rectangle is rendered), `full` (every pixel) or `mpmavatar` (both images times the
-eroded, blurred ground-truth mask, near-white pixels zeroed; every pixel).
+eroded, blurred ground-truth mask, near-white pixels zeroed; every pixel). Scores come only from
+`avatarctl.evaluate.metrics` (float32, settings and scikit-image version recorded). The split's score is the mean
+over (frame, view) images of the per-image PSNR / SSIM (Neural Body's averaging).
 
 Named benchmark protocols (`avatarctl.evaluate.benchmarks`; `benchmark`: "auto" = the one the project was ingested
 with, `ingest --benchmark`, recorded in ingest/benchmark.json): the protocol's split, pixel protocol and background
 replace `split` / `protocol` and the fit's background (the avatar is rendered, and the ground truth composited,
 over the protocol's background; a fit trained over another one is named in one warning line); metrics.json records
-the protocol's name, the published figures it is comparable with, and why it is not (a partial project). Scores come only from
-`avatarctl.evaluate.metrics` (float32, settings and scikit-image version recorded). The split's score is the mean
-over (frame, view) images of the per-image PSNR / SSIM (Neural Body's averaging).
+the protocol's name, the published figures it is comparable with, and why it is not (a partial project).
 
 LPIPS is reported only when the `lpips` package and its AlexNet weights are already on this machine (nothing is
 downloaded); otherwise `"lpips": null` with the reason.
