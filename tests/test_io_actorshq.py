@@ -125,6 +125,14 @@ def test_a_bad_or_partial_folder_is_one_line(tmp_path, breakage, at_sequence, ne
     assert_one_line_error(res, proj, *needles)
 
 
+def test_a_renamed_scale_folder_is_taken_as_full_resolution(tmp_path):
+    from avatarctl.io.actorshq import read_actorshq
+
+    scale_dir = make_toy_actorshq(tmp_path, frames=(0,))
+    src = read_actorshq(scale_dir.rename(tmp_path / "renamed"))
+    assert src.release_scale == 1.0 and src.sequence == "" and any("'renamed' is not named" in n for n in src.notes)
+
+
 def test_the_release_ships_no_fits(tmp_path):
     from avatarctl.io.actorshq import read_actorshq
 

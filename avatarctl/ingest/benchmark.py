@@ -56,11 +56,12 @@ def plan_benchmark(proto: BenchmarkProtocol, src: CaptureSource, cams: list[str]
     """What ingest does under `proto` (see the module docstring). `cams`: the selected cameras (capture order);
     `available`: the frame numbers those cameras have; `frames_spec`: `--frames` (None: all)."""
     check_dataset(proto, src)
+    resize = proto.scale / src.release_scale
     notes = [f"benchmark {proto.name}: {len(proto.test_views)} held-out views, train frames {proto.train_frames}, "
-             f"test frames {proto.test_frames}, scale {proto.scale:g}, pixels {proto.pixels}"]
+             f"test frames {proto.test_frames}, scale {proto.scale:g} of the release (resize {resize:g}), pixels "
+             f"{proto.pixels}"]
     if proto.sequence and not src.sequence:
         notes.append(f"the capture's folders do not name its recording: make sure it is {proto.sequence}")
-    resize = proto.scale / src.release_scale
     if resize > 1.0 + 1e-9:
         raise InputError(f"--benchmark {proto.name} scores images at {proto.scale:g} of the release's resolution; "
                          f"these are at {src.release_scale:g}", where=str(src.root),

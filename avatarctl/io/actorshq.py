@@ -37,13 +37,14 @@ from __future__ import annotations
 
 import csv
 import re
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from avatarctl.errors import InputError
 from avatarctl.geometry.cameras import Camera
-from avatarctl.io.capture import CaptureSource, FileImages, FileMasks, make_camera
+from avatarctl.io.capture import CaptureSource, FileMasks, make_camera, read_image_file
 
 CALIBRATION = "calibration.csv"
 COLUMNS = ("name", "w", "h", "rx", "ry", "rz", "tx", "ty", "tz", "fx", "fy", "px", "py")
@@ -186,16 +187,39 @@ def _matrix_to_rotvec(R: np.ndarray) -> np.ndarray:
     return cv2.Rodrigues(np.ascontiguousarray(R, np.float64))[0].ravel()
 
 
-def _scan(folder: Path, cam: str, kind: str, suffix: str) -> dict[int, Path]:
-    """{frame: file} for the release's ``<cam>_<kind>%06d.<suffix>`` files in `folder`."""
-    pat = re.compile(rf"^{re.escape(cam)}_{kind}(\d+)\.{suffix}$", re.IGNORECASE)
-    out: dict[int, Path] = {}
-    if folder.is_dir():
-        for p in folder.iterdir():
-            m = pat.match(p.name)
-            if m:
-                out[int(m.group(1))] = p
-    return out
+def _scan(folder: Path, cam: str, kind: str, suffix: str) -> set[int]:
+    """The frame numbers of the release's ``<cam>_<kind>%06d.<suffix>`` files in `folder`."""
+    pat = re.compile(rf"^{re.escape(cam)}_{kind}(\d{{6}})\.{suffix}$")
+    if not folder.is_dir():
+        return set()
+    return {int(m.group(1)) for m in map(pat.match, (p.name for p in folder.iterdir())) if m}
+
+
+@dataclass(frozen=True)
+class ReleaseImages:
+    """The frames of a scale folder, located by the release's naming (no per-file index: 160 cameras x thousands of
+    frames stay a rule, not a table)."""
+
+    scale_dir: Path
+
+    def read(self, cam: str, frame: int) -> np.ndarray:
+        return read_image_file(rgb_path(self.scale_dir, cam, frame), cam, frame)
+
+    def where(self, cam: str, frame: int) -> str:
+        return str(rgb_path(self.scale_dir, cam, frame))
+
+
+@dataclass(frozen=True)
+class ReleaseMasks:
+    """The masks of a scale folder (foreground > 127), located by the release's naming."""
+
+    scale_dir: Path
+
+    def read(self, cam: str, frame: int) -> np.ndarray:
+        return FileMasks({(cam, frame): mask_path(self.scale_dir, cam, frame)}).read(cam, frame)
+
+    def where(self, cam: str, frame: int) -> str:
+        return str(mask_path(self.scale_dir, cam, frame))
 
 
 def read_actorshq(root: Path) -> CaptureSource:
@@ -208,17 +232,11 @@ def read_actorshq(root: Path) -> CaptureSource:
     if not (scale_dir / "rgbs").is_dir():
         raise InputError("no rgbs/ folder (ActorsHQ frames)", where=str(scale_dir),
                          fix="download the RGB frames (rgbs/CamXXX/CamXXX_rgb%06d.jpg) into this scale folder")
-    images: dict[tuple[str, int], Path] = {}
-    image_frames: dict[str, set[int]] = {}
-    for n in names:
-        found = _scan(scale_dir / "rgbs" / n, n, "rgb", "jpg")
-        image_frames[n] = set(found)
-        images.update({(n, f): p for f, p in found.items()})
+    image_frames = {n: _scan(scale_dir / "rgbs" / n, n, "rgb", "jpg") for n in names}
     masks = mask_frames = None
     if (scale_dir / "masks").is_dir():
-        mper = {n: _scan(scale_dir / "masks" / n, n, "mask", "png") for n in names}
-        mask_frames = {n: set(d) for n, d in mper.items()}
-        masks = FileMasks({(n, f): p for n, d in mper.items() for f, p in d.items()})
+        mask_frames = {n: _scan(scale_dir / "masks" / n, n, "mask", "png") for n in names}
+        masks = ReleaseMasks(scale_dir)
     uncal = sorted(p.name for p in (scale_dir / "rgbs").iterdir() if p.is_dir() and p.name not in names)
     fits, fits_where = None, ""
     for d in (scale_dir, scale_dir.parent):
@@ -228,10 +246,13 @@ def read_actorshq(root: Path) -> CaptureSource:
     notes = []
     if scale_dir != Path(root):
         notes.append(f"scale folder {scale_dir.name}")
+    if not _SCALE_DIR.match(scale_dir.name):
+        notes.append(f"folder {scale_dir.name!r} is not named 1x / 2x / 4x: its images are taken as the "
+                     "full-resolution release")
     if fits is None:
         notes.append("ActorsHQ ships no body fits: estimate them (--fits keypoints) or add motion.npz beside the "
                      "scale folder")
     return CaptureSource(format="actorshq", root=Path(root), cameras=cameras, image_frames=image_frames,
-                         images=FileImages(images), fits=fits, fits_where=fits_where, masks=masks,
+                         images=ReleaseImages(scale_dir), fits=fits, fits_where=fits_where, masks=masks,
                          mask_frames=mask_frames, uncalibrated=uncal, notes=notes,
                          sequence=sequence_name(scale_dir), release_scale=release_scale(scale_dir))
