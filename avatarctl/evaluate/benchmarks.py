@@ -73,8 +73,9 @@ def _numbers(spec: str, name: str) -> list[int]:
 # sequences at the 4x release, cameras Cam007 and Cam127 (0-based 6, 126) scored, 200 training frames then the next
 # 200 (150 for Actor03) as test frames, black background, MPMAvatar's eval.py pixel rule (`protocols.mpmavatar_images`).
 # Frame ranges from KAISTChangmin/MPMAvatar scripts/{appearance,eval}/actorshq_a*.sh (commit a01e2c1).
-_MPM_FIGURES = ("MPMAvatar (NeurIPS 2025): 32.0 dB / SSIM .963 / LPIPS .033, mean of a1s1, a2s1, a3s1, a6s1",
-                "PhysAvatar (ECCV 2024), as MPMAvatar reports it: 30.2 dB / SSIM .957 / LPIPS .035, same mean")
+_MPM_FIGURES = ("MPMAvatar (NeurIPS 2025): 32.0 dB / SSIM .963 / LPIPS .033, its ActorsHQ figure over a1s1, a2s1, "
+                "a3s1, a6s1 together",
+                "PhysAvatar (ECCV 2024): 30.2 dB / SSIM .957 / LPIPS .035, ActorsHQ, the same four sequences")
 _MPM_TRAPS = (
     "background: MPMAvatar's runs use black (white_bkgd defaults to False and no script sets it); a white-background "
     "fit scores differently at the blurred mask edge",

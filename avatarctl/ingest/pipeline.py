@@ -1,7 +1,8 @@
 """`run_ingest`: a raw capture -> a project directory (ingest stage).
 
 Steps:
-1. detect / read the capture (`avatarctl.ingest.readers`), select views and frames, validate: cameras with
+1. detect / read the capture (`avatarctl.ingest.readers`), select views and frames (with `--benchmark`, the named
+   protocol's frames, held-out views and scale: `avatarctl.ingest.benchmark`), validate: cameras with
    images, complete frame grids for images and masks, fits for every frame, metres not millimetres;
 2. convert the fits to the body model's `BodyMotion` (EasyMocap/ZJU Rh/Th -> SMPL global_orient/transl) — or,
    for a capture without fits (`--fits keypoints`) and/or without masks or plates (`--masks mediapipe`), detect
