@@ -9,6 +9,7 @@ Layout (see docs/project_dir.md)::
       ingest/masks/<cam>/<frame:06d>.png    undistorted foreground masks (0 / 255)
       ingest/body.npz                   body-model fits, one row per frame (see avatarctl.body.motion)
       ingest/split.json                 train/test frames and views
+      ingest/benchmark.json             the named benchmark protocol ingest applied (`ingest --benchmark`), if any
       ingest/contact_sheet.png          frames with the posed body overlaid, for a person to check
       fit/config.json                   resolved fit config
       fit/log.jsonl                     one JSON record per logged step
@@ -79,6 +80,10 @@ class ProjectPaths:
     @property
     def split(self) -> Path:
         return self.ingest / "split.json"
+
+    @property
+    def benchmark(self) -> Path:
+        return self.ingest / "benchmark.json"
 
     @property
     def ingest_contact_sheet(self) -> Path:

@@ -17,7 +17,13 @@ def register(app: typer.Typer) -> None:
         split: Optional[str] = typer.Option(None, "--split", help="novel_view (training frames, held-out views; "
                                             "default) | novel_pose (test frames, held-out views) | train."),
         protocol: Optional[str] = typer.Option(None, "--protocol", help="bbox (Neural Body: PSNR inside the "
-                                               "projected 3D body box, SSIM on its rectangle; default) | full."),
+                                               "projected 3D body box, SSIM on its rectangle; default) | full | "
+                                               "mpmavatar (both images times the eroded, blurred mask)."),
+        benchmark: Optional[str] = typer.Option(None, "--benchmark", help="A named benchmark protocol "
+                                                "(docs/formats.md, 'Benchmark protocols'): its split, pixel protocol "
+                                                "and background. Default: the one the project was ingested with "
+                                                "(`ingest --benchmark`), unless --split / --protocol are given; "
+                                                "none: ignore it."),
         frames: Optional[str] = typer.Option(None, "--frames", help="Frames within the split: all | a:b[:step] | "
                                              "3,7,9."),
         views: Optional[str] = typer.Option(None, "--views", help="Comma list of cameras (default: the split's)."),
@@ -66,7 +72,11 @@ def register(app: typer.Typer) -> None:
             from avatarctl.stages.evaluate import EvalConfig
 
             view_names = split_list(views)
+            if benchmark not in (None, "none") and (split or protocol):
+                raise InputError(f"--benchmark {benchmark} sets the split and the protocol",
+                                 fix="drop --split / --protocol, or --benchmark")
             cfg = EvalConfig(split=split or "novel_view", protocol=protocol or "bbox", name=name, frames=frames,
+                             benchmark=benchmark or ("none" if split or protocol else "auto"),
                              views=view_names, every=every, latent=latent, seed=seed, sheet_rows=sheet,
                              max_rays_per_chunk=max_rays, device=device,
                              checkpoint=str(checkpoint) if checkpoint else None, save_images=save_images,
@@ -112,8 +122,15 @@ def _run(project: Path, cfg, nproc: int, wait: bool, console) -> None:
     t.add_row("latent / background", f"{m.latent} / {','.join(f'{c:g}' for c in m.background)}")
     t.add_row("ground truth", m.ground_truth)
     t.add_row("checkpoint step", str(m.checkpoint_step))
+    if m.benchmark is not None:
+        t.add_row("benchmark", m.benchmark + ("" if not m.not_comparable else
+                                              "  [yellow]not comparable:[/] " + "; ".join(m.not_comparable)))
+        for fig in m.comparable_with or []:
+            t.add_row("  comparable with", fig)
     t.add_row("time", f"{res.seconds:.1f} s ({m.timing['seconds_per_image']:.2f} s per image render)")
     console.print(t)
+    for w in res.warnings:
+        console.print(f"[yellow]warning:[/] {w}", soft_wrap=True)
     console.print(f"metrics: {res.out_dir / 'metrics.json'}", soft_wrap=True)
     if (res.out_dir / "sheet.png").is_file():
         console.print(f"sheet:   {res.out_dir / 'sheet.png'}", soft_wrap=True)

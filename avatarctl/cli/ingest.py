@@ -14,7 +14,8 @@ def register(app: typer.Typer) -> None:
     @app.command("ingest", help="Turn a raw capture (frames, cameras, masks, body fits) into a project directory.")
     def ingest(
         capture: Path = typer.Argument(..., help="Capture folder (EasyMocap, ZJU-MoCap, THuman4.0, PeopleSnapshot, "
-                                                 "COLMAP, or `avatarctl synth` output), or ONE video file (or a "
+                                                 "COLMAP, ActorsHQ, or `avatarctl synth` output), or ONE video file "
+                                                 "(or a "
                                                  "folder of its frames) from a static phone. Never modified."),
         project: Path = typer.Argument(..., help="Project directory to create (must not exist or be empty)."),
         format: str = typer.Option("auto", "--format",
@@ -50,6 +51,10 @@ def register(app: typer.Typer) -> None:
                                                 "degrees (instead of --focal-px)."),
         height: Optional[float] = typer.Option(None, "--height", help="One video: the person's height in metres, "
                                                "the body fit's scale prior (default 1.70)."),
+        benchmark: Optional[str] = typer.Option(None, "--benchmark", help="A named benchmark protocol of the "
+                                                "capture's dataset (docs/formats.md, 'Benchmark protocols'): its "
+                                                "train/test frames and views and its scale; `avatarctl eval` then "
+                                                "scores under it."),
         wait: bool = typer.Option(False, "--wait", help=WAIT_HELP),
     ) -> None:
         from rich.table import Table
@@ -64,7 +69,8 @@ def register(app: typer.Typer) -> None:
                                keypoint_fit_iters=keypoint_fit_iters, keypoint_silhouette=keypoint_silhouette,
                                frames=frames,
                                views=None if views is None else split_list(views), resize=resize,
-                               contact_sheet=contact_sheet, focal_px=focal_px, fov_deg=fov_deg, height_m=height)
+                               contact_sheet=contact_sheet, focal_px=focal_px, fov_deg=fov_deg, height_m=height,
+                               benchmark=benchmark)
             if cfg.format == "auto":
                 fmt, reason = stage.detect(cfg.capture)
                 console.print(f"detected format [bold]{fmt}[/]: {reason}")

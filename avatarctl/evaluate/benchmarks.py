@@ -7,7 +7,9 @@ capture side (split, frames, scale); `avatarctl eval` reads the name back from t
 
 One block per dataset below; `BENCHMARKS` collects them. Camera names are the project-safe names the dataset's
 reader (`avatarctl/io/<format>.py`) gives its cameras; frame specs use the `avatarctl.frames` syntax on the
-capture's frame NUMBERS.
+capture's frame NUMBERS. `scale` is relative to the dataset's full-resolution release: ingest resizes a capture by
+`scale / CaptureSource.release_scale` (ActorsHQ's 4x folder is already at 0.25). The table with the published
+figures and the traps is docs/formats.md, "Benchmark protocols".
 """
 
 from __future__ import annotations
@@ -27,16 +29,89 @@ class BenchmarkProtocol:
     train_views: tuple[str, ...] | None  # None: every camera not in test_views
     train_frames: str  # `avatarctl.frames` spec on capture frame numbers
     test_frames: str  # idem; the same as train_frames for a novel-view-only protocol
-    scale: float  # image scale after undistortion (1.0 = as released)
+    scale: float  # image scale relative to the dataset's full-resolution release (ActorsHQ 4x: 0.25)
     background: tuple[float, float, float]  # rgb in [0, 1]: render background and ground-truth compositing colour
-    pixels: str  # "full" | "bbox": the pixels scored (`avatarctl.evaluate.protocols.PROTOCOLS`)
+    pixels: str  # "full" | "bbox" | "mpmavatar": the pixels scored (`avatarctl.evaluate.protocols.PROTOCOLS`)
     split: str  # the eval split the published figure is over: "novel_view" | "novel_pose"
     comparable_with: tuple[str, ...]  # published figures this protocol is set beside, each "method (venue): figure"
     traps: tuple[str, ...] = ()  # what changes the figure (background, mask compositing, test-pose optimisation)
+    sequence: str | None = None  # the recording the frame numbers belong to, as its reader names it
+    # (`CaptureSource.sequence`, ActorsHQ "Actor01/Sequence1"); None: any recording of the dataset
+    cameras: int | None = None  # cameras (train + test) the published figures were made with; None: not checked
+
+    def __post_init__(self) -> None:
+        from avatarctl.evaluate.protocols import PROTOCOLS
+
+        if self.pixels not in PROTOCOLS or self.split not in ("novel_view", "novel_pose"):
+            raise ValueError(f"benchmark {self.name}: pixels {self.pixels!r} / split {self.split!r} unknown")
+        if not (0.0 < self.scale <= 1.0) or len(self.background) != 3 or not self.test_views:
+            raise ValueError(f"benchmark {self.name}: scale, background or test_views out of range")
+        self.train_frame_numbers()
+        self.test_frame_numbers()
+
+    def train_frame_numbers(self) -> list[int]:
+        return _numbers(self.train_frames, self.name)
+
+    def test_frame_numbers(self) -> list[int]:
+        return _numbers(self.test_frames, self.name)
+
+
+def _numbers(spec: str, name: str) -> list[int]:
+    """The frame numbers of a protocol's spec: a closed range "a:b[:s]" or a list (never relative to a capture)."""
+    from avatarctl.frames import parse_frame_spec
+
+    fs = parse_frame_spec(spec)
+    if fs.kind == "list":
+        return list(fs.frames)
+    if fs.kind == "range" and fs.start is not None and fs.stop is not None:
+        return list(range(fs.start, fs.stop, fs.step))
+    raise ValueError(f"benchmark {name}: frame spec {spec!r} must name its frames (a:b[:step] or a list)")
 
 
 # --- ActorsHQ (HumanRF) -------------------------------------------------------------------------------------------
-_ACTORSHQ: tuple[BenchmarkProtocol, ...] = ()
+# PhysAvatar's setting (Zheng et al., ECCV 2024), which MPMAvatar (Lee et al., NeurIPS 2025) follows: four
+# sequences at the 4x release, cameras Cam007 and Cam127 (0-based 6, 126) scored, 200 training frames then the next
+# 200 (150 for Actor03) as test frames, black background, MPMAvatar's eval.py pixel rule (`protocols.mpmavatar_images`).
+# Frame ranges from KAISTChangmin/MPMAvatar scripts/{appearance,eval}/actorshq_a*.sh (commit a01e2c1).
+_MPM_FIGURES = ("MPMAvatar (NeurIPS 2025): 32.0 dB / SSIM .963 / LPIPS .033, its ActorsHQ figure over a1s1, a2s1, "
+                "a3s1, a6s1 together",
+                "PhysAvatar (ECCV 2024): 30.2 dB / SSIM .957 / LPIPS .035, ActorsHQ, the same four sequences")
+_MPM_TRAPS = (
+    "background: MPMAvatar's runs use black (white_bkgd defaults to False and no script sets it); a white-background "
+    "fit scores differently at the blurred mask edge",
+    "ground-truth mask compositing: both images are multiplied by the ground-truth mask eroded 5x (3x3) and blurred "
+    "(5x5 Gaussian), so the renderer's stray density outside the person is never scored, and the black pixels "
+    "outside the mask count in the mean (PSNR over the whole image: higher than over the person)",
+    "near-white pixels (rgb mean > 0.9) are zeroed in both images first: white clothing is partly not scored",
+    "MPMAvatar's eval.py scores the camera loop's last camera only (Cam127; its metric lines sit after the loop); "
+    "avatarctl scores both cameras",
+    "held-out views: MPMAvatar's appearance training reads every camera (its dataset keeps all of them for "
+    "training), so Cam007 / Cam127 are only held-out in time there; avatarctl holds them out of training",
+    "test poses: the physics methods simulate the test frames from the tracked body; nothing is optimised on test "
+    "images",
+    "SSIM: 3DGS's 11x11 Gaussian-window SSIM there, scikit-image's here (metric_settings in metrics.json); LPIPS: "
+    "VGG there, AlexNet here, and only when its weights are on the machine",
+    "scale: the 4x release; another scale is another benchmark",
+)
+
+
+def _actorshq(sequence: str, tag: str, train: tuple[int, int], test: tuple[int, int],
+              extra: tuple[str, ...] = ()) -> BenchmarkProtocol:
+    return BenchmarkProtocol(
+        name=f"actorshq-physavatar-{tag}", dataset="actorshq", test_views=("Cam007", "Cam127"), train_views=None,
+        train_frames=f"{train[0]}:{train[1]}", test_frames=f"{test[0]}:{test[1]}", scale=0.25,
+        background=(0.0, 0.0, 0.0), pixels="mpmavatar", split="novel_pose", comparable_with=_MPM_FIGURES + extra,
+        traps=_MPM_TRAPS, sequence=sequence, cameras=160)
+
+
+_ACTORSHQ: tuple[BenchmarkProtocol, ...] = (
+    _actorshq("Actor01/Sequence1", "a1s1", (460, 660), (660, 860),
+              ("Animatable Gaussians (CVPR 2024) on Actor01 (dress), a user's reproduction under that method's own "
+               "split: 28.64 dB / SSIM .923 / LPIPS .082 (indicative only)",)),
+    _actorshq("Actor02/Sequence1", "a2s1", (406, 606), (606, 806)),
+    _actorshq("Actor03/Sequence1", "a3s1", (370, 570), (570, 720)),
+    _actorshq("Actor06/Sequence1", "a6s1", (450, 650), (650, 850)),
+)
 
 # --- DNA-Rendering ------------------------------------------------------------------------------------------------
 # SeqAvatar (Xu et al., ICCV 2025) sets GauHuman and 3DGS-Avatar beside itself on six loose-clothing sequences
@@ -116,6 +191,11 @@ _FOUR_D_DRESS: tuple[BenchmarkProtocol, ...] = (
 )
 
 BENCHMARKS: dict[str, BenchmarkProtocol] = {p.name: p for p in (*_ACTORSHQ, *_DNA_RENDERING, *_FOUR_D_DRESS)}
+
+
+def for_dataset(dataset: str) -> list[str]:
+    """The names of the protocols for captures of format `dataset`."""
+    return sorted(n for n, p in BENCHMARKS.items() if p.dataset == dataset)
 
 
 def benchmark(name: str) -> BenchmarkProtocol:

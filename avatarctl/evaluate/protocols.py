@@ -4,6 +4,9 @@
   over the pixels inside the projected box polygon (`mask_at_box`), SSIM on the image cropped to the polygon's 2D
   bounding rectangle.
 - `full`: all pixels; the background colour used for rendering and ground-truth compositing is recorded.
+- `mpmavatar` (MPMAvatar's eval.py, the ActorsHQ / 4D-DRESS benchmark protocols): near-white pixels (rgb mean
+  > 0.9) of each image zeroed, then both images multiplied by the ground-truth mask eroded 5 times by a 3x3 square
+  and blurred by a 5x5 Gaussian (`mpmavatar_images`); PSNR and SSIM over every pixel of the results.
 
 Ground truth (`ground_truth`, the one compositing rule of fit targets, validation and eval): the undistorted frame
 composited with its mask over the background colour the avatar is trained / rendered over.
@@ -17,7 +20,8 @@ import numpy as np
 
 from avatarctl.geometry.cameras import Camera
 
-PROTOCOLS = ("bbox", "full")
+PROTOCOLS = ("bbox", "full", "mpmavatar")
+WHITE_CUT = 0.9  # mpmavatar: pixels whose rgb mean exceeds this are zeroed (eval.py's white-background cut)
 GROUND_TRUTH = "undistorted ingest frame * mask + background * (1 - mask)"
 
 
@@ -68,3 +72,24 @@ def bbox_region(camera: Camera, vertices: np.ndarray, pad: float = 0.05) -> Eval
 
 def full_region(height: int, width: int) -> EvalRegion:
     return EvalRegion(mask=np.ones((height, width), bool), crop=(0, 0, width, height))
+
+
+def mpmavatar_weights(mask: np.ndarray) -> np.ndarray:
+    """[H, W] bool ground-truth mask -> [H, W] float32 weights: eroded 5x by a 3x3 square, then a 5x5 Gaussian
+    blur (sigma from the kernel size, as cv2 derives it for sigma 0)."""
+    import cv2
+
+    m = cv2.erode(np.asarray(mask, np.float32), np.ones((3, 3), np.uint8), iterations=5)
+    return cv2.GaussianBlur(m, (5, 5), 0)
+
+
+def mpmavatar_images(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """([H, W, 3] float pred, [H, W, 3] float gt, [H, W] bool ground-truth mask) -> the two images the `mpmavatar`
+    protocol scores: near-white pixels (mean > `WHITE_CUT`) of each zeroed, both times `mpmavatar_weights`."""
+    w = mpmavatar_weights(mask)[..., None]
+    out = []
+    for img in (pred, gt):
+        a = np.array(img, np.float32)
+        a[a.mean(-1) > WHITE_CUT] = 0.0
+        out.append(a * w)
+    return out[0], out[1]

@@ -11,8 +11,8 @@ from avatarctl.errors import InputError
 from avatarctl.frames import parse_frame_spec
 
 SCHEMA_VERSION = 1
-FORMAT_CHOICES = ("auto", "easymocap", "zju", "thuman4", "peoplesnapshot", "colmap", "dna_rendering", "4d_dress",
-                  "video")
+FORMAT_CHOICES = ("auto", "easymocap", "zju", "thuman4", "peoplesnapshot", "colmap", "actorshq", "dna_rendering",
+                  "4d_dress", "video")
 BODY_MODEL_CHOICES = ("anny", "smpl", "smplx", "toy")
 MASK_CHOICES = ("auto", "files", "background", "mediapipe")
 FITS_CHOICES = ("auto", "files", "keypoints")
@@ -38,6 +38,8 @@ class IngestConfig:
     focal_px: float | None = None  # one video: the focal length in pixels of the video's frames (avatarctl.io.monocular)
     fov_deg: float | None = None  # one video: the diagonal field of view in degrees (instead of --focal-px)
     height_m: float | None = None  # one video: the subject's height in metres, the fit's scale prior (None: default)
+    benchmark: str | None = None  # a named benchmark protocol (avatarctl.evaluate.benchmarks): its split, frames and
+    # scale (avatarctl.ingest.benchmark); recorded in ingest/benchmark.json, which eval scores under by default
     schema_version: int = SCHEMA_VERSION
 
     def __post_init__(self) -> None:
@@ -79,6 +81,13 @@ class IngestConfig:
                                                                                "e.g. 1.75")
         if self.frames is not None:
             parse_frame_spec(self.frames)  # syntax check now; membership is checked against the capture later
+        if self.benchmark is not None:
+            from avatarctl.evaluate.benchmarks import benchmark
+
+            benchmark(self.benchmark)  # a known name
+            if self.resize != 1.0:
+                raise InputError(f"--resize and --benchmark {self.benchmark} both set the image scale",
+                                 fix="drop --resize: the protocol sets the scale")
 
     def to_json(self) -> dict[str, Any]:
         return {"schema_version": self.schema_version, "capture": str(self.capture.resolve()),
@@ -88,4 +97,4 @@ class IngestConfig:
                 "keypoint_silhouette": self.keypoint_silhouette,
                 "frames": self.frames, "views": None if self.views is None else list(self.views),
                 "resize": self.resize, "contact_sheet": self.contact_sheet, "focal_px": self.focal_px,
-                "fov_deg": self.fov_deg, "height_m": self.height_m}
+                "fov_deg": self.fov_deg, "height_m": self.height_m, "benchmark": self.benchmark}

@@ -1,7 +1,8 @@
 """`run_ingest`: a raw capture -> a project directory (ingest stage).
 
 Steps:
-1. detect / read the capture (`avatarctl.ingest.readers`), select views and frames, validate: cameras with
+1. detect / read the capture (`avatarctl.ingest.readers`), select views and frames (with `--benchmark`, the named
+   protocol's frames, held-out views and scale: `avatarctl.ingest.benchmark`), validate: cameras with
    images, complete frame grids for images and masks, fits for every frame, metres not millimetres;
 2. convert the fits to the body model's `BodyMotion` (EasyMocap/ZJU Rh/Th -> SMPL global_orient/transl) — or,
    for a capture without fits (`--fits keypoints`) and/or without masks or plates (`--masks mediapipe`), detect
@@ -19,13 +20,14 @@ The whole project is built in a temporary sibling directory and renamed into pla
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
 
 from avatarctl.errors import InputError, ProjectError
 from avatarctl.frames import select_frames
+from avatarctl.ingest.benchmark import BenchmarkPlan
 from avatarctl.ingest.config import IngestConfig
 from avatarctl.ingest.estimate import EstimateReport
 from avatarctl.ingest.split import check_split_views
@@ -186,6 +188,8 @@ class IngestPlan:
     faces: np.ndarray | None  # [F, 3] body mesh triangles (None until the fits are estimated)
     fits_mode: str = "files"  # "files" | "keypoints"
     detections: object = None  # `Detections` (with masks for masks "mediapipe") once the people are detected
+    resize: float = 1.0  # scale after undistortion (--resize, or the benchmark protocol's)
+    benchmark: BenchmarkPlan | None = None  # `--benchmark`: its split, frames and record (avatarctl.ingest.benchmark)
 
 
 def plan_ingest(cfg: IngestConfig) -> IngestPlan:
@@ -204,7 +208,15 @@ def plan_ingest(cfg: IngestConfig) -> IngestPlan:
     if not available:
         raise InputError("the selected cameras have no images", where=str(src.root),
                          fix="check the capture layout (docs/formats.md)")
-    frames = select_frames(cfg.frames, available)
+    bench = None
+    if cfg.benchmark is not None:
+        from avatarctl.evaluate.benchmarks import benchmark
+        from avatarctl.ingest.benchmark import plan_benchmark
+
+        bench = plan_benchmark(benchmark(cfg.benchmark), src, cams, available, cfg.frames, cfg.views is not None)
+        frames = bench.frames
+    else:
+        frames = select_frames(cfg.frames, available)
     check_complete(src.image_frames, cams, frames, "images", src.root)
     if src.format == "video":
         from avatarctl.ingest.estimate import MIN_VIDEO_FRAMES
@@ -221,7 +233,8 @@ def plan_ingest(cfg: IngestConfig) -> IngestPlan:
     if fits_mode == "keypoints":
         bm_name = cfg.body_model or "anny"
         body = load_body_model(bm_name, cfg.body_model_path if needs_model_file(bm_name) else None)
-        return IngestPlan(src, reason, cams, frames, masks_mode, bm_name, body, None, None, fits_mode)
+        return IngestPlan(src, reason, cams, frames, masks_mode, bm_name, body, None, None, fits_mode,
+                          resize=bench.resize if bench else cfg.resize, benchmark=bench)
 
     fits_where = src.fits_where or str(src.root)
     check_fits(src.fits, frames, fits_where)
@@ -238,7 +251,8 @@ def plan_ingest(cfg: IngestConfig) -> IngestPlan:
     motion = motion_all.select(motion_all.rows_for(frames))
     check_fits(motion, frames, fits_where)  # converted SMPL transl, anny root translation
     faces = body.template(motion.select([0])).faces.cpu().numpy()
-    return IngestPlan(src, reason, cams, frames, masks_mode, bm_name, body, motion, faces, fits_mode)
+    return IngestPlan(src, reason, cams, frames, masks_mode, bm_name, body, motion, faces, fits_mode,
+                      resize=bench.resize if bench else cfg.resize, benchmark=bench)
 
 
 def run_ingest(cfg: IngestConfig, progress: ProgressFn | None = None) -> IngestResult:
@@ -251,7 +265,7 @@ def run_ingest(cfg: IngestConfig, progress: ProgressFn | None = None) -> IngestR
     from avatarctl.geometry.silhouette import fraction_inside
     from avatarctl.ingest.split import default_split, restrict_split
     from avatarctl.ingest.undistort import Undistorter
-    from avatarctl.io.project_io import save_cameras, save_split, write_frame, write_mask
+    from avatarctl.io.project_io import save_benchmark, save_cameras, save_split, write_frame, write_mask
     from avatarctl.project import BodyModelRef, Project, SourceRef, hash_tree, now_iso, sha256_file
 
     t0 = time.perf_counter()
@@ -260,13 +274,14 @@ def run_ingest(cfg: IngestConfig, progress: ProgressFn | None = None) -> IngestR
     src = plan.source
     cam_by_name = {c.name: c for c in src.cameras}
     source_hash, n_files = (sha256_file(src.root), 1) if src.root.is_file() else hash_tree(src.root)
-    und = {c: Undistorter.for_camera(cam_by_name[c], cfg.resize) for c in plan.cams}
+    und = {c: Undistorter.for_camera(cam_by_name[c], plan.resize) for c in plan.cams}
     estimate = None
     if plan.fits_mode == "keypoints" or plan.masks_mode == "mediapipe":
         plan, estimate = _estimate(cfg, plan, und, progress)
     cams, frames, motion = plan.cams, plan.frames, plan.motion
     plates = _undistorted_plates(src, und) if plan.masks_mode == "background" else {}
-    split = restrict_split(src.split, frames, cams) if src.split is not None else default_split(frames, cams)
+    given = plan.benchmark.split if plan.benchmark is not None else src.split
+    split = restrict_split(given, frames, cams) if given is not None else default_split(frames, cams)
     sheet_cams, sheet_frames = pick(cams, 4), pick(frames, 6 if len(cams) == 1 else 3)
     tiles: list[Tile] = []
     inside: list[float] = []
@@ -296,12 +311,20 @@ def run_ingest(cfg: IngestConfig, progress: ProgressFn | None = None) -> IngestR
         motion.save(proj.paths.body)
         save_split(proj.paths.split, split)
         outputs = [proj.paths.cameras, proj.paths.body, proj.paths.split]
+        if plan.benchmark is not None:
+            record = replace(plan.benchmark.record, frames=len(frames), train_views=split.train_views,
+                             test_views=split.test_views)
+            save_benchmark(proj.paths.benchmark, record)
+            outputs.append(proj.paths.benchmark)
         if tiles:
             write_contact_sheet(proj.paths.ingest_contact_sheet, tiles, sheet_cams, sheet_frames)
             outputs.append(proj.paths.ingest_contact_sheet)
         outputs += [proj.paths.frame(c, f) for f in (frames[0], frames[-1]) for c in cams]
         mean_inside = float(np.mean(inside)) if inside else 0.0
         warnings = []
+        if plan.benchmark is not None and record.partial:
+            warnings.append(f"the project falls short of benchmark {record.name} ({'; '.join(record.partial)}): "
+                            "its figures are not comparable with the published ones")
         if mean_inside < MIN_INSIDE:
             warnings.append(f"only {100 * mean_inside:.1f}% of the body mesh projects inside the masks: check the "
                             "calibration / fits alignment on ingest/contact_sheet.png")
@@ -313,6 +336,8 @@ def run_ingest(cfg: IngestConfig, progress: ProgressFn | None = None) -> IngestR
                    "fits": plan.fits_mode}
         if estimate is not None:
             summary["estimate"] = estimate.to_json()
+        if plan.benchmark is not None:
+            summary["benchmark"] = {"name": record.name, "partial": record.partial}
         if src.format == "video":
             K = cameras_out[0].K
             summary["camera"] = {"focal_px": round(float(K[0, 0]), 2), "intrinsics": src.notes[0],
@@ -324,7 +349,8 @@ def run_ingest(cfg: IngestConfig, progress: ProgressFn | None = None) -> IngestR
         proj.record("ingest", config, outputs, started, summary)
     return IngestResult(project=cfg.project, format=src.format, format_reason=plan.format_reason, cameras=cams,
                         frames=frames, resolution=(w, h), body_model=plan.body_model, masks_source=plan.masks_mode,
-                        seconds=seconds, vertices_inside_masks=mean_inside, notes=list(src.notes), warnings=warnings,
+                        seconds=seconds, vertices_inside_masks=mean_inside,
+                        notes=list(src.notes) + (plan.benchmark.notes if plan.benchmark else []), warnings=warnings,
                         fits_source=plan.fits_mode, estimate=estimate)
 
 

@@ -110,6 +110,10 @@ def reader_for(fmt: str) -> Callable[[Path], CaptureSource]:
         from avatarctl.io.colmap import read_colmap
 
         return read_colmap
+    if fmt == "actorshq":
+        from avatarctl.io.actorshq import read_actorshq
+
+        return read_actorshq
     if fmt == "dna_rendering":
         from avatarctl.io.dna_rendering import read_dna_rendering
 
@@ -119,5 +123,5 @@ def reader_for(fmt: str) -> Callable[[Path], CaptureSource]:
 
         return read_four_d_dress
     raise InputError(f"unknown capture format {fmt!r}",
-                     fix="use --format auto, easymocap, zju, thuman4, peoplesnapshot, colmap, dna_rendering or "
-                         "4d_dress")
+                     fix="use --format auto, easymocap, zju, thuman4, peoplesnapshot, colmap, actorshq, "
+                         "dna_rendering or 4d_dress")

@@ -167,6 +167,9 @@ class CaptureSource:
     split: Split | None = None  # the capture's own split, if it ships one
     notes: list[str] = field(default_factory=list)  # what the reader decided, shown to the user
     fps: float = 0.0  # frame rate when the capture states one (videos), else 0
+    sequence: str = ""  # the dataset's name of this recording when its folders say it (ActorsHQ "Actor01/Sequence1")
+    release_scale: float = 1.0  # scale of these images relative to the dataset's full-resolution release (ActorsHQ
+    # 4x folder: 0.25); `--benchmark` scales relative to the full release
     hands_from_mean: bool = False  # SMPL-X fits whose hand poses are offsets from the model's hand mean (smplx's
     # flat_hand_mean=False); ingest adds the model file's mean (projects store full axis-angle hand poses)
 

@@ -1,6 +1,8 @@
 """Which capture format a folder holds (``--format auto``), with the evidence, checked in this order:
 
 ========================  =====================================================================
+actorshq                  ``calibration.csv`` + ``rgbs/`` (a scale folder), or a sequence folder holding one
+                          ``Nx/calibration.csv`` (``avatarctl.io.actorshq``)
 dna_rendering             a ``<seq>.smc`` file (its ``<seq>_annots.smc`` beside it or in the release's
                           annotations folder; ``avatarctl.io.dna_rendering``)
 4d_dress                  ``Capture/cameras.pkl`` + ``basic_info.pkl`` (a 4D-DRESS take folder)
@@ -20,11 +22,12 @@ from pathlib import Path
 
 from avatarctl.errors import InputError
 
-FORMATS = ("easymocap", "zju", "thuman4", "peoplesnapshot", "colmap", "dna_rendering", "4d_dress")
+FORMATS = ("easymocap", "zju", "thuman4", "peoplesnapshot", "colmap", "actorshq", "dna_rendering", "4d_dress")
 
 
 def detect_format(root: str | Path) -> tuple[str, str]:
     """(format, reason) for the capture folder `root`; InputError if it is not a known layout."""
+    from avatarctl.io.actorshq import is_actorshq
     from avatarctl.io.monocular import is_monocular_source
 
     root = Path(root)
@@ -33,6 +36,8 @@ def detect_format(root: str | Path) -> tuple[str, str]:
             ": one static camera"
     if not root.is_dir():
         raise InputError("capture folder not found", where=str(root), fix="pass the folder that holds the capture")
+    if is_actorshq(root):
+        return "actorshq", "found calibration.csv + rgbs/ (ActorsHQ)"
     smc = sorted(p.name for p in root.glob("*.smc") if not p.name.endswith("_annots.smc"))
     if smc:
         return "dna_rendering", f"found {smc[0]} (DNA-Rendering)"
@@ -53,6 +58,7 @@ def detect_format(root: str | Path) -> tuple[str, str]:
                 return "colmap", f"found {rel} (COLMAP)"
     raise InputError("unknown capture format", where=str(root),
                      fix="expected intri.yml+extri.yml (EasyMocap), annots.npy (ZJU-MoCap), calibration.json "
-                         "(THuman4.0), camera.pkl (PeopleSnapshot), sparse/0/cameras.bin (COLMAP), <seq>.smc "
+                         "(THuman4.0), camera.pkl (PeopleSnapshot), sparse/0/cameras.bin (COLMAP), "
+                         "calibration.csv + rgbs/ (ActorsHQ, its scale folder e.g. Sequence1/4x), <seq>.smc "
                          "(DNA-Rendering) or Capture/cameras.pkl + basic_info.pkl (4D-DRESS); "
                          "or pass --format")

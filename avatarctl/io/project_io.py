@@ -40,6 +40,30 @@ class Split:
 
 
 @dataclass(frozen=True)
+class IngestedBenchmark:
+    """``ingest/benchmark.json``: the named benchmark protocol (`avatarctl.evaluate.benchmarks`) ingest applied, and
+    where the project falls short of it (a partial download, narrowed --frames / --views)."""
+
+    name: str  # the protocol's name
+    dataset: str  # the capture format it is for
+    resize: float  # the scale ingest applied to the capture's images
+    frames: int  # frames ingested (train + test)
+    frames_expected: int  # frames the protocol names
+    train_views: list[str]
+    test_views: list[str]
+    partial: list[str]  # why the project does not meet the protocol in full (empty: it does)
+
+    def to_json(self) -> dict:
+        return asdict(self)
+
+    @classmethod
+    def from_json(cls, d: dict) -> "IngestedBenchmark":
+        return cls(name=str(d["name"]), dataset=str(d["dataset"]), resize=float(d["resize"]), frames=int(d["frames"]),
+                   frames_expected=int(d["frames_expected"]), train_views=[str(v) for v in d["train_views"]],
+                   test_views=[str(v) for v in d["test_views"]], partial=[str(p) for p in d["partial"]])
+
+
+@dataclass(frozen=True)
 class ProjectCapture:
     """Everything ingest produced, loaded (images stay on disk and are read lazily)."""
 
@@ -89,6 +113,16 @@ def save_split(path: Path, split: Split) -> None:
 
 def load_split(path: Path) -> Split:
     return _read_ingest_json(path, "split", Split.from_json)
+
+
+def save_benchmark(path: Path, record: IngestedBenchmark) -> None:
+    write_json(path, record.to_json())
+
+
+def load_benchmark(project: Project) -> IngestedBenchmark | None:
+    """The project's ``ingest/benchmark.json``, or None when ingest applied no benchmark protocol."""
+    path = project.paths.benchmark
+    return _read_ingest_json(path, "benchmark", IngestedBenchmark.from_json) if path.is_file() else None
 
 
 def write_frame(project: Project, cam: str, frame: int, rgb: np.ndarray) -> Path:

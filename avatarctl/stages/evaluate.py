@@ -11,9 +11,16 @@ trained with (`FitConfig.background`): gt = image * mask + background * (1 - mas
 the same colour, so pixels outside the person score only the avatar's stray density.
 
 Protocols (`avatarctl.evaluate.protocols`): `bbox` (Neural Body / SLRF: PSNR over the projected 3D body box, SSIM on
-its bounding rectangle; only that rectangle is rendered) or `full` (every pixel). Scores come only from
+its bounding rectangle; only that rectangle is rendered), `full` (every pixel) or `mpmavatar` (both images times the
+eroded, blurred ground-truth mask, near-white pixels zeroed; every pixel). Scores come only from
 `avatarctl.evaluate.metrics` (float32, settings and scikit-image version recorded). The split's score is the mean
 over (frame, view) images of the per-image PSNR / SSIM (Neural Body's averaging).
+
+Named benchmark protocols (`avatarctl.evaluate.benchmarks`; `benchmark`: "auto" = the one the project was ingested
+with, `ingest --benchmark`, recorded in ingest/benchmark.json): the protocol's split, pixel protocol and background
+replace `split` / `protocol` and the fit's background (the avatar is rendered, and the ground truth composited,
+over the protocol's background; a fit trained over another one is named in one warning line); metrics.json records
+the protocol's name, the published figures it is comparable with, and why it is not (a partial project).
 
 LPIPS is reported only when the `lpips` package and its AlexNet weights are already on this machine (nothing is
 downloaded); otherwise `"lpips": null` with the reason.
@@ -67,6 +74,7 @@ class EvalConfig:
     save_images: bool = False  # also write every render to eval/<name>/renders/<frame:06d>_<view>.png
     region: str = "all"  # what the headline PSNR is over: all (the protocol's region) | garment | body | edge | inner
     knockout: tuple[str, ...] = ()  # render-time knockout of a trained model: delta-n and/or embedding (Fig. 3)
+    benchmark: str = "auto"  # auto (the project's ingest --benchmark, if any) | none | a protocol name
 
     def __post_init__(self) -> None:
         from avatarctl.evaluate.protocols import PROTOCOLS
@@ -89,6 +97,10 @@ class EvalConfig:
             raise InputError(f"--sheet must be >= 0, got {self.sheet_rows}", where="--sheet", fix="e.g. --sheet 4")
         if not 0.0 <= self.bbox_pad <= 1.0:
             raise InputError(f"bbox pad {self.bbox_pad} m outside [0, 1]", fix="e.g. 0.05")
+        if self.benchmark not in ("auto", "none"):
+            from avatarctl.evaluate.benchmarks import benchmark
+
+            benchmark(self.benchmark)
         check_name(self.out_name, "eval name")
 
     @property
@@ -109,6 +121,7 @@ class EvalResult:
     metrics: EvalMetrics  # what metrics.json holds
     seconds: float  # whole stage
     scores: list[ImageScore] = field(default_factory=list)
+    warnings: list[str] = field(default_factory=list)  # one line each (a fit background the protocol overrides)
 
     @property
     def psnr(self) -> float:
@@ -143,12 +156,39 @@ def split_pairs(avatar: Any, cfg: EvalConfig) -> tuple[list[int], list[str], boo
     return frames, views, is_train
 
 
+def resolve_benchmark(project: Project, cfg: EvalConfig) -> tuple[EvalConfig, Any, Any]:
+    """(cfg, protocol, ingested record): `cfg` with the named benchmark protocol's split and pixel protocol and its
+    `benchmark` made concrete (a name, or "none"); protocol and record None without one. A name the project was not
+    ingested with is refused (its split is not the protocol's)."""
+    from dataclasses import replace
+
+    from avatarctl.evaluate.benchmarks import benchmark
+    from avatarctl.io.project_io import load_benchmark
+
+    if cfg.benchmark == "none":
+        return cfg, None, None
+    record = load_benchmark(project)
+    if record is None:
+        if cfg.benchmark == "auto":
+            return replace(cfg, benchmark="none"), None, None
+        raise InputError(f"the project was not ingested with --benchmark {cfg.benchmark}", where=str(project.root),
+                         fix=f"ingest the capture again with --benchmark {cfg.benchmark} (its split is the "
+                             "protocol's), or drop --benchmark")
+    if cfg.benchmark not in ("auto", record.name):
+        raise InputError(f"the project was ingested with --benchmark {record.name}, not {cfg.benchmark}",
+                         where=str(project.paths.benchmark), fix=f"use --benchmark {record.name}, or drop it")
+    proto = benchmark(record.name)
+    return replace(cfg, split=proto.split, protocol=proto.pixels, benchmark=proto.name), proto, record
+
+
 def run(project_dir: str | Path, cfg: EvalConfig, progress: ProgressFn | None = None, *,
         nproc: int = 1, wait: bool = False) -> EvalResult | None:
     """Run the eval stage on `project_dir` (see the module docstring) on `nproc` ranks (None on the ranks > 0 of
     a torchrun launch). Holds the lock of `eval/<name>`; `wait`: for another command writing it to finish, instead
     of refusing (`BusyError`)."""
-    out_dir = Project.open(project_dir).paths.eval(cfg.out_name)
+    project = Project.open(project_dir)
+    cfg = resolve_benchmark(project, cfg)[0]
+    out_dir = project.paths.eval(cfg.out_name)
     with writing(out_dir, f"eval --name {cfg.out_name}", wait, sweep=True):
         return run_ranked(_run, nproc, (str(project_dir), cfg), progress, cfg.device, "eval")
 
@@ -179,11 +219,16 @@ def _run(env: Any, progress: ProgressFn | None, project_dir: str, cfg: EvalConfi
     started = now_iso()
     t_start = time.perf_counter()
     project = open_fitted(project_dir, cfg.checkpoint, cfg.views)
+    cfg, proto, bench = resolve_benchmark(project, cfg)
     avatar = load_fitted(project, rank_device_name(env, cfg.device), cfg.checkpoint)
     cap = avatar.capture
     frames, views, is_train = split_pairs(avatar, cfg)
     latent = latent_for(cfg.latent, is_train)
-    background = avatar.background
+    background = tuple(float(c) for c in (proto.background if proto is not None else avatar.background))
+    warnings = []
+    if proto is not None and tuple(float(c) for c in avatar.background) != background:
+        warnings.append(f"the avatar was fitted over background {_rgb(avatar.background)}; benchmark {proto.name} "
+                        f"renders and composites over {_rgb(background)}: scored over {_rgb(background)}")
     lpips_fn, lpips_reason = lpips_status()
     geometry = None if cfg.region in SILHOUETTE_REGIONS else _gt_geometry(project, cfg.region)
     cams = {v: cap.cameras[v].pinhole() for v in views}
@@ -208,7 +253,7 @@ def _run(env: Any, progress: ProgressFn | None, project_dir: str, cfg: EvalConfi
             for vi, view in enumerate(views):
                 k = fi * len(views) + vi
                 mine.append(_score_image(avatar, cfg, project, state, verts, frame, view, cams[view], latent,
-                                         lpips_fn, geometry, k in sheet_at, tmp, k))
+                                         lpips_fn, geometry, k in sheet_at, tmp, k, background))
                 if progress is not None:
                     progress(ProgressReport(stage="eval", done=min(len(mine) * world, total), total=total,
                                             seconds=time.perf_counter() - t0, detail=mine[-1].score))
@@ -263,6 +308,9 @@ def _run(env: Any, progress: ProgressFn | None, project_dir: str, cfg: EvalConfi
             created=now_iso(),
             region=cfg.region,
             regions={k: asdict(v) for k, v in regions.items()} if regions else None,
+            benchmark=proto.name if proto is not None else None,
+            comparable_with=list(proto.comparable_with) if proto is not None else None,
+            not_comparable=_not_comparable(cfg, bench, frames, views),
         )
         write_json(tmp / "metrics.json", metrics.to_json())
         write_text(tmp / "per_frame.csv", per_frame_csv(scores))
@@ -276,21 +324,40 @@ def _run(env: Any, progress: ProgressFn | None, project_dir: str, cfg: EvalConfi
                    summary={"name": cfg.out_name, "split": cfg.split, "protocol": cfg.protocol,
                             "psnr": round(metrics.psnr, 3), "ssim": round(metrics.ssim, 4),
                             "images": len(scores), "checkpoint_step": avatar.step})
-    return EvalResult(out_dir=out_dir, metrics=metrics, seconds=seconds, scores=scores)
+    return EvalResult(out_dir=out_dir, metrics=metrics, seconds=seconds, scores=scores, warnings=warnings)
+
+
+def _rgb(c: Any) -> str:
+    return ",".join(f"{float(x):g}" for x in c)
+
+
+def _not_comparable(cfg: EvalConfig, bench: Any, frames: list[int], views: list[str]) -> list[str] | None:
+    """Why a benchmark figure is not the published protocol's (None without a benchmark (`bench`, the project's
+    `IngestedBenchmark`); [] when it is)."""
+    if bench is None:
+        return None
+    out = list(bench.partial)
+    if cfg.frames is not None or cfg.every != 1:
+        out.append(f"eval frames narrowed (--frames {cfg.frames or 'all'}, --every {cfg.every}): {len(frames)} frames")
+    if cfg.views:
+        out.append(f"eval views narrowed to {', '.join(views)}")
+    if cfg.region != "all" or cfg.knockout:
+        out.append("a region or knockout score, not the protocol's")
+    return out
 
 
 def _score_image(avatar: Any, cfg: EvalConfig, project: Project, state: Any, verts: np.ndarray, frame: int, view: str,
                  cam: Any, latent: str, lpips_fn: Any, geometry: Any, on_sheet: bool, tmp: Path,
-                 index: int) -> _Scored:
-    """Render one (frame, view) over the protocol's region and score it against the ground truth."""
+                 index: int, background: tuple[float, float, float]) -> _Scored:
+    """Render one (frame, view) over `background` and the protocol's region and score it against the ground truth."""
     from avatarctl.evaluate.metrics import mse, psnr_from_mse, ssim
-    from avatarctl.evaluate.protocols import bbox_region, full_region, ground_truth
+    from avatarctl.evaluate.protocols import bbox_region, full_region, ground_truth, mpmavatar_images
     from avatarctl.evaluate.regions import SILHOUETTE_REGIONS, silhouette_band, split_silhouette
     from avatarctl.evaluate.sheet import SheetRow
     from avatarctl.render.engine import render_view
     from avatarctl.render.images import write_png
 
-    cap, background = avatar.capture, avatar.background
+    cap = avatar.capture
     region = bbox_region(cam, verts, pad=cfg.bbox_pad) if cfg.protocol == "bbox" \
         else full_region(cam.height, cam.width)
     if not region.mask.any():
@@ -305,8 +372,11 @@ def _score_image(avatar: Any, cfg: EvalConfig, project: Project, state: Any, ver
                            pixel_mask=render_mask)
     mask = cap.mask(view, frame)
     gt = ground_truth(cap.image(view, frame), mask, background)  # [H, W, 3]
-    e = mse(view_out.rgb, gt, region.mask)
-    pred_crop, gt_crop = region.crop_image(view_out.rgb), region.crop_image(gt)
+    rgb = view_out.rgb  # [H, W, 3]
+    if cfg.protocol == "mpmavatar":
+        rgb, gt = mpmavatar_images(rgb, gt, mask)
+    e = mse(rgb, gt, region.mask)
+    pred_crop, gt_crop = region.crop_image(rgb), region.crop_image(gt)
     try:
         s = ssim(pred_crop, gt_crop)
     except ValueError as err:
@@ -314,10 +384,10 @@ def _score_image(avatar: Any, cfg: EvalConfig, project: Project, state: Any, ver
                          fix="use --protocol full or a higher-resolution capture") from None
     region_mse = region_pixels = None
     if cfg.region in SILHOUETTE_REGIONS:
-        region_mse, region_pixels = _part_errors(view_out.rgb, gt, split_silhouette(region.mask, silhouette_band(mask)),
+        region_mse, region_pixels = _part_errors(rgb, gt, split_silhouette(region.mask, silhouette_band(mask)),
                                                  SILHOUETTE_REGIONS)
     elif geometry is not None:
-        region_mse, region_pixels = _garment_errors(view_out.rgb, gt, region.mask, cam, geometry, frame)
+        region_mse, region_pixels = _garment_errors(rgb, gt, region.mask, cam, geometry, frame)
     score = ImageScore(frame=frame, view=view, psnr=psnr_from_mse(e), ssim=s, mse=e, pixels=int(region.mask.sum()),
                        latent=latent, seconds=round(view_out.seconds, 4), region_mse=region_mse,
                        region_pixels=region_pixels)
@@ -371,6 +441,9 @@ def _finite_mean(a: np.ndarray) -> float:
 
 
 def _protocol_details(cfg: EvalConfig) -> str:
+    if cfg.protocol == "mpmavatar":
+        return ("MPMAvatar's eval.py: near-white pixels (rgb mean > 0.9) of each image zeroed, both images times the "
+                "ground-truth mask eroded 5x (3x3) and blurred (5x5 Gaussian); PSNR and SSIM over every pixel")
     if cfg.protocol == "bbox":
         return (f"PSNR over pixels inside the projection of the posed body mesh's 3D box grown by {cfg.bbox_pad} m "
                 "(mask_at_box); SSIM on the image cropped to that polygon's bounding rectangle")
