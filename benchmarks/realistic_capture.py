@@ -3,7 +3,7 @@
 
 For a synth preset and seed (default `realistic`: 4 cameras, every imperfection), the script builds the clean twin
 (`SynthConfig.clean_twin`: same seed, same scene), the realistic capture, and one capture per single imperfection
-(`colour`: exposure + white balance; `noise`; `jpeg`; `blur`; `masks`: MediaPipe masks; `fits`: keypoint-fitted
+(`colour`: exposure + white balance + the held-out cameras' offset; `noise`; `jpeg`; `blur`; `masks`: MediaPipe masks; `fits`: keypoint-fitted
 anny, or `fit_noise`: fits with --fit-noise errors), ingests each (`--masks mediapipe` / `--fits keypoints` where the
 capture leaves them out), fits each for the same wall-time budget (`--set time_budget_s=...`), evaluates the held-out
 views of the training frames (bbox protocol; the plain PSNR and NeRF-W's colour-matched one, `avatarctl eval`), and
@@ -36,7 +36,7 @@ from typing import Any
 
 # a single imperfection -> the SynthConfig fields that make it (taken from the realistic config)
 SINGLES: dict[str, tuple[str, ...]] = {
-    "colour": ("exposure_ev", "white_balance"), "noise": ("noise_std",), "jpeg": ("jpeg_quality",),
+    "colour": ("exposure_ev", "white_balance", "held_out_ev"), "noise": ("noise_std",), "jpeg": ("jpeg_quality",),
     "blur": ("shutter_s",), "masks": ("masks",), "fits": ("fits",),
     "fit_noise": ("fit_noise_deg", "fit_noise_cm", "fit_noise_corr_frames"),
 }

@@ -19,7 +19,7 @@ def test_captures_are_the_clean_twin_the_realistic_one_and_one_per_imperfection(
     caps = {c.name: c.config for c in captures(config)}
     assert list(caps) == ["clean", "realistic", "colour", "noise", "jpeg", "blur", "masks", "fits"]
     assert caps["clean"].imperfections == {} and caps["realistic"] == config
-    assert set(caps["colour"].imperfections) == {"exposure_ev", "white_balance"}
+    assert set(caps["colour"].imperfections) == {"exposure_ev", "white_balance", "held_out_ev"}
     for name in ("noise", "jpeg", "blur", "masks", "fits"):
         assert len(caps[name].imperfections) == 1, name
         assert all(caps[name].seed == 1 and caps[name].size == config.size for name in caps)

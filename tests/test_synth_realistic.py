@@ -60,8 +60,8 @@ def test_config_validates_and_the_clean_twin_drops_every_imperfection():
     from avatarctl.synth.config import IMPERFECTIONS
 
     r = SynthConfig.preset("realistic", seed=4)
-    assert r.views == 4 and set(r.imperfections) >= {"exposure_ev", "white_balance", "noise_std", "jpeg_quality",
-                                                     "shutter_s", "masks", "fits"}
+    assert r.views == 4 and set(r.imperfections) >= {"exposure_ev", "white_balance", "held_out_ev", "noise_std",
+                                                     "jpeg_quality", "shutter_s", "masks", "fits"}
     twin = r.clean_twin()
     assert twin.imperfections == {} and twin.seed == 4 and twin.size == r.size and twin.views == r.views
     assert all(getattr(twin, k) == v for k, v in IMPERFECTIONS.items())
@@ -78,7 +78,8 @@ def captures(tmp_path_factory):
     from avatarctl.synth import SynthConfig, synthesize
 
     root = tmp_path_factory.mktemp("realistic")
-    variants = {"clean": {}, "exposure": dict(exposure_ev=0.4), "noise": dict(noise_std=0.03),
+    variants = {"clean": {}, "exposure": dict(exposure_ev=0.4), "held_out": dict(held_out_ev=-0.5),
+                "noise": dict(noise_std=0.03),
                 "jpeg": dict(jpeg_quality=40), "blur": dict(shutter_s=0.1), "estimate": dict(masks="none", fits="none")}
     out = {}
     for name, extra in variants.items():
@@ -101,7 +102,7 @@ def _same_files(a: Path, b: Path, pattern: str) -> None:
 @pytest.mark.anny
 def test_each_imperfection_leaves_geometry_masks_fits_and_cameras_alone(captures):
     clean = captures["clean"]
-    for name in ("exposure", "noise", "jpeg", "blur"):
+    for name in ("exposure", "held_out", "noise", "jpeg", "blur"):
         cap = captures[name]
         for f in ("gt/geometry.npz", "motion.npz", "intri.yml", "extri.yml", "split.json"):
             assert (cap / f).read_bytes() == (clean / f).read_bytes(), (name, f)
@@ -110,7 +111,7 @@ def test_each_imperfection_leaves_geometry_masks_fits_and_cameras_alone(captures
         config, twin = info["config"], info["clean_twin"]
         assert {k for k in config if config[k] != twin[k]} == set(info["imperfections"]) and \
             len(info["imperfections"]) == 1, name
-        assert any(_img(cap, "cam00", 0)[..., 0].ravel() != _img(clean, "cam00", 0)[..., 0].ravel()), name
+        assert any(_img(cap, "cam01", 0)[..., 0].ravel() != _img(clean, "cam01", 0)[..., 0].ravel()), name
 
 
 @pytest.mark.anny
@@ -127,6 +128,14 @@ def test_exposure_scales_each_camera_by_its_recorded_gain(captures):
         ok = (bg_a > 0.05) & (bg_a * max(g) < 0.95)
         assert abs(bg_b[ok].sum() / bg_a[ok].sum() - g[0]) < 0.02  # the plates come from the same camera
     assert np.ptp([g[0] for g in gains.values()]) > 0.1  # the cameras disagree
+    held = json.loads((captures["held_out"] / "capture.json").read_text())
+    split = json.loads((clean / "split.json").read_text())
+    assert split["test_views"] == ["cam01"]
+    assert {c: g[0] for c, g in held["camera_colour"].items()} == pytest.approx(
+        {c: 2 ** -0.5 if c == "cam01" else 1.0 for c in gains})  # only the held-out camera, 0.5 stops darker
+    a, b = _img(clean, "cam01", 1), _img(captures["held_out"], "cam01", 1)
+    ok = a > 0.05
+    assert abs(b[ok].sum() / a[ok].sum() - 2 ** -0.5) < 0.02
 
 
 @pytest.mark.anny

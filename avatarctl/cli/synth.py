@@ -40,6 +40,8 @@ def register(app: typer.Typer) -> None:
                                                  "each camera's images x 2^N(0, EV^2) (stops); e.g. 0.25."),
         white_balance: Optional[float] = typer.Option(None, "--white-balance", help="...and in white balance: each "
                                                       "channel x 2^N(0, STOPS^2); e.g. 0.05."),
+        held_out_ev: Optional[float] = typer.Option(None, "--held-out-ev", help="...and the evaluation-only "
+                                                    "cameras EV stops brighter (< 0: darker) on top; e.g. 0.25."),
         noise: Optional[float] = typer.Option(None, "--noise", help="Sensor noise: N(0, STD^2) per pixel and channel "
                                               "(images in [0, 1]); e.g. 0.01."),
         jpeg_quality: Optional[int] = typer.Option(None, "--jpeg-quality", help="JPEG quality of images and plates "
@@ -64,7 +66,7 @@ def register(app: typer.Typer) -> None:
 
             overrides = {k: v for k, v in dict(views=views, train_frames=train_frames, test_frames=test_frames,
                                                 size=size, width=width, supersample=supersample, exposure_ev=exposure,
-                                                white_balance=white_balance, noise_std=noise,
+                                                white_balance=white_balance, held_out_ev=held_out_ev, noise_std=noise,
                                                 jpeg_quality=jpeg_quality, shutter_s=shutter, masks=masks,
                                                 fits=fits).items()
                          if v is not None}

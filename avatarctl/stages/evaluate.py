@@ -20,8 +20,8 @@ Cameras that disagree in colour (issue 51): a training view of an avatar fitted 
 rendered in the training cameras' mean colour (identity). Beside the plain figure, every image is also scored
 NeRF-W's way, clearly apart (metrics.json "colour_matched", `evaluate.report.ColourMatched`, its own row in the
 printed table): the camera's transform (3 gains + 3 offsets on the foreground, `evaluate.colour`) estimated by least
-squares on the LEFT half of the protocol's region, the render through it scored on the RIGHT half, with the plain
-render's PSNR on the same right halves to compare with.
+squares on the LEFT half of the protocol's region (where render and mask both hold the subject), the render through it
+scored on the RIGHT half, with the plain render's PSNR on the same right halves to compare with.
 
 LPIPS is reported only when the `lpips` package and its AlexNet weights are already on this machine (nothing is
 downloaded); otherwise `"lpips": null` with the reason.
@@ -55,8 +55,9 @@ from avatarctl.stages.common import check_knockout, check_latent_mode, frame_nod
 SPLITS = ("novel_view", "novel_pose", "train")
 MATCHED_PROTOCOL = ("NeRF-W: per image, the camera's colour transform (per channel gain and offset on the rendered "
                     "foreground) fitted by least squares on the left half of the protocol's region (split at the "
-                    "middle column of its bounding rectangle), the render through it scored on the right half; "
-                    "plain_psnr: the render as it is on the same right halves")
+                    "middle column of its bounding rectangle), on the pixels that are foreground in both the render "
+                    "(alpha >= 0.5) and the mask; the render through it scored on the whole right half; plain_psnr: "
+                    "the render as it is on the same right halves")
 
 
 @dataclass(frozen=True)
@@ -336,7 +337,7 @@ def _score_image(avatar: Any, cfg: EvalConfig, project: Project, state: Any, ver
     score = ImageScore(frame=frame, view=view, psnr=psnr_from_mse(e), ssim=s, mse=e, pixels=int(region.mask.sum()),
                        latent=latent, seconds=round(view_out.seconds, 4), region_mse=region_mse,
                        region_pixels=region_pixels,
-                       matched=_matched_score(rgb, view_out.alpha, gt, background, region.mask, region.crop))
+                       matched=_matched_score(rgb, view_out.alpha, gt, mask, background, region.mask, region.crop))
     if cfg.save_images:  # the full image; outside the bbox crop it is the background (not rendered)
         write_png(tmp / "renders" / f"{frame:06d}_{view}.png", rgb, None)
     sheet = SheetRow(gt=gt_crop, render=pred_crop, region=region.crop_image(region.mask),
@@ -360,9 +361,13 @@ def _as_camera_sees(avatar: Any, view: str, rgb: np.ndarray, alpha: np.ndarray) 
     return np.clip(apply_colour(rgb, alpha, bg, gain, offset), 0.0, 1.0).astype(np.float32)
 
 
-def _matched_score(rgb: np.ndarray, alpha: np.ndarray, gt: np.ndarray, background: Any, mask: np.ndarray,
-                   crop: tuple[int, int, int, int]) -> Any:
-    """NeRF-W's colour-matched score of one image (`MatchedScore`; `MATCHED_PROTOCOL`), None when a half is empty."""
+def _matched_score(rgb: np.ndarray, alpha: np.ndarray, gt: np.ndarray, gt_mask: np.ndarray, background: Any,
+                   mask: np.ndarray, crop: tuple[int, int, int, int]) -> Any:
+    """NeRF-W's colour-matched score of one image (`MatchedScore`; `MATCHED_PROTOCOL`), None when a half is empty.
+    The transform is fitted where render and mask agree on the subject: pixels one covers and the other does not
+    are silhouette errors no colour can fix, and would pull the gain towards 0 (measured on 20 s fits of synth
+    realistic's clean twin, 6 images: fitted over the whole left half the figure lost 0.71 dB against the plain one
+    on the same pixels, fitted on the shared foreground 0.06 dB)."""
     from avatarctl.evaluate.colour import apply_colour, estimate_colour, halves
     from avatarctl.evaluate.metrics import mse
     from avatarctl.evaluate.report import MatchedScore
@@ -371,7 +376,7 @@ def _matched_score(rgb: np.ndarray, alpha: np.ndarray, gt: np.ndarray, backgroun
     if not left.any() or not right.any():
         return None
     bg = np.asarray(background, np.float32)
-    gain, offset = estimate_colour(rgb, alpha, gt, bg, left)
+    gain, offset = estimate_colour(rgb, alpha, gt, bg, left & (alpha >= 0.5) & np.asarray(gt_mask, bool))
     matched = np.clip(apply_colour(rgb, alpha, bg, gain.astype(np.float32), offset.astype(np.float32)), 0.0, 1.0)
     return MatchedScore(mse=mse(matched, gt, right), plain_mse=mse(rgb, gt, right),
                         gain=[round(float(g), 5) for g in gain], offset=[round(float(o), 5) for o in offset])

@@ -425,6 +425,7 @@ def synthesize(out: Path, config: SynthConfig, progress: ProgressFn | None = Non
         hem_pair = _hem_pair(scene.body_vertices, hem, train_frames) if len(train_frames) > 1 else None
 
     gains = camera_gains(config.seed, len(cameras), config.exposure_ev, config.white_balance)  # [cams, 3]
+    gains[[names.index(v) for v in test_views]] *= 2.0 ** config.held_out_ev
     offsets = shutter_offsets(config.shutter_s, config.stride / config.sim_fps, BLUR_SAMPLES)
     with atomic_dir(out) as root:
         t0 = time.perf_counter()

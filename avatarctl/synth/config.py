@@ -16,7 +16,7 @@ Settings of the paper's other experiments (`avatarctl reproduce`, docs/reproduce
   every-third rule leaves 4 training views, as the paper's 4-view ZJU-MoCap protocol.
 
 Imperfections of a real capture (issue 51; each 0 / "truth" in every preset but `realistic`, `IMPERFECTIONS`): cameras
-that disagree in colour (`exposure_ev`, `white_balance`), sensor noise (`noise_std`), stronger JPEG compression
+that disagree in colour (`exposure_ev`, `white_balance`, `held_out_ev`), sensor noise (`noise_std`), stronger JPEG compression
 (`jpeg_quality`), motion blur (`shutter_s`), masks and body fits left for ingest to estimate (`masks`, `fits`: MediaPipe
 masks, keypoint-fitted anny) or written with errors (`fit_noise_*`). The geometry, cameras and textures never depend
 on them: `clean_twin()` is the same capture without them (same seed, same scene), so every imperfection can be
@@ -52,13 +52,16 @@ _PRESETS: dict[str, dict[str, Any]] = {
                   size=512, width=288, stride=3, supersample=2, layout="video"),
     "tight": dict(views=6, garment="none", train_frames=24, test_frames=12, size=96, stride=5, supersample=2),
     # a capture that behaves like a real one (issue 51): 4 cameras (the every-third rule holds cam01 out), exposure
-    # and white balance differing per camera, sensor noise, JPEG, a 1/60 s shutter, masks and fits left to ingest
+    # and white balance differing per camera (the held-out one 0.25 stops brighter than its draw: issue 51's capture,
+    # whose renders were 17-20 % darker than the held-out images), sensor noise, JPEG, a 1/60 s shutter, masks and
+    # fits left to ingest
     "realistic": dict(views=4, train_frames=24, test_frames=12, size=128, stride=5, supersample=2, exposure_ev=0.25,
-                      white_balance=0.05, noise_std=0.01, jpeg_quality=80, shutter_s=1 / 60, masks="none",
-                      fits="none"),
+                      white_balance=0.05, held_out_ev=0.25, noise_std=0.01, jpeg_quality=80, shutter_s=1 / 60,
+                      masks="none", fits="none"),
 }
 # the imperfections of a real capture and their clean values (what `SynthConfig.clean_twin` sets)
-IMPERFECTIONS: dict[str, Any] = {"exposure_ev": 0.0, "white_balance": 0.0, "noise_std": 0.0, "jpeg_quality": 95,
+IMPERFECTIONS: dict[str, Any] = {"exposure_ev": 0.0, "white_balance": 0.0, "held_out_ev": 0.0, "noise_std": 0.0,
+                                 "jpeg_quality": 95,
                                  "shutter_s": 0.0, "masks": "truth", "fits": "truth", "fit_noise_deg": 0.0,
                                  "fit_noise_cm": 0.0, "fit_noise_corr_frames": 0.0}
 MASKS = ("truth", "none")
@@ -137,6 +140,9 @@ class SynthConfig:
     white_balance: float = 0.0
     """Cameras that disagree in white balance: on top of the exposure, each channel of camera c scaled by 2^w_ck,
     w_ck ~ N(0, this^2) stops."""
+    held_out_ev: float = 0.0
+    """The evaluation-only cameras' (split.json test views) exposure, in stops, on top of their `exposure_ev` draw: a
+    held-out camera that surely disagrees with the training ones (a real capture's held-out camera did: +0.25)."""
     noise_std: float = 0.0
     """Sensor noise: N(0, this^2) added to every pixel and channel (images in [0, 1], after the colour gains, before
     the 8-bit rounding and the JPEG), seeded per camera and frame."""
@@ -173,8 +179,8 @@ class SynthConfig:
             (self.garment in GARMENTS, f"garment must be one of {', '.join(GARMENTS)}"),
             (0 <= self.train_views < self.views, "train_views must be in [0, views) (0 = every third held out; "
                                                  "at least one camera must be left for evaluation)"),
-            (0 <= self.exposure_ev <= 2 and 0 <= self.white_balance <= 1,
-             "exposure_ev must be in [0, 2] stops and white_balance in [0, 1] stops"),
+            (0 <= self.exposure_ev <= 2 and 0 <= self.white_balance <= 1 and -2 <= self.held_out_ev <= 2,
+             "exposure_ev must be in [0, 2] stops, white_balance in [0, 1] and held_out_ev in [-2, 2]"),
             (0 <= self.noise_std <= 0.2, "noise_std must be in [0, 0.2] (images in [0, 1])"),
             (0 <= self.shutter_s <= self.stride / self.sim_fps,
              f"shutter_s must be in [0, {self.stride / self.sim_fps:.3f}] seconds (at most one written frame)"),
