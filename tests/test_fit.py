@@ -169,6 +169,7 @@ def test_set_takes_only_the_knobs_that_act_on_the_selected_field():
         assert set(keys) <= set(KNOBS), f"preset {name} writes a fixed setting: {sorted(set(keys) - set(KNOBS))}"
         dead = [k for k in keys if KNOBS[k][0] not in ("any", cfg.model.field)]
         assert not dead, f"preset {name} writes keys that do nothing for its field: {dead}"
+    assert not [k for k, (_, what) in KNOBS.items() if "|" in what], "a '|' would split the docs' table row"
     docs = (Path(__file__).parents[1] / "docs" / "fit.md").read_text()
     assert knobs_markdown() in docs, "docs/fit.md's knob table is stale: paste knobs_markdown()"
 

@@ -117,12 +117,12 @@ def test_two_ranks_match_one_rank_and_resume_on_one(toy_project, tmp_path):
 
 def test_gaussian_field_on_two_ranks_matches_one_rank_of_the_same_shards(toy_project, tmp_path):
     """`model.field=gaussians` (whole crops instead of rays): 2 ranks of one image each = 1 rank of both shards,
-    the relocation of dead Gaussians (at step 2) included."""
+    the relocation of dead Gaussians (at step 2) and the per-camera colour transforms (model/colour.py) included."""
     from avatarctl.stages import fit
     from avatarctl.stages.fit import FitRequest
 
     one, two = _copy(toy_project, tmp_path / "one"), _copy(toy_project, tmp_path / "two")
-    sets = TINY + ("model.field=gaussians", "model.gaussians.per_node=16")
+    sets = TINY + ("model.field=gaussians", "model.gaussians.per_node=16", "model.colour.enabled=true")
     base = dict(preset="micro", overrides=sets, model_settings={"gaussians": {"relocate_every": 2}}, device="cpu")
     fit.run(one, FitRequest(iters=3, shards=2, **base), handle_sigint=False)
     t0 = time.perf_counter()
@@ -135,6 +135,7 @@ def test_gaussian_field_on_two_ranks_matches_one_rank_of_the_same_shards(toy_pro
     qa, qb = a.pop("fields.quats"), b.pop("fields.quats")
     assert "fields.means" in a and _max_diff(a, b) <= RANK_TOL
     assert torch.allclose(qa, qb, atol=1e-4)
+    assert b["camera_colour.log_gain"].abs().max() > 0  # the transforms learned, alike on both ranks (above)
 
 
 def test_resume_on_more_ranks_than_shards_reshards_and_says_so(toy_project, tmp_path):

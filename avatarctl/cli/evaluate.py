@@ -114,6 +114,12 @@ def _run(project: Path, cfg, nproc: int, wait: bool, console) -> None:
                   + f"  ({r['share_of_pixels']:.1%} of the pixels, {r['share_of_error']:.1%} of the squared error;"
                   f" pooled {r['pooled_psnr'] or float('nan'):.2f} dB; its best flat colour "
                   f"{r['flat_colour_psnr'] or float('nan'):.2f} dB)")
+    if m.colour_matched is not None:  # NeRF-W's protocol, apart from the plain figure (issue 51)
+        cm = m.colour_matched
+        gains = "; ".join(f"{v} x{','.join(f'{g:.2f}' for g in gs)}" for v, gs in cm["gain"].items())
+        t.add_row("PSNR colour-matched", f"{cm['psnr']:.3f} dB  (NeRF-W: each camera's colour fitted on the left "
+                  f"half, scored on the right half; plain on the same halves {cm['plain_psnr']:.3f} dB; gains "
+                  f"{gains})")
     t.add_row("SSIM", f"{m.ssim:.4f}  (skimage {m.metric_settings['scikit_image']}, "
                       f"win {m.metric_settings['ssim']['win_size']}, data_range 1)")
     t.add_row("LPIPS", f"{m.lpips:.4f}" if m.lpips is not None else f"absent: {m.lpips_reason}")

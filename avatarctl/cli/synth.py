@@ -19,7 +19,8 @@ def register(app: typer.Typer) -> None:
                                    "sizes: monocular (1 training camera + 3 evaluation-only ones, the subject "
                                    "turning in an A-pose, no skirt; 24+8) and tight (tiny without the skirt); "
                                    "phone: the monocular scene as ONE portrait video (288x512, 40+12 frames), "
-                                   "OUT/video.mp4, the truth under OUT/gt/."),
+                                   "OUT/video.mp4, the truth under OUT/gt/; realistic: 4 cameras (3 train), 128 px, "
+                                   "24+12 frames with every imperfection of a real capture (the options below)."),
         seed: int = typer.Option(0, "--seed", help="Seed of every random choice; same seed, same files."),
         views: Optional[int] = typer.Option(None, "--views", help="Override the number of cameras.", hidden=True),
         train_frames: Optional[int] = typer.Option(None, "--train-frames", help="Override training frames.",
@@ -35,6 +36,25 @@ def register(app: typer.Typer) -> None:
                                                 "are off like real ones (each joint rotation N(0, DEG^2) degrees, "
                                                 "root N(0, CM^2) cm; per frame, or drifting over about FRAMES "
                                                 "frames); the true fits go to gt/motion.npz. E.g. 2,1 or 2,1,5."),
+        exposure: Optional[float] = typer.Option(None, "--exposure", help="Cameras that disagree in exposure: "
+                                                 "each camera's images x 2^N(0, EV^2) (stops); e.g. 0.25."),
+        white_balance: Optional[float] = typer.Option(None, "--white-balance", help="...and in white balance: each "
+                                                      "channel x 2^N(0, STOPS^2); e.g. 0.05."),
+        held_out_ev: Optional[float] = typer.Option(None, "--held-out-ev", help="...and the evaluation-only "
+                                                    "cameras EV stops brighter (< 0: darker) on top; e.g. 0.25."),
+        noise: Optional[float] = typer.Option(None, "--noise", help="Sensor noise: N(0, STD^2) per pixel and channel "
+                                              "(images in [0, 1]); e.g. 0.01."),
+        jpeg_quality: Optional[int] = typer.Option(None, "--jpeg-quality", help="JPEG quality of images and plates "
+                                                   "(default 95; e.g. 80)."),
+        shutter: Optional[float] = typer.Option(None, "--shutter", help="Motion blur: exposure time in seconds, "
+                                                "e.g. 0.0167 (1/60 s); 0: none."),
+        masks: Optional[str] = typer.Option(None, "--masks", help="truth: write the true masks; none: leave them "
+                                            "to ingest (`--masks mediapipe`), the truth under OUT/gt/masks/."),
+        fits: Optional[str] = typer.Option(None, "--fits", help="truth: write the body fits (exact, or --fit-noise); "
+                                           "none: leave them to ingest (`--fits keypoints`), the truth in "
+                                           "OUT/gt/motion.npz."),
+        clean: bool = typer.Option(False, "--clean", help="The preset's clean twin: the same capture (seed, scene) "
+                                   "without any of the imperfections above."),
     ) -> None:
         from avatarctl.cli.common import console, user_errors
 
@@ -45,11 +65,16 @@ def register(app: typer.Typer) -> None:
             from avatarctl.progress import ProgressReport
 
             overrides = {k: v for k, v in dict(views=views, train_frames=train_frames, test_frames=test_frames,
-                                                size=size, width=width, supersample=supersample).items()
+                                                size=size, width=width, supersample=supersample, exposure_ev=exposure,
+                                                white_balance=white_balance, held_out_ev=held_out_ev, noise_std=noise,
+                                                jpeg_quality=jpeg_quality, shutter_s=shutter, masks=masks,
+                                                fits=fits).items()
                          if v is not None}
             if fit_noise is not None:
                 overrides.update(_fit_noise(fit_noise))
             config = stage.SynthConfig.preset(preset, seed, **overrides)
+            if clean:
+                config = config.clean_twin()
             console.print(f"synth [bold]{preset}[/] seed {seed}: {config.views} views, {config.train_frames}+"
                           f"{config.test_frames} frames, {config.image_width}x{config.size}px, {config.supersample}x"
                           f"{config.supersample} rays per pixel -> {out}")
@@ -63,6 +88,11 @@ def register(app: typer.Typer) -> None:
                     bar.update(tasks[p.part], completed=p.done)
 
                 res = stage.run(out, config, progress)
+            if config.imperfections:
+                console.print("  imperfections: " + ", ".join(f"{k} {v:.4g}" if isinstance(v, float) else f"{k} {v}"
+                                                               for k, v in config.imperfections.items())
+                              + (" (ingest with --masks mediapipe)" if config.masks == "none" else "")
+                              + (" (ingest with --fits keypoints)" if config.fits == "none" else ""))
             t = res.timings
             console.print(f"[green]wrote[/] {res.out}: {len(res.cameras)} cameras "
                           f"(train {', '.join(res.train_views)}; test {', '.join(res.test_views)}), "

@@ -28,6 +28,51 @@ class ImageScore:
     seconds: float  # render time
     region_mse: dict[str, float] | None = None  # {"garment", "body", "garment_flat", "body_flat"} with gt geometry
     region_pixels: dict[str, int] | None = None
+    matched: "MatchedScore | None" = None  # the colour-matched score (NeRF-W's protocol), None: a half was empty
+
+
+@dataclass(frozen=True)
+class MatchedScore:
+    """One image scored NeRF-W's way (`evaluate.colour`): the camera's colour transform estimated on the LEFT half of
+    the protocol's region, the render through it scored on the RIGHT half."""
+
+    mse: float  # right half, the render through the estimated transform
+    plain_mse: float  # right half, the render as it is (the same pixels: the plain figure to compare with)
+    gain: list[float]  # [3] the estimated transform
+    offset: list[float]  # [3]
+
+
+@dataclass(frozen=True)
+class ColourMatched:
+    """metrics.json "colour_matched": the split scored with each image's camera colour estimated from its left half
+    and scored on its right half (NeRF-W's protocol for cameras the avatar never saw; issue 51), beside the plain
+    render's score on the same right halves. Only over the protocol's region (`EvalMetrics.region` does not apply)."""
+
+    psnr: float  # mean over images of the per-image right-half PSNR after the transform, dB
+    plain_psnr: float  # mean over the same images of the plain right-half PSNR, dB
+    images: int  # images with both halves non-empty
+    gain: dict[str, list[float]]  # per view: the mean estimated gain [3] (how the camera disagrees with the avatar)
+    offset: dict[str, list[float]]  # per view: the mean estimated offset [3]
+    protocol: str
+
+
+def colour_matched(scores: list[ImageScore], protocol: str) -> ColourMatched | None:
+    """The split's `ColourMatched` from the images' `matched` scores (None when no image has one)."""
+    import numpy as np
+
+    from avatarctl.evaluate.metrics import psnr_from_mse
+
+    got = [s for s in scores if s.matched is not None]
+    if not got:
+        return None
+    views = sorted({s.view for s in got})
+    return ColourMatched(
+        psnr=float(np.mean([min(PSNR_CAP, psnr_from_mse(s.matched.mse)) for s in got])),
+        plain_psnr=float(np.mean([min(PSNR_CAP, psnr_from_mse(s.matched.plain_mse)) for s in got])),
+        images=len(got),
+        gain={v: np.mean([s.matched.gain for s in got if s.view == v], 0).round(4).tolist() for v in views},
+        offset={v: np.mean([s.matched.offset for s in got if s.view == v], 0).round(4).tolist() for v in views},
+        protocol=protocol)
 
 
 @dataclass(frozen=True)
@@ -93,13 +138,15 @@ class EvalMetrics:
     benchmark: str | None = None  # the named benchmark protocol scored under (avatarctl.evaluate.benchmarks), if any
     comparable_with: list[str] | None = None  # the published figures that protocol is set beside
     not_comparable: list[str] | None = None  # why this figure is not the protocol's in full ([]: it is)
+    colour_matched: dict[str, Any] | None = None  # ColourMatched as a dict: NeRF-W's colour-matched score (issue 51)
 
     def to_json(self) -> dict[str, Any]:
         return asdict(self)
 
     @classmethod
     def from_json(cls, d: dict[str, Any]) -> "EvalMetrics":
-        optional = {"region", "regions", "benchmark", "comparable_with", "not_comparable"}  # absent from older files
+        # absent from metrics.json written before `--region`, the benchmark protocols or issue 51 (colour_matched)
+        optional = {"region", "regions", "benchmark", "comparable_with", "not_comparable", "colour_matched"}
         kw = {f.name: d[f.name] for f in fields(cls) if f.name in d or f.name not in optional}
         kw["model"] = ScoredModel(**{f.name: d["model"][f.name] for f in fields(ScoredModel)})
         return cls(**kw)
@@ -153,15 +200,17 @@ def per_frame_csv(scores: list[ImageScore]) -> str:
     from avatarctl.evaluate.metrics import psnr_from_mse
 
     names = list(scores[0].region_pixels) if scores and scores[0].region_pixels is not None else []
-    w.writerow(["frame", "view", "psnr", "ssim", "mse", "pixels", "latent", "render_seconds"]
-               + [f"{n}_{k}" for n in names for k in ("psnr", "pixels")])
+    w.writerow(["frame", "view", "psnr", "ssim", "mse", "pixels", "matched_psnr", "matched_plain_psnr", "latent",
+                "render_seconds"] + [f"{n}_{k}" for n in names for k in ("psnr", "pixels")])
     for s in scores:
         extra = []
         for n in names:
             m = s.region_mse[n]
             extra += [f"{min(PSNR_CAP, psnr_from_mse(m)):.4f}" if s.region_pixels[n] else "", s.region_pixels[n]]
-        w.writerow([s.frame, s.view, f"{min(s.psnr, PSNR_CAP):.4f}", f"{s.ssim:.6f}", f"{s.mse:.8f}", s.pixels,
-                    s.latent, f"{s.seconds:.3f}"] + extra)
+        matched = ["", ""] if s.matched is None else [f"{min(PSNR_CAP, psnr_from_mse(e)):.4f}"
+                                                      for e in (s.matched.mse, s.matched.plain_mse)]
+        w.writerow([s.frame, s.view, f"{min(s.psnr, PSNR_CAP):.4f}", f"{s.ssim:.6f}", f"{s.mse:.8f}", s.pixels]
+                   + matched + [s.latent, f"{s.seconds:.3f}"] + extra)
     return buf.getvalue()
 
 

@@ -173,7 +173,8 @@ def load_avatar(project: Project, device: str = "cpu", checkpoint: Path | None =
     body = load_body_model(capture.body_model, capture.body_model_path)
     template = body.template(capture.motion)
     train_frames = [int(f) for f in ckpt["train_frames"]]
-    model = SlrfAvatar(cfg, template, num_frames=len(train_frames), seed=fit_cfg.seed)
+    cameras = tuple(ckpt["colour_cameras"]) if cfg.colour.enabled else ()  # the transforms' training cameras
+    model = SlrfAvatar(cfg, template, num_frames=len(train_frames), seed=fit_cfg.seed, cameras=cameras)
     try:
         model.load_state_dict(ckpt["model"])
     except RuntimeError as e:

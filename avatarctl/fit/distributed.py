@@ -34,6 +34,10 @@ Synchronisation per step (after the backward pass), all in one flat SUM all-redu
   rank and step (in `losses`), so its average is the single-process term;
 - the occupancy grids (`model.occupancy`, updated in the forward pass from each rank's own densities): see
   `merge_occupancy`; all ranks end the step with the grid one process would have.
+
+Each shard's renders go through their training cameras' colour transforms before the loss when
+`model.colour.enabled` (fit/steps.py `camera_colour_rays`, `camera_colour_crops`; model/colour.py): their parameters are the
+model's, averaged like the others.
 """
 
 from __future__ import annotations

@@ -265,7 +265,7 @@ class _Trainer:
         return {"step": step, "model": self.model.state_dict(), "optimizer": self.optimizer.state_dict(),
                 "scheduler": self.scheduler.state_dict(), "rng": _rng_state(self.replicas),
                 "model_config": self.cfg.model.to_json(), "fit_config": self.cfg.to_json(),
-                "train_frames": self.train_frames}
+                "train_frames": self.train_frames, "colour_cameras": list(self.capture.split.train_views)}
 
     def checkpoint(self, step: int) -> Path:
         """Save a checkpoint (rank 0 writes) -> its path."""
@@ -332,8 +332,8 @@ def _build_model(cfg: FitConfig, capture, body, template, poses, train_frames: l
         torch.manual_seed(cfg.seed)
         model = SlrfAvatar(cfg.model, template, num_frames=len(train_frames), seed=cfg.seed,
                            hull_nodes=None if hull is None else (hull.rest, hull.vertex),
-                           off_body=None if hull is None else (torch.from_numpy(hull.survey.cells), hull.survey.cell)
-                           ).to(dev)
+                           off_body=None if hull is None else (torch.from_numpy(hull.survey.cells), hull.survey.cell),
+                           cameras=tuple(capture.split.train_views)).to(dev)
     if model.pose_refine is not None and fresh_fit:  # canonical joint centres from the training poses
         from avatarctl.body.joints import joint_centres, skin_weighted_centroids
 

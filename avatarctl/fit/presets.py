@@ -125,7 +125,7 @@ KNOBS: dict[str, tuple[str, str]] = {
     "model.lambda_kl": ("any", "Eq. 11 weight of the KL term"),
     "model.rec_reduction": ("mlp", "Eq. 12 as written (sum over rays) or the mean"),
     # the model: what the presets change
-    "model.field": ("any", "the local fields: mlp (the paper's) | gaussians (deviation)"),
+    "model.field": ("any", "the local fields: mlp (the paper's) or gaussians (deviation)"),
     "model.node_width": ("mlp", "F_i hidden channels"),
     "model.node_depth": ("mlp", "F_i hidden layers"),
     "model.feature_dim": ("mlp", "F_i output feature"),
@@ -134,8 +134,9 @@ KNOBS: dict[str, tuple[str, str]] = {
     "model.cvae_width": ("any", "the per-node cVAE's hidden channels, or auto (from the training views)"),
     "model.occupancy.enabled": ("mlp", "empty-space skipping (deviation)"),
     "model.hull.nodes": ("any", "nodes off the body: K, 0 or auto (deviation)"),
-    "model.novel_latent": ("any", "z of novel poses: zero (the paper) | train_mean (deviation)"),
+    "model.novel_latent": ("any", "z of novel poses: zero (the paper) or train_mean (deviation)"),
     "model.pose_refine.enabled": ("any", "per-frame body-pose refinement: true, false or auto (deviation)"),
+    "model.colour.enabled": ("any", "a colour transform per training camera, learned with the avatar (deviation)"),
     # the Gaussian fields' knobs the docs teach (each a measured choice against 3DGS's)
     "model.gaussians.per_node": ("gaussians", "K Gaussians per node (memory and speed against detail)"),
     "model.gaussians.low_pass": ("gaussians", "px^2 added to every splat's 2D covariance (3DGS: 0.3)"),

@@ -26,16 +26,19 @@ def make_optimizer(cfg: FitConfig, params) -> torch.optim.Adam:
 def param_groups(cfg: FitConfig, model: torch.nn.Module) -> list[dict]:
     """Adam param groups: the Gaussians' own parameters (`model.field = "gaussians"`) at 3DGS's rates
     (`model.gaussians.lr_*`), the pose-refinement corrections at `cfg.model.pose_refine.lr`, everything else at
-    `cfg.lr`. All follow the same decay."""
+    `cfg.lr`, the camera colour transforms at `cfg.model.colour.lr`. All follow the same decay."""
     fields = getattr(model, "fields", None)
     refine = getattr(model, "pose_refine", None)
     pose = list(refine.parameters()) if refine is not None else []
+    colour_module = getattr(model, "camera_colour", None)
+    colour = list(colour_module.parameters()) if colour_module is not None else []
     splats = fields.gaussian_parameters() if hasattr(fields, "gaussian_parameters") else {}
-    special = {id(p) for p in pose + [q for ps in splats.values() for q in ps]}
+    special = {id(p) for p in pose + colour + [q for ps in splats.values() for q in ps]}
     rest = [p for p in model.parameters() if id(p) not in special]
     return [{"params": rest}] \
         + [{"params": ps, "lr": getattr(cfg.model.gaussians, name), "name": name} for name, ps in splats.items()] \
-        + ([{"params": pose, "lr": cfg.model.pose_refine.lr, "name": "pose"}] if pose else [])
+        + ([{"params": pose, "lr": cfg.model.pose_refine.lr, "name": "pose"}] if pose else []) \
+        + ([{"params": colour, "lr": cfg.model.colour.lr, "name": "colour"}] if colour else [])
 
 
 def make_scheduler(cfg: FitConfig, optimizer: torch.optim.Optimizer) -> torch.optim.lr_scheduler.LambdaLR:

@@ -57,6 +57,7 @@ class RaySteps:
             k, b = parts[0]
             state = model.node_state(b.cond, mode="posterior", generator=noise_gens[k])
             out = model.render(b.rays, state, background, jitter=jitter, generator=noise_gens[k])
+            out = camera_colour_rays(model, out, b, background)
             return model.losses(out, b.target, state), out, b.target.shape[0] * world
         state, out, target = self._shards(model, parts, background, jitter, noise_gens)
         return model.losses(out, target, state), out, target.shape[0] * world
@@ -78,7 +79,8 @@ class RaySteps:
                 model.occupancy_updates.copy_(start[1])
             st = model.node_state(b.cond, mode="posterior", generator=noise_gens[k])
             states.append(st)
-            outs.append(model.render(b.rays, st, background, jitter=jitter, generator=noise_gens[k]))
+            outs.append(camera_colour_rays(model, model.render(b.rays, st, background, jitter=jitter,
+                                                               generator=noise_gens[k]), b, background))
             if start is not None:
                 afters.append(model.occupancy.clone())
         if start is not None:
@@ -106,7 +108,7 @@ class CropSteps:
         for k, b in parts:
             st = model.node_state(b.cond, mode="posterior", generator=noise_gens[k])
             states.append(st)
-            outs.append(render_crops(model, b, st, background))
+            outs.append(camera_colour_crops(model, render_crops(model, b, st, background), b, background))
             counts.append(int((b.cond.frame_ids >= 0).sum()))
         state = states[0] if len(states) == 1 else cat_states(states, counts)
         out = ImageOutputs.cat(outs)
@@ -129,6 +131,33 @@ def render_crops(model: "SlrfAvatar", batch: ImageBatch, state: "NodeState", bac
     rgb, alpha = model.render_images(posed, cams, background)
     return ImageOutputs(rgb=rgb, alpha=alpha, stats={"images": float(len(rgb)), "gaussians": float(
         posed.means.shape[1]), "pixels": float(batch.pixels)})
+
+
+def camera_colour_rays(model: "SlrfAvatar", out: "RenderOutputs", batch: "TrainBatch", background: torch.Tensor
+                       ) -> "RenderOutputs":
+    """The rays of `batch` as their cameras see them: each ray's render through its training camera's colour transform
+    (model/colour.py; `model.colour.enabled`), before the loss. Unchanged when the transforms are off."""
+    colour = model.camera_colour
+    if colour is None:
+        return out
+    from dataclasses import replace
+
+    cams = colour.index(batch.views, out.rgb.device)[batch.rays.frame_slot.to(out.rgb.device)]  # [rays]
+    return replace(out, rgb=colour(out.rgb, out.alpha, background.to(out.rgb.device), cams))
+
+
+def camera_colour_crops(model: "SlrfAvatar", out: "ImageOutputs", batch: "ImageBatch", background: torch.Tensor
+                        ) -> "ImageOutputs":
+    """The rasterized crops of `batch` as their cameras see them (`camera_colour_rays` for whole crops)."""
+    colour = model.camera_colour
+    if colour is None:
+        return out
+    from dataclasses import replace
+
+    cams = colour.index(batch.views)
+    rgb = [colour(c, a, background.to(c.device), cams[b].to(c.device).expand(a.shape))
+           for b, (c, a) in enumerate(zip(out.rgb, out.alpha))]
+    return replace(out, rgb=rgb)
 
 
 STEPS: dict[str, TrainingSteps] = {"rays": RaySteps(), "crops": CropSteps()}

@@ -69,15 +69,16 @@ class GroundTruthGeometry:
 
 
 def fits_are_ground_truth(capture_dir: str | Path) -> bool:
-    """True for a capture made by `avatarctl synth` with exact body fits (no `--fit-noise`): its motion.npz is the
-    pose the images were rendered from. Any other capture (real, or synth with noisy fits) -> False."""
+    """True for a capture made by `avatarctl synth` with exact body fits (no `--fit-noise`, no `--fits none`): its
+    motion.npz is the pose the images were rendered from. Any other capture (real, or synth with noisy or estimated
+    fits) -> False."""
     import json
 
     try:
         info = json.loads((Path(capture_dir) / "capture.json").read_text())
         cfg = info["config"]
         return str(info["generator"]).startswith("synth") and not cfg.get("fit_noise_deg") \
-            and not cfg.get("fit_noise_cm")
+            and not cfg.get("fit_noise_cm") and cfg.get("fits", "truth") == "truth"  # "fits": since issue 51
     except (OSError, ValueError, KeyError, TypeError):
         return False
 

@@ -131,13 +131,14 @@ class SlrfAvatar(nn.Module):
 
     def __init__(self, cfg: ModelConfig, template: BodyTemplate, num_frames: int, seed: int = 0,
                  hull_nodes: tuple[torch.Tensor, torch.Tensor] | None = None,
-                 off_body: tuple[torch.Tensor, float] | None = None):
+                 off_body: tuple[torch.Tensor, float] | None = None, cameras: tuple[str, ...] = ()):
         """`hull_nodes` (with `cfg.hull.nodes` = K > 0 or "auto", a deviation: fit/hull_nodes.py): the K off-body
         nodes as (canonical positions [K, 3], nearest template vertex [K]); the other N - K nodes are sampled on the
         surface. None: all N on the surface, the paper's placement (for K > 0 or "auto", placeholders that a
         checkpoint's buffers replace when loading). `off_body` (field "gaussians"): the hull survey's off-body cells
         (canonical points [C, 3], cell side) where the Gaussians of the nodes nearest to them start
-        (model/gaussian_field.py `initial_gaussians`)."""
+        (model/gaussian_field.py `initial_gaussians`). `cameras`: the training cameras' names, in the split's order
+        (with `cfg.colour.enabled`: one colour transform each, model/colour.py)."""
         super().__init__()
         V, J = template.skin_weights.shape
         if cfg.num_nodes > V:
@@ -169,6 +170,11 @@ class SlrfAvatar(nn.Module):
         self.register_buffer("node_skin_weights", weights[idx].clone())  # [N, J] omega_i
         self.register_buffer("pose_attention", node_pose_attention(  # [N, J] (W . omega_i), Eq. 8
             weights[idx], pose_attention_map(template.parents, cfg.pose_attention_hops)))
+        self.camera_colour = None
+        if cfg.colour.enabled:
+            from avatarctl.model.colour import CameraColour
+
+            self.camera_colour = CameraColour(cameras)
         self.pose_refine = None
         if cfg.pose_refine.on and num_frames > 0:
             from avatarctl.body.joints import skin_weighted_centroids
@@ -551,16 +557,19 @@ class SlrfAvatar(nn.Module):
         return self._with_regularisers(rec, mse, state)
 
     def _with_regularisers(self, rec: torch.Tensor, mse: torch.Tensor, state: NodeState) -> LossTerms:
-        """Eq. 11: the reconstruction term plus Eq. 13-15 (and the pose-refinement terms when on)."""
+        """Eq. 11: the reconstruction term plus Eq. 13-15 (and the pose-refinement and camera-colour terms when
+        on)."""
         c, refine = self.cfg, self.cfg.pose_refine
         zero = rec.new_zeros(())
         kl = kl_loss(state.mu, state.logvar) if state.mu is not None and state.logvar is not None else zero
         # over all training frames, once per step (not per frame of the batch): the same on every rank
         accel = self.pose_refine.acceleration() if self.pose_refine is not None and refine.lambda_accel > 0 else None
+        colour = self.camera_colour.penalty() if self.camera_colour is not None else None
         return total_loss(rec, translation_loss(state.delta_n), embedding_loss(state.embed), kl,
                           c.lambda_rec, c.lambda_trans, c.lambda_ebd, c.lambda_kl, mse=mse,
                           pose=state.pose_penalty, lambda_pose=refine.lambda_pose, pose_accel=accel,
-                          lambda_pose_accel=refine.lambda_accel)
+                          lambda_pose_accel=refine.lambda_accel, colour=colour,
+                          lambda_colour=c.colour.lambda_identity)
 
 
 def _float32_geometry(device: torch.device):

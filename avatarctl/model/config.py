@@ -16,7 +16,8 @@ presets (`cpu`, `cpu-mlp`, `micro`) are named sets of changes from them, stated 
 
 The options of one part that only matter when it is used sit in small frozen sub-configs: `hull` (`HullConfig`,
 nodes off the body), `occupancy` (`OccupancyConfig`, empty-space skipping), `pose_refine` (`PoseRefineConfig`,
-per-frame body-pose refinement), `gaussians` (`GaussianConfig`, the Gaussian local fields). Configs written before
+per-frame body-pose refinement), `gaussians` (`GaussianConfig`, the Gaussian local fields), `colour` (`ColourConfig`, a
+colour transform per training camera). Configs written before
 they existed (schema_version 1, flat keys such as `occ_res` or `hull_nodes`) are read through `LEGACY_KEYS`.
 
 Choices beyond the paper text (documented, switchable):
@@ -283,8 +284,27 @@ class GaussianConfig(_SubConfig):
             need(getattr(self, name) > 0, f"{name} must be > 0, got {getattr(self, name)}")
 
 
+@dataclass(frozen=True)
+class ColourConfig(_SubConfig):
+    """A colour transform per training camera (exposure + white balance: 3 gains + 3 offsets), learned with the avatar
+    and applied to each camera's renders before the loss (a deviation when on, model/colour.py; issue 51). Off until
+    measured (benchmarks/realistic_capture.py)."""
+
+    enabled: bool = False
+    lambda_identity: float = 1.0  # weight of the pull towards identity: mean over cameras of |log gain|^2 + |offset|^2
+    lr: float = 2e-3  # Adam rate of the gains and offsets (the networks use FitConfig.lr)
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.enabled, bool):
+            raise ValueError(f"ColourConfig: enabled must be true or false, got {self.enabled!r}")
+        if not self.lambda_identity >= 0:
+            raise ValueError(f"ColourConfig: lambda_identity must be >= 0, got {self.lambda_identity}")
+        if not (self.lr > 0 and self.lr != float("inf")):
+            raise ValueError(f"ColourConfig: lr must be > 0, got {self.lr}")
+
+
 _SUB_CONFIGS = {"hull": HullConfig, "occupancy": OccupancyConfig, "pose_refine": PoseRefineConfig,
-                "gaussians": GaussianConfig}
+                "gaussians": GaussianConfig, "colour": ColourConfig}
 
 
 @dataclass(frozen=True)
@@ -320,6 +340,7 @@ class ModelConfig:
     # and never sees z = 0; issue 18, docs/experiments/garment_latent_2026-11-26)
     novel_latent: str = "zero"
     pose_refine: PoseRefineConfig = PoseRefineConfig()  # per-frame body-pose refinement (deviation when on)
+    colour: ColourConfig = ColourConfig()  # a colour transform per training camera (deviation when on, model/colour.py)
     # pose condition (Eq. 8)
     pose_attention_hops: int = 2
     # ablations

@@ -13,12 +13,17 @@ Layout written (see docs/formats.md)::
     OUT/background/<cam>.jpg            clean background plates
     OUT/motion.npz                      anny fits (loadable by `avatarctl.body.motion.BodyMotion.load`); with
                                         `fit_noise_*` > 0 perturbed like real fits (`body.perturb`)
-    OUT/gt/motion.npz                   the true fits, only when motion.npz was perturbed
+    OUT/gt/motion.npz                   the true fits, when motion.npz was perturbed or left out (`fits` "none")
+    OUT/gt/masks/<cam>/<frame:06d>.png  the true masks, when masks/ was left out (`masks` "none")
     OUT/split.json                      train/test frames and views (test views are never trained on; with
                                         `train_views` k > 0 only cam00..k-1 train, e.g. the monocular preset)
     OUT/gt/geometry.npz                 per-frame body and skirt vertices, faces, skirt grid parameters
     OUT/capture.json                    generator version, config, seed, timings, statistics
     OUT/contact_sheet.png               a few frames x views for a person to look at
+
+The imperfections of a real camera (`SynthConfig.imperfections`, `synth.imperfections`) act on the images and plates
+only: colour gains per camera (recorded in capture.json "camera_colour"), sensor noise, JPEG quality, motion blur.
+capture.json records them and the config of the clean twin (`SynthConfig.clean_twin`: same seed, same scene).
 
 With `layout = "video"` (the `phone` preset: what one phone gives a user) OUT holds only::
 
@@ -43,11 +48,13 @@ from avatarctl.errors import InputError
 from avatarctl.geometry.cameras import Camera, look_at
 from avatarctl.io.gt_geometry import GT_GEOMETRY, GT_MOTION
 from avatarctl.progress import ProgressFn, ProgressReport
-from avatarctl.synth.config import GENERATOR_VERSION, SynthConfig
+from avatarctl.synth.config import BLUR_SAMPLES, GENERATOR_VERSION, SynthConfig
+from avatarctl.synth.imperfections import camera_gains, noise_rng, plate_rng, sensor_image, shutter_offsets
 from avatarctl.synth.motion import PHENOTYPE_LABELS, ProceduralMotion, make_motion
 
 VIDEO_FILE = "video.mp4"  # layout "video": the one file a user has
 GT_CAPTURE = Path("gt") / "capture"  # layout "video": the truth, as an EasyMocap capture
+GT_MASKS = Path("gt") / "masks"  # masks "none": the true masks, where ingest does not look
 FOCAL_35MM_TAG = "com.apple.quicktime.camera.focal_length.35mm_equivalent"  # the focal length phones record
 FULL_FRAME_DIAGONAL_MM = 43.27  # diagonal of a 36 x 24 mm frame: f_35mm / 43.27 = f_px / image diagonal (px)
 
@@ -278,11 +285,32 @@ class SceneRenderer:
         """[H, W, 3] float32 clean background of camera c."""
         return _downsample(self.bg[c], self.ss)
 
-    def render_frame(self, k: int, cams: list[int] | None = None) -> list[tuple[np.ndarray, np.ndarray]]:
-        """Written frame k -> per camera (image [H, W, 3] float32 in [0, 1], coverage [H, W] float32)."""
+    def render_frame(self, k: int, cams: list[int] | None = None, offsets: np.ndarray | None = None,
+                     segment: tuple[int, int] | None = None) -> list[tuple[np.ndarray, np.ndarray]]:
+        """Written frame k -> per camera (image [H, W, 3] float32 in [0, 1], coverage [H, W] float32). With
+        `offsets` (times in written-frame units, `imperfections.shutter_offsets`; 0 among them) the image is the mean
+        of the renders at k + offset (motion blur; the geometry interpolated within `segment`), the coverage the
+        frame's own (offset 0)."""
+        if offsets is None or len(offsets) == 1:
+            return self._render_vertices(self._verts(k), cams)
+        from avatarctl.synth.imperfections import shutter_vertices
+
+        assert segment is not None and 0.0 in offsets, "a blurred render needs its segment and the offset 0"
+        sums, cover = None, None
+        for tau in offsets:
+            verts = np.concatenate([shutter_vertices(self.scene.body_vertices, k, float(tau), segment),
+                                    shutter_vertices(self.scene.skirt_vertices, k, float(tau), segment)])
+            views = self._render_vertices(verts, cams)
+            sums = [img for img, _ in views] if sums is None else [a + img for a, (img, _) in zip(sums, views)]
+            if tau == 0.0:
+                cover = [cov for _, cov in views]
+        assert sums is not None and cover is not None
+        return [(a / len(offsets), cov) for a, cov in zip(sums, cover)]
+
+    def _render_vertices(self, verts: np.ndarray, cams: list[int] | None) -> list[tuple[np.ndarray, np.ndarray]]:
+        """The scene with body + skirt vertices `verts` [Vb + P, 3] -> per camera (image, coverage)."""
         from avatarctl.geometry.normals import vertex_normals
 
-        verts = self._verts(k)
         normals = vertex_normals(verts.astype(np.float64), self.faces)
         self.caster.update(verts)
         out = []
@@ -396,6 +424,9 @@ def synthesize(out: Path, config: SynthConfig, progress: ProgressFn | None = Non
         hem_radius = np.linalg.norm(hem[..., :2] - centre[:, None, :2], axis=-1).mean(1)  # [frames]
         hem_pair = _hem_pair(scene.body_vertices, hem, train_frames) if len(train_frames) > 1 else None
 
+    gains = camera_gains(config.seed, len(cameras), config.exposure_ev, config.white_balance)  # [cams, 3]
+    gains[[names.index(v) for v in test_views]] *= 2.0 ** config.held_out_ev
+    offsets = shutter_offsets(config.shutter_s, config.stride / config.sim_fps, BLUR_SAMPLES)
     with atomic_dir(out) as root:
         t0 = time.perf_counter()
         tmp = root / GT_CAPTURE if config.layout == "video" else root
@@ -403,19 +434,22 @@ def synthesize(out: Path, config: SynthConfig, progress: ProgressFn | None = Non
         write_easymocap_cameras(tmp, cameras)
         renderer = SceneRenderer(scene, cameras, config.supersample, config.seed)
         jpeg = [int(cv2.IMWRITE_JPEG_QUALITY), config.jpeg_quality]
+        masks_dir = tmp / ("masks" if config.masks == "truth" else GT_MASKS)
         (tmp / "background").mkdir()
         for c, cam in enumerate(cameras):
-            write_image(tmp / "background" / f"{cam.name}.jpg", _to_u8(renderer.plate(c))[..., ::-1], jpeg)
+            plate = sensor_image(renderer.plate(c), gains[c], config.noise_std, plate_rng(config.seed, c))
+            write_image(tmp / "background" / f"{cam.name}.jpg", _to_u8(plate)[..., ::-1], jpeg)
             (tmp / "images" / cam.name).mkdir(parents=True)
-            (tmp / "masks" / cam.name).mkdir(parents=True)
+            (masks_dir / cam.name).mkdir(parents=True)
         sheet_frames = _sheet_frames(config, hem_radius, hem_pair)
         sheet_tiles: dict[tuple[int, int], np.ndarray] = {}
         for k in frames:
-            views = renderer.render_frame(k)
+            segment = (0, config.train_frames) if k < config.train_frames else (config.train_frames, config.frames)
+            views = renderer.render_frame(k, offsets=offsets, segment=segment)
             for c, (img, cov) in enumerate(views):
-                u8 = _to_u8(img)
+                u8 = _to_u8(sensor_image(img, gains[c], config.noise_std, noise_rng(config.seed, c, k)))
                 write_image(tmp / "images" / names[c] / f"{k:06d}.jpg", u8[..., ::-1], jpeg)
-                write_image(tmp / "masks" / names[c] / f"{k:06d}.png", np.where(cov >= 0.5, 255, 0).astype(np.uint8))
+                write_image(masks_dir / names[c] / f"{k:06d}.png", np.where(cov >= 0.5, 255, 0).astype(np.uint8))
                 if k in sheet_frames:
                     sheet_tiles[(k, c)] = u8
                 if video is not None and c == 0:
@@ -433,17 +467,19 @@ def synthesize(out: Path, config: SynthConfig, progress: ProgressFn | None = Non
         from avatarctl.body.anny_model import AnnyBody
 
         bone_labels = np.array(AnnyBody("cpu").joint_names)
-        (tmp / GT_GEOMETRY).parent.mkdir()
+        (tmp / GT_GEOMETRY).parent.mkdir(exist_ok=True)
         written = bm
         if config.fit_noise_deg or config.fit_noise_cm:  # realistic fit errors; the truth goes to gt/
             from avatarctl.body.perturb import perturb_motion
 
             written = perturb_motion(bm, config.fit_noise_deg, config.fit_noise_cm, seed=config.seed,
                                      corr_frames=config.fit_noise_corr_frames)
+        if written is not bm or config.fits == "none":
             with open(tmp / GT_MOTION, "wb") as fh:
                 np.savez(fh, **bm.to_npz_dict(), bone_labels=bone_labels)
-        with open(tmp / "motion.npz", "wb") as fh:
-            np.savez(fh, **written.to_npz_dict(), bone_labels=bone_labels)
+        if config.fits == "truth":  # "none": ingest estimates them (--fits keypoints)
+            with open(tmp / "motion.npz", "wb") as fh:
+                np.savez(fh, **written.to_npz_dict(), bone_labels=bone_labels)
         with open(tmp / GT_GEOMETRY, "wb") as fh:
             np.savez(fh, frame_index=np.array(frames), body_vertices=scene.body_vertices,
                      garment_vertices=scene.skirt_vertices, body_faces=scene.body_faces,
@@ -471,6 +507,9 @@ def synthesize(out: Path, config: SynthConfig, progress: ProgressFn | None = Non
             "hem_pair": hem_pair,
             "floor_z": scene.floor_z,
             "mask_rule": f"subpixel coverage >= 0.5 with {config.supersample}x{config.supersample} rays per pixel",
+            "imperfections": config.imperfections,
+            "camera_colour": {n: [round(float(g), 6) for g in gains[c]] for c, n in enumerate(names)},
+            "clean_twin": config.clean_twin().to_json(),
             "timings": timings,
         }
         (tmp / "capture.json").write_text(json.dumps(info, indent=2) + "\n")

@@ -14,6 +14,13 @@ Settings of the paper's other experiments (`avatarctl reproduce`, docs/reproduce
   the truth goes under `OUT/gt/` (`layout = "video"`, see `avatarctl.synth.capture`).
 - `tight` (ZJU-MoCap-like, Tab. 2): the tiny choreography and cameras without the skirt (tight clothing); the
   every-third rule leaves 4 training views, as the paper's 4-view ZJU-MoCap protocol.
+
+Imperfections of a real capture (issue 51; each 0 / "truth" in every preset but `realistic`, `IMPERFECTIONS`): cameras
+that disagree in colour (`exposure_ev`, `white_balance`, `held_out_ev`), sensor noise (`noise_std`), stronger JPEG compression
+(`jpeg_quality`), motion blur (`shutter_s`), masks and body fits left for ingest to estimate (`masks`, `fits`: MediaPipe
+masks, keypoint-fitted anny) or written with errors (`fit_noise_*`). The geometry, cameras and textures never depend
+on them: `clean_twin()` is the same capture without them (same seed, same scene), so every imperfection can be
+measured against it. `realistic`: 4 cameras (3 train, 1 held out), all imperfections at once.
 """
 
 from __future__ import annotations
@@ -44,7 +51,22 @@ _PRESETS: dict[str, dict[str, Any]] = {
     "phone": dict(views=4, train_views=1, motion="turn", garment="none", train_frames=40, test_frames=12,
                   size=512, width=288, stride=3, supersample=2, layout="video"),
     "tight": dict(views=6, garment="none", train_frames=24, test_frames=12, size=96, stride=5, supersample=2),
+    # a capture that behaves like a real one (issue 51): 4 cameras (the every-third rule holds cam01 out), exposure
+    # and white balance differing per camera (the held-out one 0.25 stops brighter than its draw: issue 51's capture,
+    # whose renders were 17-20 % darker than the held-out images), sensor noise, JPEG, a 1/60 s shutter, masks and
+    # fits left to ingest
+    "realistic": dict(views=4, train_frames=24, test_frames=12, size=128, stride=5, supersample=2, exposure_ev=0.25,
+                      white_balance=0.05, held_out_ev=0.25, noise_std=0.01, jpeg_quality=80, shutter_s=1 / 60,
+                      masks="none", fits="none"),
 }
+# the imperfections of a real capture and their clean values (what `SynthConfig.clean_twin` sets)
+IMPERFECTIONS: dict[str, Any] = {"exposure_ev": 0.0, "white_balance": 0.0, "held_out_ev": 0.0, "noise_std": 0.0,
+                                 "jpeg_quality": 95,
+                                 "shutter_s": 0.0, "masks": "truth", "fits": "truth", "fit_noise_deg": 0.0,
+                                 "fit_noise_cm": 0.0, "fit_noise_corr_frames": 0.0}
+MASKS = ("truth", "none")
+FITS = ("truth", "none")
+BLUR_SAMPLES = 5  # renders averaged over the shutter time (shutter_s > 0)
 MOTIONS = ("choreography", "turn")
 GARMENTS = ("skirt", "none")
 LAYOUTS = ("easymocap", "video")
@@ -112,6 +134,28 @@ class SynthConfig:
     train_views: int = 0
     """0: every third camera (cam01, cam04, ...) is held out, the rest train; k > 0: cam00 .. cam(k-1) train and
     every other camera is evaluation-only (split.json test views)."""
+    exposure_ev: float = 0.0
+    """Cameras that disagree in exposure: camera c's image is scaled by 2^e_c, e_c ~ N(0, this^2) stops (its own
+    seeded stream; the plates too). The true gains go to capture.json ("camera_colour")."""
+    white_balance: float = 0.0
+    """Cameras that disagree in white balance: on top of the exposure, each channel of camera c scaled by 2^w_ck,
+    w_ck ~ N(0, this^2) stops."""
+    held_out_ev: float = 0.0
+    """The evaluation-only cameras' (split.json test views) exposure, in stops, on top of their `exposure_ev` draw: a
+    held-out camera that surely disagrees with the training ones (a real capture's held-out camera did: +0.25)."""
+    noise_std: float = 0.0
+    """Sensor noise: N(0, this^2) added to every pixel and channel (images in [0, 1], after the colour gains, before
+    the 8-bit rounding and the JPEG), seeded per camera and frame."""
+    shutter_s: float = 0.0
+    """Motion blur: each image averages `BLUR_SAMPLES` renders over this exposure time (seconds) centred on the frame
+    (the geometry interpolated linearly between written frames of the same segment); the masks stay the frame's own
+    coverage (the truth at the frame's instant). 0: no blur."""
+    masks: str = "truth"
+    """truth: masks/ holds the true masks; none: the capture has no masks/ (the truth goes to gt/masks/): ingest
+    estimates them (`--masks mediapipe`, or `background` from the plates)."""
+    fits: str = "truth"
+    """truth: motion.npz holds the fits (exact, or with `fit_noise_*`); none: the capture has no motion.npz (the
+    truth goes to gt/motion.npz): ingest estimates them (`--fits keypoints`: MediaPipe keypoints, anny fitted)."""
 
     def __post_init__(self) -> None:
         checks = [
@@ -135,6 +179,17 @@ class SynthConfig:
             (self.garment in GARMENTS, f"garment must be one of {', '.join(GARMENTS)}"),
             (0 <= self.train_views < self.views, "train_views must be in [0, views) (0 = every third held out; "
                                                  "at least one camera must be left for evaluation)"),
+            (0 <= self.exposure_ev <= 2 and 0 <= self.white_balance <= 1 and -2 <= self.held_out_ev <= 2,
+             "exposure_ev must be in [0, 2] stops, white_balance in [0, 1] and held_out_ev in [-2, 2]"),
+            (0 <= self.noise_std <= 0.2, "noise_std must be in [0, 0.2] (images in [0, 1])"),
+            (0 <= self.shutter_s <= self.stride / self.sim_fps,
+             f"shutter_s must be in [0, {self.stride / self.sim_fps:.3f}] seconds (at most one written frame)"),
+            (self.masks in MASKS, f"masks must be one of {', '.join(MASKS)}"),
+            (self.fits in FITS, f"fits must be one of {', '.join(FITS)}"),
+            (self.fits == "truth" or not (self.fit_noise_deg or self.fit_noise_cm),
+             "fit noise needs fits 'truth' (with fits 'none' ingest estimates the fits)"),
+            (self.layout == "easymocap" or self.masks == self.fits == "truth",
+             "masks / fits 'none' need the easymocap layout (the video layout writes neither)"),
         ]
         for ok, msg in checks:
             if not ok:
@@ -142,8 +197,8 @@ class SynthConfig:
 
     @classmethod
     def preset(cls, name: str, seed: int = 0, **overrides: Any) -> "SynthConfig":
-        """The named preset (`micro`, `tiny`, `small`, `standard`, `monocular`, `phone`, `tight`) with optional field
-        overrides."""
+        """The named preset (`micro`, `tiny`, `small`, `standard`, `monocular`, `phone`, `tight`, `realistic`) with
+        optional field overrides."""
         if name not in _PRESETS:
             raise InputError(f"unknown synth preset {name!r}", fix=f"use one of {', '.join(PRESETS)}")
         known = {f.name for f in fields(cls)}
@@ -151,6 +206,15 @@ class SynthConfig:
         if bad:
             raise InputError(f"unknown synth config fields {bad}", fix=f"use fields of SynthConfig: {sorted(known)}")
         return replace(cls(preset=name, seed=seed, **_PRESETS[name]), **overrides)
+
+    def clean_twin(self) -> "SynthConfig":
+        """The same capture (seed, scene, cameras, textures) without any imperfection (`IMPERFECTIONS`)."""
+        return replace(self, **IMPERFECTIONS)
+
+    @property
+    def imperfections(self) -> dict[str, Any]:
+        """The imperfections this config has: {field: value} of those that differ from `IMPERFECTIONS`."""
+        return {k: getattr(self, k) for k, clean in IMPERFECTIONS.items() if getattr(self, k) != clean}
 
     @property
     def image_width(self) -> int:
