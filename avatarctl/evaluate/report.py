@@ -93,13 +93,15 @@ class EvalMetrics:
     benchmark: str | None = None  # the named benchmark protocol scored under (avatarctl.evaluate.benchmarks), if any
     comparable_with: list[str] | None = None  # the published figures that protocol is set beside
     not_comparable: list[str] | None = None  # why this figure is not the protocol's in full ([]: it is)
+    test_project: str | None = None  # the project whose images were scored when not this one (`--test-project`)
 
     def to_json(self) -> dict[str, Any]:
         return asdict(self)
 
     @classmethod
     def from_json(cls, d: dict[str, Any]) -> "EvalMetrics":
-        optional = {"region", "regions", "benchmark", "comparable_with", "not_comparable"}  # absent from older files
+        optional = {"region", "regions", "benchmark", "comparable_with", "not_comparable",
+                    "test_project"}  # absent from older files
         kw = {f.name: d[f.name] for f in fields(cls) if f.name in d or f.name not in optional}
         kw["model"] = ScoredModel(**{f.name: d["model"][f.name] for f in fields(ScoredModel)})
         return cls(**kw)
