@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 
+import cv2
 import numpy as np
 import pytest
 from fixtures.actorshq import make_toy_actorshq
@@ -27,9 +28,30 @@ def test_every_protocol_is_well_formed():
     for name, p in BENCHMARKS.items():
         assert name == p.name == p.name.lower() and p.dataset in FORMATS
         train, test = p.train_frame_numbers(), p.test_frame_numbers()
-        assert train and test and not set(train) & set(test), name
-        assert p.train_views is None or not set(p.train_views) & set(p.test_views), name
+        assert train and test, name
+        if p.split == "novel_view":  # the held-out cameras at training frames
+            assert set(test) <= set(train) and p.test_sequence is None, name
+        elif p.test_sequence is None:  # new poses of the same recording
+            assert not set(train) & set(test), name
+        else:  # new poses of another recording: its frame numbers may be the training ones
+            assert p.sequence and p.test_sequence != p.sequence, name
+        assert p.test_sequence or p.train_views is None or not set(p.train_views) & set(p.test_views), name
         assert p.comparable_with and p.traps, name
+
+
+@pytest.mark.parametrize("change, needle", [
+    (dict(split="novel_view", test_frames="100:110"), "novel_view test frames must be training frames"),
+    (dict(train_frames="0:10", test_frames="5:15"), "novel_pose test frames must not be training frames"),
+    (dict(train_views=("Cam001", "Cam007")), "a held-out view is also a training view"),
+    (dict(test_sequence="Actor01/Sequence1"), "a test_sequence is another recording"),
+])
+def test_a_malformed_protocol_is_refused(change, needle):
+    from dataclasses import replace
+
+    from avatarctl.evaluate.benchmarks import benchmark
+
+    with pytest.raises(ValueError, match=needle):
+        replace(benchmark(A1), **change)
 
 
 def test_the_actorshq_protocols_are_physavatars_setting():
@@ -64,6 +86,9 @@ def test_mpmavatar_pixels_erode_blur_and_cut_white():
     assert p[20, 20].tolist() == [0, 0, 0] and np.allclose(p[20, 19], 0.5) and np.allclose(g[20, 22], [.2, .4, .6])
     assert not p[:, :10].any() and not g[:, :10].any()  # outside the mask both are black
     assert pred[20, 20, 0] == np.float32(0.95)  # inputs untouched
+    # the 4D-DRESS branch of eval.py: the same mask product, the near-white pixel kept
+    p2, g2 = mpmavatar_images(pred, gt, mask, white_cut=False)
+    assert np.allclose(p2[20, 20], 0.95) and np.array_equal(g2, g) and np.allclose(p2[20, 19], 0.5)
 
 
 def _ingest(tmp_path, frames=FRAMES, **kw):
@@ -179,3 +204,166 @@ def test_eval_refuses_a_benchmark_the_project_was_not_ingested_with(toy_fitted_p
     assert res.exit_code == 2 and f"not ingested with --benchmark {A1}" in res.output
     res = CliRunner().invoke(app, ["eval", str(toy_fitted_project), "--benchmark", A1, "--split", "train"])
     assert res.exit_code == 2 and "sets the split and the protocol" in res.output
+
+
+# --- DNA-Rendering (novel_view: the held-out cameras at training frames) -------------------------------------------
+DNA = "dna_rendering-seqavatar"
+DNA_IDS = (0, 2, 48, 50, 52, 54, 56, 58)  # two training cameras and the six held-out ones
+
+
+def test_dna_rendering_scores_the_protocols_test_frames_from_its_held_out_cameras(random_smplx, tmp_path):
+    from fixtures.dataset_layouts import make_dna_rendering_capture
+
+    from avatarctl.io.project_io import load_benchmark, load_project_capture
+    from avatarctl.project import Project
+    from avatarctl.stages import evaluate, fit, ingest
+    from avatarctl.stages.evaluate import EvalConfig
+    from avatarctl.stages.fit import FitRequest
+    from avatarctl.stages.ingest import IngestConfig
+
+    cap = make_dna_rendering_capture(tmp_path / "0007_04", random_smplx[1], frames=range(7), size=64,
+                                     camera_ids=DNA_IDS)
+    proj = tmp_path / "proj"
+    res = ingest.run(proj, IngestConfig(capture=cap.root, project=proj, body_model_path=random_smplx[0],
+                                        benchmark=DNA, contact_sheet=False))
+    held_out = ["48", "50", "52", "54", "56", "58"]
+    assert res.frames == list(range(7))  # training frames 0:100 that the capture holds; the test frames among them
+    split = load_project_capture(Project.open(proj)).split
+    assert (split.train_frames, split.test_frames) == (list(range(7)), [])  # no novel-pose frames
+    assert (split.train_views, split.test_views) == (["00", "02"], held_out)
+    rec = load_benchmark(Project.open(proj))
+    assert rec.partial == ["frames: 7 of the protocol's 100", "training cameras: 2 of the protocol's 24"]
+    assert rec.resize == 0.25 and rec.role == "both"
+
+    fit.run(proj, FitRequest(preset="micro", iters=2, overrides=("val_every=0",), device="cpu"), handle_sigint=False)
+    m = evaluate.run(proj, EvalConfig(device="cpu", sheet_rows=0)).metrics
+    # frames 0:100:5 held here (0 and 5, not 1-4 or 6), from the six held-out cameras, at training frames (z = mu)
+    assert (m.split, m.protocol, m.benchmark) == ("novel_view", "full", DNA)
+    assert (m.frames, m.views, m.images, m.latent) == ([0, 5], held_out, 12, "mean")
+    assert m.image_size == [20, 18] and 0 < m.psnr < 100 and m.not_comparable == rec.partial
+    narrowed = evaluate.run(proj, EvalConfig(device="cpu", sheet_rows=0, frames="5:7", name="n")).metrics
+    assert narrowed.frames == [5] and any("eval frames narrowed" in r for r in narrowed.not_comparable)
+    plain = evaluate.run(proj, EvalConfig(device="cpu", sheet_rows=0, benchmark="none", protocol="full")).metrics
+    assert plain.frames == list(range(7))  # outside the protocol: every training frame
+
+
+# --- 4D-DRESS (novel_pose on another take of the outfit: two projects) --------------------------------------------
+DRESS = "4d_dress-mpmavatar-00170"
+
+
+@pytest.fixture(scope="module")
+def dress_projects(random_smplx, tmp_path_factory):
+    """(capture root, training-take project P, fitted; test-take project Q): Take1 frames 21-23, Take5 frames 21-22
+    (the same frame numbers, another motion)."""
+    from fixtures.dataset_layouts import make_four_d_dress_take
+
+    from avatarctl.stages import fit, ingest
+    from avatarctl.stages.fit import FitRequest
+    from avatarctl.stages.ingest import IngestConfig
+
+    root = tmp_path_factory.mktemp("dress")
+    take1 = make_four_d_dress_take(root / "00170" / "Inner" / "Take1", random_smplx[1], frames=(21, 22, 23),
+                                   extra_image_frame=None)
+    take5 = make_four_d_dress_take(root / "00170" / "Inner" / "Take5", random_smplx[1], frames=(21, 22),
+                                   extra_image_frame=None, seed=9)
+    projects = {}
+    for name, take in (("P", take1), ("Q", take5)):
+        projects[name] = root / name
+        ingest.run(projects[name], IngestConfig(capture=take.root, project=projects[name],
+                                                body_model_path=random_smplx[0], benchmark=DRESS,
+                                                contact_sheet=False))
+    fit.run(projects["P"], FitRequest(preset="micro", iters=2, overrides=("val_every=0",), device="cpu"),
+            handle_sigint=False)
+    return root, projects["P"], projects["Q"], take5
+
+
+def test_four_d_dress_trains_on_one_take_and_scores_another(dress_projects, monkeypatch):
+    from avatarctl.evaluate.metrics import psnr_from_mse
+    from avatarctl.evaluate.protocols import ground_truth, mpmavatar_images
+    from avatarctl.io.project_io import load_benchmark, load_project_capture, read_frame, read_mask
+    from avatarctl.project import Project
+    from avatarctl.stages import evaluate
+    from avatarctl.stages.evaluate import EvalConfig
+
+    root, P, Q, take5 = dress_projects
+    p, q = load_project_capture(Project.open(P)), load_project_capture(Project.open(Q))
+    assert (p.split.train_frames, p.split.test_frames) == ([21, 22, 23], [])
+    assert p.split.train_views == ["0004", "0028", "0052", "0076"] and p.split.test_views == []  # 0004 trains too
+    assert q.frames == [21, 22] and list(q.cameras) == ["0004"]  # the test take: its test frames and view only
+    assert (q.split.train_frames, q.split.test_frames, q.split.test_views) == ([], [21, 22], ["0004"])
+    rp, rq = load_benchmark(Project.open(P)), load_benchmark(Project.open(Q))
+    assert (rp.role, rp.sequence, rq.role, rq.sequence) == ("train", "00170/Inner/Take1", "test",
+                                                            "00170/Inner/Take5")
+
+    driven = []  # the body fits the avatar is driven with
+    state_of = evaluate.frame_node_state
+
+    def spy(avatar, one, frame, is_train, latent, seed):
+        driven.append((frame, is_train, one.global_orient[0].copy()))
+        return state_of(avatar, one, frame, is_train, latent, seed)
+
+    monkeypatch.setattr(evaluate, "frame_node_state", spy)
+    er = evaluate.run(P, EvalConfig(device="cpu", sheet_rows=0, test_project=str(Q), save_images=True))
+    m = er.metrics
+    assert (m.split, m.protocol, m.benchmark, m.latent) == ("novel_pose", "mpmavatar_4d_dress", DRESS, "novel")
+    assert (m.frames, m.views, m.test_project) == ([21, 22], ["0004"], str(Q.resolve()))
+    assert m.config["test_project"] == str(Q) and m.not_comparable == rp.partial + [
+        f"test project: {r}" for r in rq.partial]
+    for (frame, is_train, orient), k in zip(driven, (0, 1)):  # Take5's fits, as novel poses
+        assert frame == take5.frames[k] and not is_train
+        assert np.allclose(orient, take5.motion.global_orient[k], atol=1e-5)
+    # the score is against Take5's images (Take1's at the same frame numbers would score otherwise)
+    for s in er.scores:
+        pred = cv2.imread(str(er.out_dir / "renders" / f"{s.frame:06d}_0004.png"))[..., ::-1] / np.float32(255)
+        own = []
+        for proj in (Q, P):
+            mask = read_mask(Project.open(proj), "0004", s.frame)
+            a, b = mpmavatar_images(pred, ground_truth(read_frame(Project.open(proj), "0004", s.frame), mask,
+                                                       (0, 0, 0)), mask, white_cut=False)
+            own.append(psnr_from_mse(float(((a - b) ** 2).mean())))
+        assert abs(own[0] - s.psnr) < 0.2 < abs(own[1] - s.psnr), (own, s.psnr)
+
+
+def test_four_d_dress_refusals(dress_projects, random_smplx, tmp_path):
+    import shutil
+
+    from avatarctl.project import Project
+    from avatarctl.stages import ingest
+    from avatarctl.stages.evaluate import EvalConfig, resolve_benchmark
+    from avatarctl.stages.ingest import IngestConfig
+
+    root, P, Q, take5 = dress_projects
+
+    def eval_error(*args):
+        res = CliRunner().invoke(app, ["eval", str(P), "--device", "cpu", "--sheet", "0", *args])
+        lines = [ln for ln in res.output.strip().splitlines() if ln.startswith("error:")]
+        assert res.exit_code == 2 and len(lines) == 1 and "->" in lines[0], res.output
+        return lines[0]
+
+    assert "scores another recording (00170/Inner/Take5)" in eval_error()  # no --test-project
+    assert "--test-project is 00170/Inner/Take1, not the test recording 00170/Inner/Take5" in eval_error(
+        "--test-project", str(P))
+    assert "this project has no benchmark" in eval_error("--test-project", str(Q), "--benchmark", "none")
+    plain = tmp_path / "plain"  # the test take ingested without the protocol
+    ingest.run(plain, IngestConfig(capture=take5.root, project=plain, body_model_path=random_smplx[0],
+                                   contact_sheet=False))
+    assert f"--test-project was ingested with no benchmark, not {DRESS}" in eval_error("--test-project", str(plain))
+    with pytest.raises(InputError, match=r"the project is the test recording \(00170/Inner/Take5\)"):
+        resolve_benchmark(Project.open(Q), EvalConfig(test_project=str(P)))
+
+    # ingest: another subject's protocol, and a take whose folders do not say which take it is
+    res = CliRunner().invoke(app, ["ingest", str(take5.root), str(tmp_path / "x"), "--benchmark",
+                                   "4d_dress-mpmavatar-00185", "--body-model-path", str(random_smplx[0])])
+    assert_one_line_error(res, tmp_path / "x", "is for 00185/Inner/Take1 and 00185/Inner/Take7; this capture is "
+                                               "00170/Inner/Take5", f"use {DRESS}")
+    shutil.copytree(take5.root, tmp_path / "my_take")
+    res = CliRunner().invoke(app, ["ingest", str(tmp_path / "my_take"), str(tmp_path / "y"), "--benchmark", DRESS,
+                                   "--body-model-path", str(random_smplx[0])])
+    assert_one_line_error(res, tmp_path / "y", "this capture's folders do not say which it is", "00170/Inner/Take1")
+
+
+def test_test_project_is_refused_without_a_two_recording_protocol(toy_fitted_project, tmp_path):
+    res = CliRunner().invoke(app, ["eval", str(toy_fitted_project), "--test-project", str(tmp_path), "--device",
+                                   "cpu"])
+    assert res.exit_code == 2 and "--test-project is for a benchmark whose test frames are another recording" \
+        in res.output

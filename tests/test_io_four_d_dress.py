@@ -28,7 +28,7 @@ def test_reader_reads_the_release_layout(take):
     fmt, reason = detect_format(take.root)
     assert fmt == "4d_dress" and "cameras.pkl" in reason
     src = read_four_d_dress(take.root)
-    assert src.camera_names == list(FOUR_D_DRESS_CAMERAS)
+    assert src.camera_names == list(FOUR_D_DRESS_CAMERAS) and src.sequence == "00170/Inner/Take1"
     for got, want in zip(src.cameras, take.cameras):
         np.testing.assert_allclose(got.R, want.R, atol=1e-6)
         np.testing.assert_allclose(got.T, want.T, atol=1e-6)
@@ -42,6 +42,16 @@ def test_reader_reads_the_release_layout(take):
     assert fits.body_model == "smplx" and list(fits.frame_index) == [11, 12, 13, 14]
     for key in ("global_orient", "body_pose", "transl", "left_hand_pose", "expression"):
         np.testing.assert_allclose(getattr(fits, key), getattr(take.motion, key), atol=1e-6, err_msg=key)
+
+
+def test_the_recording_is_named_by_its_folders(tmp_path):
+    from avatarctl.io.four_d_dress import sequence_name
+
+    for path, want in (("00170/Inner/Take1", "00170/Inner/Take1"), ("00170_Inner/Inner/Take5", "00170/Inner/Take5"),
+                       ("00185/Outer/Take12", "00185/Outer/Take12"), ("my_take", ""), ("00170/Inner/take1", ""),
+                       ("0170/Inner/Take1", "")):
+        (tmp_path / path).mkdir(parents=True, exist_ok=True)
+        assert sequence_name(tmp_path / path) == want, path
 
 
 def test_smpl_fits_when_the_take_has_no_smplx(take, tmp_path):
@@ -144,4 +154,5 @@ def test_benchmark_protocols_name_this_readers_cameras():
     for p in dress:
         assert set(p.test_views) | set(p.train_views or ()) <= set(FOUR_D_DRESS_CAMERAS)
         parse_frame_spec(p.train_frames), parse_frame_spec(p.test_frames)
-        assert p.split == "novel_pose" and p.pixels in ("full", "bbox") and any("Take" in t for t in p.traps)
+        assert p.split == "novel_pose" and p.pixels == "mpmavatar_4d_dress" and any("Take" in t for t in p.traps)
+        assert p.sequence.startswith(p.name[-5:] + "/Inner/Take") and p.test_sequence.startswith(p.name[-5:])

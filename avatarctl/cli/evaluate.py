@@ -18,12 +18,17 @@ def register(app: typer.Typer) -> None:
                                             "default) | novel_pose (test frames, held-out views) | train."),
         protocol: Optional[str] = typer.Option(None, "--protocol", help="bbox (Neural Body: PSNR inside the "
                                                "projected 3D body box, SSIM on its rectangle; default) | full | "
-                                               "mpmavatar (both images times the eroded, blurred mask)."),
+                                               "mpmavatar (both images times the eroded, blurred mask, near-white "
+                                               "zeroed) | mpmavatar_4d_dress (without the white cut)."),
         benchmark: Optional[str] = typer.Option(None, "--benchmark", help="A named benchmark protocol "
                                                 "(docs/formats.md, 'Benchmark protocols'): its split, pixel protocol "
                                                 "and background. Default: the one the project was ingested with "
                                                 "(`ingest --benchmark`), unless --split / --protocol are given; "
                                                 "none: ignore it."),
+        test_project: Optional[Path] = typer.Option(None, "--test-project", help="The project of a benchmark's "
+                                                    "test recording (4D-DRESS: the other take, ingested with the "
+                                                    "same --benchmark): its test frames and cameras are scored, "
+                                                    "the avatar driven by its body fits."),
         frames: Optional[str] = typer.Option(None, "--frames", help="Frames within the split: all | a:b[:step] | "
                                              "3,7,9."),
         views: Optional[str] = typer.Option(None, "--views", help="Comma list of cameras (default: the split's)."),
@@ -80,8 +85,8 @@ def register(app: typer.Typer) -> None:
                              views=view_names, every=every, latent=latent, seed=seed, sheet_rows=sheet,
                              max_rays_per_chunk=max_rays, device=device,
                              checkpoint=str(checkpoint) if checkpoint else None, save_images=save_images,
-                             region=region,
-                             knockout=parse_knockout(knockout))
+                             region=region, knockout=parse_knockout(knockout),
+                             test_project=str(test_project) if test_project else None)
             _run(projects[0], cfg, nproc, wait, console)
 
 
@@ -133,6 +138,8 @@ def _run(project: Path, cfg, nproc: int, wait: bool, console) -> None:
                                               "  [yellow]not comparable:[/] " + "; ".join(m.not_comparable)))
         for fig in m.comparable_with or []:
             t.add_row("  comparable with", fig)
+    if m.test_project is not None:
+        t.add_row("test project", m.test_project)
     t.add_row("time", f"{res.seconds:.1f} s ({m.timing['seconds_per_image']:.2f} s per image render)")
     console.print(t)
     for w in res.warnings:

@@ -28,15 +28,18 @@ class BenchmarkProtocol:
     test_views: tuple[str, ...]  # held-out cameras (project-safe names)
     train_views: tuple[str, ...] | None  # None: every camera not in test_views
     train_frames: str  # `avatarctl.frames` spec on capture frame numbers
-    test_frames: str  # idem; the same as train_frames for a novel-view-only protocol
+    test_frames: str  # idem; novel_view: a subset of train_frames (the held-out cameras at training frames)
     scale: float  # image scale relative to the dataset's full-resolution release (ActorsHQ 4x: 0.25)
     background: tuple[float, float, float]  # rgb in [0, 1]: render background and ground-truth compositing colour
-    pixels: str  # "full" | "bbox" | "mpmavatar": the pixels scored (`avatarctl.evaluate.protocols.PROTOCOLS`)
+    pixels: str  # the pixels scored, one of `avatarctl.evaluate.protocols.PROTOCOLS` ("full", "mpmavatar", ...)
     split: str  # the eval split the published figure is over: "novel_view" | "novel_pose"
     comparable_with: tuple[str, ...]  # published figures this protocol is set beside, each "method (venue): figure"
     traps: tuple[str, ...] = ()  # what changes the figure (background, mask compositing, test-pose optimisation)
     sequence: str | None = None  # the recording the frame numbers belong to, as its reader names it
     # (`CaptureSource.sequence`, ActorsHQ "Actor01/Sequence1"); None: any recording of the dataset
+    test_sequence: str | None = None  # the recording the test frames belong to when it is not `sequence`
+    # (4D-DRESS "00170/Inner/Take5", another take of the outfit): ingested as a project of its own, scored with
+    # `eval TRAIN_PROJECT --test-project TEST_PROJECT`; None: the test frames are of `sequence`
     cameras: int | None = None  # cameras (train + test) the published figures were made with; None: not checked
 
     def __post_init__(self) -> None:
@@ -46,8 +49,23 @@ class BenchmarkProtocol:
             raise ValueError(f"benchmark {self.name}: pixels {self.pixels!r} / split {self.split!r} unknown")
         if not (0.0 < self.scale <= 1.0) or len(self.background) != 3 or not self.test_views:
             raise ValueError(f"benchmark {self.name}: scale, background or test_views out of range")
-        self.train_frame_numbers()
-        self.test_frame_numbers()
+        train, test = set(self.train_frame_numbers()), set(self.test_frame_numbers())
+        if self.test_sequence is not None and (self.split != "novel_pose" or self.sequence in (None,
+                                                                                             self.test_sequence)):
+            raise ValueError(f"benchmark {self.name}: a test_sequence is another recording of a novel_pose protocol")
+        if self.split == "novel_view" and not test <= train:
+            raise ValueError(f"benchmark {self.name}: novel_view test frames must be training frames")
+        if self.test_sequence is None and self.split == "novel_pose" and train & test:
+            raise ValueError(f"benchmark {self.name}: novel_pose test frames must not be training frames")
+        if self.test_sequence is None and set(self.train_views or ()) & set(self.test_views):
+            raise ValueError(f"benchmark {self.name}: a held-out view is also a training view")
+
+    def role(self, sequence: str) -> str:
+        """What a capture of recording `sequence` (`CaptureSource.sequence`) is under this protocol: "train" or
+        "test" (the two recordings of a `test_sequence` protocol), "both" (train and test frames in one)."""
+        if self.test_sequence is None:
+            return "both"
+        return "test" if sequence == self.test_sequence else "train"
 
     def train_frame_numbers(self) -> list[int]:
         return _numbers(self.train_frames, self.name)
@@ -152,8 +170,10 @@ _DNA_RENDERING: tuple[BenchmarkProtocol, ...] = (
 # scripts/appearance/4ddress_s*.sh (the appearance is fitted on every camera of the training take, 100 frames from
 # START_IDX), scripts/eval/4ddress_s*.sh (the simulation is rolled out on ANOTHER take of the same outfit and scored
 # over 100 frames from TEST_FRAME_START), eval.py (camera "0004" only; prediction and ground truth both multiplied by
-# the ground-truth mask eroded 5 times by a 3 x 3 kernel and blurred by a 5 x 5 Gaussian; PSNR over the whole image)
-# and scene/dress4d_dataset.py (white background in training). One record per subject; the 34.1 dB is the mean.
+# the ground-truth mask eroded 5 times by a 3 x 3 kernel and blurred by a 5 x 5 Gaussian, without the near-white cut
+# of its ActorsHQ branch; PSNR over the whole image) and scene/dress4d_dataset.py (white background in training).
+# One record per subject; the 34.1 dB is the mean. The two takes are two projects: `sequence` (the training take)
+# and `test_sequence` (the scored one), named as `io.four_d_dress.sequence_name` reads the folders.
 def _mpmavatar(subject: str, train_take: int, train_frames: str, test_take: int, test_frames: str
                ) -> BenchmarkProtocol:
     return BenchmarkProtocol(
@@ -165,21 +185,25 @@ def _mpmavatar(subject: str, train_take: int, train_frames: str, test_take: int,
         test_frames=test_frames,
         scale=1.0,
         background=(0.0, 0.0, 0.0),
-        pixels="full",
+        pixels="mpmavatar_4d_dress",
         split="novel_pose",
         comparable_with=("MPMAvatar (NeurIPS 2025): 34.1 dB, mean of 00170, 00185, 00190, 00191 (Inner)",),
         traps=(f"train on {subject}/Inner/Take{train_take}; the test frames are of Take{test_take} (another motion "
-               "of the same outfit): ingest that take as its own capture and drive the avatar with its fits",
-               "the test camera 0004 is also a training camera (all four released cameras train); the figure "
-               "measures new motion, not a new view",
-               "both images are multiplied by the eroded, blurred ground-truth mask before PSNR: the silhouette "
-               "band (about 5 px) and the background are black in both, which raises PSNR against avatarctl's "
-               "full-image score over the composited ground truth",
+               "of the same outfit): both takes are ingested with the protocol, and `eval TAKE1_PROJECT "
+               "--test-project TAKE_N_PROJECT` drives the avatar with the test take's fits (the avatar's own body "
+               "shape) and scores its images",
+               "the test camera 0004 is also a training camera (all four released cameras train the avatar); the "
+               "figure measures new motion, not a new view",
+               "both images are multiplied by the eroded, blurred ground-truth mask before PSNR (no near-white cut, "
+               "unlike ActorsHQ): the silhouette band (about 5 px) and the background are black in both, and the "
+               "black pixels count in the mean",
                "MPMAvatar trains with a white background and scores over black (the mask product); the render "
                "background does not enter its figure",
                "the paper does not state the image scale; the released code reads the images at full size "
                "(940 x 1280)",
                "the 34.1 dB is a mean over four subjects; one subject's score is not comparable with it"),
+        sequence=f"{subject}/Inner/Take{train_take}",
+        test_sequence=f"{subject}/Inner/Take{test_take}",
     )
 
 

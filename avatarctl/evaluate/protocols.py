@@ -4,9 +4,10 @@
   over the pixels inside the projected box polygon (`mask_at_box`), SSIM on the image cropped to the polygon's 2D
   bounding rectangle.
 - `full`: all pixels; the background colour used for rendering and ground-truth compositing is recorded.
-- `mpmavatar` (MPMAvatar's eval.py, the ActorsHQ / 4D-DRESS benchmark protocols): near-white pixels (rgb mean
-  > 0.9) of each image zeroed, then both images multiplied by the ground-truth mask eroded 5 times by a 3x3 square
-  and blurred by a 5x5 Gaussian (`mpmavatar_images`); PSNR and SSIM over every pixel of the results.
+- `mpmavatar` (MPMAvatar's eval.py for ActorsHQ): near-white pixels (rgb mean > 0.9) of each image zeroed, then
+  both images multiplied by the ground-truth mask eroded 5 times by a 3x3 square and blurred by a 5x5 Gaussian
+  (`mpmavatar_images`); PSNR and SSIM over every pixel of the results.
+- `mpmavatar_4d_dress` (the same eval.py for 4D-DRESS): the mask product without the near-white cut.
 
 Ground truth (`ground_truth`, the one compositing rule of fit targets, validation and eval): the undistorted frame
 composited with its mask over the background colour the avatar is trained / rendered over.
@@ -20,7 +21,7 @@ import numpy as np
 
 from avatarctl.geometry.cameras import Camera
 
-PROTOCOLS = ("bbox", "full", "mpmavatar")
+PROTOCOLS = ("bbox", "full", "mpmavatar", "mpmavatar_4d_dress")
 WHITE_CUT = 0.9  # mpmavatar: pixels whose rgb mean exceeds this are zeroed (eval.py's white-background cut)
 GROUND_TRUTH = "undistorted ingest frame * mask + background * (1 - mask)"
 
@@ -83,13 +84,17 @@ def mpmavatar_weights(mask: np.ndarray) -> np.ndarray:
     return cv2.GaussianBlur(m, (5, 5), 0)
 
 
-def mpmavatar_images(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """([H, W, 3] float pred, [H, W, 3] float gt, [H, W] bool ground-truth mask) -> the two images the `mpmavatar`
-    protocol scores: near-white pixels (mean > `WHITE_CUT`) of each zeroed, both times `mpmavatar_weights`."""
+def mpmavatar_images(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray, white_cut: bool = True
+                     ) -> tuple[np.ndarray, np.ndarray]:
+    """([H, W, 3] float pred, [H, W, 3] float gt, [H, W] bool ground-truth mask) -> the two images MPMAvatar's
+    eval.py scores: both times `mpmavatar_weights`, after, with `white_cut` (its ActorsHQ branch, the `mpmavatar`
+    protocol), near-white pixels (mean > `WHITE_CUT`) of each zeroed; without (its 4D-DRESS branch,
+    `mpmavatar_4d_dress`) the colours are kept."""
     w = mpmavatar_weights(mask)[..., None]
     out = []
     for img in (pred, gt):
         a = np.array(img, np.float32)
-        a[a.mean(-1) > WHITE_CUT] = 0.0
+        if white_cut:
+            a[a.mean(-1) > WHITE_CUT] = 0.0
         out.append(a * w)
     return out[0], out[1]

@@ -214,7 +214,7 @@ def plan_ingest(cfg: IngestConfig) -> IngestPlan:
         from avatarctl.ingest.benchmark import plan_benchmark
 
         bench = plan_benchmark(benchmark(cfg.benchmark), src, cams, available, cfg.frames, cfg.views is not None)
-        frames = bench.frames
+        frames, cams = bench.frames, bench.cams
     else:
         frames = select_frames(cfg.frames, available)
     check_complete(src.image_frames, cams, frames, "images", src.root)

@@ -17,6 +17,10 @@ Layout followed: eth-ait/4d-dress at commit d1685e1 (`dataset/README.md`, `datas
       Meshes_pkl/mesh-f%05d.pkl            the scan: {vertices [V, 3] metres, faces [T, 3], colors, normals, uvs}
       Semantic/labels/label-f%05d.pkl      {'scan_labels' [V]}: 0 skin, 1 hair, 2 shoe, 3 upper, 4 lower, 5 outer
 
+The recording's name (`CaptureSource.sequence`, what `--benchmark` protocols tell takes apart by) is read from the
+folders: ``00170/Inner/Take1`` (the subject folder may carry the archive's ``_Inner`` / ``_Outer`` suffix, as in
+``00170_Inner/Inner/Take1``); "" when they are named otherwise.
+
 Cameras, scans and fits share the capture's world frame (`basic_info['rotation']` only turns the scan to face a
 viewer; it is not applied). Frame number = the file number (`capture-f00011.png` -> 11). Fits: SMPL-X when
 `SMPLX/` holds them, else SMPL. Every pickle is read with `avatarctl.safe_pickle` (numpy arrays and plain containers;
@@ -47,6 +51,7 @@ CAMERAS_PKL = Path("Capture") / "cameras.pkl"
 BASIC_INFO = "basic_info.pkl"
 _IMAGE = re.compile(r"^capture-f(\d+)\.png$")
 _MASK = re.compile(r"^mask-f(\d+)\.png$")
+_SEQUENCE = re.compile(r"^(\d{5})(?:_(?:Inner|Outer))?$"), re.compile(r"^(?:Inner|Outer)$"), re.compile(r"^Take\d+$")
 _SMPLX_KEYS = {"global_orient": 3, "body_pose": 63, "transl": 3, "jaw_pose": 3, "leye_pose": 3, "reye_pose": 3,
                "left_hand_pose": 45, "right_hand_pose": 45}
 _SMPL_KEYS = {"global_orient": 3, "body_pose": 69, "transl": 3}
@@ -55,6 +60,16 @@ _SMPL_KEYS = {"global_orient": 3, "body_pose": 69, "transl": 3}
 def is_four_d_dress(root: Path) -> bool:
     """A 4D-DRESS take folder: `Capture/cameras.pkl` and `basic_info.pkl`."""
     return (Path(root) / CAMERAS_PKL).is_file() and (Path(root) / BASIC_INFO).is_file()
+
+
+def sequence_name(root: Path) -> str:
+    """``<subject>/<Inner|Outer>/<TakeN>`` of a take folder named as in the release, else ""."""
+    take = Path(root).resolve()
+    subject, outfit = take.parent.parent.name, take.parent.name
+    m = _SEQUENCE[0].match(subject)
+    if m and _SEQUENCE[1].match(outfit) and _SEQUENCE[2].match(take.name):
+        return f"{m.group(1)}/{outfit}/{take.name}"
+    return ""
 
 
 def _scan(folder: Path, pattern: re.Pattern) -> dict[int, Path]:
@@ -191,7 +206,8 @@ def read_four_d_dress(root: Path) -> CaptureSource:
                          images=FileImages(images), fits=fits, fits_where=fits_where,
                          masks=FileMasks(masks) if has_masks else None, mask_frames=mask_frames if has_masks else None,
                          uncalibrated=sorted({c for c, d in per_cam.items() if d} - set(names)),
-                         notes=notes, hands_from_mean=fits is not None and fits.body_model == "smplx")
+                         notes=notes, hands_from_mean=fits is not None and fits.body_model == "smplx",
+                         sequence=sequence_name(root))
 
 
 # --- ground-truth geometry: the labelled scans -------------------------------------------------------------------

@@ -52,15 +52,20 @@ class IngestedBenchmark:
     train_views: list[str]
     test_views: list[str]
     partial: list[str]  # why the project does not meet the protocol in full (empty: it does)
+    sequence: str = ""  # the recording ingested (`CaptureSource.sequence`; "": its folders do not say)
+    role: str = "both"  # `BenchmarkProtocol.role`: "both" (train and test frames here), or the "train" / "test"
+    # recording of a protocol whose test frames are another recording (`eval --test-project`)
 
     def to_json(self) -> dict:
         return asdict(self)
 
     @classmethod
     def from_json(cls, d: dict) -> "IngestedBenchmark":
+        older = {"sequence": "", "role": "both"}  # absent from files written before two-recording protocols
         return cls(name=str(d["name"]), dataset=str(d["dataset"]), resize=float(d["resize"]), frames=int(d["frames"]),
                    frames_expected=int(d["frames_expected"]), train_views=[str(v) for v in d["train_views"]],
-                   test_views=[str(v) for v in d["test_views"]], partial=[str(p) for p in d["partial"]])
+                   test_views=[str(v) for v in d["test_views"]], partial=[str(p) for p in d["partial"]],
+                   **{k: str(d[k]) if k in d else v for k, v in older.items()})
 
 
 @dataclass(frozen=True)

@@ -12,15 +12,20 @@ the same colour, so pixels outside the person score only the avatar's stray dens
 
 Protocols (`avatarctl.evaluate.protocols`): `bbox` (Neural Body / SLRF: PSNR over the projected 3D body box, SSIM on
 its bounding rectangle; only that rectangle is rendered), `full` (every pixel) or `mpmavatar` (both images times the
-eroded, blurred ground-truth mask, near-white pixels zeroed; every pixel). Scores come only from
-`avatarctl.evaluate.metrics` (float32, settings and scikit-image version recorded). The split's score is the mean
-over (frame, view) images of the per-image PSNR / SSIM (Neural Body's averaging).
+eroded, blurred ground-truth mask, near-white pixels zeroed; every pixel; `mpmavatar_4d_dress`: without the cut).
+Scores come only from `avatarctl.evaluate.metrics` (float32, settings and scikit-image version recorded). The
+split's score is the mean over (frame, view) images of the per-image PSNR / SSIM (Neural Body's averaging).
 
 Named benchmark protocols (`avatarctl.evaluate.benchmarks`; `benchmark`: "auto" = the one the project was ingested
 with, `ingest --benchmark`, recorded in ingest/benchmark.json): the protocol's split, pixel protocol and background
 replace `split` / `protocol` and the fit's background (the avatar is rendered, and the ground truth composited,
 over the protocol's background; a fit trained over another one is named in one warning line); metrics.json records
-the protocol's name, the published figures it is comparable with, and why it is not (a partial project).
+the protocol's name, the published figures it is comparable with, and why it is not (a partial project). A
+novel_view protocol scores its own test frames (those the avatar trained on; `--frames` narrows them). A protocol
+whose test frames are another recording (`BenchmarkProtocol.test_sequence`, 4D-DRESS's other take) is scored with
+`test_project`: the project ingested from that recording under the same protocol; its test frames (all novel poses,
+whatever their numbers) from its test views, the avatar driven by its body fits with the avatar's own body shape,
+against its images and masks (and its ground-truth geometry for `--region`).
 
 Cameras that disagree in colour (issue 51): a training view of an avatar fitted with per-camera colour transforms
 (`model.colour.enabled`, model/colour.py) is scored through its camera's learned transform; every other view is
@@ -88,6 +93,7 @@ class EvalConfig:
     region: str = "all"  # what the headline PSNR is over: all (the protocol's region) | garment | body | edge | inner
     knockout: tuple[str, ...] = ()  # render-time knockout of a trained model: delta-n and/or embedding (Fig. 3)
     benchmark: str = "auto"  # auto (the project's ingest --benchmark, if any) | none | a protocol name
+    test_project: str | None = None  # the project of the protocol's test recording (`--test-project`), if any
 
     def __post_init__(self) -> None:
         from avatarctl.evaluate.protocols import PROTOCOLS
@@ -145,13 +151,20 @@ class EvalResult:
         return float(self.metrics.ssim)
 
 
-def split_pairs(avatar: Any, cfg: EvalConfig) -> tuple[list[int], list[str], bool]:
-    """(frames, views, frames_are_training) for the split, after --frames / --views / --every."""
-    cap = avatar.capture
+def split_pairs(avatar: Any, cfg: EvalConfig, scored: Any = None, proto: Any = None
+                ) -> tuple[list[int], list[str], bool]:
+    """(frames, views, frames_are_training) for the split, after --frames / --views / --every. `scored`: the test
+    project's capture (`test_project`: its test frames and views, none a training frame); `proto`: the benchmark
+    protocol (novel_view: only its test frames)."""
+    cap = scored if scored is not None else avatar.capture
     split = cap.split
     trained = sorted(set(int(f) for f in avatar.train_frames))
-    if cfg.split in ("novel_view", "train"):
+    if scored is not None:
+        pool, is_train, views = sorted(set(int(f) for f in split.test_frames)), False, list(split.test_views)
+    elif cfg.split in ("novel_view", "train"):
         pool, is_train = trained, True
+        if proto is not None and cfg.split == "novel_view":
+            pool = sorted(set(pool) & set(proto.test_frame_numbers()))
         views = list(split.test_views if cfg.split == "novel_view" else split.train_views)
     else:
         pool = sorted(set(int(f) for f in split.test_frames) - set(trained))
@@ -178,12 +191,11 @@ def resolve_benchmark(project: Project, cfg: EvalConfig) -> tuple[EvalConfig, An
     from avatarctl.evaluate.benchmarks import benchmark
     from avatarctl.io.project_io import load_benchmark
 
-    if cfg.benchmark == "none":
-        return cfg, None, None
-    record = load_benchmark(project)
+    record = load_benchmark(project) if cfg.benchmark != "none" else None
+    if record is None and cfg.benchmark in ("auto", "none"):
+        _check_test_project(project, cfg, None, None)
+        return replace(cfg, benchmark="none"), None, None
     if record is None:
-        if cfg.benchmark == "auto":
-            return replace(cfg, benchmark="none"), None, None
         raise InputError(f"the project was not ingested with --benchmark {cfg.benchmark}", where=str(project.root),
                          fix=f"ingest the capture again with --benchmark {cfg.benchmark} (its split is the "
                              "protocol's), or drop --benchmark")
@@ -191,7 +203,39 @@ def resolve_benchmark(project: Project, cfg: EvalConfig) -> tuple[EvalConfig, An
         raise InputError(f"the project was ingested with --benchmark {record.name}, not {cfg.benchmark}",
                          where=str(project.paths.benchmark), fix=f"use --benchmark {record.name}, or drop it")
     proto = benchmark(record.name)
+    _check_test_project(project, cfg, proto, record)
     return replace(cfg, split=proto.split, protocol=proto.pixels, benchmark=proto.name), proto, record
+
+
+def _check_test_project(project: Project, cfg: EvalConfig, proto: Any, record: Any) -> None:
+    """Refuse, in one line, a `cfg.test_project` that is not the test recording of the project's protocol `proto`
+    (`record`: the project's `IngestedBenchmark`), and a two-recording protocol without one."""
+    from avatarctl.io.project_io import load_benchmark
+
+    two = proto is not None and proto.test_sequence is not None
+    if cfg.test_project is None:
+        if two:
+            raise InputError(f"benchmark {proto.name} scores another recording ({proto.test_sequence})",
+                             where=str(project.root), fix=f"ingest it with --benchmark {proto.name} and pass its "
+                             "project as --test-project (or --benchmark none to score this one)")
+        return
+    if not two:
+        raise InputError(f"--test-project is for a benchmark whose test frames are another recording; "
+                         f"{'this project has no benchmark' if proto is None else proto.name + ' is not one'}",
+                         where="--test-project", fix="drop --test-project")
+    if record.role != "train":
+        raise InputError(f"the project is the test recording ({record.sequence}) of benchmark {proto.name}",
+                         where=str(project.root), fix=f"evaluate the project of {proto.sequence} with "
+                         f"--test-project {project.root}")
+    test = load_benchmark(Project.open(cfg.test_project))
+    if test is None or test.name != proto.name:
+        raise InputError(f"--test-project was ingested with {'no benchmark' if test is None else test.name}, not "
+                         f"{proto.name}", where=str(cfg.test_project),
+                         fix=f"ingest {proto.test_sequence} with --benchmark {proto.name}")
+    if test.role != "test":
+        raise InputError(f"--test-project is {test.sequence or 'a recording'}, not the test recording "
+                         f"{proto.test_sequence} of benchmark {proto.name}", where=str(cfg.test_project),
+                         fix=f"ingest {proto.test_sequence} with --benchmark {proto.name} and pass that project")
 
 
 def run(project_dir: str | Path, cfg: EvalConfig, progress: ProgressFn | None = None, *,
@@ -228,14 +272,16 @@ def _run(env: Any, progress: ProgressFn | None, project_dir: str, cfg: EvalConfi
     from avatarctl.evaluate.regions import SILHOUETTE_REGIONS
     from avatarctl.evaluate.report import colour_matched, per_frame_csv, region_scores
     from avatarctl.evaluate.sheet import comparison_sheet
+    from avatarctl.io.project_io import load_benchmark
 
     started = now_iso()
     t_start = time.perf_counter()
     project = open_fitted(project_dir, cfg.checkpoint, cfg.views)
     cfg, proto, bench = resolve_benchmark(project, cfg)
     avatar = load_fitted(project, rank_device_name(env, cfg.device), cfg.checkpoint)
-    cap = avatar.capture
-    frames, views, is_train = split_pairs(avatar, cfg)
+    scored = _test_capture(avatar, cfg.test_project) if cfg.test_project is not None else None
+    cap = scored if scored is not None else avatar.capture
+    frames, views, is_train = split_pairs(avatar, cfg, scored, proto)
     latent = latent_for(cfg.latent, is_train)
     background = tuple(float(c) for c in (proto.background if proto is not None else avatar.background))
     warnings = []
@@ -243,7 +289,7 @@ def _run(env: Any, progress: ProgressFn | None, project_dir: str, cfg: EvalConfi
         warnings.append(f"the avatar was fitted over background {_rgb(avatar.background)}; benchmark {proto.name} "
                         f"renders and composites over {_rgb(background)}: scored over {_rgb(background)}")
     lpips_fn, lpips_reason = lpips_status()
-    geometry = None if cfg.region in SILHOUETTE_REGIONS else _gt_geometry(project, cfg.region)
+    geometry = None if cfg.region in SILHOUETTE_REGIONS else _gt_geometry(cap.project, cfg.region)
     cams = {v: cap.cameras[v].pinhole() for v in views}
     total = len(frames) * len(views)
     sheet_at = set(np.linspace(0, total - 1, min(cfg.sheet_rows, total)).round().astype(int).tolist()) \
@@ -265,7 +311,7 @@ def _run(env: Any, progress: ProgressFn | None, project_dir: str, cfg: EvalConfi
             state = knocked_out(avatar, state, cfg.knockout)
             for vi, view in enumerate(views):
                 k = fi * len(views) + vi
-                mine.append(_score_image(avatar, cfg, project, state, verts, frame, view, cams[view], latent,
+                mine.append(_score_image(avatar, cap, cfg, project, state, verts, frame, view, cams[view], latent,
                                          lpips_fn, geometry, k in sheet_at, tmp, k, background))
                 if progress is not None:
                     progress(ProgressReport(stage="eval", done=min(len(mine) * world, total), total=total,
@@ -324,7 +370,9 @@ def _run(env: Any, progress: ProgressFn | None, project_dir: str, cfg: EvalConfi
             regions={k: asdict(v) for k, v in regions.items()} if regions else None,
             benchmark=proto.name if proto is not None else None,
             comparable_with=list(proto.comparable_with) if proto is not None else None,
-            not_comparable=_not_comparable(cfg, bench, frames, views),
+            not_comparable=_not_comparable(cfg, bench, frames, views,
+                                           load_benchmark(cap.project) if scored is not None else None),
+            test_project=str(cap.project.root) if scored is not None else None,
             colour_matched=asdict(matched) if matched is not None else None,
         )
         write_json(tmp / "metrics.json", metrics.to_json())
@@ -346,12 +394,13 @@ def _rgb(c: Any) -> str:
     return ",".join(f"{float(x):g}" for x in c)
 
 
-def _not_comparable(cfg: EvalConfig, bench: Any, frames: list[int], views: list[str]) -> list[str] | None:
+def _not_comparable(cfg: EvalConfig, bench: Any, frames: list[int], views: list[str], test_bench: Any = None
+                    ) -> list[str] | None:
     """Why a benchmark figure is not the published protocol's (None without a benchmark (`bench`, the project's
-    `IngestedBenchmark`); [] when it is)."""
+    `IngestedBenchmark`; `test_bench`, the test project's); [] when it is)."""
     if bench is None:
         return None
-    out = list(bench.partial)
+    out = list(bench.partial) + [f"test project: {p}" for p in (test_bench.partial if test_bench else ())]
     if cfg.frames is not None or cfg.every != 1:
         out.append(f"eval frames narrowed (--frames {cfg.frames or 'all'}, --every {cfg.every}): {len(frames)} frames")
     if cfg.views:
@@ -361,10 +410,11 @@ def _not_comparable(cfg: EvalConfig, bench: Any, frames: list[int], views: list[
     return out
 
 
-def _score_image(avatar: Any, cfg: EvalConfig, project: Project, state: Any, verts: np.ndarray, frame: int, view: str,
-                 cam: Any, latent: str, lpips_fn: Any, geometry: Any, on_sheet: bool, tmp: Path,
+def _score_image(avatar: Any, cap: Any, cfg: EvalConfig, project: Project, state: Any, verts: np.ndarray,
+                 frame: int, view: str, cam: Any, latent: str, lpips_fn: Any, geometry: Any, on_sheet: bool, tmp: Path,
                  index: int, background: tuple[float, float, float]) -> _Scored:
-    """Render one (frame, view) over `background` and the protocol's region and score it against the ground truth."""
+    """Render one (frame, view) over `background` and the protocol's region and score it against the ground truth
+    of `cap` (the avatar's capture, or the test project's)."""
     from avatarctl.evaluate.metrics import mse, psnr_from_mse, ssim
     from avatarctl.evaluate.protocols import bbox_region, full_region, ground_truth, mpmavatar_images
     from avatarctl.evaluate.regions import SILHOUETTE_REGIONS, silhouette_band, split_silhouette
@@ -372,7 +422,6 @@ def _score_image(avatar: Any, cfg: EvalConfig, project: Project, state: Any, ver
     from avatarctl.render.engine import render_view
     from avatarctl.render.images import write_png
 
-    cap = avatar.capture
     region = bbox_region(cam, verts, pad=cfg.bbox_pad) if cfg.protocol == "bbox" \
         else full_region(cam.height, cam.width)
     if not region.mask.any():
@@ -388,8 +437,8 @@ def _score_image(avatar: Any, cfg: EvalConfig, project: Project, state: Any, ver
     rgb = _as_camera_sees(avatar, view, view_out.rgb, view_out.alpha)
     mask = cap.mask(view, frame)
     gt = ground_truth(cap.image(view, frame), mask, background)  # [H, W, 3]
-    if cfg.protocol == "mpmavatar":
-        rgb, gt = mpmavatar_images(rgb, gt, mask)
+    if cfg.protocol in ("mpmavatar", "mpmavatar_4d_dress"):
+        rgb, gt = mpmavatar_images(rgb, gt, mask, white_cut=cfg.protocol == "mpmavatar")
     e = mse(rgb, gt, region.mask)
     pred_crop, gt_crop = region.crop_image(rgb), region.crop_image(gt)
     try:
@@ -451,6 +500,20 @@ def _matched_score(rgb: np.ndarray, alpha: np.ndarray, gt: np.ndarray, gt_mask: 
                         gain=[round(float(g), 5) for g in gain], offset=[round(float(o), 5) for o in offset])
 
 
+def _test_capture(avatar: Any, test_project: str) -> Any:
+    """The test project's capture (`ProjectCapture`) with its body fits given the avatar's body shape."""
+    from dataclasses import replace
+
+    from avatarctl.io.motion_files import adopt_subject
+    from avatarctl.io.project_io import load_project_capture
+
+    test = load_project_capture(Project.open(test_project))
+    if test.body_model != avatar.capture.body_model:
+        raise InputError(f"--test-project's fits are {test.body_model}, the avatar's {avatar.capture.body_model}",
+                         where=str(test_project), fix=f"ingest it with --body-model {avatar.capture.body_model}")
+    return replace(test, motion=adopt_subject(test.motion, avatar.capture.motion))
+
+
 def _gt_geometry(project: Project, region: str) -> Any:
     """The source capture's ground-truth geometry (`io.gt_geometry`), or None; required for garment / body."""
     from avatarctl.io.gt_geometry import open_gt_geometry
@@ -492,6 +555,9 @@ def _finite_mean(a: np.ndarray) -> float:
 
 
 def _protocol_details(cfg: EvalConfig) -> str:
+    if cfg.protocol == "mpmavatar_4d_dress":
+        return ("MPMAvatar's eval.py for 4D-DRESS: both images times the ground-truth mask eroded 5x (3x3) and blurred "
+                "(5x5 Gaussian), no near-white cut; PSNR and SSIM over every pixel")
     if cfg.protocol == "mpmavatar":
         return ("MPMAvatar's eval.py: near-white pixels (rgb mean > 0.9) of each image zeroed, both images times the "
                 "ground-truth mask eroded 5x (3x3) and blurred (5x5 Gaussian); PSNR and SSIM over every pixel")
