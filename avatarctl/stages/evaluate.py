@@ -434,7 +434,7 @@ def _score_image(avatar: Any, cap: Any, cfg: EvalConfig, project: Project, state
         render_mask[y0:y1, x0:x1] = True
     view_out = render_view(avatar.model, state, 0, cam, background, max_rays_per_chunk=cfg.max_rays_per_chunk,
                            pixel_mask=render_mask)
-    rgb = _as_camera_sees(avatar, view, view_out.rgb, view_out.alpha)
+    rgb = seen = _as_camera_sees(avatar, view, view_out.rgb, view_out.alpha)  # [H, W, 3] as the camera sees it
     mask = cap.mask(view, frame)
     gt = ground_truth(cap.image(view, frame), mask, background)  # [H, W, 3]
     if cfg.protocol in ("mpmavatar", "mpmavatar_4d_dress"):
@@ -457,7 +457,7 @@ def _score_image(avatar: Any, cap: Any, cfg: EvalConfig, project: Project, state
                        region_pixels=region_pixels,
                        matched=_matched_score(rgb, view_out.alpha, gt, mask, background, region.mask, region.crop))
     if cfg.save_images:  # the full image; outside the bbox crop it is the background (not rendered)
-        write_png(tmp / "renders" / f"{frame:06d}_{view}.png", rgb, None)
+        write_png(tmp / "renders" / f"{frame:06d}_{view}.png", seen, None)  # before the protocol's pixel rule
     sheet = SheetRow(gt=gt_crop, render=pred_crop, region=region.crop_image(region.mask),
                      label=f"frame {frame}  view {view}  latent {latent}  PSNR {score.psnr:.2f} dB  "
                            f"SSIM {score.ssim:.4f}") if on_sheet else None
