@@ -147,7 +147,7 @@ def main(argv: list[str] | None = None) -> IngestMemory:
                        # the kernel's high-water mark (ru_maxrss), never below a sampled RSS (statm counts pages
                        # a little differently: 0.1 MB apart on a toy run)
                        peak_rss_mb=round(max(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
-                                             max(samples)), 1),
+                                             max(samples.values(), default=0.0)), 1),
                        rss_mb={k: round(v, 1) for k, v in rss.items()},
                        rss_growth_mb=round(rss["100%"] - rss["10%"], 1))
     print(json.dumps(asdict(res), indent=2))
