@@ -8,8 +8,8 @@ capture side (split, frames, scale); `avatarctl eval` reads the name back from t
 One block per dataset below; `BENCHMARKS` collects them. Camera names are the project-safe names the dataset's
 reader (`avatarctl/io/<format>.py`) gives its cameras; frame specs use the `avatarctl.frames` syntax on the
 capture's frame NUMBERS. `scale` is relative to the dataset's full-resolution release: ingest resizes a capture by
-`scale / CaptureSource.release_scale` (ActorsHQ's 4x folder is already at 0.25). The table with the published
-figures and the traps is docs/formats.md, "Benchmark protocols".
+`scale / CaptureSource.release_scale` (ActorsHQ's 4x folder is already at 0.25). Each record's `traps` are the
+one statement of what changes its figure; docs/formats.md, "Benchmark protocols", tabulates the records.
 """
 
 from __future__ import annotations
