@@ -54,7 +54,7 @@ def test_matched_score_is_higher_than_plain_for_a_darker_camera_and_equal_when_t
     mask = np.ones((H, W), bool)
     same = _matched_score(render, alpha, truth, alpha > 0, bg, mask, (0, 0, W, H))
     assert abs(psnr_from_mse(same.mse) - psnr_from_mse(same.plain_mse)) < 0.2
-    darker = apply_colour(truth, alpha, bg, np.array([0.7, 0.75, 0.7], np.float32), np.array([0, 0.02, 0], np.float32))
+    darker = apply_colour(truth, alpha, bg, np.array([0.7, 0.75, 0.7], np.float32), np.zeros(3, np.float32))
     dark = _matched_score(render, alpha, darker, alpha > 0, bg, mask, (0, 0, W, H))
     assert psnr_from_mse(dark.mse) > psnr_from_mse(dark.plain_mse) + 6.0
     assert np.allclose(dark.gain, [0.7, 0.75, 0.7], atol=0.03)

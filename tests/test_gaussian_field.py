@@ -459,21 +459,3 @@ def test_density_query_of_the_gaussians_for_mesh_export():
     assert abs(depth - math.log(2.0)) < 0.01 * (1 + float(abs(s_world - 0.01) / 0.01))
     assert abs((1.0 - math.exp(-depth)) - 0.5) < 0.01  # the opacity a ray through the centre sees: o
 
-
-def test_max_anisotropy_bounds_each_gaussians_scale_ratio():
-    """`model.gaussians.max_anisotropy` r: drawn scales at most r apart per Gaussian (the smaller ones raised), the
-    learned parameters untouched; 0 draws them as learned."""
-    from avatarctl.model.config import GaussianConfig
-    from avatarctl.model.gaussian_field import NodeGaussians
-
-    g = torch.Generator().manual_seed(0)
-    means, log_scales = torch.randn(4, 8, 3, generator=g) * 0.01, torch.randn(4, 8, 3, generator=g) * 2.0 - 4.0
-    free = NodeGaussians(GaussianConfig(shading="none", per_node=8), 4, 8, means, log_scales)
-    assert torch.equal(free.bounded_log_scales(), free.log_scales)
-    bound = NodeGaussians(GaussianConfig(shading="none", per_node=8, max_anisotropy=10.0), 4, 8, means, log_scales)
-    b = bound.bounded_log_scales()
-    assert (b.amax(-1) - b.amin(-1)).max() <= math.log(10.0) + 1e-6
-    assert torch.equal(b.amax(-1), log_scales.amax(-1)) and (b >= log_scales).all()
-    assert (log_scales.amax(-1) - log_scales.amin(-1)).max() > math.log(10.0)  # the check is not vacuous
-    with pytest.raises(ValueError, match="max_anisotropy"):
-        GaussianConfig(max_anisotropy=0.5)

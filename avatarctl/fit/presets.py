@@ -143,7 +143,6 @@ KNOBS: dict[str, tuple[str, str]] = {
     "model.gaussians.shading": ("gaussians", "irradiance (shading under fixed lights) or none"),
     "model.gaussians.lambda_ssim": ("gaussians", "D-SSIM weight of the image loss (3DGS: 0.2)"),
     "model.gaussians.sh_degree": ("gaussians", "spherical-harmonic degree of the colours (0 or 1)"),
-    "model.gaussians.max_anisotropy": ("gaussians", "a Gaussian at most this many times longer than thick (0: off)"),
 }
 FIELD_NAMES = {"mlp": "the MLP fields (model.field=mlp)", "gaussians": "the Gaussian fields (model.field=gaussians)"}
 ALIASES = {"gaussians": "cpu"}  # old preset names still read (the cpu preset was "gaussians" until 2026-11-27)

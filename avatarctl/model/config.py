@@ -261,9 +261,6 @@ class GaussianConfig(_SubConfig):
     # steps the Gaussians with opacity < `min_opacity` move onto live ones of their node (0: never)
     relocate_every: int = 100
     min_opacity: float = 0.005
-    # sparse views (issue 51): a Gaussian's largest scale at most this many times its smallest (its smaller scales
-    # raised to meet the bound, so a needle thickens instead of vanishing); 0 = unbounded (3DGS)
-    max_anisotropy: float = 0.0
 
     def __post_init__(self) -> None:
         def need(ok: bool, msg: str) -> None:
@@ -281,8 +278,6 @@ class GaussianConfig(_SubConfig):
         need(0 <= self.min_opacity < self.init_opacity, f"min_opacity must be in [0, init_opacity), got "
              f"{self.min_opacity}")
         need(0 <= self.lambda_ssim <= 1, f"lambda_ssim must be in [0, 1], got {self.lambda_ssim}")
-        need(self.max_anisotropy == 0 or self.max_anisotropy >= 1, f"max_anisotropy must be 0 (off) or >= 1, got "
-             f"{self.max_anisotropy}")
         for name in ("offset_scale", "lambda_mask", "low_pass"):
             need(getattr(self, name) >= 0, f"{name} must be >= 0, got {getattr(self, name)}")
         for name in ("lr_means", "lr_scales", "lr_quats", "lr_opacity", "lr_colors"):

@@ -217,14 +217,6 @@ class NodeGaussians(nn.Module):
                 "lr_opacity": [self.opacity_logits],
                 "lr_colors": [self.sh, self.features] + ([self.light] if self.shaded else [])}
 
-    def bounded_log_scales(self) -> torch.Tensor:
-        """[N, K, 3] the log-scales the Gaussians are drawn with: with `max_anisotropy` r > 0 the smaller ones raised to
-        at least the largest minus log r (a Gaussian at most r times longer than it is thick), else as learned."""
-        r = self.cfg.max_anisotropy
-        if not r:
-            return self.log_scales
-        return torch.maximum(self.log_scales, self.log_scales.amax(-1, keepdim=True) - math.log(r))
-
     def forward(self, transforms: torch.Tensor, centers: torch.Tensor, embed: torch.Tensor) -> PosedGaussians:
         """transforms [B, N, 4, 4] T_i (Eq. 1), centers [B, N, 3] posed nodes n_i (Eq. 3), embed [B, N, E] e_i ->
         the posed Gaussians of the B frames."""
@@ -243,7 +235,7 @@ class NodeGaussians(nn.Module):
             sh = shade(sh, A, self.normals, self.light)
         local = self.means[None] + offset  # [B, N, K, 3]
         means = centers[:, :, None, :] + (A[:, :, None] * local[..., None, :]).sum(-1)
-        covars = transformed_covariances(A, self.quats, self.bounded_log_scales())  # [B, N, K, 3, 3] M M^T, M = A R S
+        covars = transformed_covariances(A, self.quats, self.log_scales)  # [B, N, K, 3, 3] M M^T, M = A R S
         return PosedGaussians(means=means.reshape(B, N * K, 3), covars=covars.reshape(B, N * K, 3, 3),
                               sh=sh.reshape(B, N * K, S, 3), opacities=opacity.reshape(B, N * K),
                               linear_inv=torch.linalg.inv_ex(A).inverse, per_node=K)  # inv_ex: no sync for a check

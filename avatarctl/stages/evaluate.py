@@ -65,11 +65,11 @@ from avatarctl.stages.common import check_knockout, check_latent_mode, frame_nod
     knocked_out, latent_for, load_fitted, open_fitted, rank_device_name, run_ranked, select_views, writing
 
 SPLITS = ("novel_view", "novel_pose", "train")
-MATCHED_PROTOCOL = ("NeRF-W: per image, the camera's colour transform (per channel gain and offset on the rendered "
-                    "foreground) fitted by least squares on the left half of the protocol's region (split at the "
-                    "middle column of its bounding rectangle), on the pixels that are foreground in both the render "
-                    "(alpha >= 0.5) and the mask; the render through it scored on the whole right half; plain_psnr: "
-                    "the render as it is on the same right halves")
+MATCHED_PROTOCOL = ("NeRF-W: per image, the camera's colour gains (per channel, on the rendered foreground: the "
+                    "ratio of the summed colours, evaluate.colour.estimate_colour) from the left half of the "
+                    "protocol's region (split at the middle column of its bounding rectangle), on the pixels that are "
+                    "foreground in both the render (alpha >= 0.5) and the mask; the render through them scored on the "
+                    "whole right half; plain_psnr: the render as it is on the same right halves")
 
 
 @dataclass(frozen=True)
