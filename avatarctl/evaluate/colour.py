@@ -36,7 +36,7 @@ def estimate_colour(rgb: np.ndarray, alpha: np.ndarray, gt: np.ndarray, backgrou
     bool; float64 sums. Why a ratio and no offset: a held-out render is blurrier than its photograph and a little
     misaligned, and a least-squares fit of gain and offset regresses towards the mean colour (on 300 s fits of synth
     realistic and its clean twin, `python -m benchmarks.realistic_capture OUT --only clean,realistic --colour`, it
-    found gains of 0.62-0.77 for a camera 1.19x brighter, and scored the realistic capture's right halves 0.8 dB
+    found gains of 0.67-0.80 for a camera 1.19x brighter, and scored the realistic capture's right halves 0.8 dB
     below the plain render); exposure and white balance are gains (the module docstring)."""
     m = np.asarray(mask, bool) & (np.asarray(alpha) >= 0.5)  # where the render holds the subject
     a = alpha[m].astype(np.float64)  # [n]
