@@ -307,9 +307,17 @@ def check_live(keys: list[str], field: str) -> None:
                              where="--set", fix=f"leave it out, or also set model.field={on}")
 
 
-# the ModelConfig fields the ablation switches set -> the switch (`ABLATIONS`)
-_ABLATION_KEYS = {"model.use_delta_n": "no-delta-n", "model.use_embedding": "no-embedding",
-                  "model.latent": "deterministic or per-frame-latent", "model.variant": "lbs-baseline"}
+def _ablation_switches() -> dict[str, str]:
+    """The ModelConfig keys only an ablation switch sets (not knobs) -> the switches that set them (`ABLATIONS`)."""
+    out: dict[str, list[str]] = {}
+    for name, changes in ABLATIONS.items():
+        for field_name in changes:
+            if f"model.{field_name}" not in KNOBS:
+                out.setdefault(f"model.{field_name}", []).append(name)
+    return {k: " or ".join(v) for k, v in out.items()}
+
+
+_ABLATION_KEYS = _ablation_switches()
 
 
 def _canonical_key(key: str) -> str:

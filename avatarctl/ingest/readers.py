@@ -122,6 +122,6 @@ def reader_for(fmt: str) -> Callable[[Path], CaptureSource]:
         from avatarctl.io.four_d_dress import read_four_d_dress
 
         return read_four_d_dress
-    raise InputError(f"unknown capture format {fmt!r}",
-                     fix="use --format auto, easymocap, zju, thuman4, peoplesnapshot, colmap, actorshq, "
-                         "dna_rendering or 4d_dress")
+    from avatarctl.io.detect import FORMATS
+
+    raise InputError(f"unknown capture format {fmt!r}", fix=f"use --format auto, {', '.join(FORMATS)}")
