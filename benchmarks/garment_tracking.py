@@ -11,7 +11,8 @@ stays a blur"):
 2. **What the fitted nodes do**: for every node within 3 cm of the garment at the first training frame (posed with
    its learned Delta n), the garment vertex nearest to it there; over the training frames, the spread (distance
    from its mean) of that vertex's offset in the node's frame (A_i^-1 (x - n_i)), with the learned Delta n (latent
-   mean) and with Delta n = 0 (the skeleton alone). A node that follows the cloth has a small spread. Per frame
+   mean; "tracked" when the fit placed nodes by its garment tracking, `track`: those nodes by the tracks) and with
+   Delta n = 0 (the skeleton alone). A node that follows the cloth has a small spread. Per frame
    (median and p90 over the nodes) and per node (mean over the frames): where the motion loses the cloth.
 3. **Would optical flow tell where the cloth moves?** (`--flow`, no model needed): OpenCV's Farnebäck optical flow
    (pyramid of 4 levels at scale 0.5, window 15, 5 iterations; better here than DIS at any preset: median error 0.55
@@ -25,6 +26,13 @@ stays a blur"):
    training frame t whose next frame is a training frame, the Gaussians (opacity >= 0.05, latent mean) within 2 cm of
    the garment at t, in every training view: their projected motion t -> t + 1 against that of their nearest garment
    vertex (end-point error, pixels), beside the garment's projected motion.
+
+6. **Does the fit's garment tracking follow the cloth?** (a fit with `track=true`: `PROJECT/fit/track/tracks.npz`):
+   each tracked surface vertex is matched at the reference frame to the nearest point of the true garment surface
+   (24 points per true triangle, barycentric, so the match follows the cloth); per training frame the distance of
+   the tracked vertex to its match, beside the reference surface moved by the skeleton alone (each vertex by its
+   nearest body vertex's blended transform: what the nodes do without tracking), over the vertices within 2 cm of
+   the true surface at the reference frame.
 
     python -m benchmarks.garment_tracking PROJECT [--patches 32,64,128] [--flow] [--json OUT.json]
 """
@@ -103,6 +111,19 @@ class TrackingReport:
     flow: FlowError | None = None
     gaussian_motion: GaussianMotion | None = None  # Gaussian-field avatars only
     tracks: tuple[TrackError, ...] | None = None  # part 5 (--tracks)
+    tracked_nodes: int = 0  # nodes the fit placed by its garment tracking on training frames (`track`)
+    surface: "SurfaceError | None" = None  # part 6 (a fit with `track=true`)
+
+
+@dataclass(frozen=True)
+class SurfaceError:
+    """Part 6: the tracked surface against the true cloth, per training frame (cm, mean over matched vertices)."""
+
+    vertices: int  # tracked surface vertices within 2 cm of the true garment at the reference frame
+    surface: int  # all tracked surface vertices
+    frames_tracked: int
+    tracked_cm: tuple[float, ...]  # [F] nan where the tracker lost the surface (the fit uses the skeleton there)
+    skeleton_cm: tuple[float, ...]  # [F]
 
 
 def _canonical(points: torch.Tensor, weights: torch.Tensor, joints: torch.Tensor) -> torch.Tensor:
@@ -348,21 +369,58 @@ def measure(project_dir: str | Path, patch_counts: tuple[int, ...] = (32, 64, 12
             residuals.append(PatchResidual(name, n, float(t.mean() * 100), float(t.quantile(0.9) * 100),
                                            float(r.mean() * 100), float(r.quantile(0.9) * 100)))
     m = av.model
+    tracked = 0 if m.track_nodes is None else int(m.track_nodes.numel())
+    saved = m.track_nodes
     with torch.no_grad():
-        state = m.node_state(cond, mode="mean")
-    T = state.transforms.double()
-    skeleton = (T[..., :3, :3] @ m.node_rest.double()[None, :, :, None])[..., 0] + T[..., :3, 3]
+        state = m.node_state(cond, mode="mean")  # with the fit's garment tracks, when it has them
+        m.track_nodes = None
+        bare = m.node_state(cond, mode="mean")  # the skeleton's frames: without them
+        m.track_nodes = saved
+    Tb = bare.transforms.double()
+    skeleton = (Tb[..., :3, :3] @ m.node_rest.double()[None, :, :, None])[..., 0] + Tb[..., :3, 3]
     on = nodes_on_garment(state.centers.double(), garment)
-    drift = [_drift(name, node_drift(centers, T[..., :3, :3], garment, on))
-             for name, centers in (("learned", state.centers.double()), ("skeleton", skeleton))]
+    drift = [_drift("tracked" if tracked else "learned",
+                    node_drift(state.centers.double(), state.transforms.double()[..., :3, :3], garment, on)),
+             _drift("skeleton", node_drift(skeleton, Tb[..., :3, :3], garment, on))]
+    track_file = project.paths.fit / "track" / "tracks.npz"
     return TrackingReport(frames=len(frames), garment_vertices=int(garment.shape[1]), nodes_on_garment=len(on),
-                          nodes=tuple(on.tolist()),
+                          nodes=tuple(on.tolist()), tracked_nodes=tracked,
+                          surface=surface_error(av, gt, frames, track_file) if track_file.is_file() else None,
                           residuals=tuple(residuals), drift=tuple(drift),
                           flow=flow_error(av.capture, gt, frames, list(av.capture.split.train_views)) if flow else None,
                           gaussian_motion=gaussian_motion(av, gt, frames, list(av.capture.split.train_views))
                           if m.field_kind.splats else None,
                           tracks=long_range_tracks(av.capture, gt, frames, list(av.capture.split.train_views))
                           if tracks else None)
+
+
+def surface_error(av, gt, frames: list[int], path: Path) -> SurfaceError:
+    """Part 6 of the module docstring for the tracks in `path` (fit/garment_track.py's surface per frame)."""
+    from scipy.spatial import cKDTree
+
+    from avatarctl.fit.garment_track import _skin_move, capture_input
+
+    d = np.load(path)
+    assert [int(f) for f in d["frames"]] == frames, "the tracks are of other frames than the fit's"
+    X, tracked = d["vertices"].astype(np.float64), d["tracked"]
+    ref = int(d["reference"])  # frame index of the reference surface
+    faces = gt.garment_faces.astype(np.int64)
+    bary = np.random.default_rng(0).dirichlet(np.ones(3), size=(len(faces), 24))  # [T, 24, 3]
+
+    def points(f: int) -> np.ndarray:  # the true garment surface's points at frame f [T * 24, 3]
+        return np.einsum("tkb,tbd->tkd", bary, gt.garment_vertices[gt.row(f)].astype(np.float64)[faces]).reshape(-1, 3)
+
+    dist, match = cKDTree(points(frames[ref])).query(X[ref])
+    near = dist < 0.02
+    inp = capture_input(av.capture, av.body, av.template, frames, list(av.capture.split.train_views))
+    tr, sk = [], []
+    for i, f in enumerate(frames):
+        truth = points(f)[match[near]]
+        tr.append(float(np.linalg.norm(X[i][near] - truth, axis=-1).mean() * 100) if tracked[i] else float("nan"))
+        moved = _skin_move(inp, X[ref][near], ref, i) if i != ref else X[ref][near]
+        sk.append(float(np.linalg.norm(moved - truth, axis=-1).mean() * 100))
+    return SurfaceError(vertices=int(near.sum()), surface=len(X[ref]), frames_tracked=int(tracked.sum()),
+                        tracked_cm=tuple(tr), skeleton_cm=tuple(sk))
 
 
 def _drift(motion: str, spread: torch.Tensor) -> NodeDrift:
@@ -390,6 +448,8 @@ def main(argv: list[str] | None = None) -> TrackingReport:
     for r in report.residuals:
         print(f"  {r.skinning:<15} {r.patches:>7}  {r.translation_cm:6.2f} / {r.translation_p90_cm:6.2f}  "
               f"{r.rigid_cm:6.2f} / {r.rigid_p90_cm:6.2f}")
+    if report.tracked_nodes:
+        print(f"{report.tracked_nodes} nodes placed by the fit's garment tracking on training frames (track=true)")
     print(f"spread of the garment in the frames of the {report.nodes_on_garment} nodes on it, cm "
           f"(mean / p90; the 5 frames and nodes with the largest):")
     for d in report.drift:
@@ -415,6 +475,16 @@ def main(argv: list[str] | None = None) -> TrackingReport:
         for t in report.tracks:
             print(f"  {t.gap:>3} {t.vertices:>8,} {t.motion_px:7.2f}  {t.direct_px:6.2f} / {t.direct_p90_px:5.2f}  "
                   f"{100 * t.tracked:6.1f}%  {t.chained_px:6.2f} / {t.chained_p90_px:5.2f}")
+    if report.surface is not None:
+        e = report.surface
+        tr, sk = np.asarray(e.tracked_cm), np.asarray(e.skeleton_cm)
+        on = np.isfinite(tr)
+        print(f"the fit's tracked garment surface ({e.vertices:,} of {e.surface:,} vertices within 2 cm of the true "
+              f"cloth at the reference frame) against the true cloth, cm: {e.frames_tracked} of {len(tr)} frames "
+              f"tracked, mean {np.mean(tr[on]):.2f} there against the skeleton's {np.mean(sk[on]):.2f}; the skeleton "
+              f"over all frames {np.mean(sk):.2f}")
+        print("  per frame (tracked / skeleton): " + ", ".join(
+            f"{i}: {'-' if not on[i] else f'{tr[i]:.1f}'}/{sk[i]:.1f}" for i in range(0, len(tr), 4)))
     if args.json is not None:
         args.json.write_text(json.dumps(asdict(report), indent=1))
     return report

@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 import torch
 
-from avatarctl.fit.hull_nodes import (HullSurvey, auto_hull_nodes, carve, mesh_volume, off_body_canonical,
-                                      persistent_cells)
+from avatarctl.fit.hull_nodes import HullSurvey, auto_hull_nodes, mesh_volume, off_body_canonical, persistent_cells
 from avatarctl.geometry.cameras import Camera, look_at
+from avatarctl.geometry.hull import carve
 from avatarctl.model import ModelConfig
 from avatarctl.model.config import HullConfig
 

@@ -95,6 +95,8 @@ def _run(project_dir: Path, iters, preset, resume, fresh, seed, device, override
                       + (f" -> {r.path}" if r.path else " (kept in the checkpoint: no motion file for this body model)"))
     if result.hull_nodes is not None:  # model.hull_nodes on: what the masks showed beyond the body, what was placed
         table.add_row("hull nodes", result.hull_nodes.removeprefix("hull: "))
+    if result.garment_tracking is not None:  # `track` on: what the garment tracking pass did or why it did not run
+        table.add_row("garment tracking", result.garment_tracking.removeprefix("garment tracking: "))
     table.add_row("checkpoint", str(result.checkpoint))
     table.add_row("log / config", f"{project.paths.fit_log} / {project.paths.fit_config}")
     console.print(table)

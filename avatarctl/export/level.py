@@ -138,7 +138,7 @@ def choose_level(grid: DensityGrid, body_level: float, colour: VertexColourFn, i
         raise ValueError(f"body level must be > 0 (1/metre), got {body_level}")
     from avatarctl.evaluate.metrics import psnr
     from avatarctl.export.raster import cast_pixels, shade
-    from avatarctl.synth.raster import RayCaster
+    from avatarctl.geometry.raycast import RayCaster
 
     t0 = time.perf_counter()
     scores: dict[int, LevelScore] = {}

@@ -1,5 +1,5 @@
 """Render an exported `ColouredMesh` through a project camera: one ray per pixel centre, cast against the triangles
-(`synth.raster.RayCaster`, Warp's BVH), the hit face's vertex colours interpolated barycentrically, unlit (the
+(`geometry.raycast.RayCaster`, Warp's BVH), the hit face's vertex colours interpolated barycentrically, unlit (the
 colours are baked radiance, as the volume render shows them), composited over a background colour.
 
 Conventions: pinhole camera (OpenCV, world->camera, metres), pixel centres at integer coordinates, the mesh in the
@@ -20,7 +20,7 @@ from avatarctl.export.mesh import ColouredMesh
 from avatarctl.geometry.cameras import Camera
 
 if TYPE_CHECKING:
-    from avatarctl.synth.raster import RayCaster
+    from avatarctl.geometry.raycast import RayCaster
 
 
 @dataclass(frozen=True)
@@ -43,7 +43,7 @@ def barycentric(points: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndarray)
 
 def render_mesh(mesh: ColouredMesh, camera: Camera, background: tuple[float, float, float]) -> MeshImage:
     """The mesh seen by `camera` (module docstring)."""
-    from avatarctl.synth.raster import RayCaster
+    from avatarctl.geometry.raycast import RayCaster
 
     return shade(mesh, cast_pixels(RayCaster(mesh.vertices, mesh.faces), camera), background)
 
@@ -61,7 +61,7 @@ class MeshHits:
 
 
 def cast_pixels(caster: "RayCaster", camera: Camera) -> MeshHits:
-    """One ray per pixel centre of the pinhole `camera` cast against `caster`'s triangles (`synth.raster.RayCaster`,
+    """One ray per pixel centre of the pinhole `camera` cast against `caster`'s triangles (`geometry.raycast.RayCaster`,
     built once per mesh and reused for every camera)."""
     from avatarctl.synth.raster import camera_rays
 

@@ -103,7 +103,7 @@ def view_colours(vertices: np.ndarray, faces: np.ndarray, normals: np.ndarray, r
     by `cameras` (`surround_cameras`), the field's images from `render`."""
     from scipy.spatial import cKDTree
 
-    from avatarctl.synth.raster import RayCaster
+    from avatarctl.geometry.raycast import RayCaster
 
     V = vertices.shape[0]
     total = np.zeros((V, 3))

@@ -97,6 +97,10 @@ class FitConfig:
     val_every: int = 5000  # steps between held-out-view validations, 0 = only at the end
     val_pairs: int = 2  # fixed (held-out view, training frame) pairs rendered per validation, 0 = none
     val_scale: float = 1.0  # image scale for validation renders (bbox-protocol PSNR on the scaled images)
+    # garment tracking (fit/garment_track.py, a deviation): a fresh fit with hull nodes (a loose garment) and two
+    # training views or more first tracks the garment's surface through the training frames and places the hull
+    # nodes by it on those frames; its time counts towards time_budget_s
+    track: bool = False
     ablations: tuple[str, ...] = ()  # informational: which --ablation switches made `model`
     model: ModelConfig = field(default_factory=ModelConfig)
 

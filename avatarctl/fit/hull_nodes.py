@@ -38,8 +38,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from avatarctl.geometry.cameras import Camera
-from avatarctl.geometry.triangulate import project, projection_matrices
+from avatarctl.geometry.hull import carve
 from avatarctl.model.deformer import farthest_point_sampling
 
 
@@ -84,32 +83,6 @@ class HullNodes:
     def __post_init__(self) -> None:
         assert self.rest.ndim == 2 and self.rest.shape[1] == 3, f"rest {tuple(self.rest.shape)}"
         assert self.vertex.shape == (self.rest.shape[0],), f"vertex {tuple(self.vertex.shape)}"
-
-
-def carve(cameras: list[Camera], masks: list[np.ndarray], lo: np.ndarray, hi: np.ndarray, voxel: float,
-          explained: list[np.ndarray] | None = None) -> np.ndarray:
-    """[M, 3] centres of the voxels of the box [lo, hi] (world, metres) inside the visual hull of `masks` (bool
-    [H, W] per camera, undistorted images: pinhole projection). A voxel seen by fewer than two cameras is dropped;
-    one outside a camera's image is not carved by that camera. With `explained` (bool [H, W] per camera: the
-    pixels the body accounts for), a voxel is kept only when some camera puts it on a mask pixel not explained
-    (phantom volumes of a few views project onto the body in every view)."""
-    axes = [np.arange(a + voxel / 2, b, voxel) for a, b in zip(lo, hi)]
-    X = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
-    keep = np.ones(len(X), dtype=bool)
-    seen = np.zeros(len(X), dtype=np.int32)
-    shows = np.zeros(len(X), dtype=bool) if explained is not None else np.ones(len(X), dtype=bool)
-    px, depth = project(projection_matrices(cameras), X)  # [voxels, cams, 2], [voxels, cams]
-    for c, m in enumerate(masks):
-        z = depth[:, c]
-        u, v = np.round(px[:, c, 0]).astype(np.int64), np.round(px[:, c, 1]).astype(np.int64)
-        inside = (z > 0) & (u >= 0) & (v >= 0) & (u < m.shape[1]) & (v < m.shape[0])
-        seen += inside
-        hit = np.zeros(len(X), dtype=bool)
-        hit[inside] = m[v[inside], u[inside]]
-        keep &= hit | ~inside
-        if explained is not None:
-            shows[inside] |= m[v[inside], u[inside]] & ~explained[c][v[inside], u[inside]]
-    return X[keep & (seen >= 2) & shows]
 
 
 def off_body_canonical(points: np.ndarray, posed_vertices: torch.Tensor, vertex_transforms: torch.Tensor,

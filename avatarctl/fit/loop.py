@@ -40,7 +40,7 @@ from typing import TYPE_CHECKING, Any, Callable, Iterator
 
 import torch
 
-from avatarctl.atomic import remove_stale_temps, write_json, write_text
+from avatarctl.atomic import atomic_path, remove_stale_temps, write_json, write_text
 from avatarctl.device import resolve_device
 from avatarctl.dist import rank_device
 from avatarctl.errors import AvatarError, InputError, ProjectError
@@ -98,6 +98,7 @@ class FitResult:
     config: FitConfig
     refinement: "RefinementSummary | None" = None  # pose refinement on: how far it moved the fits (fit/refined.py)
     hull_nodes: str | None = None  # model.hull_nodes on (a fresh fit): what the masks showed, how many nodes it placed
+    garment_tracking: str | None = None  # `track` on (a fresh fit): what the tracking pass did, or why it did not run
 
 
 @contextlib.contextmanager
@@ -250,6 +251,8 @@ class _Trainer:
     start_step: int
     resumed: bool
     hull_note: str | None  # what the hull survey decided (fresh fits with model.hull on)
+    track_note: str | None = None  # what the garment tracking pass did, or why it did not run (fresh fits, `track`)
+    track_seconds: float = 0.0  # its time (counted towards time_budget_s)
 
     @property
     def main(self) -> bool:
@@ -318,10 +321,10 @@ def _open_run(project: Project, cfg: FitConfig | None, resume: bool, fresh: bool
 
 
 def _build_model(cfg: FitConfig, capture, body, template, poses, train_frames: list[int], *, fresh_fit: bool,
-                 dev: torch.device) -> "tuple[Any, str | None]":
+                 dev: torch.device) -> "tuple[Any, str | None, int]":
     """The avatar, initialised from `cfg.seed` (a fresh fit places its hull nodes and solves the pose refinement's
     joint centres first; a resumed one gets both from the checkpoint), in training mode.
-    -> (model, the hull survey's line or None)."""
+    -> (model, the hull survey's line or None, the number of hull nodes: the last nodes)."""
     from avatarctl.model.avatar import SlrfAvatar
 
     hull, hull_note = None, None
@@ -342,7 +345,7 @@ def _build_model(cfg: FitConfig, capture, body, template, poses, train_frames: l
     if model.pose_refine is not None and cfg.model.pose_refine.lambda_accel > 0:  # the sequence the smoothness sees
         model.pose_refine.set_sequence(poses.joint_transforms, train_frames, capture.motion.fps)
     model.train()
-    return model, hull_note
+    return model, hull_note, 0 if hull is None else int(hull.rest.shape[0])
 
 
 def _set_up(project: Project, cfg: FitConfig | None, device: str, resume: bool, fresh: bool,
@@ -382,8 +385,8 @@ def _set_up(project: Project, cfg: FitConfig | None, device: str, resume: bool, 
     pairs = choose_val_pairs(split.test_views, train_frames, cfg.val_pairs) if main else []
     validator = Validator(capture, body, pairs, train_frames, cfg.background, cfg.val_scale) if pairs else None
 
-    model, hull_note = _build_model(cfg, capture, body, template, poses, train_frames, fresh_fit=ckpt is None,
-                                    dev=dev)
+    model, hull_note, hull_count = _build_model(cfg, capture, body, template, poses, train_frames,
+                                                fresh_fit=ckpt is None, dev=dev)
     optimizer = make_optimizer(cfg, param_groups(cfg, model))
     scheduler = make_scheduler(cfg, optimizer)
     same_stream = True
@@ -406,7 +409,73 @@ def _set_up(project: Project, cfg: FitConfig | None, device: str, resume: bool, 
                        model=model, optimizer=optimizer, scheduler=scheduler,
                        background=torch.tensor(cfg.background, dtype=torch.float32, device=dev),
                        all_frames=all_frames, start_step=start_step, resumed=ckpt is not None, hull_note=hull_note)
+    if cfg.track and ckpt is None:
+        trainer.track_note, trainer.track_seconds = _track_garment(trainer, hull_count)
+        if log is not None:
+            log.append({"step": 0, "note": trainer.track_note})
     return trainer, log
+
+
+def _track_garment(t: "_Trainer", hull_count: int) -> tuple[str, float]:
+    """The garment tracking pass (fit/garment_track.py) of a fresh fit: the reference surface at the middle training
+    frame, tracked through the training frames; the last `hull_count` nodes (the hull nodes) that own a patch of it
+    are placed by its motion on training frames (`SlrfAvatar.set_tracks`). Writes fit/track/summary.json and
+    tracks.npz (the surface per frame). -> (the line for the log, seconds)."""
+    import numpy as np
+
+    from avatarctl.fit import garment_track as gt
+
+    t0 = time.perf_counter()
+    views = list(t.capture.split.train_views)
+    if not hull_count:
+        return "garment tracking: skipped (no hull nodes: no loose garment found)", 0.0
+    if len(views) < 2:
+        return "garment tracking: skipped (one training view: the cloth cannot be placed in depth)", 0.0
+    if t.replicas.distributed:
+        return "garment tracking: skipped (one process only; run without --nproc)", 0.0
+    template = t.body.template(t.capture.motion)
+    inp = gt.capture_input(t.capture, t.body, template, t.train_frames, views)
+    ref = len(t.train_frames) // 2
+    settings = gt.TrackSettings()
+    mesh = gt.consistent_part(inp, gt.refine_reference(inp, gt.reference_mesh(inp, ref, settings), ref, settings),
+                              ref, settings)
+    if len(mesh.vertices) < 20:
+        return "garment tracking: skipped (the masks show no garment surface the views agree on)", 0.0
+    tracks = gt.track(inp, mesh, ref, settings)
+    model, N = t.model, t.cfg.model.num_nodes
+    nodes = torch.arange(N - hull_count, N)
+    with torch.no_grad():  # the hull nodes placed by the skeleton on every training frame (Eq. 1, 3, Delta n = 0)
+        T = model.node_state(t.all_frames, mode="zero").transforms[:, nodes].double().cpu()  # [F, M, 4, 4]
+    A = T[..., :3, :3].numpy()  # [F, M, 3, 3]
+    c = ((T[..., :3, :3] @ model.node_rest[nodes].double().cpu()[None, :, :, None])[..., 0] + T[..., :3, 3]).numpy()
+    motion = gt.node_motions(tracks, ref, nodes.numpy(), c[ref])
+    keep = np.searchsorted(nodes.numpy(), motion.nodes)
+    R, tr = motion.rotation, motion.translation  # [F, M', 3, 3], [F, M', 3]
+    rotation = R @ A[ref, keep][None]
+    center = np.einsum("fmij,mj->fmi", R, c[ref, keep]) + tr
+    lost = ~tracks.tracked  # frames the tracker did not reach: the skeleton's placement
+    rotation[lost], center[lost] = A[lost][:, keep], c[lost][:, keep]
+    if len(motion.nodes):
+        model.set_tracks(torch.as_tensor(motion.nodes), torch.as_tensor(rotation), torch.as_tensor(center))
+    seconds = time.perf_counter() - t0
+    folder = t.project.paths.fit / "track"
+    folder.mkdir(parents=True, exist_ok=True)
+    with atomic_path(folder / "tracks.npz") as tmp:
+        with open(tmp, "wb") as fh:
+            np.savez_compressed(fh, frames=np.asarray(tracks.frames), vertices=tracks.vertices.astype(np.float32),
+                                faces=mesh.faces, seen=tracks.seen, loss=tracks.loss, tracked=tracks.tracked,
+                                reference=ref, nodes=motion.nodes)
+    summary = {"reference_frame": int(t.train_frames[ref]), "surface_vertices": int(len(mesh.vertices)),
+               "frames": len(tracks.frames), "tracked_nodes": int(len(motion.nodes)), "hull_nodes": hull_count,
+               "patch_vertices_median": float(np.median(motion.vertices)) if len(motion.nodes) else 0.0,
+               "seen_by_two_views": float((tracks.seen >= 2).mean()), "frames_tracked": int(tracks.tracked.sum()),
+               "loss": [round(float(x), 3) for x in tracks.loss], "seconds": round(seconds, 1),
+               "settings": {k: (list(v) if isinstance(v, tuple) else v) for k, v in vars(settings).items()}}
+    write_json(folder / "summary.json", summary)
+    note = (f"garment tracking: {len(mesh.vertices)} surface vertices through {int(tracks.tracked.sum())} of "
+            f"{len(tracks.frames)} frames, "
+            f"{len(motion.nodes)} of {hull_count} hull nodes placed by it ({seconds:.0f} s)")
+    return note, seconds
 
 
 # ---- one step ----------------------------------------------------------------------------------------------------
@@ -449,7 +518,7 @@ class _Books:
 
     def __init__(self, t: _Trainer, log: "_Log | None", progress: Callable[[StepReport], None] | None):
         self.t, self.log, self.progress = t, log, progress
-        self.t_run = time.perf_counter()
+        self.t_run = time.perf_counter() - t.track_seconds  # the tracking pass counts towards the budget
         self.losses: dict[str, float] = {}
         self.val: ValidationResult | None = None
         self.last_ckpt: Path | None = t.project.paths.latest_checkpoint if t.resumed else None
@@ -573,6 +642,7 @@ def _finish(t: _Trainer, books: _Books, step: int, last: _Step | None, budget_hi
                "val_psnr_bbox": None if val is None else val.psnr,
                "val_pairs": None if val is None else val.to_json()["pairs"], "ranks": t.world, "ray_shards": t.shards,
                "pose_refinement": None if refinement is None else refinement.to_json(), "hull_nodes": t.hull_note,
+               "garment_tracking": t.track_note,
                **config_summary(cfg)}
     if t.main:
         t.project.record("fit", {"fit": cfg.to_json(), "device": str(t.dev), "resume": resume, "ranks": t.world,
@@ -583,4 +653,5 @@ def _finish(t: _Trainer, books: _Books, step: int, last: _Step | None, budget_hi
     return FitResult(step=step, iters=cfg.iters, interrupted=interrupted, stop_reason=stop_reason,
                      checkpoint=books.last_ckpt, seconds=seconds,
                      setup_seconds=setup_seconds, losses=losses, val=val, rays_per_s=rays_per_s, device=str(t.dev),
-                     config=cfg, refinement=refinement, hull_nodes=t.hull_note)
+                     config=cfg, refinement=refinement, hull_nodes=t.hull_note,
+                     garment_tracking=t.track_note)

@@ -102,6 +102,7 @@ KNOBS: dict[str, tuple[str, str]] = {
     "val_every": ("any", "steps between held-out-view validations (0: only at the end)"),
     "val_pairs": ("any", "(held-out view, training frame) pairs per validation (0: none)"),
     "val_scale": ("any", "image scale of the validation renders"),
+    "track": ("any", "garment tracking before the fit: hull nodes placed by the tracked cloth (deviation)"),
     # the batch and the optimiser (the paper's)
     "images_per_batch": ("any", "images per step (the paper: 4)"),
     "rays_per_batch": ("mlp", "rays per step over those images (the paper: 2048)"),

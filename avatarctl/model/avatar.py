@@ -165,6 +165,8 @@ class SlrfAvatar(nn.Module):
             idx = torch.cat([surface, hull_nodes[1].to(surface)])
             rest = torch.cat([template.vertices.detach().float()[surface], hull_nodes[0].float().to(surface.device)])
         # buffers: saved in state_dict, follow .to(device)
+        for name in ("track_nodes", "track_rotation", "track_center"):  # garment tracks (`set_tracks`): none yet
+            self.register_buffer(name, None)
         self.register_buffer("node_vertex_index", idx.clone())  # [N] long, template vertex of (nearest to) each node
         self.register_buffer("node_rest", rest.clone())  # [N, 3] n_bar_i
         self.register_buffer("node_skin_weights", weights[idx].clone())  # [N, J] omega_i
@@ -192,6 +194,9 @@ class SlrfAvatar(nn.Module):
         self.field_kind.build(self, template, rest, seed, off_body)
 
     def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):
+        if prefix + "track_nodes" in state_dict:  # a fit with garment tracks: the buffers take the saved shapes
+            self.set_tracks(state_dict[prefix + "track_nodes"], state_dict[prefix + "track_rotation"],
+                            state_dict[prefix + "track_center"])
         # checkpoints written before `occupancy_updates` existed: their grids are past any warm-up
         key = prefix + "occupancy_updates"
         if self.cfg.uses_occupancy and prefix + "occupancy" in state_dict and key not in state_dict:
@@ -236,8 +241,41 @@ class SlrfAvatar(nn.Module):
             embed = T.new_zeros(B, N, self.cfg.embed_dim)
         with _float32_geometry(dev):
             centers = posed_node_centers(T, self.node_rest, delta.to(T.dtype))  # [B, N, 3]  Eq. 3
+            if self.track_nodes is not None:  # training frames: the tracked garment nodes (fit/garment_track.py)
+                T, centers = self._tracked(T, centers, cond.frame_ids)
         return NodeState(transforms=T, centers=centers, delta_n=delta, embed=embed, mu=mu, logvar=logvar,
                          pose_penalty=pose_penalty)
+
+    # ---- garment tracks (fit/garment_track.py; a deviation) ------------------------------------------------------
+    def set_tracks(self, nodes: torch.Tensor, rotation: torch.Tensor, center: torch.Tensor) -> None:
+        """Place the nodes `nodes` [M] on training frame f at the tracked linear part rotation[f] [M, 3, 3] and centre
+        center[f] [M, 3] (world) instead of T_i's skinned linear part and Eq. 3's n_i: T_i = [R | c - R n_bar_i], so
+        n_i = c (their Delta n is not used on training frames). Saved with the weights (buffers). Novel poses
+        (frame_ids -1) keep the paper's placement."""
+        F = self.num_frames
+        M = int(nodes.shape[0])
+        if rotation.shape != (F, M, 3, 3) or center.shape != (F, M, 3):
+            raise ValueError(f"tracks for {F} frames and {M} nodes: rotation {tuple(rotation.shape)}, "
+                             f"center {tuple(center.shape)}")
+        dev = self.node_rest.device
+        for name, value in (("track_nodes", nodes.long()), ("track_rotation", rotation.float()),
+                            ("track_center", center.float())):
+            self._buffers[name] = value.to(dev).clone()
+
+    def _tracked(self, T: torch.Tensor, centers: torch.Tensor, frame_ids: torch.Tensor
+                 ) -> tuple[torch.Tensor, torch.Tensor]:
+        train = (frame_ids >= 0).nonzero(as_tuple=True)[0]
+        if not train.numel():
+            return T, centers
+        nodes, f = self.track_nodes, frame_ids[train]
+        R = self.track_rotation[f].to(T.dtype)  # [b, M, 3, 3]
+        c = self.track_center[f].to(T.dtype)  # [b, M, 3]
+        T, centers = T.clone(), centers.clone()
+        b = train[:, None]
+        T[b, nodes[None], :3, :3] = R
+        T[b, nodes[None], :3, 3] = c - (R @ self.node_rest[nodes].to(T.dtype)[None, ..., None])[..., 0]
+        centers[b, nodes[None]] = c
+        return T, centers
 
     def set_latent_mean(self, cond: FrameConditioning) -> None:
         """With `cfg.novel_latent = "train_mean"`: store the mean posterior mean of the cVAE over `cond`'s frames (all

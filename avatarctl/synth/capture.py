@@ -263,7 +263,8 @@ class SceneRenderer:
     """Renders `Scene` frames through distorted cameras (ray casting + shading + environment background)."""
 
     def __init__(self, scene: Scene, cameras: list[Camera], ss: int, seed: int):
-        from avatarctl.synth.raster import RayCaster, camera_rays
+        from avatarctl.geometry.raycast import RayCaster
+        from avatarctl.synth.raster import camera_rays
         from avatarctl.synth.shade import Palette, environment
 
         self.scene = scene

@@ -1,0 +1,568 @@
+"""Garment registration before the fit: a surface of the loose garment tracked frame by frame through the training
+views (issue 48; a deviation from the paper, docs/fit.md "Garment tracking"). No learned weights.
+
+The paper moves every node with the skeleton plus a learned residual Δn (Eq. 3); a skirt's cloth does not follow
+the skeleton, and a jointly optimised model does not discover where it goes. This module finds it from the images
+first, the way the garment methods of the field do (sequential, warm-started, appearance frozen, physical priors):
+
+1. **Reference surface** (`reference_mesh`): at the reference frame (the middle training frame), the training masks'
+   visual hull (`geometry.hull.carve`, `voxel` metres), its surface by marching cubes (scikit-image), and of it only
+   the vertices farther than `off_body` from the posed body that some view puts on a mask pixel the body's own
+   silhouette does not cover (what the body cannot explain: the garment; phantom hull volume projects onto the body
+   in every view). No truth is needed; the hull's surface stands in for the cloth's.
+2. **Tracking** (`track`): from the reference frame forwards, then backwards, each frame's surface starts from the
+   previous one moved by the skeleton (each vertex by the blended transform of its nearest body vertex, Eq. 1) plus
+   the previous step's motion beyond the skeleton (constant velocity), and is then solved by L-BFGS over an image
+   pyramid (Gaussian blur `sigmas`, pixels) for: the colour of each surface sample (vertices and 4 points per
+   triangle) in every training view that saw it at the previous frame equal to its colour there (the appearance is
+   the previous frame's images, frozen: only moving the surface lowers the loss), plus `anchor` x the same against
+   the reference frame's mean colour of the sample (no drift where the reference colour is right); edge lengths
+   kept (`isometry`, the cloth does not stretch), neighbouring vertices moving alike (`smooth`), every vertex inside
+   the frame's masks (`silhouette`, squared pixels outside). Visibility: a ray from the camera to the vertex hits
+   the body or the surface within 1 cm of it (Warp's BVH, `geometry.raycast`), the surface not seen edge-on.
+3. **Node motions** (`node_motions`): each node given to track owns its `patch` nearest surface vertices within
+   `reach` at the reference frame; per frame, the best rigid motion (Kabsch) of those vertices from the reference frame is the
+   node's motion. The fit places the node by it on training frames (`SlrfAvatar.set_tracks`).
+
+Measured on synth small (docs/fit.md "Garment tracking"): the tracked surface against the true cloth.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+import torch
+
+from avatarctl.geometry.cameras import Camera
+from avatarctl.progress import ProgressFn, ProgressReport
+
+
+@dataclass(frozen=True)
+class TrackSettings:
+    """The tracker's weights (module docstring, step 2); each term in its own unit, weighted against the photometric
+    term (mean squared colour difference x 1e3)."""
+
+    sigmas: tuple[float, ...] = (4.0, 2.0, 1.0, 0.5)  # image blur per pyramid level, pixels, coarse to fine
+    iters: int = 30  # L-BFGS iterations per level
+    isometry: float = 10.0  # (edge length - reference length)^2, cm^2
+    smooth: float = 10.0  # |displacement_i - displacement_j|^2 over edges, cm^2
+    silhouette: float = 1.0  # squared pixels outside the frame's mask, per view
+    anchor: float = 0.3  # the reference frame's colours, against the previous frame's (1)
+    agree: float = 0.08  # a reference vertex is tracked when the views' colours of it differ by less (RMS, 0-1)
+    residual_velocity: float = 1.0  # share of the last step's motion beyond the skeleton carried forward
+    lost: float = 2.0  # a direction stops where a frame's loss exceeds this x the median of its first 5 frames
+    voxel: float = 0.02  # the reference surface's hull grid, metres
+    stereo_iters: int = 60  # L-BFGS iterations per level of the reference surface's multi-view stereo
+    stereo_smooth: float = 3.0  # (offset_i - offset_j)^2 over edges, cm^2, in the stereo
+    stereo_reach: float = 0.1  # the stereo moves a vertex at most this far (metres) along its normal
+    off_body: float = 0.02  # a reference vertex this far (metres) from the posed body may be garment
+    explain_px: int = 2  # the body's silhouette grown by this many pixels before it explains a mask pixel
+
+
+@dataclass(frozen=True)
+class GarmentMesh:
+    """The tracked surface at the reference frame."""
+
+    vertices: np.ndarray  # [V, 3] world metres
+    faces: np.ndarray  # [T, 3] int
+    frame: int  # capture frame id of the reference frame
+
+    def __post_init__(self) -> None:
+        assert self.vertices.ndim == 2 and self.vertices.shape[1] == 3, f"vertices {self.vertices.shape}"
+        assert self.faces.ndim == 2 and self.faces.shape[1] == 3, f"faces {self.faces.shape}"
+
+    @property
+    def edges(self) -> np.ndarray:
+        """[E, 2] unique undirected edges of the faces."""
+        f = self.faces
+        e = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), 1)
+        return np.unique(e, axis=0)
+
+
+@dataclass(frozen=True)
+class TrackingInput:
+    """What the tracker reads of a capture: the training views and the posed body of each frame to track."""
+
+    frames: tuple[int, ...]  # capture frame ids, in time order
+    cameras: tuple[Camera, ...]  # the undistorted (pinhole) training views
+    image: Callable[[int, int], np.ndarray]  # (view index, frame id) -> RGB uint8 [H, W, 3]
+    mask: Callable[[int, int], np.ndarray]  # (view index, frame id) -> bool [H, W]
+    body_vertices: np.ndarray  # [F, Vb, 3] posed body per frame (the order of `frames`), world metres
+    body_faces: np.ndarray  # [Tb, 3]
+    body_transforms: Callable[[int, np.ndarray], np.ndarray]  # (frame index, body vertex ids [n]) -> [n, 4, 4] Eq. 1
+
+    def __post_init__(self) -> None:
+        F = len(self.frames)
+        assert self.body_vertices.shape[0] == F, f"body_vertices {self.body_vertices.shape} for {F} frames"
+        assert len(self.cameras) >= 1
+
+    @property
+    def projections(self) -> np.ndarray:
+        """[C, 3, 4] K [R | T]."""
+        from avatarctl.geometry.triangulate import projection_matrices
+
+        return projection_matrices(self.cameras)
+
+    @property
+    def centers(self) -> np.ndarray:
+        """[C, 3] camera centres, world metres."""
+        return np.stack([c.center for c in self.cameras])
+
+
+@dataclass(frozen=True)
+class GarmentTracks:
+    """The tracked surface over the frames of a `TrackingInput`."""
+
+    mesh: GarmentMesh
+    frames: tuple[int, ...]  # capture frame ids
+    vertices: np.ndarray  # [F, V, 3] world metres
+    seen: np.ndarray  # [F, V] int: training views that saw each vertex (at the frame it was tracked from)
+    loss: np.ndarray  # [F] photometric loss after tracking (0 at the reference frame)
+    tracked: np.ndarray  # [F] bool: the frames the surface was followed to (`track`'s stop rule ends a direction)
+    seconds: float = 0.0
+
+    def __post_init__(self) -> None:
+        F, V = len(self.frames), self.mesh.vertices.shape[0]
+        assert self.vertices.shape == (F, V, 3), f"vertices {self.vertices.shape}, want ({F}, {V}, 3)"
+        assert self.seen.shape == (F, V) and self.loss.shape == (F,) and self.tracked.shape == (F,)
+
+
+@dataclass(frozen=True)
+class NodeMotions:
+    """Per training frame, the rigid motion of each tracked node's surface patch from the reference frame."""
+
+    nodes: np.ndarray  # [M] node indices (of the model) that own a patch
+    rotation: np.ndarray  # [F, M, 3, 3]
+    translation: np.ndarray  # [F, M, 3] x_f = R x_ref + t
+    vertices: np.ndarray  # [M] surface vertices in each patch
+    seen: np.ndarray  # [F, M] share of the patch's vertices seen by two views or more
+
+
+# ---- 1. reference surface ---------------------------------------------------------------------------------------
+def reference_mesh(inp: TrackingInput, ref: int, settings: TrackSettings = TrackSettings()) -> GarmentMesh:
+    """Step 1 of the module docstring at frame index `ref` of `inp`. An empty mesh when nothing is off the body."""
+    import cv2
+    from scipy.ndimage import gaussian_filter
+    from scipy.spatial import cKDTree
+    from skimage.measure import marching_cubes
+
+    from avatarctl.geometry.hull import carve
+    from avatarctl.geometry.silhouette import rasterize_silhouette
+    from avatarctl.geometry.triangulate import project
+
+    frame = inp.frames[ref]
+    body = inp.body_vertices[ref].astype(np.float64)
+    masks = [inp.mask(c, frame) for c in range(len(inp.centers))]
+    vox = settings.voxel
+    lo = body.min(0) - 0.35
+    hi = body.max(0) + 0.35
+    kept = carve(list(inp.cameras), masks, lo, hi, vox)  # [M, 3] voxel centres
+    shape = tuple(int(round((b - a) / vox)) for a, b in zip(lo, hi))
+    grid = np.zeros(shape, dtype=np.float32)
+    idx = np.floor((kept - lo) / vox).astype(np.int64)
+    ok = ((idx >= 0) & (idx < np.array(shape))).all(1)
+    grid[tuple(idx[ok].T)] = 1.0
+    empty = GarmentMesh(np.zeros((0, 3)), np.zeros((0, 3), dtype=np.int64), frame)
+    if grid.sum() < 8:
+        return empty
+    verts, faces, _, _ = marching_cubes(gaussian_filter(grid, 1.0), 0.5, step_size=1)
+    verts = lo + (verts + 0.5) * vox
+    # off the body, and on a mask pixel the body's silhouette does not explain in some view
+    dist, _ = cKDTree(body).query(verts)
+    grow = np.ones((2 * settings.explain_px + 1,) * 2, dtype=np.uint8)
+    px, _ = project(inp.projections, verts)  # [V, C, 2]
+    shows = np.zeros(len(verts), dtype=bool)
+    for c, m in enumerate(masks):
+        sil = cv2.dilate(rasterize_silhouette(inp.cameras[c], body, inp.body_faces, supersample=1).astype(np.uint8),
+                         grow) > 0
+        u, v = np.round(px[:, c, 0]).astype(np.int64), np.round(px[:, c, 1]).astype(np.int64)
+        inside = (u >= 0) & (v >= 0) & (u < m.shape[1]) & (v < m.shape[0])
+        shows[inside] |= m[v[inside], u[inside]] & ~sil[v[inside], u[inside]]
+    keep = (dist > settings.off_body) & shows
+    fk = keep[faces].all(1)
+    if not fk.any():
+        return empty
+    faces = faces[fk]
+    # drop small pieces (< 2 % of the kept faces): stray phantom patches
+    used = np.unique(faces)
+    remap = np.full(len(verts), -1)
+    remap[used] = np.arange(len(used))
+    verts, faces = verts[used], remap[faces]
+    comp = _components(len(verts), faces)
+    sizes = np.bincount(comp[faces[:, 0]], minlength=comp.max() + 1)
+    big = sizes >= max(1, 0.02 * len(faces))
+    faces = faces[big[comp[faces[:, 0]]]]
+    used = np.unique(faces)
+    remap = np.full(len(verts), -1)
+    remap[used] = np.arange(len(used))
+    return GarmentMesh(vertices=verts[used], faces=remap[faces].astype(np.int64), frame=frame)
+
+
+def _components(n: int, faces: np.ndarray) -> np.ndarray:
+    """[n] connected component label of each vertex of the triangle mesh."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    e = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]]])
+    g = coo_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(n, n))
+    return connected_components(g, directed=False)[1]
+
+
+# ---- 2. tracking ------------------------------------------------------------------------------------------------
+_BARY = torch.tensor([[1 / 3, 1 / 3, 1 / 3], [2 / 3, 1 / 6, 1 / 6], [1 / 6, 2 / 3, 1 / 6], [1 / 6, 1 / 6, 2 / 3]])
+
+
+class _Frames:
+    """The blurred colour images [C, 3, H, W] and outside-mask distance maps [C, 1, H, W] of frames, cached. With
+    `noise_background`, each view's pixels outside its mask are random colours (a uniform background is not a place
+    where the views agree)."""
+
+    def __init__(self, inp: TrackingInput, noise_background: bool = False):
+        self.inp, self.noise_background = inp, noise_background
+        self.rgb: dict[tuple[int, float], torch.Tensor] = {}
+        self.dt: dict[int, torch.Tensor] = {}
+
+    def colour(self, frame: int, sigma: float) -> torch.Tensor:
+        import cv2
+
+        key = (frame, sigma)
+        if key not in self.rgb:
+            ims = []
+            for c in range(len(self.inp.centers)):
+                im = self.inp.image(c, frame).astype(np.float32) / 255.0
+                if self.noise_background:
+                    out = ~self.inp.mask(c, frame)
+                    im[out] = np.random.default_rng(c).random((int(out.sum()), 3), dtype=np.float32)
+                ims.append(cv2.GaussianBlur(im, (0, 0), sigma) if sigma > 0 else im)
+            self.rgb[key] = torch.as_tensor(np.stack(ims)).permute(0, 3, 1, 2).contiguous()
+        return self.rgb[key]
+
+    def outside(self, frame: int) -> torch.Tensor:
+        import cv2
+
+        if frame not in self.dt:
+            d = [cv2.distanceTransform((~self.inp.mask(c, frame)).astype(np.uint8), cv2.DIST_L2, 3)
+                 for c in range(len(self.inp.centers))]
+            self.dt[frame] = torch.as_tensor(np.stack(d))[:, None].float()
+        return self.dt[frame]
+
+    def forget(self, keep: set[int]) -> None:
+        self.rgb = {k: v for k, v in self.rgb.items() if k[0] in keep}
+        self.dt = {k: v for k, v in self.dt.items() if k in keep}
+
+
+def _project(P: torch.Tensor, X: torch.Tensor) -> torch.Tensor:
+    """X [n, 3] -> pixels [C, n, 2] through P [C, 3, 4]."""
+    x = torch.einsum("cij,nj->cni", P[..., :3], X) + P[:, None, :, 3]
+    return x[..., :2] / x[..., 2:3].clamp(min=1e-6)
+
+
+def _sample(img: torch.Tensor, px: torch.Tensor) -> torch.Tensor:
+    """img [C, K, H, W], px [C, n, 2] pixels -> [C, n, K] bilinear, zeros outside."""
+    H, W = img.shape[-2:]
+    g = torch.stack([px[..., 0] / (W - 1) * 2 - 1, px[..., 1] / (H - 1) * 2 - 1], -1)
+    return torch.nn.functional.grid_sample(img, g[:, None], align_corners=True)[:, :, 0].transpose(1, 2)
+
+
+def _samples(X: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
+    """The photometric samples: vertices, then 4 barycentric points per triangle -> [V + 4 T, 3]."""
+    return torch.cat([X, torch.einsum("bk,tkd->tbd", _BARY.to(X), X[faces]).reshape(-1, 3)])
+
+
+def _normals(X: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    n = np.zeros_like(X)
+    fn = np.cross(X[faces[:, 1]] - X[faces[:, 0]], X[faces[:, 2]] - X[faces[:, 0]])
+    for k in range(3):
+        np.add.at(n, faces[:, k], fn)
+    return n / np.maximum(np.linalg.norm(n, axis=-1, keepdims=True), 1e-12)
+
+
+def visibility(inp: TrackingInput, fi: int, X: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """[C, V] bool: vertex X_v seen by training view c at frame index `fi` (module docstring, step 2)."""
+    from avatarctl.geometry.raycast import RayCaster
+
+    body = inp.body_vertices[fi]
+    caster = RayCaster(np.concatenate([body, X]), np.concatenate([inp.body_faces, faces + len(body)]))
+    nrm = _normals(X, faces)
+    out = np.zeros((len(inp.centers), len(X)), dtype=bool)
+    for c, o in enumerate(inp.centers):
+        d = X - o
+        dist = np.linalg.norm(d, axis=-1)
+        d = d / dist[:, None]
+        face, t = caster.cast(o, d)
+        out[c] = (face >= 0) & (t > dist - 0.01) & (np.abs((nrm * d).sum(-1)) > 0.25)
+    return out
+
+
+def _skin_move(inp: TrackingInput, X: np.ndarray, fa: int, fb: int) -> np.ndarray:
+    """X [n, 3] at frame index fa moved to frame index fb by the blended transform of its nearest body vertex."""
+    from scipy.spatial import cKDTree
+
+    _, j = cKDTree(inp.body_vertices[fa]).query(X)
+    M = inp.body_transforms(fb, j) @ np.linalg.inv(inp.body_transforms(fa, j))  # [n, 4, 4]
+    return (M[:, :3, :3] @ X[..., None])[..., 0] + M[:, :3, 3]
+
+
+class _Tracker:
+    def __init__(self, inp: TrackingInput, mesh: GarmentMesh, ref: int, settings: TrackSettings):
+        self.inp, self.s, self.ref = inp, settings, ref
+        self.frames = _Frames(inp)
+        self.P = torch.as_tensor(inp.projections, dtype=torch.float32)
+        self.faces = torch.as_tensor(mesh.faces)
+        self.edges = torch.as_tensor(mesh.edges)
+        X0 = torch.as_tensor(mesh.vertices, dtype=torch.float32)
+        self.rest = (X0[self.edges[:, 0]] - X0[self.edges[:, 1]]).norm(dim=-1)
+        self.faces_np = mesh.faces
+        # the reference colours: per sample, the mean over the views that see it at the reference frame
+        vis = torch.as_tensor(visibility(inp, ref, mesh.vertices, mesh.faces)).float()  # [C, V]
+        self.tex = {}
+        svis = self._sample_vis(vis)
+        for sigma in settings.sigmas:
+            c = _sample(self.frames.colour(inp.frames[ref], sigma), _project(self.P, _samples(X0, self.faces)))
+            k = svis.sum(0)  # [S]
+            self.tex[sigma] = ((svis[..., None] * c).sum(0) / k.clamp(min=1)[:, None], (k > 0).float())
+
+    def _sample_vis(self, vis: torch.Tensor) -> torch.Tensor:
+        """[C, V] vertex visibility -> [C, S] sample visibility (a triangle's points: all three vertices seen)."""
+        tri = (vis[:, self.faces].min(-1).values > 0).float()  # [C, T]
+        return torch.cat([vis, tri.repeat_interleave(len(_BARY), 1)], 1)
+
+    def explains(self, X: np.ndarray, fi: int) -> float:
+        """How far the reference frame's colours of the surface samples are from frame index `fi`'s images with the
+        surface at X (the mean squared difference over the samples the views see there, blur `sigmas[1]`)."""
+        sigma = self.s.sigmas[min(1, len(self.s.sigmas) - 1)]
+        svis = self._sample_vis(torch.as_tensor(visibility(self.inp, fi, X, self.faces_np)).float())
+        tex, has = self.tex[sigma]
+        with torch.no_grad():
+            c = _sample(self.frames.colour(self.inp.frames[fi], sigma),
+                        _project(self.P, _samples(torch.as_tensor(X, dtype=torch.float32), self.faces)))
+        w = svis * has
+        return float((w * ((c - tex) ** 2).sum(-1)).sum() / w.sum().clamp(min=1))
+
+    def step(self, Xp: np.ndarray, Xpp: np.ndarray | None, fa: int, fb: int) -> tuple[np.ndarray, np.ndarray, float]:
+        """Frame index fa -> fb (adjacent): -> (vertices [V, 3], views seeing each vertex at fa [V], loss)."""
+        s, inp = self.s, self.inp
+        vis_np = visibility(inp, fa, Xp, self.faces_np)
+        svis = self._sample_vis(torch.as_tensor(vis_np).float())
+        init = _skin_move(inp, Xp, fa, fb)
+        if Xpp is not None and s.residual_velocity:
+            init = init + s.residual_velocity * (Xp - _skin_move(inp, Xpp, 2 * fa - fb, fa))
+        Xp_t = torch.as_tensor(Xp, dtype=torch.float32)
+        X = torch.as_tensor(init, dtype=torch.float32).clone().requires_grad_(True)
+        e0, e1 = self.edges[:, 0], self.edges[:, 1]
+        dt = self.frames.outside(inp.frames[fb])
+        w = svis
+        n = w.sum().clamp(min=1)
+        V = len(Xp)
+        loss_value = 0.0
+        Sp = _samples(Xp_t, self.faces)
+        for sigma in s.sigmas:
+            A, B = self.frames.colour(inp.frames[fa], sigma), self.frames.colour(inp.frames[fb], sigma)
+            c0 = _sample(A, _project(self.P, Sp))  # [C, S, 3] the previous frame's colours, frozen
+            tex, has = self.tex[sigma]
+            opt = torch.optim.LBFGS([X], lr=1, max_iter=s.iters, line_search_fn="strong_wolfe")
+
+            def closure():
+                opt.zero_grad()
+                px = _project(self.P, _samples(X, self.faces))  # [C, S, 2]
+                c1 = _sample(B, px)
+                data = (w * ((c1 - c0) ** 2).sum(-1)).sum() / n * 1e3
+                anchor = (w * has * ((c1 - tex) ** 2).sum(-1)).sum() / n * 1e3
+                L = (X[e0] - X[e1]).norm(dim=-1)
+                iso = ((L - self.rest) ** 2).mean() * 1e4
+                d = X - Xp_t
+                smooth = ((d[e0] - d[e1]) ** 2).sum(-1).mean() * 1e4
+                sil = (_sample(dt, px[:, :V])[..., 0] ** 2).mean(1).sum()
+                loss = data + s.anchor * anchor + s.isometry * iso + s.smooth * smooth + s.silhouette * sil
+                loss.backward()
+                return loss
+
+            loss_value = float(opt.step(closure).detach())
+        return X.detach().numpy().astype(np.float64), vis_np.sum(0), loss_value
+
+
+def track(inp: TrackingInput, mesh: GarmentMesh, ref: int, settings: TrackSettings = TrackSettings(),
+          progress: ProgressFn | None = None, done: GarmentTracks | None = None) -> GarmentTracks:
+    """Step 2 of the module docstring: the surface `mesh` (at frame index `ref`) through every frame of `inp`, each
+    direction until the surface is lost: where the reference colours fit the frame no better with the tracked surface
+    than with the reference surface moved by the skeleton alone (`_Tracker.explains`), or the frame's loss exceeds
+    `settings.lost` x the median of the direction's first five (a fast twirl); the frames from there on are not
+    tracked (the fit places their nodes by the skeleton). `done`: a partial result of the same input to continue
+    (its tracked frames are kept)."""
+    import time
+
+    t0 = time.perf_counter()
+    F, V = len(inp.frames), len(mesh.vertices)
+    out = np.zeros((F, V, 3))
+    seen = np.zeros((F, V), dtype=np.int64)
+    loss = np.zeros(F)
+    have = np.zeros(F, dtype=bool)
+    out[ref] = mesh.vertices
+    have[ref] = True
+    if done is not None:
+        have = done.tracked.copy()
+        have[ref] = True
+        out[have], seen[have], loss[have] = done.vertices[have], done.seen[have], done.loss[have]
+    tracker = _Tracker(inp, mesh, ref, settings)
+    tracked = have.copy()
+    count = 0
+    for direction in (1, -1):
+        prev2, prev, f, first = None, ref, ref + direction, []
+        while 0 <= f < F:
+            if not have[f]:
+                Xpp = out[prev2] if prev2 is not None else None
+                out[f], seen[f], loss[f] = tracker.step(out[prev], Xpp, prev, f)
+                tracker.frames.forget({inp.frames[prev], inp.frames[f], inp.frames[ref]})
+            skeleton = _skin_move(inp, mesh.vertices, ref, f)
+            if (len(first) >= 5 and loss[f] > settings.lost * np.median(first)) or \
+                    tracker.explains(out[f], f) >= tracker.explains(skeleton, f):
+                out[f], seen[f] = 0.0, 0
+                break  # lost: this frame and the ones after it keep the skeleton's placement
+            first = first if len(first) >= 5 else first + [loss[f]]
+            tracked[f] = True
+            count += 1
+            if progress is not None:
+                progress(ProgressReport(done=count, total=F - 1, part="track"))
+            prev2, prev, f = prev, f, f + direction
+    seen[ref] = visibility(inp, ref, mesh.vertices, mesh.faces).sum(0)
+    return GarmentTracks(mesh=mesh, frames=tuple(inp.frames), vertices=out, seen=seen, loss=loss, tracked=tracked,
+                         seconds=time.perf_counter() - t0)
+
+
+def refine_reference(inp: TrackingInput, mesh: GarmentMesh, ref: int, settings: TrackSettings = TrackSettings()
+                     ) -> GarmentMesh:
+    """Multi-view stereo of the reference surface (step 1 of the module docstring): the visual hull lies outside the
+    cloth (by centimetres with 8 views), so each vertex is moved along its normal to where the training views agree
+    on the colour of the surface samples (the variance over the views that see a sample), with neighbouring offsets
+    alike (`stereo_smooth`) and every vertex inside the masks; coarse to fine over `sigmas[:-1]`."""
+    if not len(mesh.vertices):
+        return mesh
+    frames = _Frames(inp, noise_background=True)
+    P = torch.as_tensor(inp.projections, dtype=torch.float32)
+    faces = torch.as_tensor(mesh.faces)
+    edges = torch.as_tensor(mesh.edges)
+    X0 = torch.as_tensor(mesh.vertices, dtype=torch.float32)
+    n = torch.as_tensor(_normals(mesh.vertices, mesh.faces), dtype=torch.float32)
+    offset = torch.zeros(len(X0), requires_grad=True)
+    dt = frames.outside(inp.frames[ref])
+    reach = settings.stereo_reach
+    for sigma in settings.sigmas[:-1]:
+        X = (X0 + offset.detach()[:, None] * n).numpy().astype(np.float64)
+        vis = torch.as_tensor(visibility(inp, ref, X, mesh.faces)).float()
+        tri = (vis[:, faces].min(-1).values > 0).float()
+        svis = torch.cat([vis, tri.repeat_interleave(len(_BARY), 1)], 1)  # [C, S]
+        k = svis.sum(0)
+        use = (k >= 2).float()
+        img = frames.colour(inp.frames[ref], sigma)
+        opt = torch.optim.LBFGS([offset], lr=1, max_iter=settings.stereo_iters, line_search_fn="strong_wolfe")
+
+        def closure():
+            opt.zero_grad()
+            o = reach * torch.tanh(offset / reach)
+            Xc = X0 + o[:, None] * n
+            px = _project(P, _samples(Xc, faces))
+            c = _sample(img, px)  # [C, S, 3]
+            mean = (svis[..., None] * c).sum(0) / k.clamp(min=1)[:, None]
+            var = (svis * ((c - mean) ** 2).sum(-1)).sum(0) / k.clamp(min=1)
+            data = (use * var).sum() / use.sum().clamp(min=1) * 1e3
+            smooth = ((o[edges[:, 0]] - o[edges[:, 1]]) ** 2).mean() * 1e4
+            sil = (_sample(dt, px[:, :len(X0)])[..., 0] ** 2).mean(1).sum()
+            loss = data + settings.stereo_smooth * smooth + settings.silhouette * sil
+            loss.backward()
+            return loss
+
+        opt.step(closure)
+    o = (reach * torch.tanh(offset / reach)).detach()
+    return GarmentMesh(vertices=(X0 + o[:, None] * n).numpy().astype(np.float64), faces=mesh.faces,
+                       frame=mesh.frame)
+
+
+def consistent_part(inp: TrackingInput, mesh: GarmentMesh, ref: int, settings: TrackSettings = TrackSettings()
+                    ) -> GarmentMesh:
+    """The part of the reference surface the training views can track: vertices seen by two views or more whose
+    colour the views agree on (RMS difference from the mean under `settings.agree`, on a 0-1 scale, at the finest
+    level), the faces of three such vertices, pieces under 2 % of the faces dropped."""
+    if not len(mesh.vertices):
+        return mesh
+    P = torch.as_tensor(inp.projections, dtype=torch.float32)
+    X = torch.as_tensor(mesh.vertices, dtype=torch.float32)
+    vis = torch.as_tensor(visibility(inp, ref, mesh.vertices, mesh.faces)).float()  # [C, V]
+    c = _sample(_Frames(inp).colour(inp.frames[ref], settings.sigmas[-1]), _project(P, X))  # [C, V, 3]
+    k = vis.sum(0)
+    mean = (vis[..., None] * c).sum(0) / k.clamp(min=1)[:, None]
+    rms = ((vis * ((c - mean) ** 2).sum(-1)).sum(0) / k.clamp(min=1) / 3).sqrt()
+    keep = ((k >= 2) & (rms < settings.agree)).numpy()
+    return _submesh(mesh, keep)
+
+
+def _submesh(mesh: GarmentMesh, keep: np.ndarray) -> GarmentMesh:
+    """The faces of `mesh` whose three vertices are kept, without pieces under 2 % of them."""
+    faces = mesh.faces[keep[mesh.faces].all(1)]
+    if not len(faces):
+        return GarmentMesh(np.zeros((0, 3)), np.zeros((0, 3), dtype=np.int64), mesh.frame)
+    comp = _components(len(mesh.vertices), faces)
+    sizes = np.bincount(comp[faces[:, 0]], minlength=comp.max() + 1)
+    faces = faces[(sizes >= max(1, 0.02 * len(faces)))[comp[faces[:, 0]]]]
+    used = np.unique(faces)
+    remap = np.full(len(mesh.vertices), -1)
+    remap[used] = np.arange(len(used))
+    return GarmentMesh(vertices=mesh.vertices[used], faces=remap[faces].astype(np.int64), frame=mesh.frame)
+
+
+# ---- 3. node motions --------------------------------------------------------------------------------------------
+def node_motions(tracks: GarmentTracks, ref: int, nodes: np.ndarray, centers: np.ndarray, patch: int = 40,
+                 reach: float = 0.15, min_vertices: int = 6) -> NodeMotions:
+    """Step 3 of the module docstring: `centers` [M, 3] the nodes `nodes` [M] at the reference frame index `ref`.
+    A node's patch is its `patch` nearest surface vertices within `reach` metres (a hull node may sit inside the
+    garment's volume, centimetres from its surface); nodes with fewer than `min_vertices` there are left out."""
+    from scipy.spatial import cKDTree
+
+    X = tracks.vertices  # [F, V, 3]
+    tree = cKDTree(X[ref])
+    rows, Rs, ts, counts, seens = [], [], [], [], []
+    for k, c in enumerate(centers):
+        dist, idx = tree.query(c, k=min(patch, len(X[ref])), distance_upper_bound=reach)
+        idx = np.atleast_1d(idx)[np.isfinite(np.atleast_1d(dist))]
+        if len(idx) < min_vertices:
+            continue
+        Y = X[:, idx]  # [F, p, 3]
+        x0 = Y[ref] - Y[ref].mean(0)
+        yc = Y - Y.mean(1, keepdims=True)
+        U, _, Vt = np.linalg.svd(np.einsum("pi,fpj->fij", x0, yc))
+        d = np.sign(np.linalg.det(np.einsum("fij,fjk->fik", Vt.transpose(0, 2, 1), U.transpose(0, 2, 1))))
+        D = np.zeros((len(d), 3, 3))
+        D[:, 0, 0] = D[:, 1, 1] = 1.0
+        D[:, 2, 2] = d
+        R = Vt.transpose(0, 2, 1) @ D @ U.transpose(0, 2, 1)  # [F, 3, 3]: y = R x
+        t = Y.mean(1) - np.einsum("fij,j->fi", R, Y[ref].mean(0))
+        rows.append(int(nodes[k]))
+        Rs.append(R)
+        ts.append(t)
+        counts.append(len(idx))
+        seens.append((tracks.seen[:, idx] >= 2).mean(1))
+    F = X.shape[0]
+    if not rows:
+        return NodeMotions(np.zeros(0, dtype=np.int64), np.zeros((F, 0, 3, 3)), np.zeros((F, 0, 3)),
+                           np.zeros(0, dtype=np.int64), np.zeros((F, 0)))
+    return NodeMotions(nodes=np.asarray(rows), rotation=np.stack(Rs, 1), translation=np.stack(ts, 1),
+                       vertices=np.asarray(counts), seen=np.stack(seens, 1))
+
+
+def capture_input(capture, body, template, frames: list[int], views: list[str]) -> TrackingInput:
+    """The `TrackingInput` of a `ProjectCapture`'s training `frames` x `views`, the body posed by its fits."""
+    from avatarctl.body.lbs import blend_transforms
+
+    posed = body.pose(capture.motion.select(capture.motion.rows_for(frames)))
+    joints = posed.joint_transforms.double()  # [F, J, 4, 4]
+    weights = template.skin_weights.double()
+
+    def transforms(fi: int, vertex: np.ndarray) -> np.ndarray:
+        return blend_transforms(weights[torch.as_tensor(vertex)], joints[fi:fi + 1])[0].numpy()
+
+    return TrackingInput(frames=tuple(int(f) for f in frames), cameras=tuple(capture.cameras[v] for v in views),
+                         image=lambda c, f: capture.image(views[c], f),
+                         mask=lambda c, f: capture.mask(views[c], f) > 0,
+                         body_vertices=posed.vertices.detach().double().numpy(),
+                         body_faces=template.faces.numpy(), body_transforms=transforms)

@@ -1,0 +1,178 @@
+"""fit/garment_track.py: a printed tube turning around a still body, rendered by ray casting into six views; the
+tracker follows it, the reference surface comes from the masks, node motions and the model's tracked placement."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from avatarctl.fit import garment_track as gt
+from avatarctl.geometry.cameras import Camera, look_at
+
+SIZE, TURN = 112, 0.06  # image side (pixels); the tube turns by this many radians per frame (1.8 cm at its surface)
+
+
+def _radius(a: np.ndarray, radius: float, folds: float) -> np.ndarray:
+    return radius + folds * np.sin(5 * a)
+
+
+def _tube(rings: int = 12, segments: int = 60, radius: float = 0.3, height: float = 0.4, folds: float = 0.05
+          ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """An open tube around the z axis with `folds` (metres) of 5 folds -> (vertices [V, 3], faces [T, 3], material
+    coordinates [V, 2]). The folds' hollows are what a visual hull of a few views cannot carve."""
+    a = np.linspace(0, 2 * np.pi, segments, endpoint=False)
+    z = np.linspace(-height / 2, height / 2, rings)
+    A, Z = np.meshgrid(a, z)
+    r = _radius(A, radius, folds)
+    V = np.stack([r * np.cos(A), r * np.sin(A), Z], -1).reshape(-1, 3)
+    faces = []
+    for r in range(rings - 1):
+        for s in range(segments):
+            i, j = r * segments + s, r * segments + (s + 1) % segments
+            faces += [[i, j, i + segments], [j, j + segments, i + segments]]
+    return V, np.asarray(faces), np.stack([A, Z], -1).reshape(-1, 2)
+
+
+def _body() -> tuple[np.ndarray, np.ndarray]:
+    """The still 'body': a thin tube on the axis (vertices 2 cm apart, as the off-body rule measures to them)."""
+    v, f, _ = _tube(rings=26, segments=24, radius=0.08, height=0.5, folds=0.0)
+    return v, f
+
+
+def _cameras(n: int = 6) -> tuple[Camera, ...]:
+    cams = []
+    for i in range(n):
+        a = 2 * np.pi * (i + 0.3) / n
+        R, T = look_at(np.array([2.5 * np.cos(a), 2.5 * np.sin(a), 0.6]), np.zeros(3))
+        K = np.array([[160.0, 0, SIZE / 2], [0, 160.0, SIZE / 2], [0, 0, 1]])  # every view sees the carved box
+        cams.append(Camera(f"c{i}", K, R, T, SIZE, SIZE))
+    return tuple(cams)
+
+
+def _render(cam: Camera, verts: np.ndarray, faces: np.ndarray, uv: np.ndarray, body: tuple[np.ndarray, np.ndarray]
+            ) -> tuple[np.ndarray, np.ndarray]:
+    """RGB uint8 [H, W, 3] and mask of the printed tube and the grey body (one ray per pixel, Warp's BVH)."""
+    from avatarctl.geometry.raycast import RayCaster
+
+    bv, bf = body
+    caster = RayCaster(np.concatenate([verts, bv]), np.concatenate([faces, bf + len(verts)]))
+    v, u = np.mgrid[0:cam.height, 0:cam.width]
+    xy = (np.stack([u, v], -1).reshape(-1, 2) - cam.K[:2, 2]) / np.diag(cam.K)[:2]
+    d = np.concatenate([xy, np.ones((len(xy), 1))], -1) @ cam.R
+    d /= np.linalg.norm(d, axis=-1, keepdims=True)
+    face, t = caster.cast(cam.center, d)
+    img = np.zeros((len(d), 3))
+    tube = (face >= 0) & (face < len(faces))
+    p = cam.center + t[tube, None] * d[tube]
+    tri = verts[faces[face[tube]]]  # [n, 3, 3] barycentric coordinates of the hit
+    e1, e2, q = tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0], p - tri[:, 0]
+    d11, d12, d22 = (e1 * e1).sum(-1), (e1 * e2).sum(-1), (e2 * e2).sum(-1)
+    q1, q2 = (q * e1).sum(-1), (q * e2).sum(-1)
+    den = d11 * d22 - d12 ** 2
+    b1, b2 = (d22 * q1 - d12 * q2) / den, (d11 * q2 - d12 * q1) / den
+    m = np.einsum("nk,nkd->nd", np.stack([1 - b1 - b2, b1, b2], -1), uv[faces[face[tube]]])  # material (a, z)
+    img[tube] = 0.5 + 0.4 * np.stack([np.sin(9 * m[:, 0]) * np.sin(31 * m[:, 1]), np.cos(13 * m[:, 0] + 20 * m[:, 1]),
+                                      np.sin(7 * m[:, 0] - 25 * m[:, 1])], -1)
+    img[face >= len(faces)] = 0.45
+    return (img.reshape(cam.height, cam.width, 3) * 255).astype(np.uint8), (face >= 0).reshape(cam.height, cam.width)
+
+
+def _turned(verts: np.ndarray, angle: float) -> np.ndarray:
+    c, s = np.cos(angle), np.sin(angle)
+    return verts @ np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]]).T
+
+
+@pytest.fixture(scope="module")
+def scene():
+    """Three frames of the tube turning by TURN per frame around the still box, in six views."""
+    verts, faces, uv = _tube()
+    body = _body()
+    cams = _cameras()
+    frames = [_turned(verts, TURN * (f - 1)) for f in range(3)]
+    shots = {(c, f): _render(cam, frames[f], faces, uv, body) for c, cam in enumerate(cams) for f in range(3)}
+    eye = np.broadcast_to(np.eye(4), (1, 4, 4))
+    inp = gt.TrackingInput(frames=(0, 1, 2), cameras=cams, image=lambda c, f: shots[(c, f)][0],
+                           mask=lambda c, f: shots[(c, f)][1], body_vertices=np.stack([body[0]] * 3),
+                           body_faces=body[1], body_transforms=lambda fi, j: np.repeat(eye, len(j), 0))
+    return inp, verts, faces, frames
+
+
+def test_the_tracker_follows_the_turning_print(scene):
+    inp, verts, faces, truth = scene
+    mesh = gt.GarmentMesh(truth[1], faces, frame=1)
+    tracks = gt.track(inp, mesh, ref=1)
+    assert tracks.vertices.shape == (3, len(verts), 3)
+    np.testing.assert_array_equal(tracks.vertices[1], truth[1])
+    for f in (0, 2):
+        still = np.linalg.norm(truth[1] - truth[f], axis=-1).mean()  # the skeleton (still) explains none of it
+        err = np.linalg.norm(tracks.vertices[f] - truth[f], axis=-1).mean()
+        assert still > 0.015
+        assert err < 0.3 * still, (f, err, still)
+    assert (tracks.seen[[0, 2]] >= 2).mean() > 0.5
+
+
+def test_the_reference_surface_comes_from_the_masks_off_the_body(scene):
+    inp, *_ = scene
+    hull = gt.reference_mesh(inp, 1)
+    assert len(hull.vertices) > 50
+    r = np.linalg.norm(hull.vertices[:, :2], axis=-1)
+    assert (r > 0.09).all()  # nothing on the 'body', which the off-body rule removes
+
+    def off(X: np.ndarray) -> np.ndarray:  # radial distance (metres) to the folded tube
+        return np.abs(np.linalg.norm(X[:, :2], axis=-1) - _radius(np.arctan2(X[:, 1], X[:, 0]), 0.3, 0.05))
+
+    stereo = gt.refine_reference(inp, hull, 1)
+    side = np.abs(hull.vertices[:, 2]) < 0.15  # the tube's side (the hull closes its ends with cones)
+    before, after = off(hull.vertices[side]), off(stereo.vertices[side])
+    print(np.median(before), np.median(after))
+    assert np.median(after) < np.median(before)  # the stereo brings the hull's surface onto the printed tube
+    part = gt.consistent_part(inp, stereo, 1)
+    print(len(part.vertices), len(stereo.vertices), np.median(off(part.vertices)))
+
+
+def test_node_motions_recover_a_rigid_motion_and_skip_empty_nodes():
+    rng = np.random.default_rng(0)
+    X = rng.normal(size=(200, 3)) * 0.1
+    R = _turned(np.eye(3), 0.4).T  # a rotation about z (rows of the turned identity)
+    moved = X @ R.T + np.array([0.1, -0.2, 0.05])
+    mesh = gt.GarmentMesh(X, np.zeros((0, 3), dtype=np.int64), frame=0)
+    tracks = gt.GarmentTracks(mesh=mesh, frames=(0, 1), vertices=np.stack([X, moved]), seen=np.full((2, 200), 3),
+                              loss=np.zeros(2), tracked=np.ones(2, dtype=bool))
+    m = gt.node_motions(tracks, 0, np.array([7, 9]), np.array([[0.0, 0.0, 0.0], [5.0, 5.0, 5.0]]), patch=200)
+    assert m.nodes.tolist() == [7]  # node 9 owns no surface
+    np.testing.assert_allclose(m.rotation[1, 0], R, atol=1e-9)
+    np.testing.assert_allclose(m.rotation[0, 0], np.eye(3), atol=1e-9)
+    np.testing.assert_allclose(X @ m.rotation[1, 0].T + m.translation[1, 0], moved, atol=1e-9)
+
+
+def test_the_model_places_tracked_nodes_on_training_frames_only(tmp_path):
+    from fixtures.toy_capture import toy_motion
+
+    from avatarctl.body.toy import ToyBody
+    from avatarctl.model import ModelConfig
+    from avatarctl.model.avatar import FrameConditioning, SlrfAvatar
+
+    body = ToyBody()
+    motion = toy_motion(3)
+    template = body.template(motion)
+    model = SlrfAvatar(ModelConfig(num_nodes=16), template, num_frames=3)
+    posed = body.pose(motion)
+    J = posed.joint_transforms.shape[1]
+    cond = FrameConditioning(posed.joint_transforms.float(), torch.zeros(3, J, 3), torch.linspace(0, 1, 3),
+                             torch.tensor([0, 1, -1]))
+    before = model.node_state(cond, mode="zero")
+    nodes = torch.tensor([3, 5])
+    rot = torch.eye(3).expand(3, 2, 3, 3).clone()
+    centre = torch.arange(18, dtype=torch.float32).reshape(3, 2, 3)
+    model.set_tracks(nodes, rot, centre)
+    after = model.node_state(cond, mode="zero")
+    torch.testing.assert_close(after.centers[:2, nodes], centre[:2])  # training frames 0 and 1: the tracks
+    torch.testing.assert_close(after.centers[2], before.centers[2])  # a novel pose: the paper's placement
+    other = torch.tensor([i for i in range(16) if i not in (3, 5)])
+    torch.testing.assert_close(after.centers[:, other], before.centers[:, other])
+    again = SlrfAvatar(ModelConfig(num_nodes=16), template, num_frames=3)
+    again.load_state_dict(model.state_dict())  # saved with the weights
+    torch.testing.assert_close(again.node_state(cond, mode="zero").centers, after.centers)
+    with pytest.raises(ValueError, match="tracks for 3 frames"):
+        model.set_tracks(nodes, rot[:2], centre[:2])
