@@ -398,7 +398,7 @@ def surface_error(av, gt, frames: list[int], path: Path) -> SurfaceError:
     """Part 6 of the module docstring for the tracks in `path` (fit/garment_track.py's surface per frame)."""
     from scipy.spatial import cKDTree
 
-    from avatarctl.fit.garment_track import _skin_move, capture_input
+    from avatarctl.fit.garment_track import capture_input, skin_move
 
     d = np.load(path)
     assert [int(f) for f in d["frames"]] == frames, "the tracks are of other frames than the fit's"
@@ -417,7 +417,7 @@ def surface_error(av, gt, frames: list[int], path: Path) -> SurfaceError:
     for i, f in enumerate(frames):
         truth = points(f)[match[near]]
         tr.append(float(np.linalg.norm(X[i][near] - truth, axis=-1).mean() * 100) if tracked[i] else float("nan"))
-        moved = _skin_move(inp, X[ref][near], ref, i) if i != ref else X[ref][near]
+        moved = skin_move(inp, X[ref][near], ref, i) if i != ref else X[ref][near]
         sk.append(float(np.linalg.norm(moved - truth, axis=-1).mean() * 100))
     return SurfaceError(vertices=int(near.sum()), surface=len(X[ref]), frames_tracked=int(tracked.sum()),
                         tracked_cm=tuple(tr), skeleton_cm=tuple(sk))

@@ -36,6 +36,7 @@ import numpy as np
 import torch
 
 from avatarctl.geometry.cameras import Camera
+from avatarctl.geometry.normals import vertex_normals
 from avatarctl.progress import ProgressFn, ProgressReport
 
 
@@ -181,23 +182,7 @@ def reference_mesh(inp: TrackingInput, ref: int, settings: TrackSettings = Track
         inside = (u >= 0) & (v >= 0) & (u < m.shape[1]) & (v < m.shape[0])
         shows[inside] |= m[v[inside], u[inside]] & ~sil[v[inside], u[inside]]
     keep = (dist > settings.off_body) & shows
-    fk = keep[faces].all(1)
-    if not fk.any():
-        return empty
-    faces = faces[fk]
-    # drop small pieces (< 2 % of the kept faces): stray phantom patches
-    used = np.unique(faces)
-    remap = np.full(len(verts), -1)
-    remap[used] = np.arange(len(used))
-    verts, faces = verts[used], remap[faces]
-    comp = _components(len(verts), faces)
-    sizes = np.bincount(comp[faces[:, 0]], minlength=comp.max() + 1)
-    big = sizes >= max(1, 0.02 * len(faces))
-    faces = faces[big[comp[faces[:, 0]]]]
-    used = np.unique(faces)
-    remap = np.full(len(verts), -1)
-    remap[used] = np.arange(len(used))
-    return GarmentMesh(vertices=verts[used], faces=remap[faces].astype(np.int64), frame=frame)
+    return _submesh(GarmentMesh(vertices=verts, faces=faces.astype(np.int64), frame=frame), keep)  # stray pieces out
 
 
 def _components(n: int, faces: np.ndarray) -> np.ndarray:
@@ -271,21 +256,13 @@ def _samples(X: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
     return torch.cat([X, torch.einsum("bk,tkd->tbd", _BARY.to(X), X[faces]).reshape(-1, 3)])
 
 
-def _normals(X: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    n = np.zeros_like(X)
-    fn = np.cross(X[faces[:, 1]] - X[faces[:, 0]], X[faces[:, 2]] - X[faces[:, 0]])
-    for k in range(3):
-        np.add.at(n, faces[:, k], fn)
-    return n / np.maximum(np.linalg.norm(n, axis=-1, keepdims=True), 1e-12)
-
-
 def visibility(inp: TrackingInput, fi: int, X: np.ndarray, faces: np.ndarray) -> np.ndarray:
     """[C, V] bool: vertex X_v seen by training view c at frame index `fi` (module docstring, step 2)."""
     from avatarctl.geometry.raycast import RayCaster
 
     body = inp.body_vertices[fi]
     caster = RayCaster(np.concatenate([body, X]), np.concatenate([inp.body_faces, faces + len(body)]))
-    nrm = _normals(X, faces)
+    nrm = vertex_normals(X, faces)
     out = np.zeros((len(inp.centers), len(X)), dtype=bool)
     for c, o in enumerate(inp.centers):
         d = X - o
@@ -296,7 +273,7 @@ def visibility(inp: TrackingInput, fi: int, X: np.ndarray, faces: np.ndarray) ->
     return out
 
 
-def _skin_move(inp: TrackingInput, X: np.ndarray, fa: int, fb: int) -> np.ndarray:
+def skin_move(inp: TrackingInput, X: np.ndarray, fa: int, fb: int) -> np.ndarray:
     """X [n, 3] at frame index fa moved to frame index fb by the blended transform of its nearest body vertex."""
     from scipy.spatial import cKDTree
 
@@ -346,9 +323,9 @@ class _Tracker:
         s, inp = self.s, self.inp
         vis_np = visibility(inp, fa, Xp, self.faces_np)
         svis = self._sample_vis(torch.as_tensor(vis_np).float())
-        init = _skin_move(inp, Xp, fa, fb)
+        init = skin_move(inp, Xp, fa, fb)
         if Xpp is not None and s.residual_velocity:
-            init = init + s.residual_velocity * (Xp - _skin_move(inp, Xpp, 2 * fa - fb, fa))
+            init = init + s.residual_velocity * (Xp - skin_move(inp, Xpp, 2 * fa - fb, fa))
         Xp_t = torch.as_tensor(Xp, dtype=torch.float32)
         X = torch.as_tensor(init, dtype=torch.float32).clone().requires_grad_(True)
         e0, e1 = self.edges[:, 0], self.edges[:, 1]
@@ -415,7 +392,7 @@ def track(inp: TrackingInput, mesh: GarmentMesh, ref: int, settings: TrackSettin
                 Xpp = out[prev2] if prev2 is not None else None
                 out[f], seen[f], loss[f] = tracker.step(out[prev], Xpp, prev, f)
                 tracker.frames.forget({inp.frames[prev], inp.frames[f], inp.frames[ref]})
-            skeleton = _skin_move(inp, mesh.vertices, ref, f)
+            skeleton = skin_move(inp, mesh.vertices, ref, f)
             if (len(first) >= 5 and loss[f] > settings.lost * np.median(first)) or \
                     tracker.explains(out[f], f) >= tracker.explains(skeleton, f):
                 out[f], seen[f] = 0.0, 0
@@ -444,7 +421,7 @@ def refine_reference(inp: TrackingInput, mesh: GarmentMesh, ref: int, settings: 
     faces = torch.as_tensor(mesh.faces)
     edges = torch.as_tensor(mesh.edges)
     X0 = torch.as_tensor(mesh.vertices, dtype=torch.float32)
-    n = torch.as_tensor(_normals(mesh.vertices, mesh.faces), dtype=torch.float32)
+    n = torch.as_tensor(vertex_normals(mesh.vertices, mesh.faces), dtype=torch.float32)
     offset = torch.zeros(len(X0), requires_grad=True)
     dt = frames.outside(inp.frames[ref])
     reach = settings.stereo_reach

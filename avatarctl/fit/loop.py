@@ -410,19 +410,20 @@ def _set_up(project: Project, cfg: FitConfig | None, device: str, resume: bool, 
                        background=torch.tensor(cfg.background, dtype=torch.float32, device=dev),
                        all_frames=all_frames, start_step=start_step, resumed=ckpt is not None, hull_note=hull_note)
     if cfg.track and ckpt is None:
-        trainer.track_note, trainer.track_seconds = _track_garment(trainer, hull_count)
+        trainer.track_note, trainer.track_seconds = _track_garment(trainer, template, hull_count)
         if log is not None:
             log.append({"step": 0, "note": trainer.track_note})
     return trainer, log
 
 
-def _track_garment(t: "_Trainer", hull_count: int) -> tuple[str, float]:
+def _track_garment(t: "_Trainer", template, hull_count: int) -> tuple[str, float]:
     """The garment tracking pass (fit/garment_track.py) of a fresh fit: the reference surface at the middle training
     frame, tracked through the training frames; the last `hull_count` nodes (the hull nodes) that own a patch of it
     are placed by its motion on training frames (`SlrfAvatar.set_tracks`). Writes fit/track/summary.json and
     tracks.npz (the surface per frame). -> (the line for the log, seconds)."""
     import numpy as np
 
+    from avatarctl.body.lbs import transform_points
     from avatarctl.fit import garment_track as gt
 
     t0 = time.perf_counter()
@@ -433,7 +434,6 @@ def _track_garment(t: "_Trainer", hull_count: int) -> tuple[str, float]:
         return "garment tracking: skipped (one training view: the cloth cannot be placed in depth)", 0.0
     if t.replicas.distributed:
         return "garment tracking: skipped (one process only; run without --nproc)", 0.0
-    template = t.body.template(t.capture.motion)
     inp = gt.capture_input(t.capture, t.body, template, t.train_frames, views)
     ref = len(t.train_frames) // 2
     settings = gt.TrackSettings()
@@ -447,7 +447,7 @@ def _track_garment(t: "_Trainer", hull_count: int) -> tuple[str, float]:
     with torch.no_grad():  # the hull nodes placed by the skeleton on every training frame (Eq. 1, 3, Delta n = 0)
         T = model.node_state(t.all_frames, mode="zero").transforms[:, nodes].double().cpu()  # [F, M, 4, 4]
     A = T[..., :3, :3].numpy()  # [F, M, 3, 3]
-    c = ((T[..., :3, :3] @ model.node_rest[nodes].double().cpu()[None, :, :, None])[..., 0] + T[..., :3, 3]).numpy()
+    c = transform_points(T, model.node_rest[nodes].double().cpu()).numpy()  # [F, M, 3] Eq. 2
     motion = gt.node_motions(tracks, ref, nodes.numpy(), c[ref])
     keep = np.searchsorted(nodes.numpy(), motion.nodes)
     R, tr = motion.rotation, motion.translation  # [F, M', 3, 3], [F, M', 3]
