@@ -10,6 +10,7 @@ Layout (see docs/project_dir.md)::
       ingest/body.npz                   body-model fits, one row per frame (see avatarctl.body.motion)
       ingest/split.json                 train/test frames and views
       ingest/benchmark.json             the named benchmark protocol ingest applied (`ingest --benchmark`), if any
+      ingest/camera_colour.json         each camera's colour gains from the body's colours across cameras (2+ cameras)
       ingest/contact_sheet.png          frames with the posed body overlaid, for a person to check
       fit/config.json                   resolved fit config
       fit/log.jsonl                     one JSON record per logged step
@@ -84,6 +85,10 @@ class ProjectPaths:
     @property
     def benchmark(self) -> Path:
         return self.ingest / "benchmark.json"
+
+    @property
+    def camera_colour(self) -> Path:
+        return self.ingest / "camera_colour.json"
 
     @property
     def ingest_contact_sheet(self) -> Path:

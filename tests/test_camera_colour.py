@@ -139,3 +139,87 @@ def test_a_fit_with_camera_colour_learns_the_darker_camera_and_reloads(tmp_path,
     mean = np.array([0.54, 0.25, 0.54])  # cam00's foreground, frame 0
     ratio = (g2 * mean + o2) / (g0 * mean + o0)
     assert (np.abs(ratio[[0, 2]] - 0.6) < 0.1).all(), ratio
+
+
+# ---- the cameras' gains from the body's colours across cameras (ingest) ------------------------------------------
+def _sphere_views(gains: np.ndarray, size: int = 96):
+    """A sphere (radius 0.3 m) whose colour is a smooth function of the surface point, ray-cast into 4 cameras 90
+    degrees apart, each image through its camera's gains [4, 3] -> (cameras, images, masks, vertices, faces)."""
+    import trimesh
+
+    from avatarctl.geometry.cameras import Camera, look_at
+    from avatarctl.geometry.raycast import RayCaster
+
+    mesh = trimesh.creation.icosphere(subdivisions=5, radius=0.3)
+    V, F = np.asarray(mesh.vertices), np.asarray(mesh.faces)
+    caster = RayCaster(V, F)
+    cams, images, masks = [], [], []
+    for i in range(4):
+        a = 2 * np.pi * i / 4
+        R, T = look_at(np.array([2.0 * np.cos(a), 2.0 * np.sin(a), 0.3]), np.zeros(3))
+        cam = Camera(f"c{i}", np.array([[150.0, 0, size / 2], [0, 150.0, size / 2], [0, 0, 1]]), R, T, size, size)
+        v, u = np.mgrid[0:size, 0:size]
+        xy = (np.stack([u, v], -1).reshape(-1, 2) - cam.K[:2, 2]) / np.diag(cam.K)[:2]
+        d = np.concatenate([xy, np.ones((len(xy), 1))], -1) @ cam.R
+        d /= np.linalg.norm(d, axis=-1, keepdims=True)
+        face, t = caster.cast(cam.center, d)
+        hit = face >= 0
+        p = cam.center + t[hit, None] * d[hit]
+        img = np.zeros((len(d), 3))
+        img[hit] = 0.45 + 0.25 * np.stack([np.sin(6 * p[:, 0]), np.cos(5 * p[:, 1] + 1), np.sin(4 * p[:, 2] + 2)], -1)
+        img = np.clip(img * gains[i], 0, 1)
+        cams.append(cam)
+        images.append((img.reshape(size, size, 3) * 255).round().astype(np.uint8))
+        masks.append(hit.reshape(size, size))
+    return cams, images, masks, V, F
+
+
+def test_shared_colours_recover_the_cameras_gains_relative_to_the_training_cameras():
+    from avatarctl.evaluate.colour import CameraGains, SharedColours
+
+    gains = np.array([[1.0, 0.95, 1.05], [1.3, 1.25, 1.2], [0.8, 0.85, 0.9], [1.1, 1.0, 0.9]])
+    cams, images, masks, V, F = _sphere_views(gains)
+    shared = SharedColours([c.name for c in cams])
+    shared.add(cams, images, masks, V, F)
+    est = shared.solve(["c0", "c1", "c3"])  # c2 held out
+    want = gains / np.exp(np.log(gains[[0, 1, 3]]).mean(0))  # relative to the training cameras' mean
+    assert est.estimated.all() and (est.points > 1000).all(), est.points
+    np.testing.assert_allclose(est.gain, want, rtol=0.02)
+    assert np.allclose(np.log(est.gain[[0, 1, 3]]).mean(0), 0, atol=1e-6)  # the gauge
+    np.testing.assert_allclose(est.of("c2"), want[2], rtol=0.02)
+    back = CameraGains.from_json(est.to_json())  # ingest/camera_colour.json round trip (5 decimals)
+    np.testing.assert_allclose(back.gain, est.gain, atol=1e-5)
+    assert back.views == est.views and (back.estimated == est.estimated).all()
+    # a camera that shares no point with a training camera keeps gain 1, and says so
+    lone = SharedColours([c.name for c in cams])
+    lone.add(cams, images, [m if i != 2 else np.zeros_like(m) for i, m in enumerate(masks)], V, F)
+    est = lone.solve(["c0", "c1", "c3"])
+    assert not est.estimated[2] and est.of("c2") is None and np.allclose(est.gain[2], 1.0)
+    np.testing.assert_allclose(est.gain[[0, 1, 3]], want[[0, 1, 3]], rtol=0.02)
+
+
+def test_ingest_estimates_a_darker_held_out_camera_and_eval_renders_through_it(tmp_path):
+    from fixtures.toy_capture import make_toy_capture
+
+    from avatarctl.io.project_io import load_camera_colour
+    from avatarctl.project import Project
+    from avatarctl.stages import evaluate, fit, ingest
+    from avatarctl.stages.evaluate import EvalConfig
+    from avatarctl.stages.fit import FitRequest
+    from avatarctl.stages.ingest import IngestConfig
+
+    cap, proj = make_toy_capture(tmp_path / "cap"), tmp_path / "proj"
+    _darken(cap, "cam01", 0.6)  # a held-out camera (cam00 and cam02 train)
+    res = ingest.run(proj, IngestConfig(capture=cap, project=proj, contact_sheet=False))
+    gains = load_camera_colour(Project.open(proj))
+    assert res.camera_colour is not None and gains is not None and gains.views == tuple(res.cameras)
+    g = gains.of("cam01")
+    assert g is not None and (np.abs(g - 0.6) < 0.08).all(), g
+    assert np.allclose(np.log(gains.gain[[gains.views.index("cam00"), gains.views.index("cam02")]]).mean(0), 0,
+                       atol=1e-4)  # the gauge (5 decimals in the file)
+    fit.run(proj, FitRequest(preset="micro", iters=5, overrides=("val_every=0",), device="cpu"), handle_sigint=False)
+    on = evaluate.run(proj, EvalConfig(views=("cam01",), sheet_rows=0, name="on"))
+    off = evaluate.run(proj, EvalConfig(views=("cam01",), sheet_rows=0, name="off", camera_colour="off"))
+    assert off.metrics.camera_colour is None
+    assert on.metrics.camera_colour["gain"] == {"cam01": [round(float(x), 4) for x in g]}
+    assert on.metrics.psnr != off.metrics.psnr  # the held-out render went through the gains

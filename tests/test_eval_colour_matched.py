@@ -96,7 +96,13 @@ def test_training_views_are_scored_through_their_learned_colour(tmp_path):
         av.model.camera_colour.log_gain[1] = -0.5  # cam02 darker than cam00 (centred: cam00 brighter)
     rgb = np.full((4, 4, 3), 0.5, np.float32)
     alpha = np.ones((4, 4), np.float32)
-    assert _as_camera_sees(av, "cam02", rgb, alpha).mean() < 0.5 < _as_camera_sees(av, "cam00", rgb, alpha).mean()
-    assert np.array_equal(_as_camera_sees(av, "cam01", rgb, alpha), rgb)  # held out: identity
+    assert _as_camera_sees(av, "cam02", rgb, alpha, None).mean() < 0.5 < \
+        _as_camera_sees(av, "cam00", rgb, alpha, None).mean()
+    assert np.array_equal(_as_camera_sees(av, "cam01", rgb, alpha, None), rgb)  # held out, no gains: identity
+    gain = np.array([0.5, 1.0, 1.5], np.float32)  # held out, through ingest's gains: on the foreground
+    np.testing.assert_allclose(_as_camera_sees(av, "cam01", rgb, alpha, gain)[0, 0], 0.5 * gain, atol=1e-6)
+    # a training camera keeps its learned transform whatever gains are passed
+    assert np.array_equal(_as_camera_sees(av, "cam02", rgb, alpha, gain), _as_camera_sees(av, "cam02", rgb, alpha,
+                                                                                        None))
     m = evaluate.run(proj, EvalConfig(split="train", name="train", device="cpu")).metrics
     assert m.images > 0 and m.colour_matched is not None

@@ -55,6 +55,10 @@ def register(app: typer.Typer) -> None:
         knockout: Optional[str] = typer.Option(None, "--knockout", help="Render-time knockout of the trained "
                                                "model (paper Fig. 3 / supp. node-variable table): delta-n and/or embedding, comma-separated: "
                                                "that variable is set to zero when rendering."),
+        camera_colour: str = typer.Option("auto", "--camera-colour", help="auto: a held-out camera is rendered "
+                                          "through its colour gains that ingest estimated from the body's colours "
+                                          "across cameras (ingest/camera_colour.json) | off: in the training "
+                                          "cameras' mean colour."),
         compare: bool = typer.Option(False, "--compare", help="Do not render: print a side-by-side table of the "
                                      "projects' latest metrics.json (same split/protocol), e.g. "
                                      "`avatarctl eval FULL --compare ABL1 ABL2`."),
@@ -86,7 +90,8 @@ def register(app: typer.Typer) -> None:
                              max_rays_per_chunk=max_rays, device=device,
                              checkpoint=str(checkpoint) if checkpoint else None, save_images=save_images,
                              region=region, knockout=parse_knockout(knockout),
-                             test_project=str(test_project) if test_project else None)
+                             test_project=str(test_project) if test_project else None,
+                             camera_colour=camera_colour)
             _run(projects[0], cfg, nproc, wait, console)
 
 
@@ -119,6 +124,10 @@ def _run(project: Path, cfg, nproc: int, wait: bool, console) -> None:
                   + f"  ({r['share_of_pixels']:.1%} of the pixels, {r['share_of_error']:.1%} of the squared error;"
                   f" pooled {r['pooled_psnr'] or float('nan'):.2f} dB; its best flat colour "
                   f"{r['flat_colour_psnr'] or float('nan'):.2f} dB)")
+    if m.camera_colour is not None:  # held-out cameras through ingest's gains (issue 51)
+        gains = "; ".join(f"{v} x{','.join(f'{g:.2f}' for g in gs)}" for v, gs in m.camera_colour["gain"].items())
+        t.add_row("camera colour", f"held-out cameras rendered through ingest's gains ({gains}; "
+                  "--camera-colour off: the training cameras' mean)")
     if m.colour_matched is not None:  # NeRF-W's protocol, apart from the plain figure (issue 51)
         cm = m.colour_matched
         gains = "; ".join(f"{v} x{','.join(f'{g:.2f}' for g in gs)}" for v, gs in cm["gain"].items())

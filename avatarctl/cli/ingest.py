@@ -97,6 +97,12 @@ def register(app: typer.Typer) -> None:
                 for item, value in res.estimate.rows(fitted=res.fits_source == "keypoints"):
                     t.add_row(item, value)
             t.add_row("mesh inside masks", f"{100 * res.vertices_inside_masks:.1f}% of vertices")
+            if res.camera_colour is not None:
+                g = res.camera_colour
+                est = g.gain[g.estimated]
+                t.add_row("camera colour", f"{int(g.estimated.sum())} of {len(g.views)} cameras, gains "
+                          f"{est.min():.2f}-{est.max():.2f} of the training cameras' mean (ingest/camera_colour.json)"
+                          if len(est) else "no camera shares enough body points with a training camera")
             t.add_row("time", f"{res.seconds:.1f} s")
             console.print(t)
             for n in res.notes:

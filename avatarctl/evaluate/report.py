@@ -140,6 +140,7 @@ class EvalMetrics:
     not_comparable: list[str] | None = None  # why this figure is not the protocol's in full ([]: it is)
     colour_matched: dict[str, Any] | None = None  # ColourMatched as a dict: NeRF-W's colour-matched score (issue 51)
     test_project: str | None = None  # the project whose images were scored when not this one (`--test-project`)
+    camera_colour: dict[str, Any] | None = None  # held-out cameras rendered through ingest's colour gains (issue 51)
 
     def to_json(self) -> dict[str, Any]:
         return asdict(self)
@@ -148,7 +149,7 @@ class EvalMetrics:
     def from_json(cls, d: dict[str, Any]) -> "EvalMetrics":
         # absent from metrics.json written before `--region`, the benchmark protocols, `--test-project` or issue 51
         optional = {"region", "regions", "benchmark", "comparable_with", "not_comparable", "test_project",
-                    "colour_matched"}
+                    "colour_matched", "camera_colour"}
         kw = {f.name: d[f.name] for f in fields(cls) if f.name in d or f.name not in optional}
         kw["model"] = ScoredModel(**{f.name: d["model"][f.name] for f in fields(ScoredModel)})
         return cls(**kw)

@@ -258,19 +258,11 @@ def _samples(X: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
 
 def visibility(inp: TrackingInput, fi: int, X: np.ndarray, faces: np.ndarray) -> np.ndarray:
     """[C, V] bool: vertex X_v seen by training view c at frame index `fi` (module docstring, step 2)."""
-    from avatarctl.geometry.raycast import RayCaster
+    from avatarctl.geometry.raycast import RayCaster, seen_by
 
     body = inp.body_vertices[fi]
     caster = RayCaster(np.concatenate([body, X]), np.concatenate([inp.body_faces, faces + len(body)]))
-    nrm = vertex_normals(X, faces)
-    out = np.zeros((len(inp.centers), len(X)), dtype=bool)
-    for c, o in enumerate(inp.centers):
-        d = X - o
-        dist = np.linalg.norm(d, axis=-1)
-        d = d / dist[:, None]
-        face, t = caster.cast(o, d)
-        out[c] = (face >= 0) & (t > dist - 0.01) & (np.abs((nrm * d).sum(-1)) > 0.25)
-    return out
+    return seen_by(caster, inp.centers, X, vertex_normals(X, faces), min_cos=0.25, two_sided=True)
 
 
 def skin_move(inp: TrackingInput, X: np.ndarray, fa: int, fb: int) -> np.ndarray:

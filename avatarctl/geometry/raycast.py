@@ -1,5 +1,6 @@
 """Rays cast against a triangle mesh with Warp's BVH (`wp.Mesh`, `wp.mesh_query_ray`): the synth's renderer, the mesh
-export's rasterizer and its level choice, the garment tracker's visibility test."""
+export's rasterizer and its level choice, which cameras see which points (`seen_by`: the garment tracker, the
+cross-camera colour estimate)."""
 
 from __future__ import annotations
 
@@ -59,3 +60,20 @@ class RayCaster:
         wp.launch(_CAST, dim=n, inputs=[self.mesh.id, wp.vec3(*np.asarray(origin, dtype=np.float32)), d, max_t,
                                         face, t], device="cpu")
         return face.numpy(), t.numpy()
+
+
+def seen_by(caster: RayCaster, centers: np.ndarray, points: np.ndarray, normals: np.ndarray, min_cos: float,
+            two_sided: bool = False, tolerance: float = 0.01) -> np.ndarray:
+    """[C, N] bool: camera c (centre `centers` [C, 3]) sees point `points` [N, 3] (on the caster's mesh): the ray from
+    the camera hits the mesh no nearer than `tolerance` metres before the point, and the point's unit normal
+    `normals` [N, 3] faces the camera by cos >= `min_cos` (either side when `two_sided`: a surface whose normals
+    are not oriented)."""
+    out = np.zeros((len(centers), len(points)), dtype=bool)
+    for c, o in enumerate(np.asarray(centers, dtype=np.float64)):
+        d = points - o
+        dist = np.linalg.norm(d, axis=-1)
+        d = d / np.maximum(dist, 1e-12)[:, None]
+        face, t = caster.cast(o, d)
+        cos = -(normals * d).sum(-1)
+        out[c] = (face >= 0) & (t > dist - tolerance) & ((np.abs(cos) if two_sided else cos) >= min_cos)
+    return out

@@ -11,7 +11,10 @@ Steps:
 3. per frame and camera: undistort (and resize) the frame and mask — masks from the capture's files, from the
    background plate matted with the projected body mesh as seed, or MediaPipe's person segmentation — and write
    them;
-4. write cameras (pinhole, dist = 0), body fits, split, contact sheet, then the manifest.
+4. with 2+ cameras, every camera's colour gains from the posed body's colours across cameras on up to
+   `COLOUR_FRAMES` training frames (`avatarctl.evaluate.colour.SharedColours`: exposure and white balance differ
+   between cameras; `eval` shows a held-out camera through them);
+5. write cameras (pinhole, dist = 0), body fits, split, camera colour, contact sheet, then the manifest.
 
 The whole project is built in a temporary sibling directory and renamed into place at the end
 (`avatarctl.atomic.atomic_dir`): a failure leaves nothing behind; the capture is only ever read.
@@ -26,6 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from avatarctl.errors import InputError, ProjectError
+from avatarctl.evaluate.colour import CameraGains, SharedColours
 from avatarctl.frames import select_frames
 from avatarctl.ingest.benchmark import BenchmarkPlan
 from avatarctl.ingest.config import IngestConfig
@@ -36,6 +40,7 @@ from avatarctl.progress import ProgressFn, ProgressReport
 
 MIN_INSIDE = 0.90  # warn when fewer of the posed vertices than this project inside the masks
 POSE_CHUNK = 64  # frames posed at once
+COLOUR_FRAMES = 24  # training frames the cross-camera colour estimate reads (spread evenly)
 MAX_FOREGROUND = 0.99  # a mask with more foreground than this is inverted or blank, not a person in the frame
 
 
@@ -53,6 +58,7 @@ class IngestResult:
     vertices_inside_masks: float  # mean fraction of posed mesh vertices projecting inside the masks
     fits_source: str = "files"  # "files" | "keypoints"
     estimate: EstimateReport | None = None  # figures of the detection / triangulation / fit steps, if run
+    camera_colour: CameraGains | None = None  # every camera's colour gains (2+ cameras), ingest/camera_colour.json
     notes: list[str] = field(default_factory=list)
     warnings: list[str] = field(default_factory=list)
 
@@ -265,7 +271,8 @@ def run_ingest(cfg: IngestConfig, progress: ProgressFn | None = None) -> IngestR
     from avatarctl.geometry.silhouette import fraction_inside
     from avatarctl.ingest.split import default_split, restrict_split
     from avatarctl.ingest.undistort import Undistorter
-    from avatarctl.io.project_io import save_benchmark, save_cameras, save_split, write_frame, write_mask
+    from avatarctl.io.project_io import save_benchmark, save_camera_colour, save_cameras, save_split, write_frame, \
+        write_mask
     from avatarctl.project import BodyModelRef, Project, SourceRef, hash_tree, now_iso, sha256_file
 
     t0 = time.perf_counter()
@@ -285,6 +292,8 @@ def run_ingest(cfg: IngestConfig, progress: ProgressFn | None = None) -> IngestR
     sheet_cams, sheet_frames = pick(cams, 4), pick(frames, 6 if len(cams) == 1 else 3)
     tiles: list[Tile] = []
     inside: list[float] = []
+    shared = SharedColours(cams) if len(cams) >= 2 else None
+    colour_frames = set(pick([f for f in split.train_frames if f in set(frames)], COLOUR_FRAMES))
     bm_path = str(cfg.body_model_path.resolve()) if cfg.body_model_path and needs_model_file(plan.body_model) else None
 
     with atomic_dir(cfg.project) as tmp:
@@ -295,6 +304,7 @@ def run_ingest(cfg: IngestConfig, progress: ProgressFn | None = None) -> IngestR
             with torch.no_grad():
                 verts = plan.body.pose(motion.select(slice(s, s + POSE_CHUNK))).vertices.cpu().numpy()  # [n, V, 3]
             for k, frame in enumerate(frames[s:s + POSE_CHUNK]):
+                views: list[tuple[np.ndarray, np.ndarray]] = []
                 for c in cams:
                     want_tile = cfg.contact_sheet and c in sheet_cams and frame in sheet_frames
                     rgb, mask, sil = _process_view(plan, und[c], plates.get(c), c, frame, verts[k], want_tile)
@@ -303,6 +313,11 @@ def run_ingest(cfg: IngestConfig, progress: ProgressFn | None = None) -> IngestR
                     write_mask(proj, c, frame, mask)
                     if want_tile:
                         tiles.append(Tile(c, frame, rgb, mask, sil, _detected_points(plan.detections, c, frame)))
+                    if shared is not None and frame in colour_frames:
+                        views.append((rgb, mask))
+                if views:
+                    shared.add([und[c].target for c in cams], [v[0] for v in views], [v[1] > 0 for v in views],
+                               verts[k], plan.faces)
                 if progress is not None:
                     progress(ProgressReport(done=s + k + 1, total=len(frames), part="frames"))
 
@@ -311,6 +326,10 @@ def run_ingest(cfg: IngestConfig, progress: ProgressFn | None = None) -> IngestR
         motion.save(proj.paths.body)
         save_split(proj.paths.split, split)
         outputs = [proj.paths.cameras, proj.paths.body, proj.paths.split]
+        gains = shared.solve(split.train_views) if shared is not None else None
+        if gains is not None:
+            save_camera_colour(proj.paths.camera_colour, gains)
+            outputs.append(proj.paths.camera_colour)
         if plan.benchmark is not None:
             record = replace(plan.benchmark.record, frames=len(frames), train_views=split.train_views,
                              test_views=split.test_views)
@@ -336,6 +355,9 @@ def run_ingest(cfg: IngestConfig, progress: ProgressFn | None = None) -> IngestR
                    "fits": plan.fits_mode}
         if estimate is not None:
             summary["estimate"] = estimate.to_json()
+        if gains is not None:
+            summary["camera_colour"] = {v: [round(float(g), 3) for g in gains.gain[i]] if gains.estimated[i] else None
+                                        for i, v in enumerate(gains.views)}
         if plan.benchmark is not None:
             summary["benchmark"] = {"name": record.name, "partial": record.partial}
         if src.format == "video":
@@ -351,7 +373,7 @@ def run_ingest(cfg: IngestConfig, progress: ProgressFn | None = None) -> IngestR
                         frames=frames, resolution=(w, h), body_model=plan.body_model, masks_source=plan.masks_mode,
                         seconds=seconds, vertices_inside_masks=mean_inside,
                         notes=list(src.notes) + (plan.benchmark.notes if plan.benchmark else []), warnings=warnings,
-                        fits_source=plan.fits_mode, estimate=estimate)
+                        fits_source=plan.fits_mode, estimate=estimate, camera_colour=gains)
 
 
 def _estimate(cfg: IngestConfig, plan: IngestPlan, und: dict, progress: ProgressFn | None

@@ -15,6 +15,7 @@ import numpy as np
 from avatarctl.atomic import write_image, write_json
 from avatarctl.body.motion import BodyMotion
 from avatarctl.errors import InputError, ProjectError
+from avatarctl.evaluate.colour import CameraGains
 from avatarctl.project import Project
 from avatarctl.geometry.cameras import Camera
 
@@ -78,6 +79,7 @@ class ProjectCapture:
     motion: BodyMotion  # one row per ingested frame
     body_model: str
     body_model_path: str | None
+    camera_colour: CameraGains | None = None  # ingest/camera_colour.json; None: one camera, or an older project
 
     @property
     def frames(self) -> list[int]:
@@ -128,6 +130,16 @@ def load_benchmark(project: Project) -> IngestedBenchmark | None:
     """The project's ``ingest/benchmark.json``, or None when ingest applied no benchmark protocol."""
     path = project.paths.benchmark
     return _read_ingest_json(path, "benchmark", IngestedBenchmark.from_json) if path.is_file() else None
+
+
+def save_camera_colour(path: Path, gains: CameraGains) -> None:
+    write_json(path, gains.to_json())
+
+
+def load_camera_colour(project: Project) -> CameraGains | None:
+    """The project's ``ingest/camera_colour.json``, or None (one camera; a project ingested before issue 51)."""
+    path = project.paths.camera_colour
+    return _read_ingest_json(path, "camera colour", CameraGains.from_json) if path.is_file() else None
 
 
 def write_frame(project: Project, cam: str, frame: int, rgb: np.ndarray) -> Path:
@@ -187,7 +199,7 @@ def load_project_capture(project: Project) -> ProjectCapture:
     cameras, split = load_cameras(p.cameras), load_split(p.split)
     _check_images_present(project, list(cameras), [int(f) for f in motion.frame_index])
     return ProjectCapture(project=project, cameras=cameras, split=split, motion=motion, body_model=bm.name,
-                          body_model_path=bm.path)
+                          body_model_path=bm.path, camera_colour=load_camera_colour(project))
 
 
 def _check_images_present(project: Project, cams: list[str], frames: list[int]) -> None:

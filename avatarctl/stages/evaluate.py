@@ -27,9 +27,13 @@ whose test frames are another recording (`BenchmarkProtocol.test_sequence`, 4D-D
 whatever their numbers) from its test views, the avatar driven by its body fits with the avatar's own body shape,
 against its images and masks (and its ground-truth geometry for `--region`).
 
-Cameras that disagree in colour (issue 51): a training view of an avatar fitted with per-camera colour transforms
-(`model.colour.enabled`, model/colour.py) is scored through its camera's learned transform; every other view is
-rendered in the training cameras' mean colour (identity). Beside the plain figure, every image is also scored
+Cameras that disagree in colour (issue 51): a training view is rendered as the avatar learned it: through its
+camera's learned transform when the avatar was fitted with them (`model.colour.enabled`, model/colour.py), else in
+the training cameras' mean colour (identity). A camera the avatar never trained on (a held-out view) is rendered
+through its gains relative to the training cameras' mean that ingest estimated from the body's colours across
+cameras (ingest/camera_colour.json, `evaluate.colour.SharedColours`: the capture's images and fits, no render),
+named in metrics.json "camera_colour" and the printed table; `camera_colour="off"` (`--camera-colour off`), or a
+project without the file, renders it in the training cameras' mean colour. Beside the plain figure, every image is also scored
 NeRF-W's way, clearly apart (metrics.json "colour_matched", `evaluate.report.ColourMatched`, its own row in the
 printed table): the camera's transform (3 gains + 3 offsets on the foreground, `evaluate.colour`) estimated by least
 squares on the LEFT half of the protocol's region (where render and mask both hold the subject), the render through it
@@ -94,6 +98,7 @@ class EvalConfig:
     knockout: tuple[str, ...] = ()  # render-time knockout of a trained model: delta-n and/or embedding (Fig. 3)
     benchmark: str = "auto"  # auto (the project's ingest --benchmark, if any) | none | a protocol name
     test_project: str | None = None  # the project of the protocol's test recording (`--test-project`), if any
+    camera_colour: str = "auto"  # auto: held-out cameras through ingest's gains (module docstring) | off
 
     def __post_init__(self) -> None:
         from avatarctl.evaluate.protocols import PROTOCOLS
@@ -112,6 +117,9 @@ class EvalConfig:
             raise InputError(f"unknown region {self.region!r}", where="--region", fix=f"use one of: {', '.join(REGIONS)}")
         if self.every < 1:
             raise InputError(f"--every must be >= 1, got {self.every}", where="--every", fix="e.g. --every 30")
+        if self.camera_colour not in ("auto", "off"):
+            raise InputError(f"unknown camera colour {self.camera_colour!r}", where="--camera-colour",
+                             fix="use auto or off")
         if self.sheet_rows < 0:
             raise InputError(f"--sheet must be >= 0, got {self.sheet_rows}", where="--sheet", fix="e.g. --sheet 4")
         if not 0.0 <= self.bbox_pad <= 1.0:
@@ -291,6 +299,7 @@ def _run(env: Any, progress: ProgressFn | None, project_dir: str, cfg: EvalConfi
     lpips_fn, lpips_reason = lpips_status()
     geometry = None if cfg.region in SILHOUETTE_REGIONS else _gt_geometry(cap.project, cfg.region)
     cams = {v: cap.cameras[v].pinhole() for v in views}
+    gains = _held_out_gains(avatar, cap, cfg, views)
     total = len(frames) * len(views)
     sheet_at = set(np.linspace(0, total - 1, min(cfg.sheet_rows, total)).round().astype(int).tolist()) \
         if cfg.sheet_rows else set()
@@ -312,7 +321,7 @@ def _run(env: Any, progress: ProgressFn | None, project_dir: str, cfg: EvalConfi
             for vi, view in enumerate(views):
                 k = fi * len(views) + vi
                 mine.append(_score_image(avatar, cap, cfg, project, state, verts, frame, view, cams[view], latent,
-                                         lpips_fn, geometry, k in sheet_at, tmp, k, background))
+                                         lpips_fn, geometry, k in sheet_at, tmp, k, background, gains.get(view)))
                 if progress is not None:
                     progress(ProgressReport(stage="eval", done=min(len(mine) * world, total), total=total,
                                             seconds=time.perf_counter() - t0, detail=mine[-1].score))
@@ -374,6 +383,8 @@ def _run(env: Any, progress: ProgressFn | None, project_dir: str, cfg: EvalConfi
                                            load_benchmark(cap.project) if scored is not None else None),
             test_project=str(cap.project.root) if scored is not None else None,
             colour_matched=asdict(matched) if matched is not None else None,
+            camera_colour={"source": "ingest/camera_colour.json", "method": cap.camera_colour.method,
+                           "gain": {v: [round(float(x), 4) for x in g] for v, g in gains.items()}} if gains else None,
         )
         write_json(tmp / "metrics.json", metrics.to_json())
         write_text(tmp / "per_frame.csv", per_frame_csv(scores))
@@ -412,9 +423,10 @@ def _not_comparable(cfg: EvalConfig, bench: Any, frames: list[int], views: list[
 
 def _score_image(avatar: Any, cap: Any, cfg: EvalConfig, project: Project, state: Any, verts: np.ndarray,
                  frame: int, view: str, cam: Any, latent: str, lpips_fn: Any, geometry: Any, on_sheet: bool, tmp: Path,
-                 index: int, background: tuple[float, float, float]) -> _Scored:
+                 index: int, background: tuple[float, float, float], gain: np.ndarray | None) -> _Scored:
     """Render one (frame, view) over `background` and the protocol's region and score it against the ground truth
-    of `cap` (the avatar's capture, or the test project's)."""
+    of `cap` (the avatar's capture, or the test project's); `gain` [3]: the held-out camera's colour gains
+    (`_held_out_gains`)."""
     from avatarctl.evaluate.metrics import mse, psnr_from_mse, ssim
     from avatarctl.evaluate.protocols import bbox_region, full_region, ground_truth, mpmavatar_images
     from avatarctl.evaluate.regions import SILHOUETTE_REGIONS, silhouette_band, split_silhouette
@@ -434,7 +446,7 @@ def _score_image(avatar: Any, cap: Any, cfg: EvalConfig, project: Project, state
         render_mask[y0:y1, x0:x1] = True
     view_out = render_view(avatar.model, state, 0, cam, background, max_rays_per_chunk=cfg.max_rays_per_chunk,
                            pixel_mask=render_mask)
-    rgb = seen = _as_camera_sees(avatar, view, view_out.rgb, view_out.alpha)  # [H, W, 3] as the camera sees it
+    rgb = seen = _as_camera_sees(avatar, view, view_out.rgb, view_out.alpha, gain)  # [H, W, 3] as the camera sees it
     mask = cap.mask(view, frame)
     gt = ground_truth(cap.image(view, frame), mask, background)  # [H, W, 3]
     if cfg.protocol in ("mpmavatar", "mpmavatar_4d_dress"):
@@ -465,18 +477,29 @@ def _score_image(avatar: Any, cap: Any, cfg: EvalConfig, project: Project, state
                    sheet=sheet)
 
 
-def _as_camera_sees(avatar: Any, view: str, rgb: np.ndarray, alpha: np.ndarray) -> np.ndarray:
-    """[H, W, 3] the render as camera `view` sees it: through its learned colour transform when the avatar has one for
-    it (a training camera, `model.colour.enabled`), else as rendered (the training cameras' mean colour)."""
+def _held_out_gains(avatar: Any, cap: Any, cfg: EvalConfig, views: list[str]) -> dict[str, np.ndarray]:
+    """{view: gains [3]} of the scored views the avatar did not train on that ingest estimated (module docstring)."""
+    if cfg.camera_colour == "off" or cap.camera_colour is None:
+        return {}
+    trained = set(avatar.capture.split.train_views)
+    return {v: g for v in views if v not in trained and (g := cap.camera_colour.of(v)) is not None}
+
+
+def _as_camera_sees(avatar: Any, view: str, rgb: np.ndarray, alpha: np.ndarray, gain: np.ndarray | None
+                    ) -> np.ndarray:
+    """[H, W, 3] the render as camera `view` sees it (module docstring): through its learned colour transform when
+    the avatar has one for it (a training camera, `model.colour.enabled`), through `gain` [3] (a held-out camera's,
+    from ingest) when given, else as rendered (the training cameras' mean colour)."""
     colour = avatar.model.camera_colour
     learned = colour.of(view) if colour is not None else None
-    if learned is None:
+    if learned is None and gain is None:
         return rgb
     from avatarctl.evaluate.colour import apply_colour
 
-    gain, offset = (np.asarray(x, np.float32) for x in learned)
+    g, offset = (np.asarray(x, np.float32) for x in learned) if learned is not None \
+        else (np.asarray(gain, np.float32), np.zeros(3, np.float32))
     bg = np.asarray(avatar.background, np.float32)
-    return np.clip(apply_colour(rgb, alpha, bg, gain, offset), 0.0, 1.0).astype(np.float32)
+    return np.clip(apply_colour(rgb, alpha, bg, g, offset), 0.0, 1.0).astype(np.float32)
 
 
 def _matched_score(rgb: np.ndarray, alpha: np.ndarray, gt: np.ndarray, gt_mask: np.ndarray, background: Any,
