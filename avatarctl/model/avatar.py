@@ -173,7 +173,7 @@ class SlrfAvatar(nn.Module):
         self.register_buffer("pose_attention", node_pose_attention(  # [N, J] (W . omega_i), Eq. 8
             weights[idx], pose_attention_map(template.parents, cfg.pose_attention_hops)))
         self.camera_colour = None
-        if cfg.colour.enabled:
+        if cfg.colour.enabled and cameras:  # no cameras named (a model built outside a fit): nothing to learn
             from avatarctl.model.colour import CameraColour
 
             self.camera_colour = CameraColour(cameras)

@@ -1,5 +1,5 @@
 """`CameraColour`: a colour transform per training camera, learned with the avatar (a deviation when on, issue 51;
-`model.colour.enabled`, off by default until measured).
+`model.colour.enabled`: on in the `cpu` preset, off in the paper's settings).
 
 Camera c sees the avatar's foreground through gain_c, offset_c per channel (`evaluate.colour.apply_colour`: the
 formula and why 3 gains + 3 offsets rather than 3x3 + offset). The fit applies it to every rendered ray or crop of

@@ -287,8 +287,8 @@ class GaussianConfig(_SubConfig):
 @dataclass(frozen=True)
 class ColourConfig(_SubConfig):
     """A colour transform per training camera (exposure + white balance: 3 gains + 3 offsets), learned with the avatar
-    and applied to each camera's renders before the loss (a deviation when on, model/colour.py; issue 51). Off until
-    measured (benchmarks/realistic_capture.py)."""
+    and applied to each camera's renders before the loss (a deviation when on, model/colour.py; issue 51). Off in the
+    paper's settings, on in the `cpu` preset (docs/fit.md deviations: `benchmarks/realistic_capture.py`)."""
 
     enabled: bool = False
     lambda_identity: float = 1.0  # weight of the pull towards identity: mean over cameras of |log gain|^2 + |offset|^2
