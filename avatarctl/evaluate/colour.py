@@ -112,6 +112,7 @@ class SharedColours:
     images of the training frames and the body fits alone (no render), is how `eval` shows it."""
 
     MIN_COS = 0.3  # both cameras see the point from within ~72 degrees of its normal (grazing views misalign)
+    POINTS = 2000  # body vertices read per frame (a fixed random subset: the medians need thousands, not all)
     DARK, BRIGHT = 0.02, 0.98  # clipped channels carry no ratio
 
     def __init__(self, views: list[str] | tuple[str, ...]):
@@ -129,10 +130,12 @@ class SharedColours:
         from avatarctl.geometry.raycast import RayCaster, seen_by
         from avatarctl.geometry.triangulate import project, projection_matrices
 
-        X = np.asarray(vertices, np.float64)
-        seen = seen_by(RayCaster(X, faces), np.stack([c.center for c in cameras]), X, vertex_normals(X, faces),
-                       self.MIN_COS)  # [C, V]
-        px, depth = project(projection_matrices(cameras), X)  # [V, C, 2]
+        every = np.asarray(vertices, np.float64)
+        pick = np.sort(np.random.default_rng(self.frames).permutation(len(every))[:self.POINTS])
+        X = every[pick]
+        seen = seen_by(RayCaster(every, faces), np.stack([c.center for c in cameras]), X,
+                       vertex_normals(every, faces)[pick], self.MIN_COS)  # [C, n]
+        px, depth = project(projection_matrices(cameras), X)  # [n, C, 2]
         cols = np.zeros((len(cameras), len(X), 3))
         for c, (img, m) in enumerate(zip(images, masks)):
             sigma = max(1.0, 0.01 * min(img.shape[:2]))  # blur: the fits are off by a pixel or two

@@ -40,7 +40,7 @@ from avatarctl.progress import ProgressFn, ProgressReport
 
 MIN_INSIDE = 0.90  # warn when fewer of the posed vertices than this project inside the masks
 POSE_CHUNK = 64  # frames posed at once
-COLOUR_FRAMES = 24  # training frames the cross-camera colour estimate reads (spread evenly)
+COLOUR_FRAMES = 12  # training frames the cross-camera colour estimate reads (spread evenly)
 MAX_FOREGROUND = 0.99  # a mask with more foreground than this is inverted or blank, not a person in the frame
 
 
