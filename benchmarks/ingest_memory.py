@@ -140,7 +140,7 @@ def main(argv: list[str] | None = None) -> IngestMemory:
     def at(share: float) -> float:
         return samples[max(1, round(share * n))]
 
-    rss = {"10%": at(0.1), "50%": at(0.5), "100%": at(1.0)}
+    rss = {"10%": round(at(0.1), 1), "50%": round(at(0.5), 1), "100%": round(at(1.0), 1)}  # MB, as reported
     res = IngestMemory(cams=args.cams, frames=n, size=args.size, images=args.cams * n, capture_mb=round(capture_mb, 3),
                        generate_seconds=round(generated, 2), ingest_seconds=round(seconds, 2),
                        images_per_second=round(args.cams * n / seconds, 2),
@@ -148,8 +148,8 @@ def main(argv: list[str] | None = None) -> IngestMemory:
                        # a little differently: 0.1 MB apart on a toy run)
                        peak_rss_mb=round(max(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
                                              max(samples.values(), default=0.0)), 1),
-                       rss_mb={k: round(v, 1) for k, v in rss.items()},
-                       rss_growth_mb=round(rss["100%"] - rss["10%"], 1))
+                       rss_mb=rss,
+                       rss_growth_mb=round(rss["100%"] - rss["10%"], 1))  # of the reported figures (was 0.1 apart)
     print(json.dumps(asdict(res), indent=2))
     if args.out is not None:
         args.out.write_text(json.dumps(asdict(res), indent=2))
