@@ -149,6 +149,7 @@ def _sphere_views(gains: np.ndarray, size: int = 96):
 
     from avatarctl.geometry.cameras import Camera, look_at
     from avatarctl.geometry.raycast import RayCaster
+    from avatarctl.geometry.rays import camera_rays, image_pixels
 
     mesh = trimesh.creation.icosphere(subdivisions=5, radius=0.3)
     V, F = np.asarray(mesh.vertices), np.asarray(mesh.faces)
@@ -158,10 +159,7 @@ def _sphere_views(gains: np.ndarray, size: int = 96):
         a = 2 * np.pi * i / 4
         R, T = look_at(np.array([2.0 * np.cos(a), 2.0 * np.sin(a), 0.3]), np.zeros(3))
         cam = Camera(f"c{i}", np.array([[150.0, 0, size / 2], [0, 150.0, size / 2], [0, 0, 1]]), R, T, size, size)
-        v, u = np.mgrid[0:size, 0:size]
-        xy = (np.stack([u, v], -1).reshape(-1, 2) - cam.K[:2, 2]) / np.diag(cam.K)[:2]
-        d = np.concatenate([xy, np.ones((len(xy), 1))], -1) @ cam.R
-        d /= np.linalg.norm(d, axis=-1, keepdims=True)
+        d = camera_rays(cam, image_pixels(size, size))[1].double().numpy()  # [H*W, 3] unit, row-major
         face, t = caster.cast(cam.center, d)
         hit = face >= 0
         p = cam.center + t[hit, None] * d[hit]
