@@ -33,7 +33,7 @@ def test_colour_matched_is_its_own_field_row_and_column(fitted):
     saved = json.loads((fitted / "eval" / "agree" / "metrics.json").read_text())
     assert EvalMetrics.from_json(saved) == agree and saved["colour_matched"]["psnr"] == cm["psnr"]
     header = (fitted / "eval" / "agree" / "per_frame.csv").read_text().splitlines()[0]
-    assert ",pixels,matched_psnr,matched_plain_psnr,latent,render_seconds" in header
+    assert ",pixels,matched_psnr,matched_plain_psnr,refined_psnr,refined_ssim,latent,render_seconds" in header
     assert all(len(g) == 3 for g in cm["gain"].values()) and set(cm["gain"]) == set(agree.views)
 
 

@@ -29,6 +29,19 @@ class ImageScore:
     region_mse: dict[str, float] | None = None  # {"garment", "body", "garment_flat", "body_flat"} with gt geometry
     region_pixels: dict[str, int] | None = None
     matched: "MatchedScore | None" = None  # the colour-matched score (NeRF-W's protocol), None: a half was empty
+    refined: "RefinedScore | None" = None  # the same image after its frame's pose refinement (`--refine-pose`)
+
+
+@dataclass(frozen=True)
+class RefinedScore:
+    """One image scored after its frame's body pose was refined against the frame's images, the avatar frozen
+    (`fit.frame_pose`; the monocular papers' test-time protocol): the same pixels as the plain score."""
+
+    psnr: float
+    ssim: float
+    mse: float
+    shift_cm: float  # the frame's root translation correction, cm
+    max_angle_deg: float  # the frame's largest joint rotation correction, degrees
 
 
 @dataclass(frozen=True)
@@ -73,6 +86,39 @@ def colour_matched(scores: list[ImageScore], protocol: str) -> ColourMatched | N
         gain={v: np.mean([s.matched.gain for s in got if s.view == v], 0).round(4).tolist() for v in views},
         offset={v: np.mean([s.matched.offset for s in got if s.view == v], 0).round(4).tolist() for v in views},
         protocol=protocol)
+
+
+@dataclass(frozen=True)
+class RefinedPose:
+    """metrics.json "refined_pose": the split scored after each frame's body pose was refined against that frame's
+    scored images with the avatar frozen (InstantAvatar's / GART's test-time protocol for held-out poses; issue 51),
+    beside the plain figure, never in place of it. Over the protocol's region (`EvalMetrics.region` does not apply)."""
+
+    psnr: float  # mean over images of the per-image PSNR after refinement, dB
+    ssim: float
+    plain_psnr: float  # the plain figure over the same images, dB
+    images: int
+    steps: int  # Adam steps per frame
+    shift_cm: float  # mean over frames of the root translation correction, cm
+    max_angle_deg: float  # the largest joint rotation correction of any frame, degrees
+    seconds: float  # refinement time, all frames
+    protocol: str
+
+
+def refined_pose(scores: list[ImageScore], steps: int, seconds: float, protocol: str) -> RefinedPose | None:
+    """The split's `RefinedPose` from the images' `refined` scores (None when no image has one)."""
+    import numpy as np
+
+    got = [s for s in scores if s.refined is not None]
+    if not got:
+        return None
+    frames = {s.frame: s.refined for s in got}
+    return RefinedPose(psnr=float(np.mean([min(PSNR_CAP, s.refined.psnr) for s in got])),
+                       ssim=float(np.mean([s.refined.ssim for s in got])),
+                       plain_psnr=float(np.mean([min(PSNR_CAP, s.psnr) for s in got])), images=len(got), steps=steps,
+                       shift_cm=float(np.mean([r.shift_cm for r in frames.values()])),
+                       max_angle_deg=float(max(r.max_angle_deg for r in frames.values())),
+                       seconds=round(seconds, 3), protocol=protocol)
 
 
 @dataclass(frozen=True)
@@ -141,6 +187,7 @@ class EvalMetrics:
     colour_matched: dict[str, Any] | None = None  # ColourMatched as a dict: NeRF-W's colour-matched score (issue 51)
     test_project: str | None = None  # the project whose images were scored when not this one (`--test-project`)
     camera_colour: dict[str, Any] | None = None  # held-out cameras rendered through ingest's colour gains (issue 51)
+    refined_pose: dict[str, Any] | None = None  # RefinedPose as a dict: scored after test-time pose refinement
 
     def to_json(self) -> dict[str, Any]:
         return asdict(self)
@@ -149,7 +196,7 @@ class EvalMetrics:
     def from_json(cls, d: dict[str, Any]) -> "EvalMetrics":
         # absent from metrics.json written before `--region`, the benchmark protocols, `--test-project` or issue 51
         optional = {"region", "regions", "benchmark", "comparable_with", "not_comparable", "test_project",
-                    "colour_matched", "camera_colour"}
+                    "colour_matched", "camera_colour", "refined_pose"}
         kw = {f.name: d[f.name] for f in fields(cls) if f.name in d or f.name not in optional}
         kw["model"] = ScoredModel(**{f.name: d["model"][f.name] for f in fields(ScoredModel)})
         return cls(**kw)
@@ -203,8 +250,9 @@ def per_frame_csv(scores: list[ImageScore]) -> str:
     from avatarctl.evaluate.metrics import psnr_from_mse
 
     names = list(scores[0].region_pixels) if scores and scores[0].region_pixels is not None else []
-    w.writerow(["frame", "view", "psnr", "ssim", "mse", "pixels", "matched_psnr", "matched_plain_psnr", "latent",
-                "render_seconds"] + [f"{n}_{k}" for n in names for k in ("psnr", "pixels")])
+    w.writerow(["frame", "view", "psnr", "ssim", "mse", "pixels", "matched_psnr", "matched_plain_psnr",
+                "refined_psnr", "refined_ssim", "latent", "render_seconds"]
+               + [f"{n}_{k}" for n in names for k in ("psnr", "pixels")])
     for s in scores:
         extra = []
         for n in names:
@@ -212,8 +260,10 @@ def per_frame_csv(scores: list[ImageScore]) -> str:
             extra += [f"{min(PSNR_CAP, psnr_from_mse(m)):.4f}" if s.region_pixels[n] else "", s.region_pixels[n]]
         matched = ["", ""] if s.matched is None else [f"{min(PSNR_CAP, psnr_from_mse(e)):.4f}"
                                                       for e in (s.matched.mse, s.matched.plain_mse)]
+        refined = ["", ""] if s.refined is None else [f"{min(s.refined.psnr, PSNR_CAP):.4f}",
+                                                       f"{s.refined.ssim:.6f}"]
         w.writerow([s.frame, s.view, f"{min(s.psnr, PSNR_CAP):.4f}", f"{s.ssim:.6f}", f"{s.mse:.8f}", s.pixels]
-                   + matched + [s.latent, f"{s.seconds:.3f}"] + extra)
+                   + matched + refined + [s.latent, f"{s.seconds:.3f}"] + extra)
     return buf.getvalue()
 
 

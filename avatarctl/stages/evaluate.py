@@ -39,6 +39,12 @@ printed table): the camera's transform (3 gains + 3 offsets on the foreground, `
 squares on the LEFT half of the protocol's region (where render and mask both hold the subject), the render through it
 scored on the RIGHT half, with the plain render's PSNR on the same right halves to compare with.
 
+Held-out poses scored fairly (issue 51; `refine_pose` > 0, `--refine-pose STEPS`): beside the plain figure, each
+frame is also scored after its body pose is refined against that frame's scored images with the avatar frozen
+(`fit.frame_pose`, `REFINED_PROTOCOL`: the monocular papers' protocol, whose estimated test poses are off by a limb's
+width), on the same pixels: metrics.json "refined_pose" (`evaluate.report.RefinedPose`), per_frame.csv
+refined_psnr / refined_ssim, its own table row and `sheet_refined.png`. Only the Gaussian local fields.
+
 LPIPS is reported only when the `lpips` package and its AlexNet weights are already on this machine (nothing is
 downloaded); otherwise `"lpips": null` with the reason.
 
@@ -54,7 +60,7 @@ Writes `eval/<name>/metrics.json`, `per_frame.csv`, `sheet.png` and, with `--sav
 from __future__ import annotations
 
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -69,6 +75,12 @@ from avatarctl.stages.common import check_knockout, check_latent_mode, frame_nod
     knocked_out, latent_for, load_fitted, open_fitted, rank_device_name, run_ranked, select_views, writing
 
 SPLITS = ("novel_view", "novel_pose", "train")
+REFINED_PROTOCOL = ("InstantAvatar / GART test-time pose: per frame, the body pose (rotations of the joints that carry "
+                    ">= model.pose_refine.min_share of the skinning weight, about their centres, and the root "
+                    "translation; model/pose_refine.py) optimised against that frame's scored images with the avatar "
+                    "frozen (fit/frame_pose.py: Adam, the fit's L1 + D-SSIM + mask loss over the protocol's crops, "
+                    "the first half of the steps at half resolution), then rendered and scored on the same pixels as "
+                    "the plain figure")
 MATCHED_PROTOCOL = ("NeRF-W: per image, the camera's colour gains (per channel, on the rendered foreground: the "
                     "ratio of the summed colours, evaluate.colour.estimate_colour) from the left half of the "
                     "protocol's region (split at the middle column of its bounding rectangle), on the pixels that are "
@@ -99,6 +111,7 @@ class EvalConfig:
     benchmark: str = "auto"  # auto (the project's ingest --benchmark, if any) | none | a protocol name
     test_project: str | None = None  # the project of the protocol's test recording (`--test-project`), if any
     camera_colour: str = "auto"  # auto: held-out cameras through ingest's gains (module docstring) | off
+    refine_pose: int = 0  # > 0: also score each frame after refining its body pose for this many steps (docstring)
 
     def __post_init__(self) -> None:
         from avatarctl.evaluate.protocols import PROTOCOLS
@@ -120,6 +133,12 @@ class EvalConfig:
         if self.camera_colour not in ("auto", "off"):
             raise InputError(f"unknown camera colour {self.camera_colour!r}", where="--camera-colour",
                              fix="use auto or off")
+        if self.refine_pose < 0:
+            raise InputError(f"--refine-pose must be >= 0 steps, got {self.refine_pose}", where="--refine-pose",
+                             fix="e.g. --refine-pose 40 (0: off)")
+        if self.refine_pose and self.latent == "sample":
+            raise InputError("--refine-pose needs a deterministic latent", where="--latent",
+                             fix="drop --latent sample (or --refine-pose)")
         if self.sheet_rows < 0:
             raise InputError(f"--sheet must be >= 0, got {self.sheet_rows}", where="--sheet", fix="e.g. --sheet 4")
         if not 0.0 <= self.bbox_pad <= 1.0:
@@ -266,6 +285,8 @@ class _Scored:
     score: ImageScore
     lpips: float | None
     sheet: Any  # evaluate.sheet.SheetRow when the image is on the sheet, else None
+    refined_sheet: Any = None  # its row after test-time pose refinement (`refine_pose`), else None
+    refine_seconds: float = 0.0  # the pose refinement of its frame (counted on the frame's first view)
 
 
 def _run(env: Any, progress: ProgressFn | None, project_dir: str, cfg: EvalConfig) -> EvalResult | None:
@@ -278,7 +299,7 @@ def _run(env: Any, progress: ProgressFn | None, project_dir: str, cfg: EvalConfi
     from avatarctl.evaluate.metrics import lpips_status, metric_settings, psnr_from_mse
     from avatarctl.evaluate.protocols import GROUND_TRUTH
     from avatarctl.evaluate.regions import SILHOUETTE_REGIONS
-    from avatarctl.evaluate.report import colour_matched, per_frame_csv, region_scores
+    from avatarctl.evaluate.report import colour_matched, per_frame_csv, refined_pose, region_scores
     from avatarctl.evaluate.sheet import comparison_sheet
     from avatarctl.io.project_io import load_benchmark
 
@@ -318,10 +339,16 @@ def _run(env: Any, progress: ProgressFn | None, project_dir: str, cfg: EvalConfi
             verts = avatar.body.pose(one).vertices[0].detach().float().cpu().numpy()  # [V, 3]
             state = frame_node_state(avatar, one, frame, is_train, latent, cfg.seed)
             state = knocked_out(avatar, state, cfg.knockout)
+            refined = _refined_state(avatar, cap, cfg, one, frame, is_train, latent, views, cams, verts, background,
+                                     gains) if cfg.refine_pose else None
             for vi, view in enumerate(views):
                 k = fi * len(views) + vi
                 mine.append(_score_image(avatar, cap, cfg, project, state, verts, frame, view, cams[view], latent,
                                          lpips_fn, geometry, k in sheet_at, tmp, k, background, gains.get(view)))
+                if refined is not None:
+                    mine[-1] = _with_refined(mine[-1], refined[1], _score_image(
+                        avatar, cap, replace(cfg, save_images=False), project, refined[0], verts, frame, view,
+                        cams[view], latent, None, None, k in sheet_at, tmp, k, background, gains.get(view)), vi == 0)
                 if progress is not None:
                     progress(ProgressReport(stage="eval", done=min(len(mine) * world, total), total=total,
                                             seconds=time.perf_counter() - t0, detail=mine[-1].score))
@@ -332,9 +359,11 @@ def _run(env: Any, progress: ProgressFn | None, project_dir: str, cfg: EvalConfi
         scores = [s.score for s in done]
         lpips_values = [s.lpips for s in done if s.lpips is not None]
         sheet_rows = [s.sheet for s in done if s.sheet is not None]
+        refined_rows = [s.refined_sheet for s in done if s.refined_sheet is not None]
 
         regions = region_scores(scores)
         matched = colour_matched(scores, MATCHED_PROTOCOL)
+        refined_fig = refined_pose(scores, cfg.refine_pose, sum(s.refine_seconds for s in done), REFINED_PROTOCOL)
         if cfg.region == "all":
             psnrs = np.minimum(np.array([s.psnr for s in scores], np.float64), PSNR_CAP)  # exact match: inf -> cap
         else:  # images where the region is empty are not scored
@@ -383,6 +412,7 @@ def _run(env: Any, progress: ProgressFn | None, project_dir: str, cfg: EvalConfi
                                            load_benchmark(cap.project) if scored is not None else None),
             test_project=str(cap.project.root) if scored is not None else None,
             colour_matched=asdict(matched) if matched is not None else None,
+            refined_pose=asdict(refined_fig) if refined_fig is not None else None,
             camera_colour={"source": "ingest/camera_colour.json", "method": cap.camera_colour.method,
                            "gain": {v: [round(float(x), 4) for x in g] for v, g in gains.items()}} if gains else None,
         )
@@ -393,6 +423,11 @@ def _run(env: Any, progress: ProgressFn | None, project_dir: str, cfg: EvalConfi
                              title=f"{cfg.split} / {cfg.protocol}  step {avatar.step}  PSNR"
                                    + ("" if cfg.region == "all" else f" ({cfg.region})")
                                    + f" {metrics.psnr:.2f} dB  SSIM {metrics.ssim:.4f}")
+            if refined_rows:
+                comparison_sheet(refined_rows, tmp / "sheet_refined.png",
+                                 title=f"{cfg.split} / {cfg.protocol}  step {avatar.step}  after test-time pose "
+                                       f"refinement ({cfg.refine_pose} steps)  PSNR {refined_fig.psnr:.2f} dB  "
+                                       f"SSIM {refined_fig.ssim:.4f}")
     seconds = round(time.perf_counter() - t_start, 3)
     project.record("eval", config=cfg.to_json(), outputs=[out_dir], started=started,
                    summary={"name": cfg.out_name, "split": cfg.split, "protocol": cfg.protocol,
@@ -477,6 +512,55 @@ def _score_image(avatar: Any, cap: Any, cfg: EvalConfig, project: Project, state
                    sheet=sheet)
 
 
+def _refined_state(avatar: Any, cap: Any, cfg: EvalConfig, one: Any, frame: int, is_train: bool, latent: str,
+                   views: list[str], cams: dict[str, Any], verts: np.ndarray, background: tuple[float, float, float],
+                   gains: dict[str, np.ndarray]) -> tuple[Any, Any]:
+    """(node state, `fit.frame_pose.FramePose`) of `frame` after its body pose is refined against its images in
+    `views` (module docstring), each over the protocol's box crop (the whole image for the other protocols)."""
+    import torch
+
+    from avatarctl.evaluate.protocols import bbox_region, full_region, ground_truth
+    from avatarctl.fit.frame_pose import FramePoseConfig, PoseView, refine_frame_pose, refined_state
+    from avatarctl.splat import SplatCamera
+
+    model = avatar.model
+    if not model.field_kind.splats:
+        raise InputError(f"--refine-pose renders whole crops: it needs the Gaussian local fields, this avatar's are "
+                         f"{model.cfg.field!r}", where=str(cap.project.root), fix="drop --refine-pose, or fit with "
+                         "--preset cpu (model.field=gaussians)")
+    dev = avatar.device
+    pose_views = []
+    for view in views:
+        cam = cams[view]
+        region = bbox_region(cam, verts, pad=cfg.bbox_pad) if cfg.protocol == "bbox" \
+            else full_region(cam.height, cam.width)
+        x0, y0, x1, y1 = region.crop
+        mask = cap.mask(view, frame)
+        gt = ground_truth(cap.image(view, frame), mask, background)
+        colour = _camera_colour(avatar, view, gains.get(view))
+        pose_views.append(PoseView(
+            camera=SplatCamera.from_camera(cam, device=dev).crop(x0, y0, x1 - x0, y1 - y0),
+            target=torch.from_numpy(np.ascontiguousarray(gt[y0:y1, x0:x1], np.float32)).to(dev),
+            mask=torch.from_numpy(np.ascontiguousarray(mask[y0:y1, x0:x1], np.float32)).to(dev),
+            gain=None if colour is None else torch.tensor(colour[0], dtype=torch.float32),
+            offset=None if colour is None else torch.tensor(colour[1], dtype=torch.float32)))
+    cond = avatar.conditioning(one, frames_are_training=is_train)
+    pose = refine_frame_pose(model, avatar.template, cond, pose_views, torch.tensor(background, dtype=torch.float32),
+                             latent, FramePoseConfig(steps=cfg.refine_pose))
+    return knocked_out(avatar, refined_state(model, cond, pose, latent), cfg.knockout), pose
+
+
+def _with_refined(plain: "_Scored", pose: Any, again: "_Scored", first_view: bool) -> "_Scored":
+    """`plain` with the score of the same image after its frame's pose refinement `pose` (`again`: rendered from the
+    refined pose); the refinement's time is counted on the frame's first view."""
+    from avatarctl.evaluate.report import RefinedScore
+
+    score = replace(plain.score, refined=RefinedScore(psnr=again.score.psnr, ssim=again.score.ssim,
+                                                      mse=again.score.mse, shift_cm=round(pose.shift_cm, 3),
+                                                      max_angle_deg=round(pose.max_angle_deg, 3)))
+    return replace(plain, score=score, refined_sheet=again.sheet, refine_seconds=pose.seconds if first_view else 0.0)
+
+
 def _held_out_gains(avatar: Any, cap: Any, cfg: EvalConfig, views: list[str]) -> dict[str, np.ndarray]:
     """{view: gains [3]} of the scored views the avatar did not train on that ingest estimated (module docstring)."""
     if cfg.camera_colour == "off" or cap.camera_colour is None:
@@ -490,16 +574,23 @@ def _as_camera_sees(avatar: Any, view: str, rgb: np.ndarray, alpha: np.ndarray, 
     """[H, W, 3] the render as camera `view` sees it (module docstring): through its learned colour transform when
     the avatar has one for it (a training camera, `model.colour.enabled`), through `gain` [3] (a held-out camera's,
     from ingest) when given, else as rendered (the training cameras' mean colour)."""
-    colour = avatar.model.camera_colour
-    learned = colour.of(view) if colour is not None else None
-    if learned is None and gain is None:
+    colour = _camera_colour(avatar, view, gain)
+    if colour is None:
         return rgb
     from avatarctl.evaluate.colour import apply_colour
 
-    g, offset = (np.asarray(x, np.float32) for x in learned) if learned is not None \
-        else (np.asarray(gain, np.float32), np.zeros(3, np.float32))
+    g, offset = colour
     bg = np.asarray(avatar.background, np.float32)
     return np.clip(apply_colour(rgb, alpha, bg, g, offset), 0.0, 1.0).astype(np.float32)
+
+
+def _camera_colour(avatar: Any, view: str, gain: np.ndarray | None) -> tuple[np.ndarray, np.ndarray] | None:
+    """(gain [3], offset [3]) camera `view` sees the avatar's colours through (`_as_camera_sees`), None: identity."""
+    colour = avatar.model.camera_colour
+    learned = colour.of(view) if colour is not None else None
+    if learned is not None:
+        return tuple(np.asarray(x, np.float32) for x in learned)
+    return None if gain is None else (np.asarray(gain, np.float32), np.zeros(3, np.float32))
 
 
 def _matched_score(rgb: np.ndarray, alpha: np.ndarray, gt: np.ndarray, gt_mask: np.ndarray, background: Any,
