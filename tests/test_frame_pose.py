@@ -62,6 +62,21 @@ def test_a_known_root_shift_is_recovered_and_the_avatar_is_left_as_it_was(toy_ga
     assert (state.centers - true.centers).norm(dim=-1).median() < 0.01
 
 
+def test_a_pose_that_is_already_right_is_never_made_worse(toy_gaussian_project):
+    """Started at the pose the targets were rendered with, the refinement returns a loss no higher than the start's:
+    improved, or the estimated pose kept exactly (zero corrections)."""
+    from avatarctl.fit.frame_pose import FramePoseConfig, refine_frame_pose
+
+    av, cond = _frame(toy_gaussian_project)
+    bg = torch.tensor(av.background, dtype=torch.float32)
+    pose = refine_frame_pose(av.model, av.template, cond, _views(av, cond, bg), bg, "zero",
+                             FramePoseConfig(steps=6, lr=0.05))  # steps far too large for a pose already right
+    assert pose.loss_end <= pose.loss_start
+    if pose.loss_end == pose.loss_start:
+        assert not pose.tau.any() and not pose.delta.any()
+        assert torch.equal(pose.joint_transforms, cond.joint_transforms)
+
+
 def test_the_coarse_camera_sees_the_downsampled_image():
     """`_downsampled`: a point projected by the 2x coarser camera lands on the coarse pixel that averages the fine
     pixels it falls on (pixel centres at integers)."""
