@@ -127,7 +127,7 @@ def test_fit_with_pose_refinement_on_the_toy_chain(tmp_path):
                                    overrides=("model.pose_refine.enabled=true", "val_every=0", "log_every=2"),
                                    model_settings={"pose_refine": {"lr": 0.01}}),
                   handle_sigint=False)
-    assert "pose" in res.losses and "pose_accel" in res.losses  # the smoothness term is on by default
+    assert "pose" in res.losses
     r = res.refinement  # the toy body cannot invert its transforms: a summary, no motion file
     assert r is not None and r.frames == 3 and r.mean_rotation_deg > 0 and r.path is None  # 3 training frames
     assert not (proj / "fit" / "refined_fits.npz").exists()
@@ -199,73 +199,13 @@ def test_pose_corrections_wait_for_pose_refine_start():
     assert all(lr > 0 for lr in rest_lrs)
 
 
-def _walk(frames: int) -> torch.Tensor:
-    """[F, 3, 4, 4] the chain translating at constant velocity (zero acceleration), joints unrotated."""
-    M = torch.eye(4).repeat(frames, 3, 1, 1)
-    M[:, :, 0, 3] = 0.05 * torch.arange(frames, dtype=torch.float32)[:, None]
-    return M
+def test_a_config_saved_with_the_removed_smoothness_term_reads():
+    """Avatars fitted before 2026-11-29 saved `pose_refine.lambda_accel` (schema 2) or `lambda_pose_accel` (schema 1):
+    a training-only weight, dropped on read."""
+    from avatarctl.model.config import ModelConfig
 
-
-def test_acceleration_is_zero_for_steady_motion_and_skips_gaps_in_the_frames():
-    ref = PoseRefinement(num_frames=6, parents=PARENTS)
-    ref.set_centres(CENTRES.float())
-    ref.set_sequence(_walk(6), [0, 1, 2, 3, 5, 7], fps=1.0)
-    assert ref.triples.tolist() == [[0, 1, 2], [1, 2, 3], [3, 4, 5]]  # (2, 3, 5) spans unequal gaps
-    assert float(ref.acceleration().detach()) < 1e-10
-    with torch.no_grad():
-        ref.tau[2] = torch.tensor([0.0, 0.02, 0.0])  # a 2 cm jolt of the root at slot 2 moves all 3 joints
-    # slot 2 is the middle of (1, 2, 3) (-2 x 2 cm) and an end of (0, 1, 2) (1 x 2 cm): 3 joints x (4 + 1) x 4e-4 / 3
-    assert float(ref.acceleration().detach()) == pytest.approx(3 * 5 * 4e-4 / 3, rel=1e-5)
-    # in m/s^2: the same jolt between frames twice as dense costs 2^4 = 16 times as much
-    ref.set_sequence(_walk(6), [0, 1, 2, 3, 5, 7], fps=2.0)
-    assert float(ref.acceleration().detach()) == pytest.approx(16 * 3 * 5 * 4e-4 / 3, rel=1e-5)
-    with pytest.raises(ValueError, match="training frames"):
-        ref.set_sequence(_walk(5), [0, 1, 2, 3, 4], fps=1.0)
-    with pytest.raises(ValueError, match="frame rate"):
-        ref.set_sequence(_walk(6), [0, 1, 2, 3, 4, 5], fps=0.0)
-
-
-def test_the_acceleration_term_alone_takes_the_jitter_out_of_a_jittered_sequence():
-    g = torch.Generator().manual_seed(0)
-    true = _walk(20)
-    jittered = true.clone()
-    jittered[:, :, :3, 3] += 0.02 * torch.randn(20, 1, 3, generator=g)  # per-frame root jitter, 2 cm
-    ref = PoseRefinement(num_frames=20, parents=PARENTS)
-    ref.set_centres(CENTRES.float())
-    ref.set_sequence(jittered, list(range(20)), fps=1.0)
-    opt = torch.optim.Adam(ref.parameters(), lr=2e-3)
-    ids = torch.arange(20)
-
-    def root_error() -> float:
-        with torch.no_grad():
-            return float((ref(jittered, ids)[:, 0, :3, 3] - true[:, 0, :3, 3]).norm(dim=-1).mean())
-
-    before = root_error()
-    for _ in range(300):
-        opt.zero_grad()
-        ref.acceleration().backward()
-        opt.step()
-    # frames next to each other now agree: the jitter is mostly gone (a steady walk is what is left to fit)
-    assert root_error() < 0.5 * before
-
-
-def test_acceleration_on_the_refined_sub_tree_equals_the_full_composition():
-    """The term composes only the refined joints and their ancestors: the same value as composing the whole tree."""
-    parents = (-1, 0, 1, 2, 1, 4, 0)  # a root, a spine with two branches, one leaf under the root
-    active = torch.tensor([True, True, True, False, True, False, False])  # closed under ancestors, like subtree_share
-    g = torch.Generator().manual_seed(3)
-    T = 7
-    ref = PoseRefinement(num_frames=T, parents=parents, active=active)
-    ref.set_centres(0.2 * torch.randn(7, 3, generator=g))
-    base = _walk(T).repeat(1, 3, 1, 1)[:, :7].clone()
-    base[:, :, :3, 3] += 0.05 * torch.randn(T, 7, 3, generator=g)
-    ref.set_sequence(base, list(range(T)), fps=1.0)
-    with torch.no_grad():
-        ref.delta.copy_(0.2 * torch.randn(T, 7, 3, generator=g))
-        ref.tau.copy_(0.02 * torch.randn(T, 3, generator=g))
-    assert ref.sub_joints.tolist() == [0, 1, 2, 4]
-    M = ref(base, torch.arange(T))  # the full tree
-    x = (M[..., :3, :3] @ ref.centres[None, :, :, None])[..., 0] + M[..., :3, 3]
-    a = x[:-2] - 2 * x[1:-1] + x[2:]
-    full = (a[:, active] ** 2).sum((-1, -2)).mean()
-    assert float(ref.acceleration().detach()) == pytest.approx(float(full.detach()), rel=1e-5)
+    saved = ModelConfig().to_json()
+    saved["pose_refine"] = {**saved["pose_refine"], "lambda_accel": 2e-3}
+    assert ModelConfig.from_json(saved) == ModelConfig()
+    assert ModelConfig.from_json({"schema_version": 1, "lambda_pose_accel": 2e-3, "rec_reduction": "sum"}) \
+        == ModelConfig()

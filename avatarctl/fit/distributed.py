@@ -30,8 +30,7 @@ Synchronisation per step (after the backward pass), all in one flat SUM all-redu
 - per-frame parameters (the pose-refinement corrections delta / tau of model/pose_refine.py, the per-frame latent
   codes) are parameters like any other: a frame's correction gets gradients only on the rank whose rays saw it,
   and the average makes every rank apply the same update. The pose penalty is a mean over a rank's frames, so it is
-  averaged like the other regularisers; the poses' acceleration term covers all training frames, computed once per
-  rank and step (in `losses`), so its average is the single-process term;
+  averaged like the other regularisers;
 - the occupancy grids (`model.occupancy`, updated in the forward pass from each rank's own densities): see
   `merge_occupancy`; all ranks end the step with the grid one process would have.
 

@@ -342,8 +342,6 @@ def _build_model(cfg: FitConfig, capture, body, template, poses, train_frames: l
 
         model.pose_refine.set_centres(joint_centres(poses.joint_transforms, template.parents,
                                                     skin_weighted_centroids(template.vertices, template.skin_weights)))
-    if model.pose_refine is not None and cfg.model.pose_refine.lambda_accel > 0:  # the sequence the smoothness sees
-        model.pose_refine.set_sequence(poses.joint_transforms, train_frames, capture.motion.fps)
     model.train()
     return model, hull_note, 0 if hull is None else int(hull.rest.shape[0])
 

@@ -600,13 +600,10 @@ class SlrfAvatar(nn.Module):
         c, refine = self.cfg, self.cfg.pose_refine
         zero = rec.new_zeros(())
         kl = kl_loss(state.mu, state.logvar) if state.mu is not None and state.logvar is not None else zero
-        # over all training frames, once per step (not per frame of the batch): the same on every rank
-        accel = self.pose_refine.acceleration() if self.pose_refine is not None and refine.lambda_accel > 0 else None
         colour = self.camera_colour.penalty() if self.camera_colour is not None else None
         return total_loss(rec, translation_loss(state.delta_n), embedding_loss(state.embed), kl,
                           c.lambda_rec, c.lambda_trans, c.lambda_ebd, c.lambda_kl, mse=mse,
-                          pose=state.pose_penalty, lambda_pose=refine.lambda_pose, pose_accel=accel,
-                          lambda_pose_accel=refine.lambda_accel, colour=colour,
+                          pose=state.pose_penalty, lambda_pose=refine.lambda_pose, colour=colour,
                           lambda_colour=c.colour.lambda_identity)
 
 

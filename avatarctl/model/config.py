@@ -64,6 +64,7 @@ REMOVED_KEYS: dict[str, Any] = {
     "posterior_logvar_init": None,  # initial log-variance of the cVAE posterior (issue 30, commit 0081142)
     "density_scale": 1.0, "density_shift": 0.0,  # scaled / shifted softplus of the density head (issue 30, 0081142)
     "local_coords_in_sigma": True,  # p_i in units of sigma: set by nothing, now always (issue 30, commit 0081142)
+    "lambda_pose_accel": None,  # the pose refinement's smoothness term (removed 2026-11-29: training only)
 }
 
 
@@ -162,7 +163,6 @@ class PoseRefineConfig(_SubConfig):
     # --fit-noise), decided at fit start; the saved config holds the decision
     enabled: bool | str = False
     lambda_pose: float = 100.0  # weight of the penalty sum over joints of |delta|^2 + |tau / 0.1 m|^2
-    lambda_accel: float = 2e-3  # temporal smoothness of the refined poses, per (m/s^2)^2 (0: off)
     min_share: float = 0.04  # refine joints whose subtree carries >= this share of the skinning weight
     lr: float = 3e-4  # Adam rate of the corrections (1e-3 until 2026-11-25); the networks use FitConfig.lr
     start: int = 0  # the corrections stay frozen (lr 0) before this step: the avatar takes shape first
@@ -175,7 +175,6 @@ class PoseRefineConfig(_SubConfig):
         need(isinstance(self.enabled, bool) or self.enabled == AUTO,
              f"enabled must be true, false or {AUTO!r}, got {self.enabled!r}")
         need(self.lambda_pose >= 0, f"lambda_pose must be >= 0, got {self.lambda_pose}")
-        need(self.lambda_accel >= 0, f"lambda_accel must be >= 0, got {self.lambda_accel}")
         need(0.0 <= self.min_share < 1.0, f"min_share must be in [0, 1), got {self.min_share}")
         need(self.lr > 0 and self.lr != float("inf"), f"lr must be > 0, got {self.lr}")
         _need_int("PoseRefineConfig", "start", self.start, 0)
@@ -203,7 +202,7 @@ LEGACY_KEYS: dict[str, tuple[str, str]] = {
     "occupancy": ("occupancy", "enabled"), "occ_res": ("occupancy", "res"), "occ_threshold": ("occupancy", "threshold"),
     "occ_decay": ("occupancy", "decay"), "occ_explore": ("occupancy", "explore"), "occ_warmup": ("occupancy", "warmup"),
     "pose_refine": ("pose_refine", "enabled"), "lambda_pose": ("pose_refine", "lambda_pose"),
-    "lambda_pose_accel": ("pose_refine", "lambda_accel"), "pose_refine_min_share": ("pose_refine", "min_share"),
+    "pose_refine_min_share": ("pose_refine", "min_share"),
     # FitConfig's, before they moved into model.pose_refine
     "lr_pose": ("pose_refine", "lr"), "pose_refine_start": ("pose_refine", "start"),
 }
@@ -465,6 +464,10 @@ class ModelConfig:
         if version == 1:
             _check_removed("ModelConfig", d)
             d = nest_legacy_keys(d)
+        pr = d.get("pose_refine")
+        if isinstance(pr, dict) and "lambda_accel" in pr:  # the smoothness term, removed 2026-11-29 (docs/fit.md
+            # "Tried and removed"): it only shaped training, an avatar fitted with it renders the same
+            d["pose_refine"] = {k: v for k, v in pr.items() if k != "lambda_accel"}
         known = {f.name for f in fields(cls)}
         unknown = sorted(set(d) - known)
         if unknown:

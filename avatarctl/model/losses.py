@@ -30,13 +30,12 @@ class LossTerms:
     kl: torch.Tensor  # [] Eq. 15
     mse: torch.Tensor  # [] mean squared colour error over rays and channels (for logs; PSNR = -10 log10 mse)
     pose: torch.Tensor | None = None  # [] pose-refinement penalty (model/pose_refine.py), None when off
-    pose_accel: torch.Tensor | None = None  # [] acceleration of the refined poses (model/pose_refine.py), None: off
     colour: torch.Tensor | None = None  # [] the camera colour transforms' pull to identity (model/colour.py), None: off
 
     def keys(self) -> tuple[str, ...]:
         """Names of the terms this step has (the optional ones only when on; the same on every rank)."""
         return ("total", "rec", "trans", "ebd", "kl", "mse") + tuple(
-            k for k in ("pose", "pose_accel", "colour") if getattr(self, k) is not None)
+            k for k in ("pose", "colour") if getattr(self, k) is not None)
 
     def as_floats(self) -> dict[str, float]:
         return {k: float(getattr(self, k).detach()) for k in self.keys()}
@@ -75,21 +74,17 @@ def kl_loss(mu: torch.Tensor, logvar: torch.Tensor) -> torch.Tensor:
 def total_loss(rec: torch.Tensor, trans: torch.Tensor, ebd: torch.Tensor, kl: torch.Tensor, lambda_rec: float,
                lambda_trans: float, lambda_ebd: float, lambda_kl: float, mse: torch.Tensor,
                pose: torch.Tensor | None = None, lambda_pose: float = 0.0,
-               pose_accel: torch.Tensor | None = None, lambda_pose_accel: float = 0.0,
                colour: torch.Tensor | None = None, lambda_colour: float = 0.0) -> LossTerms:
     """Eq. 11: L = lambda_rec L_rec + lambda_trans L_trans + lambda_ebd L_ebd + lambda_KL L_KL, plus
-    lambda_pose L_pose (+ lambda_pose_accel L_accel) when pose refinement is on (a deviation,
+    lambda_pose L_pose when pose refinement is on (a deviation,
     model/pose_refine.py), plus lambda_colour L_colour when the camera colour transforms are on (a deviation,
     model/colour.py). `mse` (the mean squared colour error) is carried along for the logs only."""
     total = lambda_rec * rec + lambda_trans * trans + lambda_ebd * ebd + lambda_kl * kl
     if pose is not None:
         total = total + lambda_pose * pose
-    if pose_accel is not None:
-        total = total + lambda_pose_accel * pose_accel
     if colour is not None:
         total = total + lambda_colour * colour
-    return LossTerms(total=total, rec=rec, trans=trans, ebd=ebd, kl=kl, mse=mse, pose=pose, pose_accel=pose_accel,
-                     colour=colour)
+    return LossTerms(total=total, rec=rec, trans=trans, ebd=ebd, kl=kl, mse=mse, pose=pose, colour=colour)
 
 
 def _gaussian_window(size: int = 11, sigma: float = 1.5, device=None, dtype=None) -> torch.Tensor:

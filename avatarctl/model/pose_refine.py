@@ -17,17 +17,8 @@ carries at least `model.pose_refine.min_share` of the template's skinning weight
 toes and face bones are too small in the images to correct and only drift); the others keep delta = 0. The
 corrections live in the model's state, so `render` / `eval` of training frames use the refined poses.
 
-Temporal smoothness (`model.pose_refine.lambda_accel` > 0): fits from per-frame estimates jitter from frame to frame,
-and the prior above pulls each frame towards its own jittered fit. With the unrefined M_j of every training frame and
-the frames' times (`set_sequence`), the acceleration of the refined joint centres x'_j = M'_j c_j over each triple
-of training frames equally spaced in time (dt seconds apart),
-
-    L_accel = mean over triples (t-1, t, t+1) of sum_j |x'_j(t-1) - 2 x'_j(t) + x'_j(t+1)|^2 / dt^4   ((m/s^2)^2)
-
-is added once per step with weight lambda_accel, so every frame's correction gets a gradient every step. In
-physical units, a true motion costs the same at any frame rate while jitter of a given size costs more the denser the
-frames: at 6 frames per second the term is weak, as it should be (it cannot tell jitter from motion there). The images
-decide where the motion really is fast; a triple across a gap in the training frames is not penalised.
+No temporal smoothness term: an acceleration prior on the refined joint centres penalised the true motion too, and
+where it is fast between frames it pulled the poses off (docs/fit.md, "Tried and removed").
 """
 
 from __future__ import annotations
@@ -52,50 +43,10 @@ class PoseRefinement(nn.Module):
         self.register_buffer("centres", torch.zeros(J, 3))  # [J, 3] canonical joint centres c_j
         # [J] joints whose rotation is refined (the others keep delta = 0: too few pixels to correct them)
         self.register_buffer("active", torch.ones(J, dtype=torch.bool) if active is None else active.bool().clone())
-        # the whole sequence for the smoothness term (`set_sequence`; rebuilt from the capture, not checkpointed)
-        self.register_buffer("base", torch.zeros(0, J, 4, 4), persistent=False)  # [T, J, 4, 4] unrefined M_j
-        self.register_buffer("triples", torch.zeros(0, 3, dtype=torch.long), persistent=False)  # [K, 3] frame slots
-        self.register_buffer("inv_dt2", torch.zeros(0), persistent=False)  # [K] 1 / dt^2 of each triple, s^-2
-        self.register_buffer("sub_joints", torch.zeros(0, dtype=torch.long), persistent=False)  # [J'] see set_sequence
-        self.sub_levels: list[tuple[torch.Tensor, torch.Tensor]] = []
 
     def set_centres(self, centres: torch.Tensor) -> None:
         """Store the canonical joint centres (`body.joints.joint_centres` of the training poses)."""
         self.centres.copy_(centres.to(self.centres))
-
-    def set_sequence(self, joint_transforms: torch.Tensor, frames: list[int], fps: float) -> None:
-        """[T, J, 4, 4] unrefined M_j of the T training frames (slot order), their frame numbers [T] and the frame
-        rate: the sequence `acceleration` smooths; triples are consecutive slots whose frame numbers are equally
-        spaced."""
-        if not fps > 0:
-            raise ValueError(f"set_sequence needs the frame rate (> 0), got {fps}")
-        if joint_transforms.shape[0] != self.delta.shape[0] or len(frames) != self.delta.shape[0]:
-            raise ValueError(f"set_sequence needs the {self.delta.shape[0]} training frames, got "
-                             f"{joint_transforms.shape[0]} transforms and {len(frames)} frame numbers")
-        f = [int(x) for x in frames]
-        triples = [(t - 1, t, t + 1) for t in range(1, len(f) - 1) if f[t] - f[t - 1] == f[t + 1] - f[t] > 0]
-        # only the refined joints and their ancestors take part (the others carry no correction of their own and
-        # are not scored): the composition runs on that sub-tree
-        keep = sorted({a for j in range(len(self.parents)) if bool(self.active[j]) for a in _ancestry(self.parents, j)})
-        at = {j: i for i, j in enumerate(keep)}
-        self.sub_joints = torch.tensor(keep, dtype=torch.long, device=self.delta.device)
-        self.sub_levels = _levels(tuple(at[self.parents[j]] if self.parents[j] >= 0 else -1 for j in keep))
-        self.base = joint_transforms.detach().to(self.delta.device, torch.float32)[:, self.sub_joints].clone()
-        self.triples = torch.tensor(triples, dtype=torch.long, device=self.delta.device).reshape(-1, 3)
-        gap = torch.tensor([(f[b] - f[a]) / fps for a, b, _ in triples], dtype=torch.float32)  # [K] dt, seconds
-        self.inv_dt2 = (1.0 / gap ** 2).to(self.delta.device)
-
-    def acceleration(self) -> torch.Tensor:
-        """L_accel of the module docstring ((m/s^2)^2); zero when `set_sequence` found no equally spaced triple."""
-        if not len(self.triples):
-            return self.delta.new_zeros(())
-        j = self.sub_joints
-        ids = torch.arange(self.base.shape[0], device=self.base.device)
-        Dr, Dt, x = self._compose(self.base, ids, j, self.sub_levels)  # on the refined joints' sub-tree
-        x = (Dr @ x[..., None])[..., 0] + Dt  # [T, J', 3] x'_j = D_j x_j
-        a = (x[self.triples[:, 0]] - 2 * x[self.triples[:, 1]] + x[self.triples[:, 2]])  # [K, J', 3] metres
-        a = a * self.inv_dt2[:, None, None]  # m/s^2
-        return (a[:, self.active[j]] ** 2).sum((-1, -2)).mean()
 
     def forward(self, joint_transforms: torch.Tensor, frame_ids: torch.Tensor) -> torch.Tensor:
         """[B, J, 4, 4] M_j and [B] training-frame ids (-1: not a training frame) -> [B, J, 4, 4] M'_j."""
@@ -103,30 +54,27 @@ class PoseRefinement(nn.Module):
         if not bool(train.any()):
             return joint_transforms
         M = joint_transforms
-        Dr, Dtt, _ = self._compose(M, frame_ids.clamp_min(0), None, self.levels)
+        Dr, Dtt = self._compose(M, frame_ids.clamp_min(0))
         out_R = Dr @ M[..., :3, :3]
         out_t = (Dr @ M[..., :3, 3:])[..., 0] + Dtt
         refined = torch.cat([torch.cat([out_R, out_t[..., None]], -1), M[..., 3:, :]], -2)
         return torch.where(train[:, None, None, None], refined, M)
 
-    def _compose(self, M: torch.Tensor, ids: torch.Tensor, joints: torch.Tensor | None,
-                 levels: list[tuple[torch.Tensor, torch.Tensor]]) -> tuple[torch.Tensor, ...]:
-        """The corrections D_j of the module docstring for [B, J', 4, 4] transforms M of the joints `joints` (None:
-        all J; else a sub-tree closed under ancestors, `levels` its own) of frames `ids` [B] -> (rotations
-        [B, J', 3, 3], translations [B, J', 3], unrefined joint centres x_j [B, J', 3])."""
-        sel = slice(None) if joints is None else joints
+    def _compose(self, M: torch.Tensor, ids: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """The corrections D_j of the module docstring for [B, J, 4, 4] transforms M of frames `ids` [B] ->
+        (rotations [B, J, 3, 3], translations [B, J, 3])."""
         dt = M.dtype
-        R = axis_angle_to_matrix((self.delta[ids][:, sel] * self.active[sel, None]).to(dt))  # [B, J', 3, 3]
-        x = (M[..., :3, :3] @ self.centres[sel].to(dt)[None, :, :, None])[..., 0] + M[..., :3, 3]  # [B, J', 3]
-        t = x - (R @ x[..., None])[..., 0]  # [B, J', 3]: rotation about x_j
-        t = t + self.is_root[sel][None, :, None] * self.tau[ids].to(dt)[:, None, :]  # the root also moves by tau
-        Dr, Dtt = R, t  # [B, J', 3, 3], [B, J', 3]: D_j for the joints composed so far (the roots: L_root)
-        for lv, par in levels:
+        R = axis_angle_to_matrix((self.delta[ids] * self.active[:, None]).to(dt))  # [B, J, 3, 3]
+        x = (M[..., :3, :3] @ self.centres.to(dt)[None, :, :, None])[..., 0] + M[..., :3, 3]  # [B, J, 3] x_j
+        t = x - (R @ x[..., None])[..., 0]  # [B, J, 3]: rotation about x_j
+        t = t + self.is_root[None, :, None] * self.tau[ids].to(dt)[:, None, :]  # the root also moves by tau
+        Dr, Dtt = R, t  # [B, J, 3, 3], [B, J, 3]: D_j for the joints composed so far (the roots: L_root)
+        for lv, par in self.levels:
             lv, par = lv.to(M.device), par.to(M.device)
             Rp, tp = Dr[:, par], Dtt[:, par]  # parents are one level up: already composed
             Dr = Dr.index_copy(1, lv, Rp @ R[:, lv])
             Dtt = Dtt.index_copy(1, lv, (Rp @ t[:, lv, :, None])[..., 0] + tp)
-        return Dr, Dtt, x
+        return Dr, Dtt
 
     def penalty(self, frame_ids: torch.Tensor) -> torch.Tensor:
         """Mean over the batch's training frames of sum_j |delta_j|^2 + |tau / 0.1 m|^2 (radians^2; 0.1 m makes
