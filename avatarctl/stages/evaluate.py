@@ -311,6 +311,10 @@ def _run(env: Any, progress: ProgressFn | None, project_dir: str, cfg: EvalConfi
     scored = _test_capture(avatar, cfg.test_project) if cfg.test_project is not None else None
     cap = scored if scored is not None else avatar.capture
     frames, views, is_train = split_pairs(avatar, cfg, scored, proto)
+    if cfg.refine_pose and not avatar.model.field_kind.splats:
+        raise InputError(f"--refine-pose renders whole crops: it needs the Gaussian local fields, this avatar's are "
+                         f"{avatar.model.cfg.field!r}", where=str(project.root), fix="drop --refine-pose, or fit "
+                         "with --preset cpu (model.field=gaussians)")
     latent = latent_for(cfg.latent, is_train)
     background = tuple(float(c) for c in (proto.background if proto is not None else avatar.background))
     warnings = []
@@ -524,10 +528,6 @@ def _refined_state(avatar: Any, cap: Any, cfg: EvalConfig, one: Any, frame: int,
     from avatarctl.splat import SplatCamera
 
     model = avatar.model
-    if not model.field_kind.splats:
-        raise InputError(f"--refine-pose renders whole crops: it needs the Gaussian local fields, this avatar's are "
-                         f"{model.cfg.field!r}", where=str(cap.project.root), fix="drop --refine-pose, or fit with "
-                         "--preset cpu (model.field=gaussians)")
     dev = avatar.device
     pose_views = []
     for view in views:
