@@ -85,7 +85,6 @@ def refine_frame_pose(model: "SlrfAvatar", template: "BodyTemplate", cond: "Fram
     """Refine the pose of the one frame of `cond` against `views` (module docstring); `template`: the avatar's body
     template; `mode`: the latent mode the frame is rendered with (`SlrfAvatar.node_state`; "sample" is not
     deterministic and is refused)."""
-
     if not model.field_kind.splats:
         raise ValueError(f"pose refinement renders whole crops: it needs model.field 'gaussians', this avatar's is "
                          f"{model.cfg.field!r}")
@@ -180,11 +179,13 @@ def _image_loss(model: "SlrfAvatar", rgb: list[torch.Tensor], alpha: list[torch.
 
 
 def _downsampled(view: PoseView, f: int) -> PoseView:
-    """The view at 1/f of its size: images averaged over f x f pixels, the camera's pixels f times larger (pixel
-    centres at integers: u' = (u - (f - 1) / 2) / f)."""
+    """The view at 1/f of its size: images averaged over f x f pixels, the camera's pixels f times larger
+    (`geometry.cameras.scaled_intrinsics`)."""
     from dataclasses import replace
 
     import torch.nn.functional as F
+
+    from avatarctl.geometry.cameras import scaled_intrinsics
 
     h, w = view.mask.shape
     if h < 4 * f or w < 4 * f:
@@ -192,8 +193,5 @@ def _downsampled(view: PoseView, f: int) -> PoseView:
     h2, w2 = h // f, w // f
     target = F.avg_pool2d(view.target[:h2 * f, :w2 * f].permute(2, 0, 1)[None], f)[0].permute(1, 2, 0)
     mask = F.avg_pool2d(view.mask[:h2 * f, :w2 * f][None, None].float(), f)[0, 0]
-    K = view.camera.K.clone()
-    K[:2] /= f
-    K[0, 2] -= (f - 1) / (2 * f)
-    K[1, 2] -= (f - 1) / (2 * f)
-    return replace(view, camera=replace(view.camera, K=K, width=w2, height=h2), target=target, mask=mask)
+    return replace(view, camera=replace(view.camera, K=scaled_intrinsics(view.camera.K, 1.0 / f), width=w2, height=h2),
+                   target=target, mask=mask)

@@ -14,6 +14,16 @@ import numpy as np
 ROTATION_TOL = 1e-3  # max |R R^T - I|: calibration files store R to 6+ digits; a scaled or sheared R is far off
 
 
+def scaled_intrinsics(K, factor: float):
+    """[3, 3] intrinsics (numpy or torch) of images resized by `factor` -> a new K: focal lengths and skew times
+    `factor`, the principal point by cv2.resize's pixel-centre convention (pixel centres at integers: u' = (u + 0.5)
+    factor - 0.5)."""
+    K = K.clone() if hasattr(K, "clone") else K.copy()
+    K[:2, :2] *= factor
+    K[:2, 2] = (K[:2, 2] + 0.5) * factor - 0.5
+    return K
+
+
 @dataclass(frozen=True)
 class Camera:
     """One calibrated camera."""
@@ -63,12 +73,8 @@ class Camera:
 
     def scaled(self, factor: float) -> "Camera":
         """The camera for images resized by `factor` (pixel-centre convention of cv2.resize)."""
-        K = self.K.copy()
-        K[0, 0] *= factor
-        K[1, 1] *= factor
-        K[0, 2] = (K[0, 2] + 0.5) * factor - 0.5
-        K[1, 2] = (K[1, 2] + 0.5) * factor - 0.5
-        return replace(self, K=K, width=int(round(self.width * factor)), height=int(round(self.height * factor)))
+        return replace(self, K=scaled_intrinsics(self.K, factor), width=int(round(self.width * factor)),
+                       height=int(round(self.height * factor)))
 
     def world_to_camera(self, X: np.ndarray) -> np.ndarray:
         """[..., 3] world points -> [..., 3] camera coordinates."""
