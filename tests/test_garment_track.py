@@ -1,5 +1,6 @@
 """fit/garment_track.py: a printed tube turning around a still body, rendered by ray casting into six views; the
-tracker follows it, the reference surface comes from the masks, node motions and the model's tracked placement."""
+tracker follows it, the reference surface (a tube from the masks) finds it, node motions and the model's tracked
+placement."""
 
 from __future__ import annotations
 
@@ -94,7 +95,8 @@ def scene():
     eye = np.broadcast_to(np.eye(4), (1, 4, 4))
     inp = gt.TrackingInput(frames=(0, 1, 2), cameras=cams, image=lambda c, f: shots[(c, f)][0],
                            mask=lambda c, f: shots[(c, f)][1], body_vertices=np.stack([body[0]] * 3),
-                           body_faces=body[1], body_transforms=lambda fi, j: np.repeat(eye, len(j), 0))
+                           body_faces=body[1], body_transforms=lambda fi, j: np.repeat(eye, len(j), 0),
+                           up=np.tile([0.0, 0.0, 1.0], (3, 1)))
     return inp, verts, faces, frames
 
 
@@ -112,23 +114,29 @@ def test_the_tracker_follows_the_turning_print(scene):
     assert (tracks.seen[[0, 2]] >= 2).mean() > 0.5
 
 
-def test_the_reference_surface_comes_from_the_masks_off_the_body(scene):
+def test_the_reference_surface_is_a_tube_around_the_garment_from_the_masks(scene):
     inp, *_ = scene
-    hull = gt.reference_mesh(inp, 1)
-    assert len(hull.vertices) > 50
-    r = np.linalg.norm(hull.vertices[:, :2], axis=-1)
-    assert (r > 0.09).all()  # nothing on the 'body', which the off-body rule removes
+    tube = gt.reference_mesh(inp, 1)
+    side = np.abs(tube.vertices[:, 2]) < 0.15  # the garment's height (the tube reaches tube_top above it)
+    assert side.sum() > 500 and tube.vertices[:, 2].min() < -0.15 and tube.vertices[:, 2].max() > 0.2
+    f = tube.faces
+    _, uses = np.unique(np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), 1), axis=0,
+                        return_counts=True)
+    assert set(uses.tolist()) == {1, 2} and (uses == 1).sum() == 2 * gt.TrackSettings().tube_segments  # one tube: open at its two rims only
+    n = gt.vertex_normals(tube.vertices, tube.faces)
+    assert (np.einsum("vi,vi->v", n[side, :2], tube.vertices[side, :2]) > 0).mean() > 0.95  # normals outwards
 
     def off(X: np.ndarray) -> np.ndarray:  # radial distance (metres) to the folded tube
         return np.abs(np.linalg.norm(X[:, :2], axis=-1) - _radius(np.arctan2(X[:, 1], X[:, 0]), 0.3, 0.05))
 
-    stereo = gt.refine_reference(inp, hull, 1)
-    side = np.abs(hull.vertices[:, 2]) < 0.15  # the tube's side (the hull closes its ends with cones)
-    before, after = off(hull.vertices[side]), off(stereo.vertices[side])
+    assert np.median(off(tube.vertices[side])) < 0.05  # the hull's boundary: outside the folds' hollows
+    stereo = gt.refine_reference(inp, tube, 1)
+    before, after = off(tube.vertices[side]), off(stereo.vertices[side])
     assert np.median(after) < np.median(before)  # the stereo brings the hull's surface onto the printed tube
-    part = gt.consistent_part(inp, stereo, 1)
-    assert 0 < len(part.vertices) < len(stereo.vertices)  # what the views disagree on is pruned
-    assert np.median(off(part.vertices)) < 0.01
+    empty = gt.TrackingInput(frames=inp.frames, cameras=inp.cameras, image=inp.image,
+                             mask=lambda c, f: np.zeros((SIZE, SIZE), bool), body_vertices=inp.body_vertices,
+                             body_faces=inp.body_faces, body_transforms=inp.body_transforms, up=inp.up)
+    assert len(gt.reference_mesh(empty, 1).vertices) == 0  # nothing off the body: no garment
 
 
 def test_node_motions_recover_a_rigid_motion_and_skip_empty_nodes():
@@ -144,6 +152,23 @@ def test_node_motions_recover_a_rigid_motion_and_skip_empty_nodes():
     np.testing.assert_allclose(m.rotation[1, 0], R, atol=1e-9)
     np.testing.assert_allclose(m.rotation[0, 0], np.eye(3), atol=1e-9)
     np.testing.assert_allclose(X @ m.rotation[1, 0].T + m.translation[1, 0], moved, atol=1e-9)
+
+
+def test_placement_holds_the_last_tracked_offset_from_the_skeleton_where_the_tracker_stops():
+    rng = np.random.default_rng(1)
+    F, M, ref = 7, 3, 3
+    A = np.stack([[_turned(np.eye(3), a) for a in rng.uniform(-1, 1, M)] for _ in range(F)])  # [F, M, 3, 3]
+    c = rng.normal(size=(F, M, 3))
+    R = np.stack([[_turned(np.eye(3), a) for a in rng.uniform(-1, 1, M)] for _ in range(F)])
+    t = rng.normal(size=(F, M, 3))
+    tracked = np.array([False, True, True, True, True, False, False])  # lost at 0 backwards, at 5 forwards
+    rot, cen = gt.placement(R, t, A, c, tracked, ref)
+    np.testing.assert_allclose(rot[tracked], R[tracked])
+    np.testing.assert_allclose(cen[tracked], t[tracked])
+    for f, g in ((0, 1), (5, 4), (6, 4)):  # the offset in the node's skeleton frame is the last tracked one's
+        np.testing.assert_allclose(np.swapaxes(A[f], -1, -2) @ rot[f], np.swapaxes(A[g], -1, -2) @ R[g], atol=1e-12)
+        np.testing.assert_allclose(np.einsum("mji,mj->mi", A[f], cen[f] - c[f]),
+                                   np.einsum("mji,mj->mi", A[g], t[g] - c[g]), atol=1e-12)
 
 
 def test_the_model_places_tracked_nodes_on_training_frames_only(tmp_path):

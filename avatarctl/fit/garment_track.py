@@ -5,11 +5,16 @@ The paper moves every node with the skeleton plus a learned residual Δn (Eq. 3)
 the skeleton, and a jointly optimised model does not discover where it goes. This module finds it from the images
 first, the way the garment methods of the field do (sequential, warm-started, appearance frozen, physical priors):
 
-1. **Reference surface** (`reference_mesh`): at the reference frame (the middle training frame), the training masks'
-   visual hull (`geometry.hull.carve`, `voxel` metres), its surface by marching cubes (scikit-image), and of it only
-   the vertices farther than `off_body` from the posed body that some view puts on a mask pixel the body's own
-   silhouette does not cover (what the body cannot explain: the garment; phantom hull volume projects onto the body
-   in every view). No truth is needed; the hull's surface stands in for the cloth's.
+1. **Reference surface** (`reference_mesh`): at the reference frame (the middle training frame), a tube about the
+   body's up axis over the garment's height: the training masks' visual hull (`geometry.hull.carve`, `voxel`
+   metres) holds volume farther than `off_body` from the posed body that some view puts on a mask pixel the body's
+   own silhouette does not explain (what the body cannot explain: the garment); the tube spans the heights of that
+   volume (1st to 99th percentile, plus `tube_top` above it: the waistband that lies on the body), one ring per
+   `voxel` of height, `tube_segments` around, each ring centred on the hull's cross-section there, its radius at each
+   angle the hull's outer boundary along that direction. Then multi-view stereo (`refine_reference`) moves each
+   vertex along its normal to where the views agree on its colour. One closed piece: the tracker's edge lengths and
+   silhouette hold it whole (the hull's off-body surface itself covers the cloth in pieces, and loses it; docs/fit.md
+   "Garment tracking"). No truth is needed.
 2. **Tracking** (`track`): from the reference frame forwards, then backwards, each frame's surface starts from the
    previous one moved by the skeleton (each vertex by the blended transform of its nearest body vertex, Eq. 1) plus
    the previous step's motion beyond the skeleton (constant velocity), and is then solved by L-BFGS over an image
@@ -22,7 +27,8 @@ first, the way the garment methods of the field do (sequential, warm-started, ap
    the body or the surface within 1 cm of it (Warp's BVH, `geometry.raycast`), the surface not seen edge-on.
 3. **Node motions** (`node_motions`): each node given to track owns its `patch` nearest surface vertices within
    `reach` at the reference frame; per frame, the best rigid motion (Kabsch) of those vertices from the reference frame is the
-   node's motion. The fit places the node by it on training frames (`SlrfAvatar.set_tracks`).
+   node's motion. The fit places the node by it on training frames (`SlrfAvatar.set_tracks`); on frames the
+   tracker did not reach, by the skeleton with the offset of the last tracked frame held (`placement`).
 
 Measured on synth small (docs/fit.md "Garment tracking"): the tracked surface against the true cloth.
 """
@@ -51,15 +57,16 @@ class TrackSettings:
     smooth: float = 10.0  # |displacement_i - displacement_j|^2 over edges, cm^2
     silhouette: float = 1.0  # squared pixels outside the frame's mask, per view
     anchor: float = 0.3  # the reference frame's colours, against the previous frame's (1)
-    agree: float = 0.08  # a reference vertex is tracked when the views' colours of it differ by less (RMS, 0-1)
     residual_velocity: float = 1.0  # share of the last step's motion beyond the skeleton carried forward
     lost: float = 2.0  # a direction stops where a frame's loss exceeds this x the median of its first 5 frames
     voxel: float = 0.02  # the reference surface's hull grid, metres
     stereo_iters: int = 60  # L-BFGS iterations per level of the reference surface's multi-view stereo
     stereo_smooth: float = 3.0  # (offset_i - offset_j)^2 over edges, cm^2, in the stereo
     stereo_reach: float = 0.1  # the stereo moves a vertex at most this far (metres) along its normal
-    off_body: float = 0.02  # a reference vertex this far (metres) from the posed body may be garment
+    off_body: float = 0.02  # hull volume this far (metres) from the posed body may be garment
     explain_px: int = 2  # the body's silhouette grown by this many pixels before it explains a mask pixel
+    tube_top: float = 0.08  # the tube reaches this far (metres) above the garment's off-body volume
+    tube_segments: int = 72  # tube vertices around each ring
 
 
 @dataclass(frozen=True)
@@ -93,10 +100,12 @@ class TrackingInput:
     body_vertices: np.ndarray  # [F, Vb, 3] posed body per frame (the order of `frames`), world metres
     body_faces: np.ndarray  # [Tb, 3]
     body_transforms: Callable[[int, np.ndarray], np.ndarray]  # (frame index, body vertex ids [n]) -> [n, 4, 4] Eq. 1
+    up: np.ndarray  # [F, 3] unit vectors: the body's up axis per frame (the rest pose's head direction, posed)
 
     def __post_init__(self) -> None:
         F = len(self.frames)
         assert self.body_vertices.shape[0] == F, f"body_vertices {self.body_vertices.shape} for {F} frames"
+        assert self.up.shape == (F, 3), f"up {self.up.shape} for {F} frames"
         assert len(self.cameras) >= 1
 
     @property
@@ -143,56 +152,75 @@ class NodeMotions:
 
 # ---- 1. reference surface ---------------------------------------------------------------------------------------
 def reference_mesh(inp: TrackingInput, ref: int, settings: TrackSettings = TrackSettings()) -> GarmentMesh:
-    """Step 1 of the module docstring at frame index `ref` of `inp`. An empty mesh when nothing is off the body."""
+    """Step 1 of the module docstring at frame index `ref` of `inp` (before the stereo). An empty mesh when nothing
+    is off the body."""
     import cv2
-    from scipy.ndimage import gaussian_filter
+    from scipy.ndimage import gaussian_filter, gaussian_filter1d, map_coordinates
     from scipy.spatial import cKDTree
-    from skimage.measure import marching_cubes
 
     from avatarctl.geometry.hull import carve
     from avatarctl.geometry.silhouette import rasterize_silhouette
-    from avatarctl.geometry.triangulate import project
 
     frame = inp.frames[ref]
     body = inp.body_vertices[ref].astype(np.float64)
-    masks = [inp.mask(c, frame) for c in range(len(inp.centers))]
+    up = inp.up[ref] / np.linalg.norm(inp.up[ref])
+    cams = list(inp.cameras)
+    masks = [inp.mask(c, frame) for c in range(len(cams))]
     vox = settings.voxel
-    lo = body.min(0) - 0.35
-    hi = body.max(0) + 0.35
-    kept = carve(list(inp.cameras), masks, lo, hi, vox)  # [M, 3] voxel centres
+    lo, hi = body.min(0) - 0.35, body.max(0) + 0.35
+    empty = GarmentMesh(np.zeros((0, 3)), np.zeros((0, 3), dtype=np.int64), frame)
+    grow = np.ones((2 * settings.explain_px + 1,) * 2, dtype=np.uint8)
+    explained = [cv2.dilate(rasterize_silhouette(c, body, inp.body_faces, supersample=1).astype(np.uint8), grow) > 0
+                 for c in cams]
+    off = carve(cams, masks, lo, hi, vox, explained=explained)  # [M, 3] voxel centres no body explains
+    off = off[cKDTree(body).query(off)[0] > settings.off_body] if len(off) else off
+    if len(off) < 8:
+        return empty
+    hull = carve(cams, masks, lo, hi, vox)
     shape = tuple(int(round((b - a) / vox)) for a, b in zip(lo, hi))
     grid = np.zeros(shape, dtype=np.float32)
-    idx = np.floor((kept - lo) / vox).astype(np.int64)
-    ok = ((idx >= 0) & (idx < np.array(shape))).all(1)
-    grid[tuple(idx[ok].T)] = 1.0
-    empty = GarmentMesh(np.zeros((0, 3)), np.zeros((0, 3), dtype=np.int64), frame)
-    if grid.sum() < 8:
+    idx = np.floor((hull - lo) / vox).astype(np.int64)
+    grid[tuple(idx[((idx >= 0) & (idx < np.array(shape))).all(1)].T)] = 1.0
+    grid = gaussian_filter(grid, 1.0)
+    # the rings: heights along up, each centred on the hull's cross-section near the body there
+    h_off = off @ up
+    heights = np.arange(np.percentile(h_off, 1), np.percentile(h_off, 99) + settings.tube_top + 1e-9, vox)
+    band = body[(body @ up >= heights[0]) & (body @ up <= heights[-1])]
+    axis = np.median(band if len(band) else body, 0)
+    axis -= (axis @ up) * up  # a point of the body's axis, in the plane through the origin normal to up
+    centres = []
+    for h in heights:
+        near = hull[np.abs(hull @ up - h) < 1.5 * vox]
+        flat = near - (near @ up)[:, None] * up
+        near = near[np.linalg.norm(flat - axis, axis=1) < 0.5]
+        c = np.median(near, 0) if len(near) else axis
+        centres.append(c - (c @ up) * up)
+    centres = gaussian_filter1d(np.stack(centres), 1.5, axis=0, mode="nearest")  # [H, 3]
+    e1 = np.cross(up, [1.0, 0.0, 0.0] if abs(up[0]) < 0.9 else [0.0, 1.0, 0.0])
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(up, e1)
+    angles = np.arange(settings.tube_segments) * 2 * np.pi / settings.tube_segments
+    ray = np.cos(angles)[:, None] * e1 + np.sin(angles)[:, None] * e2  # [A, 3]
+    radii = np.arange(0.9, 0.0, -vox / 4)  # from outside inwards: the first voxel inside is the outer boundary
+    X = (centres[:, None, None] + heights[:, None, None, None] * up + radii[None, None, :, None] * ray[None, :, None])
+    occupied = map_coordinates(grid, ((X.reshape(-1, 3) - lo) / vox - 0.5).T, order=1, mode="constant",
+                               cval=0.0).reshape(X.shape[:3]) > 0.5  # [H, A, R]
+    hit = occupied.any(-1)
+    if hit.mean() < 0.5:
         return empty
-    verts, faces, _, _ = marching_cubes(gaussian_filter(grid, 1.0), 0.5, step_size=1)
-    verts = lo + (verts + 0.5) * vox
-    # off the body, and on a mask pixel the body's silhouette does not explain in some view
-    dist, _ = cKDTree(body).query(verts)
-    grow = np.ones((2 * settings.explain_px + 1,) * 2, dtype=np.uint8)
-    px, _ = project(inp.projections, verts)  # [V, C, 2]
-    shows = np.zeros(len(verts), dtype=bool)
-    for c, m in enumerate(masks):
-        sil = cv2.dilate(rasterize_silhouette(inp.cameras[c], body, inp.body_faces, supersample=1).astype(np.uint8),
-                         grow) > 0
-        u, v = np.round(px[:, c, 0]).astype(np.int64), np.round(px[:, c, 1]).astype(np.int64)
-        inside = (u >= 0) & (v >= 0) & (u < m.shape[1]) & (v < m.shape[0])
-        shows[inside] |= m[v[inside], u[inside]] & ~sil[v[inside], u[inside]]
-    keep = (dist > settings.off_body) & shows
-    return _submesh(GarmentMesh(vertices=verts, faces=faces.astype(np.int64), frame=frame), keep)  # stray pieces out
-
-
-def _components(n: int, faces: np.ndarray) -> np.ndarray:
-    """[n] connected component label of each vertex of the triangle mesh."""
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
-
-    e = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]]])
-    g = coo_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(n, n))
-    return connected_components(g, directed=False)[1]
+    R = radii[np.argmax(occupied, -1)]  # [H, A]
+    ring = np.array([np.median(r[k]) if k.any() else np.median(R[hit]) for r, k in zip(R, hit)])
+    R = np.where(hit, R, ring[:, None])  # a ray through a gap: the ring's median
+    R = gaussian_filter(R, 0.7, mode=("nearest", "wrap"))
+    verts = (centres[:, None] + heights[:, None, None] * up + R[..., None] * ray[None]).reshape(-1, 3)
+    A = settings.tube_segments
+    i, j = np.meshgrid(np.arange(len(heights) - 1), np.arange(A), indexing="ij")
+    a, b = (i * A + j).ravel(), (i * A + (j + 1) % A).ravel()
+    faces = np.concatenate([np.stack([a, a + A, b], 1), np.stack([b, a + A, b + A], 1)]).astype(np.int64)
+    outward = verts - np.repeat(centres, A, 0) - (verts @ up)[:, None] * up
+    if (np.einsum("vi,vi->v", vertex_normals(verts, faces), outward) < 0).mean() > 0.5:
+        faces = faces[:, [0, 2, 1]]
+    return GarmentMesh(vertices=verts, faces=faces, frame=frame)
 
 
 # ---- 2. tracking ------------------------------------------------------------------------------------------------
@@ -448,38 +476,6 @@ def refine_reference(inp: TrackingInput, mesh: GarmentMesh, ref: int, settings: 
                        frame=mesh.frame)
 
 
-def consistent_part(inp: TrackingInput, mesh: GarmentMesh, ref: int, settings: TrackSettings = TrackSettings()
-                    ) -> GarmentMesh:
-    """The part of the reference surface the training views can track: vertices seen by two views or more whose
-    colour the views agree on (RMS difference from the mean under `settings.agree`, on a 0-1 scale, at the finest
-    level), the faces of three such vertices, pieces under 2 % of the faces dropped."""
-    if not len(mesh.vertices):
-        return mesh
-    P = torch.as_tensor(inp.projections, dtype=torch.float32)
-    X = torch.as_tensor(mesh.vertices, dtype=torch.float32)
-    vis = torch.as_tensor(visibility(inp, ref, mesh.vertices, mesh.faces)).float()  # [C, V]
-    c = _sample(_Frames(inp).colour(inp.frames[ref], settings.sigmas[-1]), _project(P, X))  # [C, V, 3]
-    k = vis.sum(0)
-    mean = (vis[..., None] * c).sum(0) / k.clamp(min=1)[:, None]
-    rms = ((vis * ((c - mean) ** 2).sum(-1)).sum(0) / k.clamp(min=1) / 3).sqrt()
-    keep = ((k >= 2) & (rms < settings.agree)).numpy()
-    return _submesh(mesh, keep)
-
-
-def _submesh(mesh: GarmentMesh, keep: np.ndarray) -> GarmentMesh:
-    """The faces of `mesh` whose three vertices are kept, without pieces under 2 % of them."""
-    faces = mesh.faces[keep[mesh.faces].all(1)]
-    if not len(faces):
-        return GarmentMesh(np.zeros((0, 3)), np.zeros((0, 3), dtype=np.int64), mesh.frame)
-    comp = _components(len(mesh.vertices), faces)
-    sizes = np.bincount(comp[faces[:, 0]], minlength=comp.max() + 1)
-    faces = faces[(sizes >= max(1, 0.02 * len(faces)))[comp[faces[:, 0]]]]
-    used = np.unique(faces)
-    remap = np.full(len(mesh.vertices), -1)
-    remap[used] = np.arange(len(used))
-    return GarmentMesh(vertices=mesh.vertices[used], faces=remap[faces].astype(np.int64), frame=mesh.frame)
-
-
 # ---- 3. node motions --------------------------------------------------------------------------------------------
 def node_motions(tracks: GarmentTracks, ref: int, nodes: np.ndarray, centers: np.ndarray, patch: int = 40,
                  reach: float = 0.15, min_vertices: int = 6) -> NodeMotions:
@@ -519,6 +515,23 @@ def node_motions(tracks: GarmentTracks, ref: int, nodes: np.ndarray, centers: np
                        vertices=np.asarray(counts), seen=np.stack(seens, 1))
 
 
+def placement(rotation: np.ndarray, center: np.ndarray, skeleton_rotation: np.ndarray, skeleton_center: np.ndarray,
+              tracked: np.ndarray, ref: int) -> tuple[np.ndarray, np.ndarray]:
+    """The tracked nodes' placement on every training frame: `rotation` [F, M, 3, 3] and `center` [F, M, 3] where
+    `tracked` [F] (the tracker's frames; `ref` the reference frame index); on a frame the tracker did not reach, the
+    skeleton's placement (`skeleton_rotation`, `skeleton_center`, Eq. 1-2) with the garment's offset from it at the
+    last frame tracked on the way there from the reference, held in the node's skeleton frame (A^-1 R, A^-1 (c - c_s)):
+    the placement does not jump where the tracker stops. -> (rotation, center) [F, M, 3, 3], [F, M, 3]."""
+    held = np.arange(len(tracked))  # each frame's source: itself where tracked, else the last tracked frame before it
+    for f in list(range(ref + 1, len(held))) + list(range(ref - 1, -1, -1)):
+        if not tracked[f]:
+            held[f] = held[f - 1] if f > ref else held[f + 1]
+    A, c = skeleton_rotation, skeleton_center
+    offset_r = np.linalg.solve(A[held], rotation[held])  # [F, M, 3, 3]
+    offset_t = np.linalg.solve(A[held], (center[held] - c[held])[..., None])[..., 0]  # [F, M, 3]
+    return A @ offset_r, c + np.einsum("fmij,fmj->fmi", A, offset_t)
+
+
 def capture_input(capture, body, template, frames: list[int], views: list[str]) -> TrackingInput:
     """The `TrackingInput` of a `ProjectCapture`'s training `frames` x `views`, the body posed by its fits."""
     from avatarctl.body.lbs import blend_transforms
@@ -530,8 +543,17 @@ def capture_input(capture, body, template, frames: list[int], views: list[str]) 
     def transforms(fi: int, vertex: np.ndarray) -> np.ndarray:
         return blend_transforms(weights[torch.as_tensor(vertex)], joints[fi:fi + 1])[0].numpy()
 
+    # the body's up axis: the rest pose's longest extent, towards the side holding most of the body (the head and
+    # arms above the hips), turned by the blended transform of the vertex nearest the rest body's centroid
+    rest = template.vertices.detach().double().numpy()
+    axis = int(np.argmax(rest.max(0) - rest.min(0)))
+    up_rest = np.eye(3)[axis] * (1.0 if rest[:, axis].mean() >= 0.5 * (rest[:, axis].max() + rest[:, axis].min())
+                                 else -1.0)
+    centre = np.array([int(np.argmin(np.linalg.norm(rest - rest.mean(0), axis=1)))])
+    up = np.stack([transforms(fi, centre)[0, :3, :3] @ up_rest for fi in range(len(frames))])
+
     return TrackingInput(frames=tuple(int(f) for f in frames), cameras=tuple(capture.cameras[v] for v in views),
                          image=lambda c, f: capture.image(views[c], f),
                          mask=lambda c, f: capture.mask(views[c], f) > 0,
                          body_vertices=posed.vertices.detach().double().numpy(),
-                         body_faces=template.faces.numpy(), body_transforms=transforms)
+                         body_faces=template.faces.numpy(), body_transforms=transforms, up=up)

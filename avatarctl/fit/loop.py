@@ -435,10 +435,9 @@ def _track_garment(t: "_Trainer", template, hull_count: int) -> tuple[str, float
     inp = gt.capture_input(t.capture, t.body, template, t.train_frames, views)
     ref = len(t.train_frames) // 2
     settings = gt.TrackSettings()
-    mesh = gt.consistent_part(inp, gt.refine_reference(inp, gt.reference_mesh(inp, ref, settings), ref, settings),
-                              ref, settings)
+    mesh = gt.refine_reference(inp, gt.reference_mesh(inp, ref, settings), ref, settings)
     if len(mesh.vertices) < 20:
-        return "garment tracking: skipped (the masks show no garment surface the views agree on)", 0.0
+        return "garment tracking: skipped (the masks show no garment off the body at the reference frame)", 0.0
     tracks = gt.track(inp, mesh, ref, settings)
     model, N = t.model, t.cfg.model.num_nodes
     nodes = torch.arange(N - hull_count, N)
@@ -451,8 +450,7 @@ def _track_garment(t: "_Trainer", template, hull_count: int) -> tuple[str, float
     R, tr = motion.rotation, motion.translation  # [F, M', 3, 3], [F, M', 3]
     rotation = R @ A[ref, keep][None]
     center = np.einsum("fmij,mj->fmi", R, c[ref, keep]) + tr
-    lost = ~tracks.tracked  # frames the tracker did not reach: the skeleton's placement
-    rotation[lost], center[lost] = A[lost][:, keep], c[lost][:, keep]
+    rotation, center = gt.placement(rotation, center, A[:, keep], c[:, keep], tracks.tracked, ref)
     if len(motion.nodes):
         model.set_tracks(torch.as_tensor(motion.nodes), torch.as_tensor(rotation), torch.as_tensor(center))
     seconds = time.perf_counter() - t0
