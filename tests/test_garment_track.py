@@ -193,6 +193,13 @@ def test_the_model_places_tracked_nodes_on_training_frames_only(tmp_path):
     model.set_tracks(nodes, rot, centre)
     after = model.node_state(cond, mode="zero")
     torch.testing.assert_close(after.centers[:2, nodes], centre[:2])  # training frames 0 and 1: the tracks
+    assert before.track_penalty is None  # L_track: Eq. 3's centres (with Delta n) against the tracked ones
+    torch.testing.assert_close(after.track_penalty, ((before.centers[:2, nodes] - centre[:2]) ** 2).sum((-2, -1)).mean())
+    from avatarctl.model.losses import total_loss
+
+    one = torch.ones(())
+    terms = total_loss(one, one, one, one, 1.0, 0.0, 0.0, 0.0, mse=one, track=after.track_penalty, lambda_track=2.0)
+    assert "track" in terms.keys() and torch.isclose(terms.total, 1 + 2 * after.track_penalty)
     torch.testing.assert_close(after.centers[2], before.centers[2])  # a novel pose: the paper's placement
     other = torch.tensor([i for i in range(16) if i not in (3, 5)])
     torch.testing.assert_close(after.centers[:, other], before.centers[:, other])

@@ -45,6 +45,9 @@ if TYPE_CHECKING:
     from avatarctl.splat import SplatCamera
 
 
+TRACK_PULL = 100.0  # lambda_track: weight of L_track (`SlrfAvatar._tracked`), per metre^2 (lambda_pose's scale)
+
+
 @dataclass
 class FrameConditioning:
     """What the model is told about each of the B frames of a batch."""
@@ -78,6 +81,7 @@ class NodeState:
     mu: torch.Tensor | None = None  # [B, N, Z] (None when the encoder did not run)
     logvar: torch.Tensor | None = None  # [B, N, Z]
     pose_penalty: torch.Tensor | None = None  # [] pose-refinement penalty of these frames (None when off)
+    track_penalty: torch.Tensor | None = None  # [] tracked nodes: |Eq. 3's n_i - tracked centre|^2 (None: no tracks)
 
     @property
     def num_frames(self) -> int:
@@ -241,17 +245,18 @@ class SlrfAvatar(nn.Module):
             embed = T.new_zeros(B, N, self.cfg.embed_dim)
         with _float32_geometry(dev):
             centers = posed_node_centers(T, self.node_rest, delta.to(T.dtype))  # [B, N, 3]  Eq. 3
+            track_penalty = None
             if self.track_nodes is not None:  # training frames: the tracked garment nodes (fit/garment_track.py)
-                T, centers = self._tracked(T, centers, cond.frame_ids)
+                T, centers, track_penalty = self._tracked(T, centers, cond.frame_ids)
         return NodeState(transforms=T, centers=centers, delta_n=delta, embed=embed, mu=mu, logvar=logvar,
-                         pose_penalty=pose_penalty)
+                         pose_penalty=pose_penalty, track_penalty=track_penalty)
 
     # ---- garment tracks (fit/garment_track.py; a deviation) ------------------------------------------------------
     def set_tracks(self, nodes: torch.Tensor, rotation: torch.Tensor, center: torch.Tensor) -> None:
         """Place the nodes `nodes` [M] on training frame f at the tracked linear part rotation[f] [M, 3, 3] and centre
         center[f] [M, 3] (world) instead of T_i's skinned linear part and Eq. 3's n_i: T_i = [R | c - R n_bar_i], so
-        n_i = c (their Delta n is not used on training frames). Saved with the weights (buffers). Novel poses
-        (frame_ids -1) keep the paper's placement."""
+        n_i = c; their Delta n is pulled there instead (L_track, `_tracked`) and places them on novel poses
+        (frame_ids -1: the paper's placement). Saved with the weights (buffers)."""
         F = self.num_frames
         M = int(nodes.shape[0])
         if rotation.shape != (F, M, 3, 3) or center.shape != (F, M, 3):
@@ -263,19 +268,24 @@ class SlrfAvatar(nn.Module):
             self._buffers[name] = value.to(dev).clone()
 
     def _tracked(self, T: torch.Tensor, centers: torch.Tensor, frame_ids: torch.Tensor
-                 ) -> tuple[torch.Tensor, torch.Tensor]:
+                 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
+        """-> (T, centers) with the tracked nodes placed on training frames, and L_track: the mean over those frames of
+        sum over the tracked nodes of |n_i - c_i|^2 (Eq. 3's centre with its Delta n against the tracked centre,
+        metres^2), so that Delta n learns the tracked placement and predicts it on novel poses (None: no training
+        frame here)."""
         train = (frame_ids >= 0).nonzero(as_tuple=True)[0]
         if not train.numel():
-            return T, centers
+            return T, centers, None
         nodes, f = self.track_nodes, frame_ids[train]
         R = self.track_rotation[f].to(T.dtype)  # [b, M, 3, 3]
         c = self.track_center[f].to(T.dtype)  # [b, M, 3]
+        penalty = ((centers[train][:, nodes] - c) ** 2).sum(dim=(-2, -1)).mean()
         T, centers = T.clone(), centers.clone()
         b = train[:, None]
         T[b, nodes[None], :3, :3] = R
         T[b, nodes[None], :3, 3] = c - (R @ self.node_rest[nodes].to(T.dtype)[None, ..., None])[..., 0]
         centers[b, nodes[None]] = c
-        return T, centers
+        return T, centers, penalty
 
     def set_latent_mean(self, cond: FrameConditioning) -> None:
         """With `cfg.novel_latent = "train_mean"`: store the mean posterior mean of the cVAE over `cond`'s frames (all
@@ -604,7 +614,8 @@ class SlrfAvatar(nn.Module):
         return total_loss(rec, translation_loss(state.delta_n), embedding_loss(state.embed), kl,
                           c.lambda_rec, c.lambda_trans, c.lambda_ebd, c.lambda_kl, mse=mse,
                           pose=state.pose_penalty, lambda_pose=refine.lambda_pose, colour=colour,
-                          lambda_colour=c.colour.lambda_identity)
+                          lambda_colour=c.colour.lambda_identity, track=state.track_penalty,
+                          lambda_track=TRACK_PULL)
 
 
 def _float32_geometry(device: torch.device):
