@@ -32,9 +32,15 @@ stays a blur"):
    (24 points per true triangle, barycentric, so the match follows the cloth); per training frame the distance of
    the tracked vertex to its match, beside the reference surface moved by the skeleton alone (each vertex by its
    nearest body vertex's blended transform: what the nodes do without tracking), over the vertices within 2 cm of
-   the true surface at the reference frame.
+   the true surface at the reference frame. How it fails: each frame's error split about the body's up axis through
+   the true cloth's centroid (radial, outwards positive; tangential, anticlockwise about up; along up: signed means),
+   the error of the lowest and highest quarter of the matched vertices (hem, waist), and the true cloth's hem radius
+   (its lowest 15 %, about that axis) beside the tracked surface's. `--through` re-tracks the saved reference
+   surface with the tracker's stop rule off (`garment_track.track(stop=False)`): the frames where the fit's tracker
+   stopped, and how the surface goes wrong there.
 
-    python -m benchmarks.garment_tracking PROJECT [--patches 32,64,128] [--flow] [--json OUT.json]
+    python -m benchmarks.garment_tracking PROJECT [--patches 32,64,128] [--flow] [--tracks] [--through]
+        [--json OUT.json]
 """
 
 from __future__ import annotations
@@ -124,6 +130,45 @@ class SurfaceError:
     frames_tracked: int
     tracked_cm: tuple[float, ...]  # [F] nan where the tracker lost the surface (the fit uses the skeleton there)
     skeleton_cm: tuple[float, ...]  # [F]
+    parts: tuple["ErrorParts", ...] = ()  # [F] how the tracked surface errs (nan where not tracked)
+    hem_radius_cm: tuple[float, ...] = ()  # [F] the true cloth's
+    surface_hem_radius_cm: tuple[float, ...] = ()  # [F] the tracked surface's (nan where not tracked)
+    through: bool = False  # re-tracked with the stop rule off (--through)
+
+
+@dataclass(frozen=True)
+class ErrorParts:
+    """One frame's tracked-surface error about the body's up axis (part 6), cm."""
+
+    radial: float  # signed mean, outwards positive
+    tangential: float  # signed mean, anticlockwise about up
+    along: float  # signed mean along up
+    hem: float  # mean distance over the lowest quarter of the matched vertices
+    waist: float  # the same, highest quarter
+
+
+def error_parts(X: np.ndarray, Y: np.ndarray, up: np.ndarray) -> ErrorParts:
+    """X [n, 3] tracked points against their true points Y [n, 3] (metres), `up` [3]: part 6's split of X - Y."""
+    up = up / np.linalg.norm(up)
+    e, rel = X - Y, Y - Y.mean(0)
+    radial = rel - (rel @ up)[:, None] * up
+    radial /= np.linalg.norm(radial, axis=1, keepdims=True).clip(min=1e-9)
+    h = Y @ up
+    lo, hi = np.percentile(h, [25, 75])
+    dist = np.linalg.norm(e, axis=1)
+    return ErrorParts(radial=float((e * radial).sum(1).mean() * 100),
+                      tangential=float((e * np.cross(up, radial)).sum(1).mean() * 100),
+                      along=float((e @ up).mean() * 100), hem=float(dist[h <= lo].mean() * 100),
+                      waist=float(dist[h >= hi].mean() * 100))
+
+
+def hem_radius(Y: np.ndarray, up: np.ndarray, share: float = 0.15) -> float:
+    """Mean distance (cm) from the up axis through Y's centroid of the lowest `share` of the points Y [n, 3]."""
+    up = up / np.linalg.norm(up)
+    h = Y @ up
+    low = Y[h <= np.quantile(h, share)]
+    rel = low - Y.mean(0)
+    return float(np.linalg.norm(rel - (rel @ up)[:, None] * up, axis=1).mean() * 100)
 
 
 def _canonical(points: torch.Tensor, weights: torch.Tensor, joints: torch.Tensor) -> torch.Tensor:
@@ -332,7 +377,7 @@ def gaussian_motion(av, gt, frames: list[int], views: list[str], every: int = 5,
 
 
 def measure(project_dir: str | Path, patch_counts: tuple[int, ...] = (32, 64, 128), flow: bool = False,
-            tracks: bool = False) -> TrackingReport:
+            tracks: bool = False, through: bool = False) -> TrackingReport:
     from scipy.spatial import cKDTree
 
     from avatarctl.fit.checkpoint import load_avatar
@@ -385,7 +430,8 @@ def measure(project_dir: str | Path, patch_counts: tuple[int, ...] = (32, 64, 12
     track_file = project.paths.fit / "track" / "tracks.npz"
     return TrackingReport(frames=len(frames), garment_vertices=int(garment.shape[1]), nodes_on_garment=len(on),
                           nodes=tuple(on.tolist()), tracked_nodes=tracked,
-                          surface=surface_error(av, gt, frames, track_file) if track_file.is_file() else None,
+                          surface=surface_error(av, gt, frames, track_file, through) if track_file.is_file()
+                          else None,
                           residuals=tuple(residuals), drift=tuple(drift),
                           flow=flow_error(av.capture, gt, frames, list(av.capture.split.train_views)) if flow else None,
                           gaussian_motion=gaussian_motion(av, gt, frames, list(av.capture.split.train_views))
@@ -394,16 +440,21 @@ def measure(project_dir: str | Path, patch_counts: tuple[int, ...] = (32, 64, 12
                           if tracks else None)
 
 
-def surface_error(av, gt, frames: list[int], path: Path) -> SurfaceError:
-    """Part 6 of the module docstring for the tracks in `path` (fit/garment_track.py's surface per frame)."""
+def surface_error(av, gt, frames: list[int], path: Path, through: bool = False) -> SurfaceError:
+    """Part 6 of the module docstring for the tracks in `path` (fit/garment_track.py's surface per frame);
+    `through`: the saved reference surface tracked again with the stop rule off."""
     from scipy.spatial import cKDTree
 
-    from avatarctl.fit.garment_track import capture_input, skin_move
+    from avatarctl.fit.garment_track import GarmentMesh, capture_input, skin_move, track
 
     d = np.load(path)
     assert [int(f) for f in d["frames"]] == frames, "the tracks are of other frames than the fit's"
     X, tracked = d["vertices"].astype(np.float64), d["tracked"]
     ref = int(d["reference"])  # frame index of the reference surface
+    inp = capture_input(av.capture, av.body, av.template, frames, list(av.capture.split.train_views))
+    if through:
+        again = track(inp, GarmentMesh(X[ref], d["faces"].astype(np.int64), frames[ref]), ref, stop=False)
+        X, tracked = again.vertices, again.tracked
     faces = gt.garment_faces.astype(np.int64)
     bary = np.random.default_rng(0).dirichlet(np.ones(3), size=(len(faces), 24))  # [T, 24, 3]
 
@@ -412,15 +463,20 @@ def surface_error(av, gt, frames: list[int], path: Path) -> SurfaceError:
 
     dist, match = cKDTree(points(frames[ref])).query(X[ref])
     near = dist < 0.02
-    inp = capture_input(av.capture, av.body, av.template, frames, list(av.capture.split.train_views))
-    tr, sk = [], []
+    tr, sk, parts, hem, surface_hem = [], [], [], [], []
+    nan = float("nan")
     for i, f in enumerate(frames):
         truth = points(f)[match[near]]
-        tr.append(float(np.linalg.norm(X[i][near] - truth, axis=-1).mean() * 100) if tracked[i] else float("nan"))
+        on = bool(tracked[i]) or i == ref
+        tr.append(float(np.linalg.norm(X[i][near] - truth, axis=-1).mean() * 100) if on else nan)
         moved = skin_move(inp, X[ref][near], ref, i) if i != ref else X[ref][near]
         sk.append(float(np.linalg.norm(moved - truth, axis=-1).mean() * 100))
+        parts.append(error_parts(X[i][near], truth, inp.up[i]) if on else ErrorParts(nan, nan, nan, nan, nan))
+        hem.append(hem_radius(points(f), inp.up[i]))
+        surface_hem.append(hem_radius(X[i], inp.up[i]) if on else nan)
     return SurfaceError(vertices=int(near.sum()), surface=len(X[ref]), frames_tracked=int(tracked.sum()),
-                        tracked_cm=tuple(tr), skeleton_cm=tuple(sk))
+                        tracked_cm=tuple(tr), skeleton_cm=tuple(sk), parts=tuple(parts), hem_radius_cm=tuple(hem),
+                        surface_hem_radius_cm=tuple(surface_hem), through=through)
 
 
 def _drift(motion: str, spread: torch.Tensor) -> NodeDrift:
@@ -439,9 +495,12 @@ def main(argv: list[str] | None = None) -> TrackingReport:
     ap.add_argument("--patches", default="32,64,128", help="patch counts, comma list")
     ap.add_argument("--flow", action="store_true", help="also part 3: the optical flow against the garment's motion")
     ap.add_argument("--tracks", action="store_true", help="also part 5: long-range tracks (chained and direct flow)")
+    ap.add_argument("--through", action="store_true",
+                    help="part 6: track the fit's reference surface again with the stop rule off (minutes)")
     ap.add_argument("--json", type=Path, default=None)
     args = ap.parse_args(argv)
-    report = measure(args.project, tuple(int(x) for x in args.patches.split(",")), flow=args.flow, tracks=args.tracks)
+    report = measure(args.project, tuple(int(x) for x in args.patches.split(",")), flow=args.flow, tracks=args.tracks,
+                     through=args.through)
     print(f"{report.frames} training frames, {report.garment_vertices} garment vertices (CAPTURE/gt/geometry.npz)")
     print("residual of the garment's canonical motion after each patch's best per-frame motion, cm (mean / p90):")
     print(f"  {'skinning':<15} {'patches':>7}  {'translation':>15}  {'rigid':>15}")
@@ -479,12 +538,16 @@ def main(argv: list[str] | None = None) -> TrackingReport:
         e = report.surface
         tr, sk = np.asarray(e.tracked_cm), np.asarray(e.skeleton_cm)
         on = np.isfinite(tr)
-        print(f"the fit's tracked garment surface ({e.vertices:,} of {e.surface:,} vertices within 2 cm of the true "
+        what = "the reference surface tracked again with the stop rule off" if e.through else "the fit's tracked"
+        print(f"{what} garment surface ({e.vertices:,} of {e.surface:,} vertices within 2 cm of the true "
               f"cloth at the reference frame) against the true cloth, cm: {e.frames_tracked} of {len(tr)} frames "
               f"tracked, mean {np.mean(tr[on]):.2f} there against the skeleton's {np.mean(sk[on]):.2f}; the skeleton "
               f"over all frames {np.mean(sk):.2f}")
-        print("  per frame (tracked / skeleton): " + ", ".join(
-            f"{i}: {'-' if not on[i] else f'{tr[i]:.1f}'}/{sk[i]:.1f}" for i in range(0, len(tr), 4)))
+        print("  frame  tracked skeleton | radial tangential along | hem waist | hem radius: true surface")
+        for i in range(0, len(tr), 4 if len(tr) > 24 else 1):
+            p = e.parts[i]
+            print(f"  {i:5d} {tr[i]:8.1f} {sk[i]:8.1f} | {p.radial:+6.1f} {p.tangential:+10.1f} {p.along:+5.1f} | "
+                  f"{p.hem:4.1f} {p.waist:5.1f} | {e.hem_radius_cm[i]:15.1f} {e.surface_hem_radius_cm[i]:7.1f}")
     if args.json is not None:
         args.json.write_text(json.dumps(asdict(report), indent=1))
     return report

@@ -7,6 +7,7 @@ import json
 import math
 
 import numpy as np
+import pytest
 import torch
 
 
@@ -97,3 +98,26 @@ def test_the_benchmark_measures_a_toy_project(tmp_path):
     assert saved["nodes_on_garment"] == report.nodes_on_garment and len(saved["residuals"]) == 4
     assert saved["flow"]["pairs"] == f.pairs
     assert [t["gap"] for t in saved["tracks"]] == [t.gap for t in tracks]
+
+
+def test_error_parts_split_a_turn_and_a_flare_of_a_ring():
+    """Part 6's split of the tracked surface's error: a ring turned about the up axis errs tangentially, a ring
+    widened radially; the hem radius reads the widening."""
+    from benchmarks.garment_tracking import error_parts, hem_radius
+
+    a = np.linspace(0, 2 * np.pi, 72, endpoint=False)
+    z = np.repeat([0.0, 0.3], 72)  # two rings: the hem (z = 0) and the waist (z = 0.3)
+    ring = np.stack([0.3 * np.cos(np.tile(a, 2)), 0.3 * np.sin(np.tile(a, 2)), z], 1)
+    up = np.array([0.0, 0.0, 1.0])
+    turn = 0.1
+    turned = ring @ np.array([[np.cos(turn), -np.sin(turn), 0], [np.sin(turn), np.cos(turn), 0], [0, 0, 1]]).T
+    p = error_parts(ring, turned, up)  # the tracked ring lags the true one by 0.1 rad: clockwise, 3 cm at 30 cm
+    assert p.tangential == pytest.approx(-100 * 0.3 * np.sin(turn), rel=1e-3)
+    assert abs(p.radial) < 0.2 and abs(p.along) < 1e-9
+    assert p.hem == pytest.approx(p.waist) == pytest.approx(100 * 2 * 0.3 * np.sin(turn / 2), rel=1e-6)
+    flared = ring.copy()
+    flared[:72, :2] *= 4 / 3  # the true hem opens to 40 cm; the tracked surface stays at 30
+    p = error_parts(ring, flared, up)
+    assert p.radial == pytest.approx(-5.0, rel=1e-6) and abs(p.tangential) < 1e-9
+    assert p.hem == pytest.approx(10.0) and p.waist == pytest.approx(0.0, abs=1e-9)
+    assert hem_radius(ring, up) == pytest.approx(30.0) and hem_radius(flared, up) == pytest.approx(40.0)

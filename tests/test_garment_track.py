@@ -208,3 +208,17 @@ def test_the_model_places_tracked_nodes_on_training_frames_only(tmp_path):
     torch.testing.assert_close(again.node_state(cond, mode="zero").centers, after.centers)
     with pytest.raises(ValueError, match="tracks for 3 frames"):
         model.set_tracks(nodes, rot[:2], centre[:2])
+
+
+def test_without_the_stop_rule_every_frame_is_tracked(scene, monkeypatch):
+    """`track(stop=False)` (benchmarks.garment_tracking --through) goes on where the stop rule ends a direction."""
+    inp, verts, faces, truth = scene
+    mesh = gt.GarmentMesh(truth[1], faces, frame=1)
+    monkeypatch.setattr(gt._Tracker, "explains", lambda self, X, fi: 1.0)  # every frame judged lost
+    stopped = gt.track(inp, mesh, ref=1)
+    assert stopped.tracked.tolist() == [False, True, False] and not stopped.vertices[[0, 2]].any()
+    through = gt.track(inp, mesh, ref=1, stop=False)
+    assert through.tracked.all()
+    for f in (0, 2):
+        assert np.linalg.norm(through.vertices[f] - truth[f], axis=-1).mean() < 0.3 * np.linalg.norm(
+            truth[1] - truth[f], axis=-1).mean()

@@ -381,13 +381,14 @@ class _Tracker:
 
 
 def track(inp: TrackingInput, mesh: GarmentMesh, ref: int, settings: TrackSettings = TrackSettings(),
-          progress: ProgressFn | None = None, done: GarmentTracks | None = None) -> GarmentTracks:
+          progress: ProgressFn | None = None, done: GarmentTracks | None = None, stop: bool = True) -> GarmentTracks:
     """Step 2 of the module docstring: the surface `mesh` (at frame index `ref`) through every frame of `inp`, each
     direction until the surface is lost: where the reference colours fit the frame no better with the tracked surface
     than with the reference surface moved by the skeleton alone (`_Tracker.explains`), or the frame's loss exceeds
     `settings.lost` x the median of the direction's first five (a fast twirl); the frames from there on are not
     tracked (the fit places their nodes by the skeleton). `done`: a partial result of the same input to continue
-    (its tracked frames are kept)."""
+    (its tracked frames are kept). `stop=False`: no stop rule, every frame tracked (benchmarks.garment_tracking's
+    `--through`: how the surface is lost)."""
     import time
 
     t0 = time.perf_counter()
@@ -412,9 +413,9 @@ def track(inp: TrackingInput, mesh: GarmentMesh, ref: int, settings: TrackSettin
                 Xpp = out[prev2] if prev2 is not None else None
                 out[f], seen[f], loss[f] = tracker.step(out[prev], Xpp, prev, f)
                 tracker.frames.forget({inp.frames[prev], inp.frames[f], inp.frames[ref]})
-            skeleton = skin_move(inp, mesh.vertices, ref, f)
-            if (len(first) >= 5 and loss[f] > settings.lost * np.median(first)) or \
-                    tracker.explains(out[f], f) >= tracker.explains(skeleton, f):
+            skeleton = skin_move(inp, mesh.vertices, ref, f) if stop else None
+            if stop and ((len(first) >= 5 and loss[f] > settings.lost * np.median(first)) or
+                         tracker.explains(out[f], f) >= tracker.explains(skeleton, f)):
                 out[f], seen[f] = 0.0, 0
                 break  # lost: this frame and the ones after it keep the skeleton's placement
             first = first if len(first) >= 5 else first + [loss[f]]
