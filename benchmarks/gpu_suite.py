@@ -16,6 +16,10 @@ Parts (each timed, each a section of OUT/gpu_suite.json; a part that fails is re
    eval / view), mean of 20 after 3 warm-ups.
 6. `profile`: torch.profiler over 5 such renders: the top operators by device and by host time, and the count of
    host-device synchronisations per render.
+7. `track`: the garment tracker (`fit/garment_track.py`: the reference surface's stereo, then `track`) on a
+   timing scene (a tube of 30 rings 2 cm apart, 72 vertices a ring, in 8 views of 512², 7 frames of random noise,
+   the stop rule off) on the device and on the CPU: seconds each, and the largest distance between their tracked
+   vertices.
 
 `--quick`: tiny sizes, so the script itself runs in the CPU test suite (tests/test_gpu_suite.py) and cannot rot.
 """
@@ -280,8 +284,55 @@ def part_profile(device: str, quick: bool) -> dict:
                            "sync_like_calls": syncs}}
 
 
+def part_track(device: str, quick: bool) -> dict:
+    """Part 7 of the module docstring."""
+    import cv2
+    import numpy as np
+
+    from avatarctl.fit import garment_track as gt
+    from avatarctl.geometry.cameras import Camera, look_at
+
+    size, views, frames, rings, segments = (48, 3, 3, 4, 12) if quick else (512, 8, 7, 30, 72)
+    a = np.linspace(0, 2 * np.pi, segments, endpoint=False)
+    z = np.arange(rings) * 0.02
+    A, Z = np.meshgrid(a, z)
+    tube = np.stack([0.3 * np.cos(A), 0.3 * np.sin(A), Z], -1).reshape(-1, 3)
+    i, j = np.meshgrid(np.arange(rings - 1), np.arange(segments), indexing="ij")
+    p, q = (i * segments + j).ravel(), (i * segments + (j + 1) % segments).ravel()
+    faces = np.concatenate([np.stack([p, p + segments, q], 1), np.stack([q, p + segments, q + segments], 1)])
+    body = np.array([[0.05 * x, 0.05 * y, h] for x in (-1, 1) for y in (-1, 1) for h in (0.0, z[-1])])
+    body_faces = np.array([[0, 1, 3], [0, 3, 2], [4, 6, 7], [4, 7, 5], [0, 4, 5], [0, 5, 1], [2, 3, 7], [2, 7, 6],
+                           [0, 2, 6], [0, 6, 4], [1, 5, 7], [1, 7, 3]])
+    cams = []
+    for c in range(views):
+        t = 2 * np.pi * c / views
+        R, T = look_at(np.array([2.5 * np.cos(t), 2.5 * np.sin(t), 0.6]), np.array([0.0, 0.0, z[-1] / 2]))
+        f = 2.2 * size
+        cams.append(Camera(f"c{c}", np.array([[f, 0, size / 2], [0, f, size / 2], [0, 0, 1]]), R, T, size, size))
+    rng = np.random.default_rng(0)
+    noise = {(c, k): (cv2.GaussianBlur(rng.random((size, size, 3)).astype(np.float32), (0, 0), 2) * 255).astype(
+        np.uint8) for c in range(views) for k in range(frames)}
+    eye = np.broadcast_to(np.eye(4), (1, 4, 4))
+    inp = gt.TrackingInput(frames=tuple(range(frames)), cameras=tuple(cams), image=lambda c, k: noise[(c, k)],
+                           mask=lambda c, k: np.ones((size, size), bool), body_vertices=np.stack([body] * frames),
+                           body_faces=body_faces, body_transforms=lambda fi, v: np.repeat(eye, len(v), 0),
+                           up=np.tile([0.0, 0.0, 1.0], (frames, 1)))
+    mesh = gt.GarmentMesh(tube, faces, frame=frames // 2)
+    settings = gt.TrackSettings(iters=5, stereo_iters=5) if quick else gt.TrackSettings()
+    out, seconds = {}, {}
+    for dev in dict.fromkeys([device, "cpu"]):
+        t0 = time.perf_counter()
+        ref = gt.refine_reference(inp, mesh, frames // 2, settings, device=dev)
+        out[dev] = gt.track(inp, ref, frames // 2, settings, stop=False, device=dev).vertices
+        _sync(dev)
+        seconds[dev] = time.perf_counter() - t0
+    return {"vertices": len(tube), "frames": frames, "views": views, "size": size,
+            "seconds_by_device": {k: round(v, 2) for k, v in seconds.items()},
+            "max_vertex_diff_mm_vs_cpu": float(np.abs(out[device] - out["cpu"]).max() * 1e3)}
+
+
 PARTS = {"env": part_env, "parity": part_parity, "raster": part_raster, "train": part_train, "render": part_render,
-         "density": part_density, "profile": part_profile}
+         "density": part_density, "profile": part_profile, "track": part_track}
 
 
 def main(argv: list[str] | None = None) -> dict:

@@ -20,4 +20,5 @@ def test_gpu_suite_runs_every_part_at_toy_scale(tmp_path):
     assert parts["render"]["ms_per_render"] > 0 and parts["render"]["raster_ms"] > 0
     assert parts["raster"]["table"]["rows"]
     assert parts["density"]["ms_per_million_points"] > 0 and parts["density"]["sigma_max_rel_diff_vs_twin"] < 1e-4
+    assert parts["track"]["seconds_by_device"]["cpu"] > 0 and parts["track"]["max_vertex_diff_mm_vs_cpu"] == 0.0
     assert json.loads((tmp_path / "gpu_suite.json").read_text())["parts"].keys() == parts.keys()

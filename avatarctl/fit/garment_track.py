@@ -26,9 +26,9 @@ first, the way the garment methods of the field do (sequential, warm-started, ap
    the frame's masks (`silhouette`, squared pixels outside). Visibility: a ray from the camera to the vertex hits
    the body or the surface within 1 cm of it (Warp's BVH, `geometry.raycast`), the surface not seen edge-on.
 3. **Node motions** (`node_motions`): each node given to track owns its `patch` nearest surface vertices within
-   `reach` at the reference frame; per frame, the best rigid motion (Kabsch) of those vertices from the reference frame is the
-   node's motion. The fit places the node by it on training frames (`SlrfAvatar.set_tracks`); on frames the
-   tracker did not reach, by the skeleton with the offset of the last tracked frame held (`placement`).
+   `reach` at the reference frame; per frame, the best rigid motion (Kabsch) of those vertices from the reference
+   frame is the node's motion. The fit places the node by it on training frames (`SlrfAvatar.set_tracks`); on
+   frames the tracker did not reach, by the skeleton with the offset of the last tracked frame held (`placement`).
 
 Measured on synth small (docs/fit.md "Garment tracking"): the tracked surface against the true cloth.
 """
@@ -232,8 +232,8 @@ class _Frames:
     `noise_background`, each view's pixels outside its mask are random colours (a uniform background is not a place
     where the views agree)."""
 
-    def __init__(self, inp: TrackingInput, noise_background: bool = False):
-        self.inp, self.noise_background = inp, noise_background
+    def __init__(self, inp: TrackingInput, noise_background: bool = False, device: str | torch.device = "cpu"):
+        self.inp, self.noise_background, self.device = inp, noise_background, torch.device(device)
         self.rgb: dict[tuple[int, float], torch.Tensor] = {}
         self.dt: dict[int, torch.Tensor] = {}
 
@@ -249,7 +249,7 @@ class _Frames:
                     out = ~self.inp.mask(c, frame)
                     im[out] = np.random.default_rng(c).random((int(out.sum()), 3), dtype=np.float32)
                 ims.append(cv2.GaussianBlur(im, (0, 0), sigma) if sigma > 0 else im)
-            self.rgb[key] = torch.as_tensor(np.stack(ims)).permute(0, 3, 1, 2).contiguous()
+            self.rgb[key] = torch.as_tensor(np.stack(ims)).permute(0, 3, 1, 2).contiguous().to(self.device)
         return self.rgb[key]
 
     def outside(self, frame: int) -> torch.Tensor:
@@ -258,7 +258,7 @@ class _Frames:
         if frame not in self.dt:
             d = [cv2.distanceTransform((~self.inp.mask(c, frame)).astype(np.uint8), cv2.DIST_L2, 3)
                  for c in range(len(self.inp.centers))]
-            self.dt[frame] = torch.as_tensor(np.stack(d))[:, None].float()
+            self.dt[frame] = torch.as_tensor(np.stack(d))[:, None].float().to(self.device)
         return self.dt[frame]
 
     def forget(self, keep: set[int]) -> None:
@@ -303,17 +303,18 @@ def skin_move(inp: TrackingInput, X: np.ndarray, fa: int, fb: int) -> np.ndarray
 
 
 class _Tracker:
-    def __init__(self, inp: TrackingInput, mesh: GarmentMesh, ref: int, settings: TrackSettings):
-        self.inp, self.s, self.ref = inp, settings, ref
-        self.frames = _Frames(inp)
-        self.P = torch.as_tensor(inp.projections, dtype=torch.float32)
-        self.faces = torch.as_tensor(mesh.faces)
-        self.edges = torch.as_tensor(mesh.edges)
-        X0 = torch.as_tensor(mesh.vertices, dtype=torch.float32)
+    def __init__(self, inp: TrackingInput, mesh: GarmentMesh, ref: int, settings: TrackSettings,
+                 device: str | torch.device = "cpu"):
+        self.inp, self.s, self.ref, self.dev = inp, settings, ref, torch.device(device)
+        self.frames = _Frames(inp, device=self.dev)
+        self.P = torch.as_tensor(inp.projections, dtype=torch.float32, device=self.dev)
+        self.faces = torch.as_tensor(mesh.faces, device=self.dev)
+        self.edges = torch.as_tensor(mesh.edges, device=self.dev)
+        X0 = torch.as_tensor(mesh.vertices, dtype=torch.float32, device=self.dev)
         self.rest = (X0[self.edges[:, 0]] - X0[self.edges[:, 1]]).norm(dim=-1)
         self.faces_np = mesh.faces
         # the reference colours: per sample, the mean over the views that see it at the reference frame
-        vis = torch.as_tensor(visibility(inp, ref, mesh.vertices, mesh.faces)).float()  # [C, V]
+        vis = torch.as_tensor(visibility(inp, ref, mesh.vertices, mesh.faces), device=self.dev).float()  # [C, V]
         self.tex = {}
         svis = self._sample_vis(vis)
         for sigma in settings.sigmas:
@@ -330,11 +331,12 @@ class _Tracker:
         """How far the reference frame's colours of the surface samples are from frame index `fi`'s images with the
         surface at X (the mean squared difference over the samples the views see there, blur `sigmas[1]`)."""
         sigma = self.s.sigmas[min(1, len(self.s.sigmas) - 1)]
-        svis = self._sample_vis(torch.as_tensor(visibility(self.inp, fi, X, self.faces_np)).float())
+        svis = self._sample_vis(torch.as_tensor(visibility(self.inp, fi, X, self.faces_np), device=self.dev).float())
         tex, has = self.tex[sigma]
         with torch.no_grad():
             c = _sample(self.frames.colour(self.inp.frames[fi], sigma),
-                        _project(self.P, _samples(torch.as_tensor(X, dtype=torch.float32), self.faces)))
+                        _project(self.P, _samples(torch.as_tensor(X, dtype=torch.float32, device=self.dev),
+                                                  self.faces)))
         w = svis * has
         return float((w * ((c - tex) ** 2).sum(-1)).sum() / w.sum().clamp(min=1))
 
@@ -342,12 +344,12 @@ class _Tracker:
         """Frame index fa -> fb (adjacent): -> (vertices [V, 3], views seeing each vertex at fa [V], loss)."""
         s, inp = self.s, self.inp
         vis_np = visibility(inp, fa, Xp, self.faces_np)
-        svis = self._sample_vis(torch.as_tensor(vis_np).float())
+        svis = self._sample_vis(torch.as_tensor(vis_np, device=self.dev).float())
         init = skin_move(inp, Xp, fa, fb)
         if Xpp is not None and s.residual_velocity:
             init = init + s.residual_velocity * (Xp - skin_move(inp, Xpp, 2 * fa - fb, fa))
-        Xp_t = torch.as_tensor(Xp, dtype=torch.float32)
-        X = torch.as_tensor(init, dtype=torch.float32).clone().requires_grad_(True)
+        Xp_t = torch.as_tensor(Xp, dtype=torch.float32, device=self.dev)
+        X = torch.as_tensor(init, dtype=torch.float32, device=self.dev).clone().requires_grad_(True)
         e0, e1 = self.edges[:, 0], self.edges[:, 1]
         dt = self.frames.outside(inp.frames[fb])
         w = svis
@@ -377,18 +379,19 @@ class _Tracker:
                 return loss
 
             loss_value = float(opt.step(closure).detach())
-        return X.detach().numpy().astype(np.float64), vis_np.sum(0), loss_value
+        return X.detach().cpu().numpy().astype(np.float64), vis_np.sum(0), loss_value
 
 
 def track(inp: TrackingInput, mesh: GarmentMesh, ref: int, settings: TrackSettings = TrackSettings(),
-          progress: ProgressFn | None = None, done: GarmentTracks | None = None, stop: bool = True) -> GarmentTracks:
+          progress: ProgressFn | None = None, done: GarmentTracks | None = None, stop: bool = True,
+          device: str | torch.device = "cpu") -> GarmentTracks:
     """Step 2 of the module docstring: the surface `mesh` (at frame index `ref`) through every frame of `inp`, each
     direction until the surface is lost: where the reference colours fit the frame no better with the tracked surface
     than with the reference surface moved by the skeleton alone (`_Tracker.explains`), or the frame's loss exceeds
     `settings.lost` x the median of the direction's first five (a fast twirl); the frames from there on are not
     tracked (the fit places their nodes by the skeleton). `done`: a partial result of the same input to continue
     (its tracked frames are kept). `stop=False`: no stop rule, every frame tracked (benchmarks.garment_tracking's
-    `--through`: how the surface is lost)."""
+    `--through`: how the surface is lost). `device`: where the photometric solve runs (the visibility rays: CPU)."""
     import time
 
     t0 = time.perf_counter()
@@ -403,7 +406,7 @@ def track(inp: TrackingInput, mesh: GarmentMesh, ref: int, settings: TrackSettin
         have = done.tracked.copy()
         have[ref] = True
         out[have], seen[have], loss[have] = done.vertices[have], done.seen[have], done.loss[have]
-    tracker = _Tracker(inp, mesh, ref, settings)
+    tracker = _Tracker(inp, mesh, ref, settings, device)
     tracked = have.copy()
     count = 0
     for direction in (1, -1):
@@ -429,26 +432,27 @@ def track(inp: TrackingInput, mesh: GarmentMesh, ref: int, settings: TrackSettin
                          seconds=time.perf_counter() - t0)
 
 
-def refine_reference(inp: TrackingInput, mesh: GarmentMesh, ref: int, settings: TrackSettings = TrackSettings()
-                     ) -> GarmentMesh:
+def refine_reference(inp: TrackingInput, mesh: GarmentMesh, ref: int, settings: TrackSettings = TrackSettings(),
+                     device: str | torch.device = "cpu") -> GarmentMesh:
     """Multi-view stereo of the reference surface (step 1 of the module docstring): the visual hull lies outside the
     cloth (by centimetres with 8 views), so each vertex is moved along its normal to where the training views agree
     on the colour of the surface samples (the variance over the views that see a sample), with neighbouring offsets
     alike (`stereo_smooth`) and every vertex inside the masks; coarse to fine over `sigmas[:-1]`."""
     if not len(mesh.vertices):
         return mesh
-    frames = _Frames(inp, noise_background=True)
-    P = torch.as_tensor(inp.projections, dtype=torch.float32)
-    faces = torch.as_tensor(mesh.faces)
-    edges = torch.as_tensor(mesh.edges)
-    X0 = torch.as_tensor(mesh.vertices, dtype=torch.float32)
-    n = torch.as_tensor(vertex_normals(mesh.vertices, mesh.faces), dtype=torch.float32)
-    offset = torch.zeros(len(X0), requires_grad=True)
+    dev = torch.device(device)
+    frames = _Frames(inp, noise_background=True, device=dev)
+    P = torch.as_tensor(inp.projections, dtype=torch.float32, device=dev)
+    faces = torch.as_tensor(mesh.faces, device=dev)
+    edges = torch.as_tensor(mesh.edges, device=dev)
+    X0 = torch.as_tensor(mesh.vertices, dtype=torch.float32, device=dev)
+    n = torch.as_tensor(vertex_normals(mesh.vertices, mesh.faces), dtype=torch.float32, device=dev)
+    offset = torch.zeros(len(X0), requires_grad=True, device=dev)
     dt = frames.outside(inp.frames[ref])
     reach = settings.stereo_reach
     for sigma in settings.sigmas[:-1]:
-        X = (X0 + offset.detach()[:, None] * n).numpy().astype(np.float64)
-        vis = torch.as_tensor(visibility(inp, ref, X, mesh.faces)).float()
+        X = (X0 + offset.detach()[:, None] * n).cpu().numpy().astype(np.float64)
+        vis = torch.as_tensor(visibility(inp, ref, X, mesh.faces), device=dev).float()
         tri = (vis[:, faces].min(-1).values > 0).float()
         svis = torch.cat([vis, tri.repeat_interleave(len(_BARY), 1)], 1)  # [C, S]
         k = svis.sum(0)
@@ -473,7 +477,7 @@ def refine_reference(inp: TrackingInput, mesh: GarmentMesh, ref: int, settings: 
 
         opt.step(closure)
     o = (reach * torch.tanh(offset / reach)).detach()
-    return GarmentMesh(vertices=(X0 + o[:, None] * n).numpy().astype(np.float64), faces=mesh.faces,
+    return GarmentMesh(vertices=(X0 + o[:, None] * n).cpu().numpy().astype(np.float64), faces=mesh.faces,
                        frame=mesh.frame)
 
 

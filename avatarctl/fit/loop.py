@@ -435,10 +435,10 @@ def _track_garment(t: "_Trainer", template, hull_count: int) -> tuple[str, float
     inp = gt.capture_input(t.capture, t.body, template, t.train_frames, views)
     ref = len(t.train_frames) // 2
     settings = gt.TrackSettings()
-    mesh = gt.refine_reference(inp, gt.reference_mesh(inp, ref, settings), ref, settings)
+    mesh = gt.refine_reference(inp, gt.reference_mesh(inp, ref, settings), ref, settings, device=t.dev)
     if len(mesh.vertices) < 20:
         return "garment tracking: skipped (the masks show no garment off the body at the reference frame)", 0.0
-    tracks = gt.track(inp, mesh, ref, settings)
+    tracks = gt.track(inp, mesh, ref, settings, device=t.dev)
     model, N = t.model, t.cfg.model.num_nodes
     nodes = torch.arange(N - hull_count, N)
     with torch.no_grad():  # the hull nodes placed by the skeleton on every training frame (Eq. 1, 3, Delta n = 0)
