@@ -466,13 +466,14 @@ def surface_error(av, gt, frames: list[int], path: Path, through: bool = False) 
     tr, sk, parts, hem, surface_hem = [], [], [], [], []
     nan = float("nan")
     for i, f in enumerate(frames):
-        truth = points(f)[match[near]]
+        cloth = points(f)
+        truth = cloth[match[near]]
         on = bool(tracked[i]) or i == ref
         tr.append(float(np.linalg.norm(X[i][near] - truth, axis=-1).mean() * 100) if on else nan)
         moved = skin_move(inp, X[ref][near], ref, i) if i != ref else X[ref][near]
         sk.append(float(np.linalg.norm(moved - truth, axis=-1).mean() * 100))
         parts.append(error_parts(X[i][near], truth, inp.up[i]) if on else ErrorParts(nan, nan, nan, nan, nan))
-        hem.append(hem_radius(points(f), inp.up[i]))
+        hem.append(hem_radius(cloth, inp.up[i]))
         surface_hem.append(hem_radius(X[i], inp.up[i]) if on else nan)
     return SurfaceError(vertices=int(near.sum()), surface=len(X[ref]), frames_tracked=int(tracked.sum()),
                         tracked_cm=tuple(tr), skeleton_cm=tuple(sk), parts=tuple(parts), hem_radius_cm=tuple(hem),

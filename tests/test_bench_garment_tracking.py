@@ -121,3 +121,41 @@ def test_error_parts_split_a_turn_and_a_flare_of_a_ring():
     assert p.radial == pytest.approx(-5.0, rel=1e-6) and abs(p.tangential) < 1e-9
     assert p.hem == pytest.approx(10.0) and p.waist == pytest.approx(0.0, abs=1e-9)
     assert hem_radius(ring, up) == pytest.approx(30.0) and hem_radius(flared, up) == pytest.approx(40.0)
+
+
+def test_part_6_scores_a_fits_tracks_and_tracks_them_again_through(tmp_path):
+    """Part 6 on a toy project whose fit/track/tracks.npz holds the true garment: the fit's tracks score ~0 against
+    the truth on every frame; `--through` tracks its reference surface again over every frame, split per frame."""
+    from fixtures.toy_capture import toy_motion
+    from fixtures.toy_fitted import make_toy_fitted_gaussians
+
+    from avatarctl.body.toy import ToyBody
+    from avatarctl.io.gt_geometry import GT_GEOMETRY
+    from avatarctl.io.project_io import load_project_capture
+    from avatarctl.project import Project
+    from benchmarks.garment_tracking import main
+
+    proj = make_toy_fitted_gaussians(tmp_path, iters=2, per_node=8)
+    body = ToyBody()
+    motion = toy_motion(4)
+    faces = body.template(motion).faces.numpy()
+    garment = body.pose(motion).vertices.numpy() * 1.02
+    (tmp_path / "cap" / GT_GEOMETRY).parent.mkdir()
+    np.savez(tmp_path / "cap" / GT_GEOMETRY, frame_index=np.arange(4), body_vertices=garment / 1.02,
+             body_faces=faces, garment_vertices=garment, garment_faces=faces)
+    frames = list(load_project_capture(Project.open(proj)).split.train_frames)
+    folder = Project.open(proj).paths.fit / "track"
+    folder.mkdir(parents=True, exist_ok=True)
+    F = len(frames)
+    np.savez(folder / "tracks.npz", frames=np.asarray(frames), vertices=garment[frames].astype(np.float32),
+             faces=faces, seen=np.full((F, garment.shape[1]), 2), loss=np.zeros(F), tracked=np.ones(F, bool),
+             reference=F // 2, nodes=np.zeros(0, dtype=np.int64))
+    plain = main([str(proj), "--patches", "4"]).surface
+    assert plain is not None and not plain.through and plain.frames_tracked == F and plain.vertices > 0
+    assert max(plain.tracked_cm) < 0.5  # the tracks are the truth (to the 24-point matching)
+    assert len(plain.parts) == len(plain.hem_radius_cm) == len(plain.surface_hem_radius_cm) == F
+    assert all(abs(p.radial) < 0.5 and abs(p.tangential) < 0.5 for p in plain.parts)
+    again = main([str(proj), "--patches", "4", "--through"]).surface
+    assert again.through and again.frames_tracked == F and len(again.parts) == F
+    assert all(math.isfinite(x) for x in again.tracked_cm + again.surface_hem_radius_cm)
+    assert again.tracked_cm[F // 2] == plain.tracked_cm[F // 2]  # the reference frame is not re-tracked
