@@ -440,9 +440,21 @@ def measure(project_dir: str | Path, patch_counts: tuple[int, ...] = (32, 64, 12
                           if tracks else None)
 
 
+def saved_settings(summary: Path):
+    """The `TrackSettings` the fit's tracker ran with (fit/track/summary.json's "settings"); today's defaults when the
+    summary does not hold them."""
+    import json
+
+    from avatarctl.fit.garment_track import TrackSettings
+
+    saved = json.loads(summary.read_text()).get("settings", {}) if summary.is_file() else {}
+    known = set(TrackSettings.__dataclass_fields__)
+    return TrackSettings(**{k: tuple(v) if isinstance(v, list) else v for k, v in saved.items() if k in known})
+
+
 def surface_error(av, gt, frames: list[int], path: Path, through: bool = False) -> SurfaceError:
     """Part 6 of the module docstring for the tracks in `path` (fit/garment_track.py's surface per frame);
-    `through`: the saved reference surface tracked again with the stop rule off."""
+    `through`: the saved reference surface tracked again with the stop rule off, with the fit's tracker settings."""
     from scipy.spatial import cKDTree
 
     from avatarctl.fit.garment_track import GarmentMesh, capture_input, skin_move, track
@@ -453,7 +465,8 @@ def surface_error(av, gt, frames: list[int], path: Path, through: bool = False) 
     ref = int(d["reference"])  # frame index of the reference surface
     inp = capture_input(av.capture, av.body, av.template, frames, list(av.capture.split.train_views))
     if through:
-        again = track(inp, GarmentMesh(X[ref], d["faces"].astype(np.int64), frames[ref]), ref, stop=False)
+        again = track(inp, GarmentMesh(X[ref], d["faces"].astype(np.int64), frames[ref]), ref,
+                      saved_settings(path.parent / "summary.json"), stop=False)
         X, tracked = again.vertices, again.tracked
     faces = gt.garment_faces.astype(np.int64)
     bary = np.random.default_rng(0).dirichlet(np.ones(3), size=(len(faces), 24))  # [T, 24, 3]

@@ -159,3 +159,15 @@ def test_part_6_scores_a_fits_tracks_and_tracks_them_again_through(tmp_path):
     assert again.through and again.frames_tracked == F and len(again.parts) == F
     assert all(math.isfinite(x) for x in again.tracked_cm + again.surface_hem_radius_cm)
     assert again.tracked_cm[F // 2] == plain.tracked_cm[F // 2]  # the reference frame is not re-tracked
+
+
+def test_through_tracks_with_the_fits_saved_settings(tmp_path):
+    """`--through` re-tracks with the settings fit/track/summary.json says the fit's tracker ran with (lists back to
+    tuples, keys this version does not know ignored); today's defaults without a summary."""
+    from avatarctl.fit.garment_track import TrackSettings
+    from benchmarks.garment_tracking import saved_settings
+
+    path = tmp_path / "summary.json"
+    path.write_text(json.dumps({"settings": {"iters": 7, "sigmas": [2.0, 1.0], "gone": 1}}))
+    assert saved_settings(path) == TrackSettings(iters=7, sigmas=(2.0, 1.0))
+    assert saved_settings(tmp_path / "missing.json") == TrackSettings()
