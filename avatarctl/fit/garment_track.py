@@ -18,7 +18,8 @@ first, the way the garment methods of the field do (sequential, warm-started, ap
 2. **Tracking** (`track`): from the reference frame forwards, then backwards, each frame's surface starts from the
    previous one moved by the skeleton (each vertex by the blended transform of its nearest body vertex, Eq. 1) plus
    the previous step's motion beyond the skeleton (constant velocity), and is then solved by L-BFGS over an image
-   pyramid (Gaussian blur `sigmas`, pixels) for: the colour of each surface sample (vertices and 4 points per
+   pyramid (Gaussian blur `sigmas`, pixels: 1 then 0.5; the start is within a few pixels, and a coarser level blurs
+   the print away, whose minimum then pulls a twirling skirt off the cloth) for: the colour of each surface sample (vertices and 4 points per
    triangle) in every training view that saw it at the previous frame equal to its colour there (the appearance is
    the previous frame's images, frozen: only moving the surface lowers the loss), plus `anchor` x the same against
    the reference frame's mean colour of the sample (no drift where the reference colour is right); edge lengths
@@ -51,7 +52,8 @@ class TrackSettings:
     """The tracker's weights (module docstring, step 2); each term in its own unit, weighted against the photometric
     term (mean squared colour difference x 1e3)."""
 
-    sigmas: tuple[float, ...] = (4.0, 2.0, 1.0, 0.5)  # image blur per pyramid level, pixels, coarse to fine
+    sigmas: tuple[float, ...] = (1.0, 0.5)  # the tracker's image blur per pyramid level, pixels, coarse to fine
+    stereo_sigmas: tuple[float, ...] = (4.0, 2.0, 1.0)  # the reference stereo's, pixels, coarse to fine
     iters: int = 30  # L-BFGS iterations per level
     isometry: float = 10.0  # (edge length - reference length)^2, cm^2
     smooth: float = 10.0  # |displacement_i - displacement_j|^2 over edges, cm^2
@@ -437,7 +439,7 @@ def refine_reference(inp: TrackingInput, mesh: GarmentMesh, ref: int, settings: 
     """Multi-view stereo of the reference surface (step 1 of the module docstring): the visual hull lies outside the
     cloth (by centimetres with 8 views), so each vertex is moved along its normal to where the training views agree
     on the colour of the surface samples (the variance over the views that see a sample), with neighbouring offsets
-    alike (`stereo_smooth`) and every vertex inside the masks; coarse to fine over `sigmas[:-1]`."""
+    alike (`stereo_smooth`) and every vertex inside the masks; coarse to fine over `stereo_sigmas`."""
     if not len(mesh.vertices):
         return mesh
     dev = torch.device(device)
@@ -450,7 +452,7 @@ def refine_reference(inp: TrackingInput, mesh: GarmentMesh, ref: int, settings: 
     offset = torch.zeros(len(X0), requires_grad=True, device=dev)
     dt = frames.outside(inp.frames[ref])
     reach = settings.stereo_reach
-    for sigma in settings.sigmas[:-1]:
+    for sigma in settings.stereo_sigmas:
         X = (X0 + offset.detach()[:, None] * n).cpu().numpy().astype(np.float64)
         vis = torch.as_tensor(visibility(inp, ref, X, mesh.faces), device=dev).float()
         tri = (vis[:, faces].min(-1).values > 0).float()
