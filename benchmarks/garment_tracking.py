@@ -440,11 +440,9 @@ def measure(project_dir: str | Path, patch_counts: tuple[int, ...] = (32, 64, 12
                           if tracks else None)
 
 
-def saved_settings(summary: Path):
+def saved_settings(summary: Path) -> "TrackSettings":
     """The `TrackSettings` the fit's tracker ran with (fit/track/summary.json's "settings"); today's defaults when the
     summary does not hold them."""
-    import json
-
     from avatarctl.fit.garment_track import TrackSettings
 
     saved = json.loads(summary.read_text()).get("settings", {}) if summary.is_file() else {}

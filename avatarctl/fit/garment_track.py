@@ -19,13 +19,14 @@ first, the way the garment methods of the field do (sequential, warm-started, ap
    previous one moved by the skeleton (each vertex by the blended transform of its nearest body vertex, Eq. 1) plus
    the previous step's motion beyond the skeleton (constant velocity), and is then solved by L-BFGS over an image
    pyramid (Gaussian blur `sigmas`, pixels: 1 then 0.5; the start is within a few pixels, and a coarser level blurs
-   the print away, whose minimum then pulls a twirling skirt off the cloth) for: the colour of each surface sample (vertices and 4 points per
-   triangle) in every training view that saw it at the previous frame equal to its colour there (the appearance is
-   the previous frame's images, frozen: only moving the surface lowers the loss), plus `anchor` x the same against
-   the reference frame's mean colour of the sample (no drift where the reference colour is right); edge lengths
-   kept (`isometry`, the cloth does not stretch), neighbouring vertices moving alike (`smooth`), every vertex inside
-   the frame's masks (`silhouette`, squared pixels outside). Visibility: a ray from the camera to the vertex hits
-   the body or the surface within 1 cm of it (Warp's BVH, `geometry.raycast`), the surface not seen edge-on.
+   the print away, whose minimum then pulls a twirling skirt off the cloth) for: the colour of each surface sample
+   (vertices and 4 points per triangle) in every training view that saw it at the previous frame equal to its colour
+   there (the appearance is the previous frame's images, frozen: only moving the surface lowers the loss), plus
+   `anchor` x the same against the reference frame's mean colour of the sample (no drift where the reference colour
+   is right); edge lengths kept (`isometry`, the cloth does not stretch), neighbouring vertices moving alike
+   (`smooth`), every vertex inside the frame's masks (`silhouette`, squared pixels outside). Visibility: a ray from
+   the camera to the vertex hits the body or the surface within 1 cm of it (Warp's BVH, `geometry.raycast`), the
+   surface not seen edge-on.
 3. **Node motions** (`node_motions`): each node given to track owns its `patch` nearest surface vertices within
    `reach` at the reference frame; per frame, the best rigid motion (Kabsch) of those vertices from the reference
    frame is the node's motion. The fit places the node by it on training frames (`SlrfAvatar.set_tracks`); on
