@@ -297,9 +297,7 @@ def part_track(device: str, quick: bool) -> dict:
     z = np.arange(rings) * 0.02
     A, Z = np.meshgrid(a, z)
     tube = np.stack([0.3 * np.cos(A), 0.3 * np.sin(A), Z], -1).reshape(-1, 3)
-    i, j = np.meshgrid(np.arange(rings - 1), np.arange(segments), indexing="ij")
-    p, q = (i * segments + j).ravel(), (i * segments + (j + 1) % segments).ravel()
-    faces = np.concatenate([np.stack([p, p + segments, q], 1), np.stack([q, p + segments, q + segments], 1)])
+    faces = gt.tube_faces(rings, segments)
     body = np.array([[0.05 * x, 0.05 * y, h] for x in (-1, 1) for y in (-1, 1) for h in (0.0, z[-1])])
     body_faces = np.array([[0, 1, 3], [0, 3, 2], [4, 6, 7], [4, 7, 5], [0, 4, 5], [0, 5, 1], [2, 3, 7], [2, 7, 6],
                            [0, 2, 6], [0, 6, 4], [1, 5, 7], [1, 7, 3]])

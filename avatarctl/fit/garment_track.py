@@ -154,6 +154,15 @@ class NodeMotions:
 
 
 # ---- 1. reference surface ---------------------------------------------------------------------------------------
+def tube_faces(rings: int, segments: int) -> np.ndarray:
+    """[2 (rings - 1) segments, 3] int64 triangles of a tube whose vertices are `rings` rings of `segments`, ring by
+    ring (vertex r * segments + k), each ring closed."""
+    i, j = np.meshgrid(np.arange(rings - 1), np.arange(segments), indexing="ij")
+    a, b = (i * segments + j).ravel(), (i * segments + (j + 1) % segments).ravel()
+    return np.concatenate([np.stack([a, a + segments, b], 1), np.stack([b, a + segments, b + segments], 1)]
+                          ).astype(np.int64)
+
+
 def reference_mesh(inp: TrackingInput, ref: int, settings: TrackSettings = TrackSettings()) -> GarmentMesh:
     """Step 1 of the module docstring at frame index `ref` of `inp` (before the stereo). An empty mesh when nothing
     is off the body."""
@@ -217,9 +226,7 @@ def reference_mesh(inp: TrackingInput, ref: int, settings: TrackSettings = Track
     R = gaussian_filter(R, 0.7, mode=("nearest", "wrap"))
     verts = (centres[:, None] + heights[:, None, None] * up + R[..., None] * ray[None]).reshape(-1, 3)
     A = settings.tube_segments
-    i, j = np.meshgrid(np.arange(len(heights) - 1), np.arange(A), indexing="ij")
-    a, b = (i * A + j).ravel(), (i * A + (j + 1) % A).ravel()
-    faces = np.concatenate([np.stack([a, a + A, b], 1), np.stack([b, a + A, b + A], 1)]).astype(np.int64)
+    faces = tube_faces(len(heights), A)
     outward = verts - np.repeat(centres, A, 0) - (verts @ up)[:, None] * up
     if (np.einsum("vi,vi->v", vertex_normals(verts, faces), outward) < 0).mean() > 0.5:
         faces = faces[:, [0, 2, 1]]
