@@ -14,6 +14,9 @@ stays a blur"):
    mean; "tracked" when the fit placed nodes by its garment tracking, `track`: those nodes by the tracks) and with
    Delta n = 0 (the skeleton alone). A node that follows the cloth has a small spread. Per frame
    (median and p90 over the nodes) and per node (mean over the frames): where the motion loses the cloth.
+   Gaussian-field avatars, the cloth as drawn: every garment vertex in the frame of the node whose live Gaussian
+   (opacity >= 0.05, posed at the first training frame) is nearest to it, the same spread over all vertices
+   (`drawn_drift`): a node near the cloth need not be the one drawing it (a hull node sits in the garment's volume).
 3. **Would optical flow tell where the cloth moves?** (`--flow`, no model needed): OpenCV's Farnebäck optical flow
    (pyramid of 4 levels at scale 0.5, window 15, 5 iterations; better here than DIS at any preset: median error 0.55
    px against DIS medium 0.69, fast 1.27, ultrafast 1.30, all with a p90 of 6.6-6.9 px) between
@@ -118,6 +121,7 @@ class TrackingReport:
     gaussian_motion: GaussianMotion | None = None  # Gaussian-field avatars only
     tracks: tuple[TrackError, ...] | None = None  # part 5 (--tracks)
     tracked_nodes: int = 0  # nodes the fit placed by its garment tracking on training frames (`track`)
+    drawn: tuple[NodeDrift, ...] = ()  # part 2 over every garment vertex, in the frame of the node drawing it
     surface: "SurfaceError | None" = None  # part 6 (a fit with `track=true`)
 
 
@@ -227,6 +231,21 @@ def node_drift(centers: torch.Tensor, linear: torch.Tensor, garment: torch.Tenso
     _, vert = cKDTree(garment[0].numpy()).query(centers[0, on].numpy())
     v = torch.as_tensor(vert).reshape(-1)
     off = (torch.linalg.inv(linear[:, on]) @ (garment[:, v] - centers[:, on])[..., None])[..., 0]  # [F, M, 3]
+    return (off - off.mean(0)).norm(dim=-1).T
+
+
+def drawn_drift(centers: torch.Tensor, linear: torch.Tensor, garment: torch.Tensor, means: torch.Tensor,
+                opacity: torch.Tensor, per_node: int, min_opacity: float = 0.05) -> torch.Tensor:
+    """Part 2's second measure: centers [F, N, 3] posed nodes, linear [F, N, 3, 3] their A_i, garment [F, P, 3],
+    means [G, 3] and opacity [G] the posed Gaussians at frame 0 (node-major, `per_node` a node) -> the spread [P, F]
+    (metres) of each garment vertex's offset in the frame of the node whose live Gaussian (opacity >= `min_opacity`)
+    is nearest to it at frame 0: the node that draws it."""
+    from scipy.spatial import cKDTree
+
+    live = torch.nonzero(opacity >= min_opacity).reshape(-1)
+    _, j = cKDTree(means[live].numpy()).query(garment[0].numpy())
+    node = live[torch.as_tensor(j)] // per_node  # [P]
+    off = (torch.linalg.inv(linear[:, node]) @ (garment - centers[:, node])[..., None])[..., 0]  # [F, P, 3]
     return (off - off.mean(0)).norm(dim=-1).T
 
 
@@ -427,8 +446,17 @@ def measure(project_dir: str | Path, patch_counts: tuple[int, ...] = (32, 64, 12
     drift = [_drift("tracked" if tracked else "learned",
                     node_drift(state.centers.double(), state.transforms.double()[..., :3, :3], garment, on)),
              _drift("skeleton", node_drift(skeleton, Tb[..., :3, :3], garment, on))]
+    drawn = ()
+    if m.field_kind.splats:
+        with torch.no_grad():
+            posed = m.posed_gaussians(state)
+        args = (garment, posed.means[0].double(), posed.opacities[0].double(), m.fields.per_node)
+        drawn = (_drift("tracked" if tracked else "learned", drawn_drift(state.centers.double(),
+                                                                         state.transforms.double()[..., :3, :3],
+                                                                         *args)),
+                 _drift("skeleton", drawn_drift(skeleton, Tb[..., :3, :3], *args)))
     track_file = project.paths.fit / "track" / "tracks.npz"
-    return TrackingReport(frames=len(frames), garment_vertices=int(garment.shape[1]), nodes_on_garment=len(on),
+    return TrackingReport(drawn=drawn, frames=len(frames), garment_vertices=int(garment.shape[1]), nodes_on_garment=len(on),
                           nodes=tuple(on.tolist()), tracked_nodes=tracked,
                           surface=surface_error(av, gt, frames, track_file, through) if track_file.is_file()
                           else None,
@@ -529,6 +557,11 @@ def main(argv: list[str] | None = None) -> TrackingReport:
         print(f"  {d.motion:<9} {d.mean_cm:6.2f} / {d.p90_cm:6.2f}   frames "
               + ", ".join(f"{i} ({d.frame_median_cm[i]:.1f})" for i in worst) + "   nodes "
               + ", ".join(f"{report.nodes[i]} ({d.node_mean_cm[i]:.1f})" for i in nodes))
+    if report.drawn:
+        print("spread of every garment vertex in the frame of the node whose Gaussian draws it (the nearest live one "
+              "at the first frame), cm (mean / p90):")
+        for d in report.drawn:
+            print(f"  {d.motion:<9} {d.mean_cm:6.2f} / {d.p90_cm:6.2f}")
     if report.flow is not None:
         f = report.flow
         print(f"optical flow (OpenCV Farneback) between consecutive training frames, {f.pairs} view pairs, "

@@ -52,6 +52,24 @@ def test_a_node_that_moves_with_the_garment_has_no_spread_and_a_still_one_has():
     assert float(spread[0].max()) < 1e-12 and float(spread[1].mean()) > 0.05
 
 
+def test_the_garment_is_measured_in_the_frame_of_the_node_that_draws_it():
+    from benchmarks.garment_tracking import drawn_drift
+
+    F = 4
+    garment = torch.stack([torch.tensor([[0.1 * t, 0.0, 0.0], [0.1 * t, 0.0, 1.0]], dtype=torch.float64)
+                           for t in range(F)])  # two vertices moving alike
+    centers = torch.stack([garment[:, 0], torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64).expand(F, 3)], 1)
+    linear = torch.eye(3, dtype=torch.float64).expand(F, 2, 3, 3)  # node 0 follows the garment, node 1 stands still
+    # Gaussians (2 a node): node 0's first draws vertex 1 (which lies on node 1's centre), node 1's first draws
+    # vertex 0; node 1's second sits on vertex 1 but is dead
+    means = torch.tensor([[0.0, 0.0, 0.95], [5.0, 5.0, 5.0], [0.0, 0.0, 0.02], [0.0, 0.0, 1.0]], dtype=torch.float64)
+    opacity = torch.tensor([0.9, 0.9, 0.9, 0.01], dtype=torch.float64)
+    spread = drawn_drift(centers, linear, garment, means, opacity, per_node=2)
+    assert spread.shape == (2, F)
+    assert float(spread[1].max()) < 1e-12  # drawn by node 0, which follows it
+    assert float(spread[0].mean()) > 0.05  # drawn by the still node 1
+
+
 def test_the_benchmark_measures_a_toy_project(tmp_path):
     from fixtures.toy_capture import toy_motion
     from fixtures.toy_fitted import make_toy_fitted_gaussians
@@ -76,7 +94,8 @@ def test_the_benchmark_measures_a_toy_project(tmp_path):
         ("nearest vertex", 4), ("nearest vertex", 8), ("root", 4), ("root", 8)]
     for r in report.residuals:
         assert all(math.isfinite(v) and v >= 0 for v in (r.translation_cm, r.rigid_cm, r.translation_p90_cm))
-    assert [d.motion for d in report.drift] == ["learned", "skeleton"]
+    assert [d.motion for d in report.drift] == [d.motion for d in report.drawn] == ["learned", "skeleton"]
+    assert all(math.isfinite(d.mean_cm) and d.p90_cm >= 0 for d in report.drawn)
     assert report.nodes_on_garment > 0 and all(math.isfinite(d.mean_cm) for d in report.drift)
     assert len(report.nodes) == report.nodes_on_garment
     for d in report.drift:  # where the motion loses the cloth: per training frame and per node on the garment

@@ -181,7 +181,7 @@ def test_the_model_places_tracked_nodes_on_training_frames_only(tmp_path):
     body = ToyBody()
     motion = toy_motion(3)
     template = body.template(motion)
-    model = SlrfAvatar(ModelConfig(num_nodes=16), template, num_frames=3)
+    model = SlrfAvatar(ModelConfig(num_nodes=16), template, num_frames=3).eval()  # eval: every frame by its tracks
     posed = body.pose(motion)
     J = posed.joint_transforms.shape[1]
     cond = FrameConditioning(posed.joint_transforms.float(), torch.zeros(3, J, 3), torch.linspace(0, 1, 3),
@@ -208,6 +208,39 @@ def test_the_model_places_tracked_nodes_on_training_frames_only(tmp_path):
     torch.testing.assert_close(again.node_state(cond, mode="zero").centers, after.centers)
     with pytest.raises(ValueError, match="tracks for 3 frames"):
         model.set_tracks(nodes, rot[:2], centre[:2])
+
+
+def test_in_training_a_share_of_the_frames_keeps_the_paper_placement():
+    """`model.track_free`: in a training step each training frame's tracked nodes keep the skeleton + Delta n
+    placement with that probability (L_track still over every frame); in eval every training frame is tracked."""
+    from fixtures.toy_capture import toy_motion
+
+    from avatarctl.body.toy import ToyBody
+    from avatarctl.model import ModelConfig
+    from avatarctl.model.avatar import FrameConditioning, SlrfAvatar
+
+    body = ToyBody()
+    motion = toy_motion(3)
+    template = body.template(motion)
+    model = SlrfAvatar(ModelConfig(num_nodes=16, track_free=0.5), template, num_frames=3)
+    J = body.pose(motion).joint_transforms.shape[1]
+    ids = torch.arange(60) % 3
+    cond = FrameConditioning(body.pose(motion).joint_transforms.float()[ids], torch.zeros(60, J, 3),
+                             torch.linspace(0, 1, 60), ids)
+    bare = model.node_state(cond, mode="zero")
+    nodes = torch.tensor([3, 5])
+    centre = torch.arange(18, dtype=torch.float32).reshape(3, 2, 3)
+    model.set_tracks(nodes, torch.eye(3).expand(3, 2, 3, 3).clone(), centre)
+    torch.manual_seed(0)
+    trained = model.train().node_state(cond, mode="zero")
+    by_tracks = (trained.centers[:, nodes] == centre[ids]).all(-1).all(-1)
+    by_paper = torch.isclose(trained.centers[:, nodes], bare.centers[:, nodes]).all(-1).all(-1)
+    assert (by_tracks ^ by_paper).all() and 15 <= int(by_paper.sum()) <= 45  # each frame one way, about half each
+    torch.testing.assert_close(trained.track_penalty,
+                               ((bare.centers[:, nodes] - centre[ids]) ** 2).sum((-2, -1)).mean())
+    assert (model.eval().node_state(cond, mode="zero").centers[:, nodes] == centre[ids]).all()
+    with pytest.raises(ValueError, match="track_free"):
+        ModelConfig(track_free=1.0)
 
 
 def test_without_the_stop_rule_every_frame_is_tracked(scene, monkeypatch):

@@ -137,6 +137,7 @@ KNOBS: dict[str, tuple[str, str]] = {
     "model.occupancy.enabled": ("mlp", "empty-space skipping (deviation)"),
     "model.hull.nodes": ("any", "nodes off the body: K, 0 or auto (deviation)"),
     "model.novel_latent": ("any", "z of novel poses: zero (the paper) or train_mean (deviation)"),
+    "model.track_free": ("any", "with track: the share of training frames a step places the paper's way (deviation)"),
     "model.pose_refine.enabled": ("any", "per-frame body-pose refinement: true, false or auto (deviation)"),
     "model.colour.enabled": ("any", "a colour transform per training camera, learned with the avatar (deviation)"),
     # the Gaussian fields' knobs the docs teach (each a measured choice against 3DGS's)

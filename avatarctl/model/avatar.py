@@ -272,14 +272,21 @@ class SlrfAvatar(nn.Module):
         """-> (T, centers) with the tracked nodes placed on training frames, and L_track: the mean over those frames of
         sum over the tracked nodes of |n_i - c_i|^2 (Eq. 3's centre with its Delta n against the tracked centre,
         metres^2), so that Delta n learns the tracked placement and predicts it on novel poses (None: no training
-        frame here)."""
+        frame here). In training, each frame keeps the paper's placement with probability `cfg.track_free` (the
+        global RNG): the garment is drawn from where Delta n puts it there too, as on novel poses."""
         train = (frame_ids >= 0).nonzero(as_tuple=True)[0]
         if not train.numel():
             return T, centers, None
-        nodes, f = self.track_nodes, frame_ids[train]
+        nodes = self.track_nodes
+        c = self.track_center[frame_ids[train]].to(T.dtype)  # [b, M, 3]
+        penalty = ((centers[train][:, nodes] - c) ** 2).sum(dim=(-2, -1)).mean()
+        if self.training and self.cfg.track_free > 0:  # a share of the frames placed the paper's way this step
+            train = train[(torch.rand(train.numel()) >= self.cfg.track_free).to(train.device)]
+            if not train.numel():
+                return T, centers, penalty
+        f = frame_ids[train]
         R = self.track_rotation[f].to(T.dtype)  # [b, M, 3, 3]
         c = self.track_center[f].to(T.dtype)  # [b, M, 3]
-        penalty = ((centers[train][:, nodes] - c) ** 2).sum(dim=(-2, -1)).mean()
         T, centers = T.clone(), centers.clone()
         b = train[:, None]
         T[b, nodes[None], :3, :3] = R

@@ -339,6 +339,10 @@ class ModelConfig:
     # and never sees z = 0; issue 18, docs/experiments/garment_latent_2026-11-26)
     novel_latent: str = "zero"
     pose_refine: PoseRefineConfig = PoseRefineConfig()  # per-frame body-pose refinement (deviation when on)
+    # garment tracks (a deviation, fit `track`; `SlrfAvatar._tracked`): in each training step this share of the batch's
+    # training frames places the tracked nodes the paper's way (skeleton + Delta n, Eq. 1-3) instead of by the
+    # tracks, so the garment is also learned where the model's own Delta n puts it, as on novel poses
+    track_free: float = 0.3
     colour: ColourConfig = ColourConfig()  # a colour transform per training camera (deviation when on, model/colour.py)
     # pose condition (Eq. 8)
     pose_attention_hops: int = 2
@@ -396,6 +400,7 @@ class ModelConfig:
         need(self.sigma > 0, f"sigma must be > 0 (metres), got {self.sigma}")
         need(0 < self.eps < 1, f"eps must be in (0, 1), got {self.eps}")
         need(self.latent in LATENTS, f"latent must be one of {LATENTS}, got {self.latent!r}")
+        need(0.0 <= self.track_free < 1.0, f"track_free must be in [0, 1), got {self.track_free!r}")
         need(self.novel_latent in NOVEL_LATENTS, f"novel_latent must be one of {NOVEL_LATENTS}, got "
              f"{self.novel_latent!r}")
         need(self.variant in VARIANTS, f"variant must be one of {VARIANTS}, got {self.variant!r}")
