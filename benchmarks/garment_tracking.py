@@ -50,7 +50,7 @@ from __future__ import annotations
 
 import argparse
 import json
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -451,13 +451,13 @@ def measure(project_dir: str | Path, patch_counts: tuple[int, ...] = (32, 64, 12
         with torch.no_grad():
             posed = m.posed_gaussians(state)
         args = (garment, posed.means[0].double(), posed.opacities[0].double(), m.fields.per_node)
-        drawn = (_drift("tracked" if tracked else "learned", drawn_drift(state.centers.double(),
-                                                                         state.transforms.double()[..., :3, :3],
-                                                                         *args)),
-                 _drift("skeleton", drawn_drift(skeleton, Tb[..., :3, :3], *args)))
+        drawn = tuple(replace(_drift(name, drawn_drift(c, A, *args)), node_mean_cm=())  # per frame, not per vertex
+                      for name, c, A in (("tracked" if tracked else "learned", state.centers.double(),
+                                          state.transforms.double()[..., :3, :3]),
+                                         ("skeleton", skeleton, Tb[..., :3, :3])))
     track_file = project.paths.fit / "track" / "tracks.npz"
-    return TrackingReport(drawn=drawn, frames=len(frames), garment_vertices=int(garment.shape[1]), nodes_on_garment=len(on),
-                          nodes=tuple(on.tolist()), tracked_nodes=tracked,
+    return TrackingReport(frames=len(frames), garment_vertices=int(garment.shape[1]), nodes_on_garment=len(on),
+                          nodes=tuple(on.tolist()), tracked_nodes=tracked, drawn=drawn,
                           surface=surface_error(av, gt, frames, track_file, through) if track_file.is_file()
                           else None,
                           residuals=tuple(residuals), drift=tuple(drift),
