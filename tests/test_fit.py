@@ -83,7 +83,8 @@ def test_presets_are_stated_once_and_the_defaults_are_the_paper():
     mlp_only = dict(node_width=c.model.node_width, node_depth=c.model.node_depth, feature_dim=c.model.feature_dim,
                     head_width=c.model.head_width, occupancy=c.model.occupancy)
     assert g.model.with_(field="mlp", cvae_width=c.model.cvae_width, colour=c.model.colour, **mlp_only) == c.model
-    assert replace(g, model=c.model, preset="cpu-mlp", rays_per_batch=c.rays_per_batch) == c
+    assert g.track and not c.track  # garment tracking: measured with the Gaussian fields only
+    assert replace(g, model=c.model, preset="cpu-mlp", rays_per_batch=c.rays_per_batch, track=False) == c
     assert preset("gaussians") == g
     # configs saved under the old names read as the presets' names now (the settings are the saved ones)
     assert FitConfig.from_json({**g.to_json(), "preset": "gaussians"}) == g
