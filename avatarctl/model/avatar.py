@@ -277,16 +277,15 @@ class SlrfAvatar(nn.Module):
         train = (frame_ids >= 0).nonzero(as_tuple=True)[0]
         if not train.numel():
             return T, centers, None
-        nodes = self.track_nodes
-        c = self.track_center[frame_ids[train]].to(T.dtype)  # [b, M, 3]
+        nodes, f = self.track_nodes, frame_ids[train]
+        c = self.track_center[f].to(T.dtype)  # [b, M, 3]
         penalty = ((centers[train][:, nodes] - c) ** 2).sum(dim=(-2, -1)).mean()
         if self.training and self.cfg.track_free > 0:  # a share of the frames placed the paper's way this step
-            train = train[(torch.rand(train.numel()) >= self.cfg.track_free).to(train.device)]
-            if not train.numel():
+            keep = (torch.rand(train.numel()) >= self.cfg.track_free).to(train.device)
+            if not keep.any():
                 return T, centers, penalty
-        f = frame_ids[train]
+            train, f, c = train[keep], f[keep], c[keep]
         R = self.track_rotation[f].to(T.dtype)  # [b, M, 3, 3]
-        c = self.track_center[f].to(T.dtype)  # [b, M, 3]
         T, centers = T.clone(), centers.clone()
         b = train[:, None]
         T[b, nodes[None], :3, :3] = R
