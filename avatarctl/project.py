@@ -12,6 +12,7 @@ Layout (see docs/project_dir.md)::
       ingest/benchmark.json             the named benchmark protocol ingest applied (`ingest --benchmark`), if any
       ingest/camera_colour.json         each camera's colour gains from the body's colours across cameras (2+ cameras)
       ingest/contact_sheet.png          frames with the posed body overlaid, for a person to check
+      ingest/keypoints.npz              the person detector's 2D keypoints per view (when ingest detected people)
       fit/config.json                   resolved fit config
       fit/log.jsonl                     one JSON record per logged step
       fit/checkpoints/step_<step:08d>.pt, fit/checkpoints/latest.pt
@@ -89,6 +90,10 @@ class ProjectPaths:
     @property
     def camera_colour(self) -> Path:
         return self.ingest / "camera_colour.json"
+
+    @property
+    def keypoints(self) -> Path:
+        return self.ingest / "keypoints.npz"
 
     @property
     def ingest_contact_sheet(self) -> Path:

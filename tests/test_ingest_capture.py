@@ -99,6 +99,76 @@ def test_anny_fit_recovers_a_known_pose_from_its_keypoints():
     assert motion.body_model == "anny" and motion.pose_parameters.shape == (3, 104, 4, 4)
 
 
+def test_anny_keypoint_offsets_turn_with_their_bones():
+    """A keypoint's offset (in its bone's rest frame) is added after the bone's rotation from rest to the pose, the
+    rotation of the skinning transform `BodyModel.pose` gives (what benchmarks.keypoint_offsets measures in); a
+    keypoint without an offset stays anny's COCO point; an unknown bone is refused."""
+    import roma
+    import torch
+
+    from avatarctl.body.anny_model import AnnyBody
+    from avatarctl.body.fit_keypoints import FIT_BONES, AnnyKeypoints
+    from avatarctl.ingest.keypoints import KEYPOINT_NAMES
+
+    body = AnnyBody()
+    offsets = {"nose": ("head", (0.01, 0.03, -0.02)), "left_hip": ("pelvis.L", (0.0, -0.01, 0.04)),
+               "right_knee": ("lowerleg01.R", (0.02, 0.0, 0.01))}
+    plain, shifted = AnnyKeypoints(body, KEYPOINT_NAMES), AnnyKeypoints(body, KEYPOINT_NAMES, offsets=offsets)
+    g = torch.Generator().manual_seed(3)
+    rot = 0.4 * torch.randn(2, len(FIT_BONES), 3, generator=g, dtype=torch.float64)
+    R = roma.rotvec_to_rotmat(torch.tensor([[0.1, 0.2, 1.0], [-0.3, 0.1, 2.5]], dtype=torch.float64))
+    t = torch.tensor([[0.1, 0.0, 0.9], [0.2, -0.1, 0.9]], dtype=torch.float64)
+    shape = torch.tensor([0.5, -0.3, 0.0, 0.2, 0.0, 0.1], dtype=torch.float64)
+    with torch.no_grad():
+        K0, V0 = plain.keypoints(rot, R, t, shape)
+        K1, V1 = shifted.keypoints(rot, R, t, shape)
+        M = body.pose(plain.to_motion(rot, R, t, shape)).joint_transforms.double()
+    assert torch.equal(V0, V1)
+    for j, n in enumerate(KEYPOINT_NAMES):
+        if n in offsets:
+            bone, o = offsets[n]
+            want = M[:, body.joint_names.index(bone), :3, :3] @ torch.tensor(o, dtype=torch.float64)
+            torch.testing.assert_close(K1[:, j] - K0[:, j], want, atol=1e-5, rtol=0)
+            assert float((K1[:, j] - K0[:, j]).norm(dim=-1).min()) > 0.02
+        else:
+            assert torch.equal(K1[:, j], K0[:, j])
+    with pytest.raises(ValueError, match="bones anny does not have"):
+        AnnyKeypoints(body, KEYPOINT_NAMES, offsets={"nose": ("skull", (0.0, 0.0, 0.0))})
+
+
+def test_mediapipe_offsets_name_known_keypoints_and_bones_and_stay_small():
+    from avatarctl.body.anny_model import AnnyBody
+    from avatarctl.ingest.keypoints import KEYPOINT_BONES, KEYPOINT_NAMES, MEDIAPIPE_ANNY_OFFSETS
+
+    names = AnnyBody().joint_names
+    assert set(KEYPOINT_BONES) == set(KEYPOINT_NAMES) and set(KEYPOINT_BONES.values()) <= set(names)
+    assert MEDIAPIPE_ANNY_OFFSETS and set(MEDIAPIPE_ANNY_OFFSETS) <= set(KEYPOINT_NAMES)
+    for n, (bone, o) in MEDIAPIPE_ANNY_OFFSETS.items():
+        assert bone == KEYPOINT_BONES[n] and np.linalg.norm(o) < 0.1  # metres: a definition, not a body part
+        if n.startswith("left_"):  # left-right symmetric: x mirrored, y and z shared
+            _, r = MEDIAPIPE_ANNY_OFFSETS["right_" + n[5:]]
+            np.testing.assert_allclose(o, (-r[0], r[1], r[2]), atol=1e-9)
+
+
+def test_detections_round_trip_and_a_damaged_file_is_one_line(tmp_path):
+    from avatarctl.errors import InputError
+    from avatarctl.ingest.estimate import Detections
+
+    rng = np.random.default_rng(0)
+    kp = rng.uniform(0, 100, size=(3, 2, 4, 2))
+    kp[1, 0] = np.nan
+    det = Detections(cams=["a", "b"], frames=[4, 5, 7], names=("nose", "l", "r", "x"), keypoints=kp,
+                     confidence=rng.uniform(size=(3, 2, 4)))
+    det.save(tmp_path / "k.npz")
+    back = Detections.load(tmp_path / "k.npz")
+    assert back.cams == det.cams and back.frames == det.frames and back.names == det.names
+    np.testing.assert_allclose(back.keypoints, kp, atol=1e-4)
+    np.testing.assert_allclose(back.confidence, det.confidence, atol=1e-6)
+    (tmp_path / "bad.npz").write_bytes(b"not an npz")
+    with pytest.raises(InputError, match="bad keypoint detections"):
+        Detections.load(tmp_path / "bad.npz")
+
+
 def test_anny_joint_limits_allow_bending_and_punish_a_backward_knee_or_elbow():
     import torch
 
@@ -253,8 +323,12 @@ def test_estimated_masks_and_fits_on_synth(tmp_path):
     assert res.exit_code == 0, res.output
     summary = json.loads((tmp_path / "proj" / "project.json").read_text())["stages"][0]["summary"]
     assert summary["masks"] == "mediapipe" and summary["fits"] == "keypoints"
-    assert summary["estimate"]["frames_detected"] > 0
+    assert summary["estimate"]["frames_detected"] > 0 and summary["estimate"]["keypoint_offsets"] is True
     assert summary["vertices_inside_masks"] > 0.8
+    from avatarctl.ingest.estimate import Detections
+
+    det = Detections.load(tmp_path / "proj" / "ingest" / "keypoints.npz")  # what the detector found, kept
+    assert det.keypoints.shape[:2] == (len(det.frames), len(det.cams)) and np.isfinite(det.keypoints).any()
 
 
 # ---- the keypoint fit's silhouette term -------------------------------------------------------------------------

@@ -268,10 +268,12 @@ class KeypointBody(Protocol):
         ...
 
 
-def keypoint_body(body, names: tuple[str, ...]) -> KeypointBody:
-    """The `KeypointBody` of a loaded body model (`AnnyBody` or `SmplBody`) for the keypoint `names`."""
+def keypoint_body(body, names: tuple[str, ...],
+                  offsets: "dict[str, tuple[str, tuple[float, float, float]]] | None" = None) -> KeypointBody:
+    """The `KeypointBody` of a loaded body model (`AnnyBody` or `SmplBody`) for the keypoint `names`. `offsets`
+    (anny only; see `AnnyKeypoints`): a detector's keypoint definitions against anny's COCO regressor."""
     if body.name == "anny":
-        return AnnyKeypoints(body, names)
+        return AnnyKeypoints(body, names, offsets=offsets)
     if body.name in ("smpl", "smplx"):
         from avatarctl.body.smpl_keypoints import SmplKeypoints
 
@@ -281,9 +283,15 @@ def keypoint_body(body, names: tuple[str, ...]) -> KeypointBody:
 
 class AnnyKeypoints(torch.nn.Module):
     """Differentiable keypoints of anny: (rotvecs [frames, bones, 3], root R [frames, 3, 3], root t [frames, 3],
-    phenotype [P]) -> [frames, joints, 3] metres, for the keypoint `names` (labels of `KeypointsRegressor.coco`)."""
+    phenotype [P]) -> [frames, joints, 3] metres, for the keypoint `names` (labels of `KeypointsRegressor.coco`).
 
-    def __init__(self, body, names: tuple[str, ...], bones: tuple[str, ...] = FIT_BONES):
+    `offsets` {name: (bone, (x, y, z) metres)}: where a detector puts keypoint `name` relative to anny's COCO point,
+    in the rest frame of `bone` (anny's canonical axes: +x the subject's left, +y back, +z up). The keypoint becomes
+    K_j + R_b o_j, R_b the bone's rotation from rest to the pose (the rotation of its skinning transform, Eq. 1), so
+    the offset turns with the bone (a head's ear offset with the head). MediaPipe's: `ingest.keypoints`."""
+
+    def __init__(self, body, names: tuple[str, ...], bones: tuple[str, ...] = FIT_BONES,
+                 offsets: "dict[str, tuple[str, tuple[float, float, float]]] | None" = None):
         super().__init__()
         from anny.keypoints import KeypointsRegressor
 
@@ -303,6 +311,13 @@ class AnnyKeypoints(torch.nn.Module):
         self.num_shape = len(body.phenotype_labels)
         self.dtype = torch.float64
         self.hinges = _anny_hinges(body, bones)
+        offsets = {n: o for n, o in (offsets or {}).items() if n in names}
+        unknown = sorted({b for b, _ in offsets.values()} - set(body.joint_names))
+        if unknown:
+            raise ValueError(f"keypoint offsets name bones anny does not have: {unknown}")
+        self.offset_index = torch.tensor([names.index(n) for n in offsets], dtype=torch.long)  # [O] keypoints
+        self.offset_bone = torch.tensor([body.joint_names.index(b) for b, _ in offsets.values()], dtype=torch.long)
+        self.offset = torch.tensor([o for _, o in offsets.values()], dtype=self.dtype).reshape(-1, 3)  # [O, 3] m
 
     def pose_matrices(self, rotvecs: torch.Tensor, R_root: torch.Tensor, t_root: torch.Tensor) -> torch.Tensor:
         """[frames, 104, 4, 4] local-ref deltas: identity except the fitted bones' rotations and the root pose."""
@@ -323,7 +338,13 @@ class AnnyKeypoints(torch.nn.Module):
         labels = self.body.phenotype_labels
         out = self.body.model(pose_parameters=pose, phenotype_kwargs={k: phenotype[i:i + 1] for i, k in
                                                                       enumerate(labels)})
-        return self.regressor(out)[:, self.kp_index], out["vertices"]
+        K = self.regressor(out)[:, self.kp_index]
+        if len(self.offset_index):
+            b = self.offset_bone
+            R = out["bone_poses"][:, b, :3, :3] @ out["rest_bone_poses"][:, b, :3, :3].transpose(-1, -2)  # [f, O]
+            o = torch.einsum("foij,oj->foi", R, self.offset.to(K.dtype))
+            K = K.index_add(1, self.offset_index, o)
+        return K, out["vertices"]
 
     # ---- KeypointBody: shape s = the phenotype's logits ----
     def keypoints(self, rotvecs: torch.Tensor, R_root: torch.Tensor, t_root: torch.Tensor,

@@ -38,6 +38,9 @@ def register(app: typer.Typer) -> None:
         keypoint_silhouette: Optional[float] = typer.Option(
             None, "--keypoint-silhouette", help="Weight of the keypoint fit's silhouette term (keeps the projected "
                                                 "body inside the masks); 0 = off; default: the fit's own."),
+        keypoint_offsets: bool = typer.Option(True, "--keypoint-offsets/--no-keypoint-offsets",
+                                              help="anny fits: place each keypoint where MediaPipe puts it on a body "
+                                                   "(its hips higher than anny's, ...), not at anny's own COCO point."),
         frames: Optional[str] = typer.Option(None, "--frames",
                                              help="Frame numbers: start:stop[:step] (stop exclusive) or a,b,c."),
         views: Optional[str] = typer.Option(None, "--views", help="Comma-separated camera names (default: all)."),
@@ -67,6 +70,7 @@ def register(app: typer.Typer) -> None:
             cfg = stage.IngestConfig(capture=capture, project=project, format=format, body_model=body_model,
                                body_model_path=body_model_path, masks=masks, fits=fits,
                                keypoint_fit_iters=keypoint_fit_iters, keypoint_silhouette=keypoint_silhouette,
+                               keypoint_offsets=keypoint_offsets,
                                frames=frames,
                                views=None if views is None else split_list(views), resize=resize,
                                contact_sheet=contact_sheet, focal_px=focal_px, fov_deg=fov_deg, height_m=height,

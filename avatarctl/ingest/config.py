@@ -31,6 +31,8 @@ class IngestConfig:
     keypoint_fit_iters: int = 400  # Adam steps of the keypoint fit (--fits keypoints; anny, smpl or smplx)
     keypoint_silhouette: float | None = None  # weight of the keypoint fit's silhouette term (None: the fit's default,
     # avatarctl.body.fit_keypoints.SILHOUETTE_WEIGHT; 0: off)
+    keypoint_offsets: bool = True  # anny fits: anny's keypoints where MediaPipe puts them
+    # (avatarctl.ingest.keypoints.MEDIAPIPE_ANNY_OFFSETS; False: anny's own COCO points)
     frames: str | None = None  # "start:stop[:step]" or "a,b,c" capture frame numbers (avatarctl.frames); None: all
     views: tuple[str, ...] | None = None  # camera names to ingest; None: every calibrated camera
     resize: float = 1.0  # scale factor applied after undistortion (e.g. 0.5)

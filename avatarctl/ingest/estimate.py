@@ -8,9 +8,10 @@ undistortion):
 2. `estimate_fits`: robust multi-view triangulation of every keypoint (`avatarctl.geometry.triangulate`: RANSAC
    over view pairs, outlier views rejected by reprojection error, weighted DLT on the inliers); frames where fewer
    than `MIN_JOINTS` keypoints (or fewer than three of the four torso points) triangulate are skipped, never fitted;
-3. the body model's fit to the 3D keypoints (`avatarctl.body.fit_keypoints`), one shape for the subject, with a
-   silhouette term when person masks are at hand (`silhouette_targets`: the capture's mask files or MediaPipe's
-   person segmentation) that keeps the projected body inside them.
+3. the body model's fit to the 3D keypoints (`avatarctl.body.fit_keypoints`), one shape for the subject, anny's
+   keypoints placed where MediaPipe puts them on a body (`detector_offsets`; `--no-keypoint-offsets`: anny's own),
+   with a silhouette term when person masks are at hand (`silhouette_targets`: the capture's mask files or
+   MediaPipe's person segmentation) that keeps the projected body inside them.
 
 One video (`estimate_monocular`, one static camera): no triangulation; the body model is fitted to the 2D keypoints
 and their confidences directly (`avatarctl.body.fit_keypoints`'s monocular energy: reprojection, the subject's
@@ -76,6 +77,37 @@ class Detections:
 
         return cv2.imdecode(np.frombuffer(self.masks[(cam, frame)], np.uint8), cv2.IMREAD_GRAYSCALE) > 0
 
+    def save(self, path) -> None:
+        """The keypoints and confidences as an npz, atomically (`cams`, `frames`, `names`, `keypoints` [frames, cams,
+        joints, 2] undistorted pixels with NaN where not found, `confidence` [frames, cams, joints]); no masks."""
+        from avatarctl.atomic import atomic_path
+
+        with atomic_path(path) as tmp:
+            with open(tmp, "wb") as fh:
+                np.savez(fh, cams=np.array(self.cams, dtype=str), frames=np.asarray(self.frames, dtype=np.int64),
+                         names=np.array(self.names, dtype=str), keypoints=self.keypoints.astype(np.float32),
+                         confidence=self.confidence.astype(np.float32))
+
+    @classmethod
+    def load(cls, path) -> "Detections":
+        """A `save`d npz (no masks); a one-line `InputError` when it is unreadable."""
+        from avatarctl.errors import InputError
+
+        try:
+            with np.load(path, allow_pickle=False) as z:
+                det = cls(cams=[str(c) for c in z["cams"]], frames=[int(f) for f in z["frames"]],
+                          names=tuple(str(n) for n in z["names"]), keypoints=z["keypoints"].astype(np.float64),
+                          confidence=z["confidence"].astype(np.float64))
+        except (OSError, KeyError, ValueError) as e:
+            raise InputError(f"bad keypoint detections: {e}", where=str(path),
+                             fix="ingest the capture again (it writes ingest/keypoints.npz)") from None
+        f, c, j = len(det.frames), len(det.cams), len(det.names)
+        if det.keypoints.shape != (f, c, j, 2) or det.confidence.shape != (f, c, j):
+            raise InputError(f"bad keypoint detections: keypoints {det.keypoints.shape}, confidence "
+                             f"{det.confidence.shape} for {f} frames, {c} cameras, {j} keypoints", where=str(path),
+                             fix="ingest the capture again (it writes ingest/keypoints.npz)")
+        return det
+
     def mask_found(self, frame: int) -> bool:
         """Every camera has a non-empty person mask at `frame`."""
         import cv2
@@ -133,6 +165,7 @@ class EstimateReport:
     ground: list[float] | None = None  # monocular: the fitted floor plane n·x = d, [nx, ny, nz, d] (world = camera)
     silhouette_inside_before: float = float("nan")  # share of projected vertices inside the masks when the
     silhouette_inside_after: float = float("nan")  # silhouette term switched on / at the end (NaN: term off)
+    keypoint_offsets: bool = False  # the fit placed anny's keypoints where MediaPipe puts them
 
     def rows(self, fitted: bool) -> list[tuple[str, str]]:
         """(item, value) lines for the ingest summary; `fitted`: the fits were estimated (else masks only)."""
@@ -148,7 +181,8 @@ class EstimateReport:
             out.append(("frames skipped", f"{'; '.join(why)}: {shown}"))
         if fitted and self.monocular:
             out.append((f"{self.body_model} fit (monocular)", f"{self.mean_reprojection_px:.2f} px mean reprojection "
-                                                              f"error ({self.fit_seconds:.0f} s)"))
+                                                              f"error ({self.fit_seconds:.0f} s)"
+                        + (", MediaPipe's keypoint offsets" if self.keypoint_offsets else "")))
             out.append(("height", f"{self.height_m:.2f} m fitted ({self.height_prior})"))
             out.append(("floor", "feet not seen: no ground contact" if self.ground is None else
                         f"normal ({self.ground[0]:+.2f}, {self.ground[1]:+.2f}, {self.ground[2]:+.2f}), "
@@ -158,7 +192,8 @@ class EstimateReport:
                                          f"{100 * self.views_rejected:.1f}% of 2D keypoints rejected as outliers, "
                                          f"{100 * self.keypoints_triangulated:.1f}% of keypoints triangulated"))
             out.append((f"{self.body_model} keypoint fit", f"{self.fit_error_cm:.2f} cm mean keypoint error "
-                                             f"({self.fit_seconds:.0f} s)"))
+                                             f"({self.fit_seconds:.0f} s)"
+                                             + (", MediaPipe's keypoint offsets" if self.keypoint_offsets else "")))
             if np.isfinite(self.silhouette_inside_after):
                 out.append(("silhouette term", f"{100 * self.silhouette_inside_before:.1f}% -> "
                                                f"{100 * self.silhouette_inside_after:.1f}% of projected vertices "
@@ -179,7 +214,8 @@ class EstimateReport:
                 "body_model": self.body_model,
                 "silhouette_inside_before": num(self.silhouette_inside_before, 4),
                 "silhouette_inside_after": num(self.silhouette_inside_after, 4),
-                "monocular": self.monocular, "height_m": num(self.height_m, 3), "height_prior": self.height_prior,
+                "keypoint_offsets": self.keypoint_offsets, "monocular": self.monocular,
+                "height_m": num(self.height_m, 3), "height_prior": self.height_prior,
                 "ground": None if self.ground is None else [round(float(g), 4) for g in self.ground]}
 
 
@@ -210,24 +246,44 @@ def silhouette_targets(cameras, cams: list[str], frames: list[int], read_mask: R
                              weight=weight)
 
 
+def detector_offsets(body, on: bool = True):
+    """MediaPipe's keypoint definitions against the body model's keypoints for the keypoint fit
+    (`ingest.keypoints.MEDIAPIPE_ANNY_OFFSETS`): anny's when `on`; None otherwise and for SMPL / SMPL-X (not
+    measured: their keypoints are the joint regressor's)."""
+    from avatarctl.ingest.keypoints import MEDIAPIPE_ANNY_OFFSETS
+
+    return MEDIAPIPE_ANNY_OFFSETS if on and body.name == "anny" else None
+
+
+def triangulate_detections(det: Detections, cameras):
+    """Every keypoint of every frame triangulated from the views that saw it (`geometry.triangulate
+    .triangulate_robust`, the inlier threshold `REPROJ_THRESHOLD` of the image's larger side, at least
+    `MIN_THRESHOLD_PX`; 2D keypoints under `MIN_CONFIDENCE` unused) with the pinhole `cameras` (order of `det.cams`):
+    its rows are frame-major, [frames x joints]."""
+    from avatarctl.geometry.triangulate import projection_matrices, triangulate_robust
+
+    nf, nc, J, _ = det.keypoints.shape
+    side = max(max(c.width, c.height) for c in cameras)
+    x = det.keypoints.transpose(0, 2, 1, 3).reshape(nf * J, nc, 2)
+    cf = det.confidence.transpose(0, 2, 1).reshape(nf * J, nc)
+    return triangulate_robust(projection_matrices(cameras), x, cf, threshold_px=max(MIN_THRESHOLD_PX,
+                              REPROJ_THRESHOLD * side), min_conf=MIN_CONFIDENCE)
+
+
 def estimate_fits(det: Detections, cameras, body, fit_iters: int, fps: float,
                   progress: ProgressFn | None = None, read_mask: ReadMask | None = None,
-                  silhouette_weight: float | None = None, limit_weight: float | None = None) -> EstimatedFits:
+                  silhouette_weight: float | None = None, limit_weight: float | None = None,
+                  offsets: bool = True) -> EstimatedFits:
     """Triangulate the detections with the pinhole `cameras` (order of `det.cams`) and fit `body` (an `AnnyBody`
     or `SmplBody`) to the frames with enough keypoints. With `read_mask` the fit has a silhouette term of weight
     `silhouette_weight` (None: the keypoint fit's default; 0: off); `limit_weight`: the joint limits' weight (None:
-    the default). See the module docstring."""
+    the default); `offsets`: anny's keypoints where the detector puts them (`detector_offsets`). See the module
+    docstring."""
     from avatarctl.body.fit_keypoints import TORSO, KeypointFitConfig, KeypointTargets, fit_keypoints, keypoint_body
-    from avatarctl.geometry.triangulate import projection_matrices, triangulate_robust
     from avatarctl.ingest.keypoints import KEYPOINT_WEIGHTS
 
-    P = projection_matrices(cameras)
     nf, nc, J, _ = det.keypoints.shape
-    side = max(max(c.width, c.height) for c in cameras)
-    thr = max(MIN_THRESHOLD_PX, REPROJ_THRESHOLD * side)
-    x = det.keypoints.transpose(0, 2, 1, 3).reshape(nf * J, nc, 2)
-    cf = det.confidence.transpose(0, 2, 1).reshape(nf * J, nc)
-    tri = triangulate_robust(P, x, cf, threshold_px=thr, min_conf=MIN_CONFIDENCE)
+    tri = triangulate_detections(det, cameras)
     valid = tri.valid.reshape(nf, J)
     X = tri.X.reshape(nf, J, 3)
     torso = np.array([n in TORSO for n in det.names])
@@ -252,15 +308,16 @@ def estimate_fits(det: Detections, cameras, body, fit_iters: int, fps: float,
     sil = None
     if read_mask is not None and cfg.w_silhouette > 0:
         sil = silhouette_targets(cameras, det.cams, kept, read_mask)
-    fit = fit_keypoints(keypoint_body(body, det.names), targets, cfg, silhouettes=sil,
-                        progress=progress)
+    fit = fit_keypoints(keypoint_body(body, det.names, detector_offsets(body, offsets)), targets, cfg,
+                        silhouettes=sil, progress=progress)
     wsum = (targets.select(fit.names).weight > 0).sum(1)
     err = float((fit.error_m * wsum).sum() / wsum.sum())
     if fit.silhouette is not None:
         report.update(silhouette_inside_before=fit.silhouette.inside_before,
                       silhouette_inside_after=fit.silhouette.inside_after)
     return EstimatedFits(fit.to_motion(kept, fps=fps), kept,
-                         EstimateReport(**report, fit_error_cm=100 * err, fit_seconds=fit.seconds))
+                         EstimateReport(**report, fit_error_cm=100 * err, fit_seconds=fit.seconds,
+                                        keypoint_offsets=detector_offsets(body, offsets) is not None))
 
 
 def usable_frames(det: Detections) -> np.ndarray:
@@ -361,7 +418,8 @@ def check_monocular(det: Detections, read_view: Callable[[int], np.ndarray], whe
 
 def estimate_monocular(det: Detections, camera, body, fit_iters: int, fps: float, usable: np.ndarray,
                        height_m: float | None = None, progress: ProgressFn | None = None,
-                       read_mask: ReadMask | None = None, silhouette_weight: float | None = None) -> EstimatedFits:
+                       read_mask: ReadMask | None = None, silhouette_weight: float | None = None,
+                       offsets: bool = True) -> EstimatedFits:
     """Fit `body` to the 2D keypoints of ONE camera (`det.cams == [camera.name]`, pinhole `camera`) in the
     `usable` frames; `height_m`: the subject's height (None: `DEFAULT_HEIGHT_M`). See the module docstring."""
     from avatarctl.body.fit_keypoints import (ImageKeypointTargets, KeypointFitConfig, fit_keypoints,
@@ -383,7 +441,8 @@ def estimate_monocular(det: Detections, camera, body, fit_iters: int, fps: float
     cfg = KeypointFitConfig(iters=fit_iters, w_silhouette=w_sil, height_m=height, w_ground=MONO_GROUND_WEIGHT,
                             w_root_smooth=MONO_ROOT_SMOOTH, w_pose=MONO_POSE_WEIGHT)
     sil = silhouette_targets([camera], det.cams, kept, read_mask) if read_mask is not None and w_sil > 0 else None
-    fit = fit_keypoints(keypoint_body(body, det.names), targets, cfg, silhouettes=sil, progress=progress)
+    fit = fit_keypoints(keypoint_body(body, det.names, detector_offsets(body, offsets)), targets, cfg,
+                        silhouettes=sil, progress=progress)
     n = len(det.frames)
     report = EstimateReport(
         frames_detected=int(det.found[:, 0].sum()), frames_total=n, views_with_person=float(det.found.mean()),
@@ -394,5 +453,6 @@ def estimate_monocular(det: Detections, camera, body, fit_iters: int, fps: float
         height_prior=f"{height:.2f} m, {prior}",
         ground=None if fit.ground is None else [float(g) for g in fit.ground],
         silhouette_inside_before=fit.silhouette.inside_before if fit.silhouette else float("nan"),
-        silhouette_inside_after=fit.silhouette.inside_after if fit.silhouette else float("nan"))
+        silhouette_inside_after=fit.silhouette.inside_after if fit.silhouette else float("nan"),
+        keypoint_offsets=detector_offsets(body, offsets) is not None)
     return EstimatedFits(fit.to_motion(kept, fps=fps), kept, report)

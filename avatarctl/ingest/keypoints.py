@@ -45,6 +45,42 @@ MEDIAPIPE_INDEX = {"nose": 0, "left_eye": 2, "right_eye": 5, "left_ear": 7, "rig
                    "left_hip": 23, "right_hip": 24, "left_knee": 25, "right_knee": 26, "left_ankle": 27,
                    "right_ankle": 28, "left_heel": 29, "right_heel": 30, "left_big_toe": 31, "right_big_toe": 32}
 KEYPOINT_WEIGHTS = np.array([0.5 if n.endswith("big_toe") else 1.0 for n in KEYPOINT_NAMES])  # [joints]
+# the anny bone each keypoint moves with (its offset below turns with that bone)
+KEYPOINT_BONES = {"nose": "head", "left_eye": "head", "right_eye": "head", "left_ear": "head", "right_ear": "head",
+                  "left_shoulder": "upperarm01.L", "right_shoulder": "upperarm01.R", "left_elbow": "lowerarm01.L",
+                  "right_elbow": "lowerarm01.R", "left_wrist": "wrist.L", "right_wrist": "wrist.R",
+                  "left_hip": "pelvis.L", "right_hip": "pelvis.R", "left_knee": "lowerleg01.L",
+                  "right_knee": "lowerleg01.R", "left_ankle": "foot.L", "right_ankle": "foot.R", "left_heel": "foot.L",
+                  "right_heel": "foot.R", "left_big_toe": "foot.L", "right_big_toe": "foot.R"}
+# Where MediaPipe Pose puts each keypoint on a body, against anny's COCO point (`KeypointsRegressor.coco`): (bone,
+# offset in the bone's rest frame, metres; anny's axes: +x the subject's left, +y back, +z up). The two detectors
+# define the points differently (MediaPipe's hips sit higher on the pelvis, its ears behind and outside anny's, its
+# face points behind anny's). Measured by `python -m benchmarks.keypoint_offsets` on six synth `tight` captures (seeds
+# 1-6, no garment over the points; 96, 96, 96, 256, 256, 512 px): the median over frames per capture, then over the
+# captures, made left-right symmetric (docs/own_capture.md, "Where MediaPipe puts its keypoints").
+MEDIAPIPE_ANNY_OFFSETS: dict[str, tuple[str, tuple[float, float, float]]] = {
+    "nose": ("head", (-0.007, 0.031, 0.004)),
+    "left_eye": ("head", (-0.008, 0.031, 0.001)),
+    "right_eye": ("head", (0.008, 0.031, 0.001)),
+    "left_ear": ("head", (-0.029, -0.020, 0.006)),
+    "right_ear": ("head", (0.029, -0.020, 0.006)),
+    "left_shoulder": ("upperarm01.L", (-0.006, -0.008, 0.009)),
+    "right_shoulder": ("upperarm01.R", (0.006, -0.008, 0.009)),
+    "left_elbow": ("lowerarm01.L", (-0.015, 0.001, 0.011)),
+    "right_elbow": ("lowerarm01.R", (0.015, 0.001, 0.011)),
+    "left_wrist": ("wrist.L", (-0.006, -0.009, -0.002)),
+    "right_wrist": ("wrist.R", (0.006, -0.009, -0.002)),
+    "left_hip": ("pelvis.L", (-0.006, -0.004, 0.023)),
+    "right_hip": ("pelvis.R", (0.006, -0.004, 0.023)),
+    "left_knee": ("lowerleg01.L", (-0.015, 0.000, 0.012)),
+    "right_knee": ("lowerleg01.R", (0.015, 0.000, 0.012)),
+    "left_ankle": ("foot.L", (-0.005, 0.002, 0.017)),
+    "right_ankle": ("foot.R", (0.005, 0.002, 0.017)),
+    "left_heel": ("foot.L", (-0.013, -0.002, 0.015)),
+    "right_heel": ("foot.R", (0.013, -0.002, 0.015)),
+    "left_big_toe": ("foot.L", (0.027, 0.056, 0.011)),
+    "right_big_toe": ("foot.R", (-0.027, 0.056, 0.011)),
+}
 CAPTURE_FIX = "pip install 'avatarctl[capture]' (MediaPipe)"
 MASK_THRESHOLD = 0.5  # MediaPipe's segmentation probability above which a pixel is the person
 MIN_COMPONENT = 0.2  # mask components smaller than this fraction of the largest one are dropped

@@ -330,6 +330,9 @@ def run_ingest(cfg: IngestConfig, progress: ProgressFn | None = None) -> IngestR
         if gains is not None:
             save_camera_colour(proj.paths.camera_colour, gains)
             outputs.append(proj.paths.camera_colour)
+        if plan.detections is not None:
+            plan.detections.save(proj.paths.keypoints)
+            outputs.append(proj.paths.keypoints)
         if plan.benchmark is not None:
             record = replace(plan.benchmark.record, frames=len(frames), train_views=split.train_views,
                              test_views=split.test_views)
@@ -409,7 +412,7 @@ def _estimate(cfg: IngestConfig, plan: IngestPlan, und: dict, progress: Progress
         est = estimate_monocular(det, und[cams[0]].target, plan.body, cfg.keypoint_fit_iters, src.fps or 30.0,
                                  usable, cfg.height_m, progress,
                                  read_mask=(lambda c, f: det.mask(c, f)) if plan.masks_mode == "mediapipe" else None,
-                                 silhouette_weight=cfg.keypoint_silhouette)
+                                 silhouette_weight=cfg.keypoint_silhouette, offsets=cfg.keypoint_offsets)
         report, motion, kept = est.report, est.motion, est.kept
     elif plan.fits_mode == "keypoints":
         def read_mask(c: str, f: int) -> np.ndarray:
@@ -421,7 +424,7 @@ def _estimate(cfg: IngestConfig, plan: IngestPlan, und: dict, progress: Progress
 
         est = estimate_fits(det, [und[c].target for c in cams], plan.body, cfg.keypoint_fit_iters, src.fps or 30.0,
                             progress, read_mask=read_mask if silhouette else None,
-                            silhouette_weight=w_sil)
+                            silhouette_weight=w_sil, offsets=cfg.keypoint_offsets)
         report, motion, kept = est.report, est.motion, est.kept
     else:
         found = det.found
