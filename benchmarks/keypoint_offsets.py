@@ -76,7 +76,8 @@ def measure(project: Path, true_motion: Path, fits: bool = False) -> CaptureOffs
     if truth.body_model != "anny":
         raise SystemExit(f"{true_motion}: the true fits must be anny's (got {truth.body_model})")
     body = load_body_model("anny")
-    frames = [f for f in det.frames if f in set(truth.frame_index.tolist())]
+    have = set(truth.frame_index.tolist())
+    frames = [f for f in det.frames if f in have]
     rows = [det.frames.index(f) for f in frames]
     sub = Detections(cams=det.cams, frames=frames, names=det.names, keypoints=det.keypoints[rows],
                      confidence=det.confidence[rows])
@@ -96,7 +97,8 @@ def measure(project: Path, true_motion: Path, fits: bool = False) -> CaptureOffs
     joint_cm = kp_cm = None
     if fits:
         est = BodyMotion.load(proj.paths.body)
-        both = [f for f in frames if f in set(est.frame_index.tolist())]
+        fitted = set(est.frame_index.tolist())
+        both = [f for f in frames if f in fitted]
         e, t = est.select(est.rows_for(both)), truth.select(truth.rows_for(both))
         tpl_e, tpl_t = body.template(e), body.template(t)
         M_e, M_t = body.pose(e).joint_transforms.double(), body.pose(t).joint_transforms.double()

@@ -240,7 +240,9 @@ def test_estimate_fits_from_detections_skips_frames_without_a_person():
     assert list(est.motion.frame_index) == [10, 11]
     assert est.report.frames_detected == 2 and est.report.views_with_person == pytest.approx(2 / 3)
     assert est.report.mean_reprojection_px < 0.5 and est.report.views_rejected > 0
-    assert est.report.fit_error_cm < 1.5
+    assert est.report.fit_error_cm < 1.5 and est.report.keypoint_offsets
+    own = estimate_fits(det, cams, body, fit_iters=150, fps=30.0, offsets=False)  # anny's own points: its keypoints
+    assert not own.report.keypoint_offsets and own.report.fit_error_cm < est.report.fit_error_cm
 
 
 # ---- errors without the capture extra ---------------------------------------------------------------------------

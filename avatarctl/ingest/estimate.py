@@ -308,8 +308,8 @@ def estimate_fits(det: Detections, cameras, body, fit_iters: int, fps: float,
     sil = None
     if read_mask is not None and cfg.w_silhouette > 0:
         sil = silhouette_targets(cameras, det.cams, kept, read_mask)
-    fit = fit_keypoints(keypoint_body(body, det.names, detector_offsets(body, offsets)), targets, cfg,
-                        silhouettes=sil, progress=progress)
+    table = detector_offsets(body, offsets)
+    fit = fit_keypoints(keypoint_body(body, det.names, table), targets, cfg, silhouettes=sil, progress=progress)
     wsum = (targets.select(fit.names).weight > 0).sum(1)
     err = float((fit.error_m * wsum).sum() / wsum.sum())
     if fit.silhouette is not None:
@@ -317,7 +317,7 @@ def estimate_fits(det: Detections, cameras, body, fit_iters: int, fps: float,
                       silhouette_inside_after=fit.silhouette.inside_after)
     return EstimatedFits(fit.to_motion(kept, fps=fps), kept,
                          EstimateReport(**report, fit_error_cm=100 * err, fit_seconds=fit.seconds,
-                                        keypoint_offsets=detector_offsets(body, offsets) is not None))
+                                        keypoint_offsets=table is not None))
 
 
 def usable_frames(det: Detections) -> np.ndarray:
@@ -441,8 +441,8 @@ def estimate_monocular(det: Detections, camera, body, fit_iters: int, fps: float
     cfg = KeypointFitConfig(iters=fit_iters, w_silhouette=w_sil, height_m=height, w_ground=MONO_GROUND_WEIGHT,
                             w_root_smooth=MONO_ROOT_SMOOTH, w_pose=MONO_POSE_WEIGHT)
     sil = silhouette_targets([camera], det.cams, kept, read_mask) if read_mask is not None and w_sil > 0 else None
-    fit = fit_keypoints(keypoint_body(body, det.names, detector_offsets(body, offsets)), targets, cfg,
-                        silhouettes=sil, progress=progress)
+    table = detector_offsets(body, offsets)
+    fit = fit_keypoints(keypoint_body(body, det.names, table), targets, cfg, silhouettes=sil, progress=progress)
     n = len(det.frames)
     report = EstimateReport(
         frames_detected=int(det.found[:, 0].sum()), frames_total=n, views_with_person=float(det.found.mean()),
@@ -454,5 +454,5 @@ def estimate_monocular(det: Detections, camera, body, fit_iters: int, fps: float
         ground=None if fit.ground is None else [float(g) for g in fit.ground],
         silhouette_inside_before=fit.silhouette.inside_before if fit.silhouette else float("nan"),
         silhouette_inside_after=fit.silhouette.inside_after if fit.silhouette else float("nan"),
-        keypoint_offsets=detector_offsets(body, offsets) is not None)
+        keypoint_offsets=table is not None)
     return EstimatedFits(fit.to_motion(kept, fps=fps), kept, report)
