@@ -1,7 +1,8 @@
 """Joint and vertex error of a project's body fits against the true ones, before and after the fit's pose refinement.
 
-Joints: the posed centres M_j c_j (`body.joints`; centres solved from the true poses) of the "major" joints, those
-carrying at least 1 % of the template's skinning weight (14 for anny: hips, feet, spine, upper/lower arms, head);
+Joints: the posed centres M_j c_j (`body.joints`; centres solved from the true poses, the fit's shape: the pose
+error alone, where `benchmarks.keypoint_offsets --fits` counts the shape too) of the major joints
+(`body.joints.major_joints`: 14 for anny);
 vertices: the template skinned with the refined / plain / true transforms. The major-joint error vector is also split
 into its mean over frames (an offset all frames share) and the rest (frame-to-frame scatter); the corrections' RMS
 rotation per refined joint is given with the part all frames share. Training frames only (the refinement's).
@@ -43,7 +44,7 @@ class JointErrorReport:
 
 
 def measure(project: Path, true_motion: Path) -> JointErrorReport:
-    from avatarctl.body.joints import joint_centres, posed_joints, skin_weighted_centroids
+    from avatarctl.body.joints import joint_centres, major_joints, posed_joints, skin_weighted_centroids
     from avatarctl.body.lbs import lbs
     from avatarctl.body.motion import BodyMotion
     from avatarctl.fit.checkpoint import load_avatar
@@ -58,8 +59,7 @@ def measure(project: Path, true_motion: Path) -> JointErrorReport:
     M_fit = av.body.pose(motion).joint_transforms.double()
     M_true = av.body.pose(truth).joint_transforms.double()
     c = joint_centres(M_true, tpl.parents, skin_weighted_centroids(tpl.vertices, tpl.skin_weights).double())
-    mass = tpl.skin_weights.sum(0)
-    major = mass > 0.01 * mass.sum()
+    major = major_joints(tpl.skin_weights)
     cond = av.conditioning(motion, frames_are_training=True)
     ref = av.model.pose_refine
     with torch.no_grad():

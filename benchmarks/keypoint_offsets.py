@@ -11,7 +11,9 @@ the offset table
 `ingest.keypoints.MEDIAPIPE_ANNY_OFFSETS` holds (printed as a Python literal with `--literal`).
 
 With `--fits` it also reports the project's body fits (`ingest/body.npz`) against the truth: the mean distance of
-the major joints (those carrying >= 1 % of the skinning weight) and of anny's COCO points, per group.
+the major joints (`body.joints.major_joints`), each body posed with its OWN shape and joint centres (so a wrong shape
+counts: `benchmarks.joint_error` poses both with the fit's shape and the true poses' centres, the pose error alone),
+and of anny's COCO points, per group.
 
     python -m benchmarks.keypoint_offsets PROJECT TRUE_MOTION [PROJECT TRUE_MOTION ...] [--fits] [--literal]
         [--json OUT.json]
@@ -62,7 +64,7 @@ def _true_points(body, motion, names: tuple[str, ...]):
 
 
 def measure(project: Path, true_motion: Path, fits: bool = False) -> CaptureOffsets:
-    from avatarctl.body.joints import joint_centres, posed_joints, skin_weighted_centroids
+    from avatarctl.body.joints import joint_centres, major_joints, posed_joints, skin_weighted_centroids
     from avatarctl.body.motion import BodyMotion
     from avatarctl.body.registry import load_body_model
     from avatarctl.ingest.estimate import Detections, triangulate_detections
@@ -104,8 +106,7 @@ def measure(project: Path, true_motion: Path, fits: bool = False) -> CaptureOffs
         M_e, M_t = body.pose(e).joint_transforms.double(), body.pose(t).joint_transforms.double()
         c_e = joint_centres(M_e, tpl_e.parents, skin_weighted_centroids(tpl_e.vertices, tpl_e.skin_weights).double())
         c_t = joint_centres(M_t, tpl_t.parents, skin_weighted_centroids(tpl_t.vertices, tpl_t.skin_weights).double())
-        mass = tpl_t.skin_weights.sum(0)
-        major = mass > 0.01 * mass.sum()
+        major = major_joints(tpl_t.skin_weights)
         joint_cm = round(float(100 * (posed_joints(M_e, c_e) - posed_joints(M_t, c_t)).norm(dim=-1)[:, major].mean()),
                          2)
         Ke, _ = _true_points(body, e, det.names)

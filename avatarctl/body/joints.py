@@ -47,3 +47,14 @@ def joint_centres(joint_transforms: torch.Tensor, parents: tuple[int, ...], fall
 def posed_joints(joint_transforms: torch.Tensor, centres: torch.Tensor) -> torch.Tensor:
     """[..., J, 4, 4] transforms and [J, 3] canonical centres -> [..., J, 3] world joint positions."""
     return (joint_transforms[..., :3, :3] @ centres[..., None])[..., 0] + joint_transforms[..., :3, 3]
+
+
+MAJOR_JOINT_SHARE = 0.01  # a "major" joint carries at least this share of the template's skinning weight
+
+
+def major_joints(skin_weights: torch.Tensor) -> torch.Tensor:
+    """[J] bool: the joints carrying at least `MAJOR_JOINT_SHARE` of the skinning weight `skin_weights` [V, J] (14 for
+    anny: hips, feet, spine, upper / lower arms, head; fingers and face bones are not), the joints the benchmarks'
+    joint errors are over."""
+    mass = skin_weights.sum(0)
+    return mass > MAJOR_JOINT_SHARE * mass.sum()
