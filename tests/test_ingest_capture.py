@@ -3,6 +3,7 @@ and (when MediaPipe is installed) masks and fits estimated from a synthetic capt
 
 from __future__ import annotations
 
+import json
 import shutil
 import sys
 from pathlib import Path
@@ -169,6 +170,99 @@ def test_detections_round_trip_and_a_damaged_file_is_one_line(tmp_path):
         Detections.load(tmp_path / "bad.npz")
 
 
+def _plate_scene(frames: int = 12, size: int = 96, shift: int = 3):
+    """A textured static background, a striped ellipse crossing it; the truth masks, and a detector's masks that
+    miss the truth by `shift` px (grown on one side, shrunk on the other, as MediaPipe's coarse outline does)."""
+    import cv2
+
+    rng = np.random.default_rng(0)
+    bg = cv2.GaussianBlur(rng.integers(0, 256, (size, size, 3)).astype(np.uint8), (5, 5), 0)
+    yy, xx = np.mgrid[:size, :size]
+    images, truth, detected = [], [], []
+    for i in range(frames):
+        cx, cy = 20 + i * (size - 40) / (frames - 1), size / 2
+        inside = ((xx - cx) / 14) ** 2 + ((yy - cy) / 30) ** 2 <= 1
+        person = np.where(((yy // 3) % 2 == 0)[..., None], [200, 40, 40], [40, 40, 200]).astype(np.uint8)
+        images.append(np.where(inside[..., None], person, bg))
+        truth.append(inside)
+        detected.append(np.roll(inside, shift, axis=1))  # too much on one side, too little on the other
+    return bg, np.stack(images), np.stack(truth), np.stack(detected)
+
+
+def test_plate_estimated_from_the_frames_refines_a_detector_mask():
+    from avatarctl.ingest.masks import estimate_plate, iou, refine_mask
+
+    bg, images, truth, detected = _plate_scene()
+    plate, known = estimate_plate(images, detected, margin_px=2)
+    assert known.mean() > 0.9  # the person moves: almost every pixel is uncovered in enough frames
+    assert np.abs(plate[known].astype(int) - bg[known]).max() <= 1  # where known, the plate is the background
+    raw = np.mean([iou(d, t) for d, t in zip(detected, truth)])
+    refined = [refine_mask(im, plate, known, d, band_px=4) for im, d in zip(images, detected)]
+    assert raw < 0.93 and np.mean([iou(r, t) for r, t in zip(refined, truth)]) > 0.98
+    # where the plate is not known the detector's mask is kept as it is
+    nothing = np.zeros_like(known)
+    assert np.array_equal(refine_mask(images[0], plate, nothing, detected[0], band_px=4), detected[0])
+    with pytest.raises(ValueError, match="differ"):
+        estimate_plate(images[:, :-1], detected, margin_px=2)
+
+
+def test_refine_masks_replaces_every_detected_mask_and_reports_it():
+    import cv2
+
+    from avatarctl.ingest.estimate import Detections, refine_masks
+    from avatarctl.ingest.masks import iou
+
+    bg, images, truth, detected = _plate_scene(shift=2)  # the band at 96 px: 2 px (`MASK_BAND` of the diagonal)
+    frames = list(range(len(images)))
+    det = Detections(cams=["a"], frames=frames, names=("nose",), keypoints=np.zeros((len(frames), 1, 1, 2)),
+                     confidence=np.ones((len(frames), 1, 1)),
+                     masks={("a", f): cv2.imencode(".png", detected[f].astype(np.uint8) * 255)[1].tobytes()
+                            for f in frames})
+    seen = []
+    out, report = refine_masks(det, lambda c, f: images[f], progress=lambda r: seen.append(r.done))
+    assert report.plate_known["a"] > 0.9 and report.band_px["a"] == 2 and report.changed["a"] > 0.05
+    assert np.mean([iou(out.mask("a", f), truth[f]) for f in frames]) > 0.97
+    assert np.array_equal(det.mask("a", 0), detected[0])  # the input is left as it was
+    assert seen[-1] == len(frames)
+
+
+def test_ingest_refines_detected_masks_unless_told_not_to(capture, tmp_path, monkeypatch):
+    """`--masks mediapipe` with a stand-in detector whose masks are the truth shifted by 2 px: ingest writes them
+    refined against the estimated plates (closer to the truth, the report in the summary), or as detected with
+    `--no-refine-masks`."""
+    import cv2
+
+    from avatarctl.ingest import estimate, keypoints
+    from avatarctl.ingest.masks import iou
+
+    def fake_detect(read_view, cams, frames, masks, progress=None):
+        det = estimate.Detections(cams=list(cams), frames=list(frames), names=keypoints.KEYPOINT_NAMES,
+                                  keypoints=np.zeros((len(frames), len(cams), len(keypoints.KEYPOINT_NAMES), 2)),
+                                  confidence=np.ones((len(frames), len(cams), len(keypoints.KEYPOINT_NAMES))))
+        for c in cams:
+            for f in frames:
+                m = cv2.imread(str(capture.root / "masks" / c / f"{f:06d}.png"), 0) > 0
+                det.masks[(c, f)] = cv2.imencode(".png", np.roll(m, 2, axis=1).astype(np.uint8) * 255)[1].tobytes()
+        return det
+
+    monkeypatch.setattr(keypoints, "require_mediapipe", lambda *a, **k: None)
+    monkeypatch.setattr(estimate, "detect_people", fake_detect)
+    scores = {}
+    for name, extra in (("refined", []), ("detected", ["--no-refine-masks"])):
+        proj = tmp_path / name
+        res = _cli(str(capture.root), str(proj), "--masks", "mediapipe", "--fits", "files", "--no-contact-sheet",
+                   *extra)
+        assert res.exit_code == 0, res.output
+        summary = json.loads((proj / "project.json").read_text())["stages"][0]["summary"]
+        refined = summary["estimate"]["masks_refined"]
+        assert (refined is None) == (name == "detected")
+        assert ("masks refined" in res.output) == (name == "refined")
+        scores[name] = np.mean([iou(cv2.imread(str(proj / "ingest" / "masks" / c.name / f"{f:06d}.png"), 0) > 0,
+                                    cv2.imread(str(capture.root / "masks" / c.name / f"{f:06d}.png"), 0) > 0)
+                                for c in capture.cameras for f in capture.frames])
+    assert scores["refined"] > scores["detected"] + 0.01, scores
+
+
 def test_anny_joint_limits_allow_bending_and_punish_a_backward_knee_or_elbow():
     import torch
 
@@ -313,7 +407,6 @@ def test_ingest_from_per_camera_videos(capture, tmp_path):
 def test_estimated_masks_and_fits_on_synth(tmp_path):
     pytest.importorskip("mediapipe")
     synth = pytest.importorskip("avatarctl.synth")
-    import json
 
     full = tmp_path / "full"
     synth.synthesize(full, synth.SynthConfig.preset("micro", seed=0, size=128))  # at 64 px MediaPipe finds nobody
@@ -326,6 +419,8 @@ def test_estimated_masks_and_fits_on_synth(tmp_path):
     summary = json.loads((tmp_path / "proj" / "project.json").read_text())["stages"][0]["summary"]
     assert summary["masks"] == "mediapipe" and summary["fits"] == "keypoints"
     assert summary["estimate"]["frames_detected"] > 0 and summary["estimate"]["keypoint_offsets"] is True
+    refined = summary["estimate"]["masks_refined"]  # against plates estimated from the frames (static cameras)
+    assert refined is not None and min(refined["plate_known"].values()) > 0.5
     assert summary["vertices_inside_masks"] > 0.8
     from avatarctl.ingest.estimate import Detections
 

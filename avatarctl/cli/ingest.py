@@ -41,6 +41,9 @@ def register(app: typer.Typer) -> None:
         keypoint_offsets: bool = typer.Option(True, "--keypoint-offsets/--no-keypoint-offsets",
                                               help="anny fits: place each keypoint where MediaPipe puts it on a body "
                                                    "(its hips higher than anny's, ...), not at anny's own COCO point."),
+        refine_masks: bool = typer.Option(True, "--refine-masks/--no-refine-masks",
+                                          help="--masks mediapipe: refine each mask's outline against the camera's "
+                                               "background estimated from its frames (static cameras)."),
         frames: Optional[str] = typer.Option(None, "--frames",
                                              help="Frame numbers: start:stop[:step] (stop exclusive) or a,b,c."),
         views: Optional[str] = typer.Option(None, "--views", help="Comma-separated camera names (default: all)."),
@@ -70,7 +73,7 @@ def register(app: typer.Typer) -> None:
             cfg = stage.IngestConfig(capture=capture, project=project, format=format, body_model=body_model,
                                body_model_path=body_model_path, masks=masks, fits=fits,
                                keypoint_fit_iters=keypoint_fit_iters, keypoint_silhouette=keypoint_silhouette,
-                               keypoint_offsets=keypoint_offsets,
+                               keypoint_offsets=keypoint_offsets, refine_masks=refine_masks,
                                frames=frames,
                                views=None if views is None else split_list(views), resize=resize,
                                contact_sheet=contact_sheet, focal_px=focal_px, fov_deg=fov_deg, height_m=height,

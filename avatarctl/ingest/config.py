@@ -33,6 +33,8 @@ class IngestConfig:
     # avatarctl.body.fit_keypoints.SILHOUETTE_WEIGHT; 0: off)
     keypoint_offsets: bool = True  # anny fits: anny's keypoints where MediaPipe puts them
     # (avatarctl.ingest.keypoints.MEDIAPIPE_ANNY_OFFSETS; False: anny's own COCO points)
+    refine_masks: bool = True  # masks "mediapipe": refined against each camera's plate estimated from its frames
+    # (avatarctl.ingest.estimate.refine_masks; static cameras)
     frames: str | None = None  # "start:stop[:step]" or "a,b,c" capture frame numbers (avatarctl.frames); None: all
     views: tuple[str, ...] | None = None  # camera names to ingest; None: every calibrated camera
     resize: float = 1.0  # scale factor applied after undistortion (e.g. 0.5)

@@ -4,7 +4,8 @@ Steps (all in the undistorted, resized geometry of the project's pinhole cameras
 undistortion):
 
 1. `detect_people`: MediaPipe Pose per camera over its frames in order (`avatarctl.ingest.keypoints`) -> 2D
-   keypoints with confidences and, when asked, a person mask per view;
+   keypoints with confidences and, when asked, a person mask per view; `refine_masks` then corrects each mask's
+   outline against the camera's background, estimated from its own frames (static cameras);
 2. `estimate_fits`: robust multi-view triangulation of every keypoint (`avatarctl.geometry.triangulate`: RANSAC
    over view pairs, outlier views rejected by reprojection error, weighted DLT on the inliers); frames where fewer
    than `MIN_JOINTS` keypoints (or fewer than three of the four torso points) triangulate are skipped, never fitted;
@@ -45,6 +46,7 @@ MONO_ROOT_SMOOTH = 1e-3  # λ_root of the monocular fit
 MONO_POSE_WEIGHT = 3e-3  # λ_pose of the monocular fit (the 3D fit's 1e-5 leaves a limb's depth free; measured on the
 # synthetic phone video, 13 frames, 200 steps: 1e-5 4.72, 1e-4 4.82, 1e-3 3.96, 3e-3 3.80, 1e-2 3.62 cm joint error
 # while the reprojection error grows 2.65 -> 4.78 px: docs/experiments/phone_video_2026-11-27)
+MASK_BAND = 0.007  # refined masks: the band about MediaPipe's outline that the plate decides, x the image diagonal
 MIN_IN_VIEW = 0.5  # share of the frames in which the person must be usable (in frame, enough keypoints)
 MIN_VIDEO_FRAMES = 10  # a video needs this many frames (after --frames): 2/3 train, 1/3 held out
 PEOPLE_SAMPLES = 6  # frames searched for a second person
@@ -145,6 +147,61 @@ def detect_people(read_view: ReadView, cams: list[str], frames: list[int], masks
 
 
 @dataclass(frozen=True)
+class MaskRefinement:
+    """What `refine_masks` did, per camera: the band it decided (px), the share of its pixels with a known plate and
+    the share of the masks' pixels it changed (added or removed, over MediaPipe's mask area)."""
+
+    band_px: dict[str, int]
+    plate_known: dict[str, float]
+    changed: dict[str, float]
+
+    def to_json(self) -> dict:
+        return {"band_px": self.band_px, "plate_known": {c: round(v, 4) for c, v in self.plate_known.items()},
+                "changed": {c: round(v, 4) for c, v in self.changed.items()}}
+
+
+def refine_masks(det: Detections, read_view: ReadView, progress: ProgressFn | None = None
+                 ) -> tuple[Detections, MaskRefinement]:
+    """`det` with every camera's MediaPipe masks refined against the camera's plate estimated from its own frames
+    (`ingest.masks.estimate_plate` over up to `PLATE_FRAMES` evenly spaced frames with a mask, then
+    `ingest.masks.refine_mask` on every frame, deciding a band of `MASK_BAND` x the image diagonal about MediaPipe's
+    outline). For static cameras (a rig; a phone on a tripod: `check_monocular`). A camera with no known plate pixel
+    keeps MediaPipe's masks."""
+    import cv2
+
+    from avatarctl.ingest.masks import PLATE_FRAMES, estimate_plate, refine_mask
+
+    out = Detections(cams=det.cams, frames=det.frames, names=det.names, keypoints=det.keypoints,
+                     confidence=det.confidence, masks=dict(det.masks))
+    known_share, changed, bands = {}, {}, {}
+    done, total = 0, len(det.cams) * len(det.frames)
+    for c in det.cams:
+        with_mask = [f for f in det.frames if det.mask(c, f).any()]
+        pick = [with_mask[i] for i in np.unique(np.linspace(0, len(with_mask) - 1, PLATE_FRAMES).round().astype(int))
+                ] if with_mask else []
+        if not pick:
+            known_share[c], changed[c], bands[c] = 0.0, 0.0, 0
+            done += len(det.frames)
+            continue
+        h, w = det.mask(c, pick[0]).shape
+        band = bands[c] = max(2, int(round(MASK_BAND * np.hypot(h, w))))
+        plate, known = estimate_plate(np.stack([read_view(c, f) for f in pick]),
+                                      np.stack([det.mask(c, f) for f in pick]), band)
+        known_share[c], moved, area = float(known.mean()), 0, 0
+        for f in det.frames:
+            m = det.mask(c, f)
+            if known.any() and m.any():
+                r = refine_mask(read_view(c, f), plate, known, m, band)
+                moved, area = moved + int((r ^ m).sum()), area + int(m.sum())
+                out.masks[(c, f)] = cv2.imencode(".png", r.astype(np.uint8) * 255)[1].tobytes()
+            done += 1
+            if progress is not None:
+                progress(ProgressReport(done=done, total=total, part="masks"))
+        changed[c] = moved / max(area, 1)
+    return out, MaskRefinement(band_px=bands, plate_known=known_share, changed=changed)
+
+
+@dataclass(frozen=True)
 class EstimateReport:
     """Figures of the estimation steps (what the ingest summary shows)."""
 
@@ -166,6 +223,7 @@ class EstimateReport:
     silhouette_inside_before: float = float("nan")  # share of projected vertices inside the masks when the
     silhouette_inside_after: float = float("nan")  # silhouette term switched on / at the end (NaN: term off)
     keypoint_offsets: bool = False  # the fit placed anny's keypoints where MediaPipe puts them
+    masks_refined: MaskRefinement | None = None  # MediaPipe's masks refined against estimated plates (`refine_masks`)
 
     def rows(self, fitted: bool) -> list[tuple[str, str]]:
         """(item, value) lines for the ingest summary; `fitted`: the fits were estimated (else masks only)."""
@@ -198,6 +256,13 @@ class EstimateReport:
                 out.append(("silhouette term", f"{100 * self.silhouette_inside_before:.1f}% -> "
                                                f"{100 * self.silhouette_inside_after:.1f}% of projected vertices "
                                                "inside the masks"))
+        if self.masks_refined is not None:
+            r = self.masks_refined
+            lo, hi = (f"{100 * f(r.plate_known.values()):.0f}" for f in (min, max))
+            known = lo if lo == hi else f"{lo}-{hi}"
+            changed = 100 * float(np.mean(list(r.changed.values())))
+            out.append(("masks refined", f"against plates estimated from the frames ({known}% of each image known): "
+                                         f"{changed:.1f}% of the mask pixels changed"))
         return out
 
     def to_json(self) -> dict:
@@ -216,7 +281,8 @@ class EstimateReport:
                 "silhouette_inside_after": num(self.silhouette_inside_after, 4),
                 "keypoint_offsets": self.keypoint_offsets, "monocular": self.monocular,
                 "height_m": num(self.height_m, 3), "height_prior": self.height_prior,
-                "ground": None if self.ground is None else [round(float(g), 4) for g in self.ground]}
+                "ground": None if self.ground is None else [round(float(g), 4) for g in self.ground],
+                "masks_refined": None if self.masks_refined is None else self.masks_refined.to_json()}
 
 
 @dataclass(frozen=True)

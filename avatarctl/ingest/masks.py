@@ -13,6 +13,11 @@ All inputs are in the same (undistorted) image geometry. Steps:
    match the plate's colours.) Parameters were chosen on `avatarctl synth` small-preset frames (docs/formats.md);
 4. clean-up: keep the connected components that touch the body silhouette (drops shadows and plate changes
    away from the subject), fill enclosed holes smaller than 1 % of the foreground.
+
+Without a plate, a static camera's plate is estimated from its own frames (`estimate_plate`: per pixel, the median
+of the frames in which a detector's person mask, grown by a margin, leaves it uncovered) and a detector's mask is
+refined against it (`refine_mask`: in a ring about the detector's outline, pixels that clearly match the plate are
+dropped and pixels that clearly differ from it added).
 """
 
 from __future__ import annotations
@@ -133,6 +138,60 @@ def _clean(mask: np.ndarray, silhouette: np.ndarray, params: MattingParams) -> n
         if not touches_border and a < params.max_hole_fraction * max(area, 1):
             m[labels == i] = 1
     return m > 0
+
+
+PLATE_FRAMES = 32  # frames of a camera (evenly spaced) that its estimated plate is the median of
+PLATE_MIN_SHARE = 0.15  # a pixel's plate is known where at least this share of those frames (and 3) show background
+REFINE_MATCH = 12.0  # refine_mask: RGB distance (0..441) below which a pixel is the plate's (noise, JPEG: ~5-10)
+REFINE_DIFFER = 45.0  # ... and above which it is not
+
+
+def estimate_plate(images: np.ndarray, masks: np.ndarray, margin_px: int) -> tuple[np.ndarray, np.ndarray]:
+    """A static camera's background plate from its frames `images` uint8 [K, H, W, 3] and their person `masks` bool
+    [K, H, W]: per pixel, the median colour over the frames whose mask, grown by `margin_px`, leaves it uncovered.
+    -> (plate uint8 [H, W, 3], known bool [H, W]: uncovered in at least `PLATE_MIN_SHARE` of the frames and 3; the
+    plate is 0 elsewhere: a pixel the person always covers has no plate)."""
+    import warnings
+
+    import cv2
+
+    K, H, W = masks.shape
+    if images.shape != (K, H, W, 3):
+        raise ValueError(f"images {images.shape} and masks {masks.shape} differ")
+    grow = _disk(margin_px)
+    background = np.stack([cv2.dilate(m.astype(np.uint8), grow) == 0 for m in masks])  # [K, H, W]
+    known = background.sum(0) >= max(3, int(np.ceil(PLATE_MIN_SHARE * K)))
+    plate = np.zeros((H, W, 3), dtype=np.uint8)
+    for r in range(0, H, 64):  # in strips: K float copies of a whole image would be K x 12 bytes a pixel
+        rows = slice(r, r + 64)
+        seen = np.where(background[:, rows, :, None], images[:, rows].astype(np.float32), np.nan)
+        with warnings.catch_warnings():  # "All-NaN slice": a pixel no frame shows uncovered (expected)
+            warnings.simplefilter("ignore", RuntimeWarning)
+            med = np.nanmedian(seen, axis=0)
+        plate[rows] = np.where(known[rows, :, None], np.rint(np.nan_to_num(med)), 0).astype(np.uint8)
+    return plate, known
+
+
+def refine_mask(rgb: np.ndarray, plate: np.ndarray, known: np.ndarray, mask: np.ndarray, band_px: int,
+                match: float = REFINE_MATCH, differ: float = REFINE_DIFFER) -> np.ndarray:
+    """A detector's person `mask` (bool [H, W]) of frame `rgb` [H, W, 3] refined against an estimated `plate`
+    (`estimate_plate`) in the ring of `band_px` about its outline, where the plate is `known`: a mask pixel whose
+    colour matches the plate (RGB distance < `match`) is dropped, a pixel outside that differs from it (> `differ`)
+    is added; between the two, and everywhere else, the detector decides. Of what is added, only the parts connected to
+    the mask shrunk by `band_px` are kept. -> bool [H, W]."""
+    import cv2
+
+    m = mask.astype(np.uint8)
+    core = cv2.erode(m, _disk(band_px)) > 0
+    ring = (cv2.dilate(m, _disk(band_px)) > 0) & ~core & known
+    diff = color_difference(rgb, plate)
+    out = mask.astype(bool).copy()
+    out[ring & out & (diff < match)] = False
+    out[ring & ~mask.astype(bool) & (diff > differ)] = True
+    n, labels = cv2.connectedComponents(out.astype(np.uint8), connectivity=8)
+    keep = np.unique(labels[core & out])
+    keep = keep[keep > 0]
+    return (np.isin(labels, keep) | core) if keep.size else out
 
 
 def iou(a: np.ndarray, b: np.ndarray) -> float:

@@ -404,6 +404,11 @@ def _estimate(cfg: IngestConfig, plan: IngestPlan, und: dict, progress: Progress
     det = detect_people(read_view, cams, frames, progress=progress,
                         masks=plan.masks_mode == "mediapipe" or (silhouette and plan.masks_mode == "background")
                         or src.format == "video")
+    refined = None
+    if plan.masks_mode == "mediapipe" and cfg.refine_masks:  # static cameras: plates estimated from the frames
+        from avatarctl.ingest.estimate import refine_masks
+
+        det, refined = refine_masks(det, read_view, progress)
     motion, kept = plan.motion, list(frames)
     if src.format == "video" and plan.fits_mode == "keypoints":
         from avatarctl.ingest.estimate import check_monocular, estimate_monocular
@@ -432,6 +437,8 @@ def _estimate(cfg: IngestConfig, plan: IngestPlan, und: dict, progress: Progress
         report = EstimateReport(frames_detected=int((found.sum(1) >= 2).sum()), frames_total=len(frames),
                                 views_with_person=float(found.mean()), frames_skipped=[], mean_reprojection_px=nan,
                                 views_rejected=nan, keypoints_triangulated=nan, fit_error_cm=nan, fit_seconds=0.0)
+    if refined is not None:
+        report = replace(report, masks_refined=refined)
     if plan.masks_mode == "mediapipe":
         no_mask = [f for f in kept if not det.mask_found(f)]
         kept = [f for f in kept if f not in set(no_mask)]
