@@ -263,6 +263,40 @@ def test_ingest_refines_detected_masks_unless_told_not_to(capture, tmp_path, mon
     assert scores["refined"] > scores["detected"] + 0.01, scores
 
 
+def test_ingest_names_a_camera_whose_masks_are_not_the_person(capture, tmp_path, monkeypatch):
+    """A stand-in detector whose last camera "segments" a square in the corner instead of the person: ingest still
+    succeeds, names that camera (and only it) in one warning with the fix, and records each camera's share."""
+    import cv2
+
+    from avatarctl.ingest import estimate, keypoints
+
+    cams = [c.name for c in capture.cameras]
+
+    def fake_detect(read_view, cams_, frames, masks, progress=None):
+        det = estimate.Detections(cams=list(cams_), frames=list(frames), names=keypoints.KEYPOINT_NAMES,
+                                  keypoints=np.zeros((len(frames), len(cams_), len(keypoints.KEYPOINT_NAMES), 2)),
+                                  confidence=np.ones((len(frames), len(cams_), len(keypoints.KEYPOINT_NAMES))))
+        for c in cams_:
+            for f in frames:
+                m = cv2.imread(str(capture.root / "masks" / c / f"{f:06d}.png"), 0) > 0
+                if c == cams[-1]:
+                    m = np.zeros_like(m)
+                    m[:20, :20] = True  # something else
+                det.masks[(c, f)] = cv2.imencode(".png", m.astype(np.uint8) * 255)[1].tobytes()
+        return det
+
+    monkeypatch.setattr(keypoints, "require_mediapipe", lambda *a, **k: None)
+    monkeypatch.setattr(estimate, "detect_people", fake_detect)
+    proj = tmp_path / "proj"
+    res = _cli(str(capture.root), str(proj), "--masks", "mediapipe", "--fits", "files", "--no-contact-sheet")
+    assert res.exit_code == 0, res.output
+    flat = " ".join(res.output.split())
+    assert f"camera(s) {cams[-1]}" in flat and "--masks files" in flat
+    assert all(f"camera(s) {c}" not in flat for c in cams[:-1])
+    shares = json.loads((proj / "project.json").read_text())["stages"][0]["summary"]["vertices_inside_masks_per_camera"]
+    assert set(shares) == set(cams) and shares[cams[-1]] < 0.2 and min(shares[c] for c in cams[:-1]) > 0.8
+
+
 def test_anny_joint_limits_allow_bending_and_punish_a_backward_knee_or_elbow():
     import torch
 
