@@ -226,27 +226,37 @@ def test_refine_masks_replaces_every_detected_mask_and_reports_it():
     assert seen[-1] == len(frames)
 
 
+def _stand_in_detector(monkeypatch, capture, mask_of) -> None:
+    """`--masks mediapipe` without MediaPipe: `detect_people` returns, for every view, `mask_of(camera, true mask)`
+    (the capture's mask file) as the detected person mask, and zero keypoints."""
+    import cv2
+
+    from avatarctl.ingest import estimate, keypoints
+
+    def fake_detect(read_view, cams, frames, masks, progress=None):
+        J = len(keypoints.KEYPOINT_NAMES)
+        det = estimate.Detections(cams=list(cams), frames=list(frames), names=keypoints.KEYPOINT_NAMES,
+                                  keypoints=np.zeros((len(frames), len(cams), J, 2)),
+                                  confidence=np.ones((len(frames), len(cams), J)))
+        for c in cams:
+            for f in frames:
+                m = mask_of(c, cv2.imread(str(capture.root / "masks" / c / f"{f:06d}.png"), 0) > 0)
+                det.masks[(c, f)] = cv2.imencode(".png", m.astype(np.uint8) * 255)[1].tobytes()
+        return det
+
+    monkeypatch.setattr(keypoints, "require_mediapipe", lambda *a, **k: None)
+    monkeypatch.setattr(estimate, "detect_people", fake_detect)
+
+
 def test_ingest_refines_detected_masks_unless_told_not_to(capture, tmp_path, monkeypatch):
     """`--masks mediapipe` with a stand-in detector whose masks are the truth shifted by 2 px: ingest writes them
     refined against the estimated plates (closer to the truth, the report in the summary), or as detected with
     `--no-refine-masks`."""
     import cv2
 
-    from avatarctl.ingest import estimate, keypoints
     from avatarctl.ingest.masks import iou
 
-    def fake_detect(read_view, cams, frames, masks, progress=None):
-        det = estimate.Detections(cams=list(cams), frames=list(frames), names=keypoints.KEYPOINT_NAMES,
-                                  keypoints=np.zeros((len(frames), len(cams), len(keypoints.KEYPOINT_NAMES), 2)),
-                                  confidence=np.ones((len(frames), len(cams), len(keypoints.KEYPOINT_NAMES))))
-        for c in cams:
-            for f in frames:
-                m = cv2.imread(str(capture.root / "masks" / c / f"{f:06d}.png"), 0) > 0
-                det.masks[(c, f)] = cv2.imencode(".png", np.roll(m, 2, axis=1).astype(np.uint8) * 255)[1].tobytes()
-        return det
-
-    monkeypatch.setattr(keypoints, "require_mediapipe", lambda *a, **k: None)
-    monkeypatch.setattr(estimate, "detect_people", fake_detect)
+    _stand_in_detector(monkeypatch, capture, lambda c, truth: np.roll(truth, 2, axis=1))
     scores = {}
     for name, extra in (("refined", []), ("detected", ["--no-refine-masks"])):
         proj = tmp_path / name
@@ -266,27 +276,16 @@ def test_ingest_refines_detected_masks_unless_told_not_to(capture, tmp_path, mon
 def test_ingest_names_a_camera_whose_masks_are_not_the_person(capture, tmp_path, monkeypatch):
     """A stand-in detector whose last camera "segments" a square in the corner instead of the person: ingest still
     succeeds, names that camera (and only it) in one warning with the fix, and records each camera's share."""
-    import cv2
-
-    from avatarctl.ingest import estimate, keypoints
-
     cams = [c.name for c in capture.cameras]
 
-    def fake_detect(read_view, cams_, frames, masks, progress=None):
-        det = estimate.Detections(cams=list(cams_), frames=list(frames), names=keypoints.KEYPOINT_NAMES,
-                                  keypoints=np.zeros((len(frames), len(cams_), len(keypoints.KEYPOINT_NAMES), 2)),
-                                  confidence=np.ones((len(frames), len(cams_), len(keypoints.KEYPOINT_NAMES))))
-        for c in cams_:
-            for f in frames:
-                m = cv2.imread(str(capture.root / "masks" / c / f"{f:06d}.png"), 0) > 0
-                if c == cams[-1]:
-                    m = np.zeros_like(m)
-                    m[:20, :20] = True  # something else
-                det.masks[(c, f)] = cv2.imencode(".png", m.astype(np.uint8) * 255)[1].tobytes()
-        return det
+    def mask_of(cam: str, truth: np.ndarray) -> np.ndarray:
+        if cam != cams[-1]:
+            return truth
+        other = np.zeros_like(truth)
+        other[:20, :20] = True  # something else
+        return other
 
-    monkeypatch.setattr(keypoints, "require_mediapipe", lambda *a, **k: None)
-    monkeypatch.setattr(estimate, "detect_people", fake_detect)
+    _stand_in_detector(monkeypatch, capture, mask_of)
     proj = tmp_path / "proj"
     res = _cli(str(capture.root), str(proj), "--masks", "mediapipe", "--fits", "files", "--no-contact-sheet")
     assert res.exit_code == 0, res.output

@@ -185,13 +185,14 @@ def refine_masks(det: Detections, read_view: ReadView, progress: ProgressFn | No
             continue
         h, w = det.mask(c, pick[0]).shape
         band = bands[c] = max(2, int(round(MASK_BAND * np.hypot(h, w))))
-        plate, known = estimate_plate(np.stack([read_view(c, f) for f in pick]),
-                                      np.stack([det.mask(c, f) for f in pick]), band)
+        picked = {f: read_view(c, f) for f in pick}  # read once: the plate's frames are refined below too
+        plate, known = estimate_plate(np.stack(list(picked.values())), np.stack([det.mask(c, f) for f in pick]), band)
         known_share[c], moved, area = float(known.mean()), 0, 0
         for f in det.frames:
             m = det.mask(c, f)
             if known.any() and m.any():
-                r = refine_mask(read_view(c, f), plate, known, m, band)
+                rgb = picked.pop(f, None)  # each picked frame freed once refined
+                r = refine_mask(read_view(c, f) if rgb is None else rgb, plate, known, m, band)
                 moved, area = moved + int((r ^ m).sum()), area + int(m.sum())
                 out.masks[(c, f)] = cv2.imencode(".png", r.astype(np.uint8) * 255)[1].tobytes()
             done += 1
