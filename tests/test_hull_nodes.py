@@ -241,3 +241,60 @@ def test_resuming_an_auto_fit_keeps_its_nodes(tmp_path):
     assert again.step == 3 and again.hull_nodes is None  # nothing placed this run
     assert first.hull_nodes is not None and "-> 8 of 32 nodes placed off the body" in first.hull_nodes
     assert torch.equal(torch.load(again.checkpoint, map_location="cpu", weights_only=True)["model"]["node_rest"], rest)
+
+
+def test_a_tracked_garment_gets_many_small_patches_with_the_same_gaussians():
+    """`hull.tracked_nodes` (the cpu preset: 256): `for_tracked_garment` gives N = 256 nodes, half off the body, and
+    scales the Gaussians per node to keep their total; 0 (or N already) leaves the model as it is."""
+    from avatarctl.fit.config import preset, resolve_fit_config
+
+    cpu = preset("cpu").model
+    assert cpu.hull.tracked_nodes == 256 and preset("cpu-mlp").model.hull.tracked_nodes == 0
+    g = cpu.for_tracked_garment()
+    assert (g.num_nodes, g.hull.auto_fraction, g.hull_auto_nodes) == (256, 0.5, 128)
+    assert g.num_nodes * g.gaussians.per_node == cpu.num_nodes * cpu.gaussians.per_node == 24_576
+    assert (g.hull.nodes, g.field, g.cvae_width) == (cpu.hull.nodes, cpu.field, cpu.cvae_width)  # nothing else
+    assert g.for_tracked_garment() is g  # N is already 256: a saved config decided once stays as it is
+    off = resolve_fit_config("cpu", overrides=["model.hull.tracked_nodes=0"]).model
+    assert off.hull.tracked_nodes == 0 and off.for_tracked_garment() is off
+    with pytest.raises(ValueError, match="tracked_nodes must be an int >= 0"):
+        HullConfig(tracked_nodes=-1)
+
+
+def test_a_fresh_fit_decides_its_model_from_the_hull_survey(monkeypatch):
+    """`fit.loop._decide_hull`: the model of `for_tracked_garment` (its hull nodes placed again for it) only where the
+    fit will track a garment: hull nodes found, `track` on, two training views or more, one process."""
+    from dataclasses import replace
+    from types import SimpleNamespace
+
+    from avatarctl.fit import loop
+    from avatarctl.fit.config import resolve_fit_config
+
+    found: list = []
+
+    def survey(model_cfg, seed, capture, body, template, frames, views):
+        found.append(model_cfg)
+        return (SimpleNamespace() if garment else None), f"hull: {model_cfg.num_nodes} nodes"
+
+    monkeypatch.setattr(loop, "_place_hull_nodes", survey)
+    two = SimpleNamespace(split=SimpleNamespace(train_views=("cam00", "cam01")))
+    one = SimpleNamespace(split=SimpleNamespace(train_views=("cam00",)))
+    cpu = resolve_fit_config("cpu")
+    garment = True
+    cfg, hull, note = loop._decide_hull(cpu, two, None, None, [0, 1], 1)
+    assert hull is not None and cfg.model == cpu.model.for_tracked_garment() and cfg.model.num_nodes == 256
+    assert [m.num_nodes for m in found] == [128, 256]  # surveyed with the preset's model, placed with the garment's
+    assert note == "hull: 256 nodes (garment tracking: 96 Gaussians per node)"
+    for case, capture, ranks in (("track off", two, 1), ("one view", one, 1), ("two ranks", two, 2),
+                                 ("tracked_nodes 0", two, 1)):
+        found.clear()
+        base = replace(cpu, track=False) if case == "track off" else \
+            resolve_fit_config("cpu", overrides=["model.hull.tracked_nodes=0"]) if case == "tracked_nodes 0" else cpu
+        cfg, hull, note = loop._decide_hull(base, capture, None, None, [0, 1], ranks)
+        assert cfg is base and len(found) == 1 and note == "hull: 128 nodes", case
+    garment = False  # no loose garment: the preset's model, hull nodes none
+    found.clear()
+    cfg, hull, _ = loop._decide_hull(cpu, two, None, None, [0, 1], 1)
+    assert cfg is cpu and hull is None and len(found) == 1
+    paper = resolve_fit_config("paper")  # hull nodes off: no survey at all
+    assert loop._decide_hull(paper, two, None, None, [0, 1], 1) == (paper, None, None) and len(found) == 1

@@ -320,17 +320,31 @@ def _open_run(project: Project, cfg: FitConfig | None, resume: bool, fresh: bool
     return capture, train_frames, cfg, ckpt
 
 
-def _build_model(cfg: FitConfig, capture, body, template, poses, train_frames: list[int], *, fresh_fit: bool,
-                 dev: torch.device) -> "tuple[Any, str | None, int]":
-    """The avatar, initialised from `cfg.seed` (a fresh fit places its hull nodes and solves the pose refinement's
-    joint centres first; a resumed one gets both from the checkpoint), in training mode.
-    -> (model, the hull survey's line or None, the number of hull nodes: the last nodes)."""
+def _decide_hull(cfg: FitConfig, capture, body, template, train_frames: list[int], ranks: int
+                 ) -> "tuple[FitConfig, HullNodes | None, str | None]":
+    """A fresh fit's hull nodes (`_place_hull_nodes`), and the model of a fit that will track a loose garment
+    (`ModelConfig.for_tracked_garment` where `model.hull.tracked_nodes` asks for it: `track` on, hull nodes placed,
+    two training views or more, one process; its hull nodes placed again for it).
+    -> (the config to train and save, the hull nodes or None, the survey's line or None)."""
+    if not (cfg.model.hull.on and cfg.model.variant == "slrf"):
+        return cfg, None, None
+    views = list(capture.split.train_views)
+    hull, note = _place_hull_nodes(cfg.model, cfg.seed, capture, body, template, train_frames, views)
+    garment = cfg.model.for_tracked_garment()
+    if hull is not None and cfg.track and len(views) >= 2 and ranks == 1 and garment is not cfg.model:
+        cfg = replace(cfg, model=garment)
+        hull, note = _place_hull_nodes(garment, cfg.seed, capture, body, template, train_frames, views)
+        note += f" (garment tracking: {garment.gaussians.per_node} Gaussians per node)"
+    return cfg, hull, note
+
+
+def _build_model(cfg: FitConfig, capture, body, template, poses, train_frames: list[int], *,
+                 hull: "HullNodes | None", fresh_fit: bool, dev: torch.device) -> "tuple[Any, int]":
+    """The avatar, initialised from `cfg.seed` with the hull nodes `hull` of a fresh fit (`_decide_hull`); a fresh
+    fit solves the pose refinement's joint centres first, a resumed one gets them and its nodes from the checkpoint.
+    In training mode. -> (model, the number of hull nodes: the last nodes)."""
     from avatarctl.model.avatar import SlrfAvatar
 
-    hull, hull_note = None, None
-    if cfg.model.hull.on and cfg.model.variant == "slrf" and fresh_fit:  # nodes off the body (fit/hull_nodes.py)
-        hull, hull_note = _place_hull_nodes(cfg.model, cfg.seed, capture, body, template, train_frames,
-                                            list(capture.split.train_views))
     with torch.random.fork_rng(devices=[]):  # weights initialised from cfg.seed, global RNG left as it was
         torch.manual_seed(cfg.seed)
         model = SlrfAvatar(cfg.model, template, num_frames=len(train_frames), seed=cfg.seed,
@@ -343,7 +357,7 @@ def _build_model(cfg: FitConfig, capture, body, template, poses, train_frames: l
         model.pose_refine.set_centres(joint_centres(poses.joint_transforms, template.parents,
                                                     skin_weighted_centroids(template.vertices, template.skin_weights)))
     model.train()
-    return model, hull_note, 0 if hull is None else int(hull.rest.shape[0])
+    return model, 0 if hull is None else int(hull.rest.shape[0])
 
 
 def _set_up(project: Project, cfg: FitConfig | None, device: str, resume: bool, fresh: bool,
@@ -368,11 +382,14 @@ def _set_up(project: Project, cfg: FitConfig | None, device: str, resume: bool, 
     if shards is None:
         shards = world if ckpt is None else saved_shards(ckpt["rng"])
         shards = shards if shards % world == 0 else world
+    body = load_body_model(capture.body_model, capture.body_model_path)
+    template = body.template(capture.motion)
+    hull, hull_note = None, None
+    if ckpt is None:  # a fresh fit: its hull nodes, and the model decided with them
+        cfg, hull, hull_note = _decide_hull(cfg, capture, body, template, train_frames, world)
     if main:
         write_json(paths.fit_config, cfg.to_json())
 
-    body = load_body_model(capture.body_model, capture.body_model_path)
-    template = body.template(capture.motion)
     poses = build_pose_table(body, capture.motion, train_frames)
     store = FrameStore(capture, poses, cfg.crop_pad, cfg.cache_mb * 2**20)
     # the ray-marched fields learn from scattered rays, the rasterized one (model.field = "gaussians") from whole crops
@@ -383,8 +400,8 @@ def _set_up(project: Project, cfg: FitConfig | None, device: str, resume: bool, 
     pairs = choose_val_pairs(split.test_views, train_frames, cfg.val_pairs) if main else []
     validator = Validator(capture, body, pairs, train_frames, cfg.background, cfg.val_scale) if pairs else None
 
-    model, hull_note, hull_count = _build_model(cfg, capture, body, template, poses, train_frames,
-                                                fresh_fit=ckpt is None, dev=dev)
+    model, hull_count = _build_model(cfg, capture, body, template, poses, train_frames, hull=hull,
+                                     fresh_fit=ckpt is None, dev=dev)
     optimizer = make_optimizer(cfg, param_groups(cfg, model))
     scheduler = make_scheduler(cfg, optimizer)
     same_stream = True

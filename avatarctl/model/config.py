@@ -109,6 +109,9 @@ class HullConfig(_SubConfig):
     min_dist: float = 0.14  # hull points farther than this (metres) from every surface node are off-body
     auto_fraction: float = 0.25  # "auto" says yes: this share of the N nodes goes off the body (32 of 128)
     auto_min_volume: float = 0.1  # "auto" says yes when the persistent off-body cells hold >= this x body volume
+    # garment tracking on a loose garment (FitConfig.track, "auto" said yes): the nodes in all, half of them off the
+    # body, the Gaussians per node scaled to keep their total (`ModelConfig.for_tracked_garment`); 0: as set
+    tracked_nodes: int = 0
 
     def __post_init__(self) -> None:
         def need(ok: bool, msg: str) -> None:
@@ -122,6 +125,8 @@ class HullConfig(_SubConfig):
         need(0 < self.auto_fraction < 1, f"auto_fraction must be in (0, 1), got {self.auto_fraction}")
         need(self.auto_min_volume >= 0, f"auto_min_volume must be >= 0 (a share of the body volume), got "
              f"{self.auto_min_volume}")
+        need(isinstance(self.tracked_nodes, int) and not isinstance(self.tracked_nodes, bool)
+             and self.tracked_nodes >= 0, f"tracked_nodes must be an int >= 0, got {self.tracked_nodes!r}")
 
     @property
     def on(self) -> bool:
@@ -428,6 +433,17 @@ class ModelConfig:
         if self.cvae_width != AUTO:
             return self
         return self.with_(cvae_width=CVAE_AUTO_WIDTHS[1] if train_views >= 2 else CVAE_AUTO_WIDTHS[0])
+
+    def for_tracked_garment(self) -> "ModelConfig":
+        """The model of a fit that tracks a loose garment (`hull.tracked_nodes` > 0; fit.loop decides when): N =
+        `hull.tracked_nodes` nodes, half of them off the body (`hull.auto_fraction` 0.5: many small garment patches,
+        each moved rigidly by the tracks), `gaussians.per_node` scaled so that the Gaussians' total stays (N x K).
+        Unchanged when `hull.tracked_nodes` is 0 or N already."""
+        n = self.hull.tracked_nodes
+        if not n or n == self.num_nodes:
+            return self
+        per_node = max(1, round(self.num_nodes * self.gaussians.per_node / n))
+        return self.with_(num_nodes=n, hull={"auto_fraction": 0.5}, gaussians={"per_node": per_node})
 
     @property
     def hull_auto_nodes(self) -> int:
