@@ -263,7 +263,8 @@ def test_a_tracked_garment_gets_many_small_patches_with_the_same_gaussians():
 
 def test_a_fresh_fit_decides_its_model_from_the_hull_survey(monkeypatch):
     """`fit.loop._decide_hull`: the model of `for_tracked_garment` (its hull nodes placed again for it) only where the
-    fit will track a garment: hull nodes found, `track` on, two training views or more, one process."""
+    fit will track a garment from enough views: hull nodes found, `track` on, four training views or more, one
+    process."""
     from dataclasses import replace
     from types import SimpleNamespace
 
@@ -277,16 +278,17 @@ def test_a_fresh_fit_decides_its_model_from_the_hull_survey(monkeypatch):
         return (SimpleNamespace() if garment else None), f"hull: {model_cfg.num_nodes} nodes"
 
     monkeypatch.setattr(loop, "_place_hull_nodes", survey)
-    two = SimpleNamespace(split=SimpleNamespace(train_views=("cam00", "cam01")))
-    one = SimpleNamespace(split=SimpleNamespace(train_views=("cam00",)))
+    assert loop.TRACKED_NODES_MIN_VIEWS == 4
+    four = SimpleNamespace(split=SimpleNamespace(train_views=("cam00", "cam01", "cam02", "cam03")))
+    three = SimpleNamespace(split=SimpleNamespace(train_views=("cam00", "cam01", "cam02")))  # too few: 128 nodes
     cpu = resolve_fit_config("cpu")
     garment = True
-    cfg, hull, note = loop._decide_hull(cpu, two, None, None, [0, 1], 1)
+    cfg, hull, note = loop._decide_hull(cpu, four, None, None, [0, 1], 1)
     assert hull is not None and cfg.model == cpu.model.for_tracked_garment() and cfg.model.num_nodes == 256
     assert [m.num_nodes for m in found] == [128, 256]  # surveyed with the preset's model, placed with the garment's
     assert note == "hull: 256 nodes (garment tracking: 96 Gaussians per node)"
-    for case, capture, ranks in (("track off", two, 1), ("one view", one, 1), ("two ranks", two, 2),
-                                 ("tracked_nodes 0", two, 1)):
+    for case, capture, ranks in (("track off", four, 1), ("three views", three, 1), ("two ranks", four, 2),
+                                 ("tracked_nodes 0", four, 1)):
         found.clear()
         base = replace(cpu, track=False) if case == "track off" else \
             resolve_fit_config("cpu", overrides=["model.hull.tracked_nodes=0"]) if case == "tracked_nodes 0" else cpu
@@ -294,7 +296,7 @@ def test_a_fresh_fit_decides_its_model_from_the_hull_survey(monkeypatch):
         assert cfg is base and len(found) == 1 and note == "hull: 128 nodes", case
     garment = False  # no loose garment: the preset's model, hull nodes none
     found.clear()
-    cfg, hull, _ = loop._decide_hull(cpu, two, None, None, [0, 1], 1)
+    cfg, hull, _ = loop._decide_hull(cpu, four, None, None, [0, 1], 1)
     assert cfg is cpu and hull is None and len(found) == 1
     paper = resolve_fit_config("paper")  # hull nodes off: no survey at all
-    assert loop._decide_hull(paper, two, None, None, [0, 1], 1) == (paper, None, None) and len(found) == 1
+    assert loop._decide_hull(paper, four, None, None, [0, 1], 1) == (paper, None, None) and len(found) == 1

@@ -320,18 +320,25 @@ def _open_run(project: Project, cfg: FitConfig | None, resume: bool, fresh: bool
     return capture, train_frames, cfg, ckpt
 
 
+# `model.hull.tracked_nodes` needs this many training views: synth small (8 views, 15 min) +0.15 dB held-out on both
+# seeds; synth realistic (3 views, 300 s) -0.14 / -0.18, where the tracker follows 11-21 of 24 frames and more, smaller
+# patches pay only once their motion is right (docs/experiments/garment_tracking_ceiling_2026-11-30/)
+TRACKED_NODES_MIN_VIEWS = 4
+
+
 def _decide_hull(cfg: FitConfig, capture, body, template, train_frames: list[int], ranks: int
                  ) -> "tuple[FitConfig, HullNodes | None, str | None]":
     """A fresh fit's hull nodes (`_place_hull_nodes`), and the model of a fit that will track a loose garment
     (`ModelConfig.for_tracked_garment` where `model.hull.tracked_nodes` asks for it: `track` on, hull nodes placed,
-    two training views or more, one process; its hull nodes placed again for it).
+    `TRACKED_NODES_MIN_VIEWS` training views or more, one process; its hull nodes placed again for it).
     -> (the config to train and save, the hull nodes or None, the survey's line or None)."""
     if not (cfg.model.hull.on and cfg.model.variant == "slrf"):
         return cfg, None, None
     views = list(capture.split.train_views)
     hull, note = _place_hull_nodes(cfg.model, cfg.seed, capture, body, template, train_frames, views)
     garment = cfg.model.for_tracked_garment()
-    if hull is not None and cfg.track and len(views) >= 2 and ranks == 1 and garment is not cfg.model:
+    if hull is not None and cfg.track and len(views) >= TRACKED_NODES_MIN_VIEWS and ranks == 1 \
+            and garment is not cfg.model:
         cfg = replace(cfg, model=garment)
         hull, note = _place_hull_nodes(garment, cfg.seed, capture, body, template, train_frames, views)
         note += f" (garment tracking: {garment.gaussians.per_node} Gaussians per node)"

@@ -60,16 +60,16 @@ PRESETS: dict[str, Preset] = {
                 "trained on 4 whole image crops per step; docs/fit.md), hull nodes, pose refinement and the cVAE's "
                 "width (the paper's 128 from two training views per frame, 32 from one) decided from the capture, a "
                 "colour transform per training camera, the training frames' mean latent for novel poses, garment "
-                "tracking when there is a loose garment (then 256 nodes, half of them on it); 20k iterations, "
-                "validation on half-size images every 1000 steps",
+                "tracking when there is a loose garment (from 4 training views on, 256 nodes, half of them on it); 20k "
+                "iterations, validation on half-size images every 1000 steps",
         # garment tracking where hull nodes find a loose garment (fit/garment_track.py): synth small, 15 min, two seeds,
         # +0.18 / +0.25 dB held-out and +0.06 / +0.34 novel poses; skipped on tight captures (docs/fit.md)
         fit={**_CPU_FIT, "track": True},
         # the cVAE's width from the views (model/config.py CVAE_AUTO_WIDTHS): 128 is +0.15-0.32 dB on the multi-view
         # captures, 32 ahead on a monocular one (docs/fit.md "The cVAE at the paper's width"); the camera colour
         # transforms: +0.38 dB on synth realistic, +0.03 on its clean twin (docs/fit.md deviations)
-        # with the garment tracked, 256 nodes of which 128 on the garment (96 Gaussians each, the same total): synth
-        # small, 15 min, two seeds, +0.15 / +0.25 dB held-out (docs/experiments/garment_tracking_ceiling_2026-11-30)
+        # with the garment tracked from 4 views or more, 256 nodes of which 128 on the garment (96 Gaussians each, the
+        # same total): synth small, 15 min, +0.15 dB held-out on both seeds (fit.loop.TRACKED_NODES_MIN_VIEWS)
         model={**_CPU_GAUSSIAN_MODEL, "field": "gaussians", "cvae_width": "auto", "colour": {"enabled": True},
                "hull": {"nodes": "auto", "tracked_nodes": 256}}),
     "cpu-mlp": Preset(
@@ -142,8 +142,8 @@ KNOBS: dict[str, tuple[str, str]] = {
     "model.cvae_width": ("any", "the per-node cVAE's hidden channels, or auto (from the training views)"),
     "model.occupancy.enabled": ("mlp", "empty-space skipping (deviation)"),
     "model.hull.nodes": ("any", "nodes off the body: K, 0 or auto (deviation)"),
-    "model.hull.tracked_nodes": ("any", "with the garment tracked: N in all, half off the body, the Gaussians per node "
-                                        "scaled to keep their total (0: N as set; deviation)"),
+    "model.hull.tracked_nodes": ("any", "with the garment tracked from 4 views or more: N in all, half off the body, "
+                                        "the Gaussians per node scaled to keep their total (0: N as set; deviation)"),
     "model.novel_latent": ("any", "z of novel poses: zero (the paper) or train_mean (deviation)"),
     "model.track_free": ("any", "with track: the share of training frames a step places the paper's way (deviation)"),
     "model.pose_refine.enabled": ("any", "per-frame body-pose refinement: true, false or auto (deviation)"),
