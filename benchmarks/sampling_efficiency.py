@@ -63,8 +63,9 @@ def main(argv: list[str] | None = None) -> SamplingEfficiency:
              for name in ways}
     for k, frame in enumerate(frames):
         cam = cap.cameras[views[k % len(views)]].pinhole()
-        cond = av.conditioning(cap.motion.select([frame]), frames_are_training=True)
-        verts = av.body.pose(cap.motion.select([frame])).vertices[0].detach().cpu().numpy()
+        one = cap.motion.select(cap.motion.rows_for([frame]))  # select takes rows, not frame numbers
+        cond = av.conditioning(one, frames_are_training=True)
+        verts = av.body.pose(one).vertices[0].detach().cpu().numpy()
         region = bbox_region(cam, verts, pad=0.05)
         gt = ground_truth(cap.image(cam.name, frame), cap.mask(cam.name, frame), bg)
         ref = None
