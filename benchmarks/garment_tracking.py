@@ -377,8 +377,7 @@ def gaussian_motion(av, gt, frames: list[int], views: list[str], every: int = 5,
     P = projection_matrices([av.capture.cameras[v] for v in views])
     errors, motions, count = [], [], 0
     for t in [f for f in frames if f + 1 in have][::every]:
-        cond = av.conditioning(av.capture.motion.select(av.capture.motion.rows_for([t, t + 1])),
-                               frames_are_training=True)
+        cond = av.conditioning(av.capture.motion.for_frames([t, t + 1]), frames_are_training=True)
         with torch.no_grad():
             posed = m.posed_gaussians(m.node_state(cond, mode="mean"))
         means = posed.means.double().numpy()
@@ -413,8 +412,9 @@ def measure(project_dir: str | Path, patch_counts: tuple[int, ...] = (32, 64, 12
     av = load_avatar(project, device="cpu")
     frames = list(av.capture.split.train_frames)
     garment = torch.as_tensor(np.stack([gt.garment_vertices[gt.row(f)] for f in frames]), dtype=torch.float64)
-    cond = av.conditioning(av.capture.motion.select(av.capture.motion.rows_for(frames)), frames_are_training=True)
-    posed = av.body.pose(av.capture.motion.select(av.capture.motion.rows_for(frames)))
+    motion = av.capture.motion.for_frames(frames)
+    cond = av.conditioning(motion, frames_are_training=True)
+    posed = av.body.pose(motion)
     joints = posed.joint_transforms.double()  # [F, J, 4, 4]
     W = av.template.skin_weights.double()
     # the fixed skinning of each garment vertex: the canonical template vertex nearest to it at the first frame

@@ -52,9 +52,9 @@ def measure(project: Path, true_motion: Path) -> JointErrorReport:
 
     av = load_avatar(Project.open(project), device="cpu")
     frames = sorted(int(f) for f in av.train_frames)
-    motion = av.capture.motion.select(av.capture.motion.rows_for(frames))
+    motion = av.capture.motion.for_frames(frames)
     truth = BodyMotion.load(true_motion)
-    truth = truth.select(truth.rows_for(frames))
+    truth = truth.for_frames(frames)
     tpl = av.body.template(motion)
     M_fit = av.body.pose(motion).joint_transforms.double()
     M_true = av.body.pose(truth).joint_transforms.double()

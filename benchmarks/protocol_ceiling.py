@@ -189,7 +189,7 @@ def measure(project_dir: str | Path, split: str = "novel_pose", every: int = 1,
         tallies["avatar"] = _Tally()
     pixels = dict.fromkeys(PARTS, 0)
     for frame in frames:
-        verts = body.pose(cap.motion.select(cap.motion.rows_for([frame]))).vertices[0].detach().double().numpy()
+        verts = body.pose(cap.motion.for_frames([frame])).vertices[0].detach().double().numpy()
         shots = renderer.render_frame(geometry.row(frame))
         for view, cam, und, (image, cover) in zip(views, cams, undistort, shots):
             physical = jpeg(und.image(jpeg(image, int(info["config"]["jpeg_quality"]))), JPEG_QUALITY

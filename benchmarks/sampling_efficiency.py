@@ -63,7 +63,7 @@ def main(argv: list[str] | None = None) -> SamplingEfficiency:
              for name in ways}
     for k, frame in enumerate(frames):
         cam = cap.cameras[views[k % len(views)]].pinhole()
-        one = cap.motion.select(cap.motion.rows_for([frame]))  # select takes rows, not frame numbers
+        one = cap.motion.for_frames([frame])
         cond = av.conditioning(one, frames_are_training=True)
         verts = av.body.pose(one).vertices[0].detach().cpu().numpy()
         region = bbox_region(cam, verts, pad=0.05)

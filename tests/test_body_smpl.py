@@ -292,7 +292,7 @@ def test_refined_fits_file_for_smpl(kind, smpl_body, smplx_body, tmp_path):
     # rotations exact; positions within the estimated centres' distance from the model's joints (sub-mm here)
     assert (M[..., :3, :3] - want[..., :3, :3]).abs().max() <= 1e-5
     assert (M[..., :3, 3] - want[..., :3, 3]).abs().max() <= 1e-3  # measured 0.3 / 0.4 mm (ridge pull)
-    before = body.evaluate(motion.select(motion.rows_for(frames)), with_vertices=False).joint_transforms
+    before = body.evaluate(motion.for_frames(frames), with_vertices=False).joint_transforms
     assert (before - want).abs().max() > 0.05  # the corrections were real
 
 

@@ -25,7 +25,7 @@ def test_synth_ingest_fit_render(tmp_path):
     assert res.step == 4 and res.val is not None and np.isfinite(res.val.psnr)
     av = load_avatar(project)
     frame = av.train_frames[-1]
-    motion = av.capture.motion.select(av.capture.motion.rows_for([frame]))
+    motion = av.capture.motion.for_frames([frame])
     state = av.model.node_state(av.conditioning(motion, frames_are_training=True), mode="mean")
     cam = av.capture.cameras[av.capture.split.test_views[0]]
     view = render_view(av.model, state, 0, cam, av.background)

@@ -19,7 +19,7 @@ def _frame(project):
 
     av = load_avatar(Project.open(project), "cpu")
     f = int(av.train_frames[0])
-    one = av.capture.motion.select(av.capture.motion.rows_for([f]))
+    one = av.capture.motion.for_frames([f])
     return av, av.conditioning(one, frames_are_training=False)
 
 

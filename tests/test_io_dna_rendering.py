@@ -136,7 +136,7 @@ def test_ingest_fit_eval(random_smplx, capture, tmp_path):
 
     got = load_project_capture(Project.open(proj)).motion
     mean = random_smplx[1].data.hands_mean.reshape(2, 45)
-    stored = capture.motion.select(capture.motion.rows_for([0, 1, 2]))
+    stored = capture.motion.for_frames([0, 1, 2])
     assert np.allclose(got.left_hand_pose, stored.left_hand_pose + mean[0], atol=1e-5)
     assert np.allclose(got.right_hand_pose, stored.right_hand_pose + mean[1], atol=1e-5)
     fr = fit.run(proj, FitRequest(preset="micro", iters=2, overrides=("val_every=0",), device="cpu"),

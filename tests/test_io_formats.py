@@ -344,3 +344,15 @@ def test_detect_unknown_format(tmp_path):
     (tmp_path / "intri.yml").write_text("x")  # half an EasyMocap calibration is not a format
     with pytest.raises(InputError, match="unknown capture format"):
         detect_format(tmp_path)
+
+
+def test_a_motion_is_read_by_frame_numbers_not_rows():
+    """`BodyMotion.for_frames`: the rows of capture frame numbers, in the order asked (a motion whose frames do not
+    start at 0 is where `select`, which takes rows, would be wrong); a frame without a fit is named."""
+    transl = np.arange(9, dtype=np.float64).reshape(3, 3)
+    motion = BodyMotion(body_model="smpl", frame_index=np.array([10, 12, 14]), global_orient=np.zeros((3, 3)),
+                        body_pose=np.zeros((3, 69)), transl=transl, betas=np.zeros(10))
+    two = motion.for_frames([14, 10])
+    assert two.frame_index.tolist() == [14, 10] and np.array_equal(two.transl, transl[[2, 0]])
+    with pytest.raises(KeyError, match="frame 11 has no body fit"):
+        motion.for_frames([11])

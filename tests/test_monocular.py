@@ -246,7 +246,7 @@ def test_ingest_one_synthetic_phone_video_as_a_user_would(tmp_path):
     # the fit against the truth, after one similarity alignment (the video's world is its camera's)
     est = BodyMotion.load(proj / "ingest" / "body.npz")
     ref = BodyMotion.load(out / "gt" / "capture" / "motion.npz")
-    ref = ref.select(ref.rows_for([int(f) for f in est.frame_index]))
+    ref = ref.for_frames([int(f) for f in est.frame_index])
     body = AnnyBody()
     reg = KeypointsRegressor.coco(body.model)
     with torch.no_grad():

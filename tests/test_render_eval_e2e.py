@@ -205,7 +205,7 @@ def test_eval_scores_against_masked_ground_truth(fitted, monkeypatch):
     res = evaluate(fitted, EvalConfig(split="novel_pose", protocol="bbox", name="bg_only", device="cpu"))
     cap = load_project_capture(Project.open(fitted))
     body = load_body_model("anny")
-    verts = body.pose(cap.motion.select(cap.motion.rows_for([2]))).vertices[0].numpy()
+    verts = body.pose(cap.motion.for_frames([2])).vertices[0].numpy()
     bg = np.asarray(res.metrics.background, np.float32)
     assert [(s.frame, s.view) for s in res.scores] == [(2, "cam01"), (2, "cam03")]
     for s in res.scores:

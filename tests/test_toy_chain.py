@@ -36,7 +36,7 @@ def test_ingest_fit_render_eval_on_the_toy_body(tmp_path, monkeypatch):
 
     av = load_avatar(Project.open(proj), device="cpu")
     frames = sorted(av.train_frames)
-    mu = av.model.node_state(av.conditioning(av.capture.motion.select(av.capture.motion.rows_for(frames)), True),
+    mu = av.model.node_state(av.conditioning(av.capture.motion.for_frames(frames), True),
                              "mean").mu
     assert av.model.cfg.novel_latent == "train_mean" and av.model.latent.latent_mean.abs().sum() > 0
     assert torch.allclose(av.model.latent.latent_mean, mu.mean(0), atol=1e-5)

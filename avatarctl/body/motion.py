@@ -84,9 +84,14 @@ class BodyMotion:
         return int(self.frame_index.shape[0])
 
     def select(self, idx: np.ndarray | list[int] | slice) -> "BodyMotion":
-        """The motion restricted to rows `idx` (positions, not frame numbers)."""
+        """The motion restricted to rows `idx` (positions, not frame numbers: `for_frames` takes those)."""
         kw = {name: getattr(self, name)[idx] for name in _PER_FRAME if getattr(self, name) is not None}
         return replace(self, frame_index=self.frame_index[idx], **kw)
+
+    def for_frames(self, frames: list[int] | np.ndarray) -> "BodyMotion":
+        """The motion of capture frame numbers `frames`, in their order (`select` of `rows_for`); raises KeyError
+        naming a missing frame."""
+        return self.select(self.rows_for(frames))
 
     def rows_for(self, frames: list[int] | np.ndarray) -> np.ndarray:
         """Row positions of capture frame numbers `frames`; raises KeyError naming a missing frame."""

@@ -551,7 +551,7 @@ def capture_input(capture, body, template, frames: list[int], views: list[str]) 
     """The `TrackingInput` of a `ProjectCapture`'s training `frames` x `views`, the body posed by its fits."""
     from avatarctl.body.lbs import blend_transforms
 
-    posed = body.pose(capture.motion.select(capture.motion.rows_for(frames)))
+    posed = body.pose(capture.motion.for_frames(frames))
     joints = posed.joint_transforms.double()  # [F, J, 4, 4]
     weights = template.skin_weights.double()
 

@@ -151,7 +151,7 @@ def survey_hull(capture, body, template, frames: list[int], views: list[str], su
     from avatarctl.geometry.silhouette import rasterize_silhouette
 
     use = [frames[i] for i in np.unique(np.linspace(0, len(frames) - 1, min(max_frames, len(frames))).astype(int))]
-    motion = capture.motion.select(capture.motion.rows_for(use))
+    motion = capture.motion.for_frames(use)
     posed = body.pose(motion)
     W = template.skin_weights.double()
     faces = template.faces.numpy()

@@ -51,7 +51,7 @@ def refined_motion(body: object, motion: BodyMotion, poses: PoseTable, refine: P
     ids = torch.arange(len(poses.frames))
     with torch.no_grad():
         M = refine(poses.joint_transforms.to(refine.delta.device).double(), ids.to(refine.delta.device))
-    sub = motion.select(motion.rows_for(list(poses.frames)))
+    sub = motion.for_frames(list(poses.frames))
     return invert(sub, M.cpu())
 
 

@@ -61,7 +61,7 @@ class Validator:
         self.background = background
         self.scale = float(scale)
         frames = sorted({p.frame for p in pairs})
-        posed = body.pose(capture.motion.select(capture.motion.rows_for(frames)))
+        posed = body.pose(capture.motion.for_frames(frames))
         self._slot = {f: i for i, f in enumerate(frames)}
         time_, ids = time_stamps(frames, train_frames, are_training=True)
         self._cond_parts = (posed.joint_transforms, posed.pose_features, time_, ids)

@@ -255,7 +255,7 @@ def plan_ingest(cfg: IngestConfig) -> IngestPlan:
     motion_all = to_body_motion(src.fits, bm_name, body)
     if src.hands_from_mean:
         motion_all = with_hand_mean(motion_all, getattr(getattr(body, "data", None), "hands_mean", None), fits_where)
-    motion = motion_all.select(motion_all.rows_for(frames))
+    motion = motion_all.for_frames(frames)
     check_fits(motion, frames, fits_where)  # converted SMPL transl, anny root translation
     faces = body.template(motion.select([0])).faces.cpu().numpy()
     return IngestPlan(src, reason, cams, frames, masks_mode, bm_name, body, motion, faces, fits_mode,

@@ -337,7 +337,7 @@ def _run(env: Any, progress: ProgressFn | None, project_dir: str, cfg: EvalConfi
         tmp = broadcast_from_main(tmp, env)
         mine: list[_Scored] = []
         t0 = time.perf_counter()
-        motion = cap.motion.select(cap.motion.rows_for(frames))
+        motion = cap.motion.for_frames(frames)
         for fi in range(env.rank if world > 1 else 0, len(frames), world):
             frame, one = frames[fi], motion.select([fi])
             verts = avatar.body.pose(one).vertices[0].detach().float().cpu().numpy()  # [V, 3]

@@ -264,7 +264,7 @@ def _run(project_dir: str | Path, cfg: ExportConfig, progress: ProgressFn | None
         for frame in frames:
             is_train = cfg.poses is None and frame in train_set
             latent = latent_for(cfg.latent, is_train)
-            one = motion.select(motion.rows_for([frame]))
+            one = motion.for_frames([frame])
             state = frame_node_state(avatar, one, frame, is_train, latent, cfg.seed)
             if splat_formats:
                 splat_columns.append(_splats(tmp, frame, avatar, state, "splat" in splat_formats, splat_files))
@@ -404,7 +404,7 @@ def _choose_level(avatar: Any, cfg: ExportConfig, frames: list[int], train_set: 
         raise InputError("--threshold auto scores the surface levels on training frames; the fit has none",
                          where="--threshold", fix="give a level, e.g. --threshold 10")
     frame = next((f for f in frames if f in train_set), min(train_set))
-    one = cap.motion.select(cap.motion.rows_for([frame]))
+    one = cap.motion.for_frames([frame])
     state = frame_node_state(avatar, one, frame, True, latent_for(cfg.latent, True), cfg.seed)
     body = avatar.body.pose(one).vertices[0].detach().float().cpu().numpy()
     background = tuple(float(c) for c in avatar.background)

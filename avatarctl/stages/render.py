@@ -312,7 +312,7 @@ def _plan(avatar: Any, cfg: RenderConfig) -> _Plan:
         frames = select_frames(cfg.frames, [int(f) for f in motion.frame_index])
         training = [False] * len(frames)
         source = str(cfg.poses)
-    motion = motion.select(motion.rows_for(frames))
+    motion = motion.for_frames(frames)
     latents = [latent_for(cfg.latent, is_train) for is_train in training]
 
     cams = avatar.capture.cameras

@@ -141,7 +141,7 @@ def _motion(avatar: Any, cfg: ViewConfig, name: str) -> Any:
             latent = latent_for(mode, is_train)
         except AvatarError:  # "mean" on a novel frame: the viewer shows the novel-pose latent rather than failing
             latent = "novel"
-        return frame_node_state(avatar, motion.select(motion.rows_for([fr.frame])), fr.frame, is_train, latent,
+        return frame_node_state(avatar, motion.for_frames([fr.frame]), fr.frame, is_train, latent,
                                 cfg.seed)
 
     return ViewerMotion(name=name, frames=frames, state_fn=state_fn, fps=fps, note=note)
