@@ -77,14 +77,16 @@ def test_presets_are_stated_once_and_the_defaults_are_the_paper():
     assert all(f"'{name}'" in preset_help() for name in PRESETS)
     # the cpu preset is cpu-mlp with the Gaussian local fields, the cVAE's width decided from the capture and the
     # camera colour transforms, less the keys that do nothing for the Gaussian fields (the MLP widths, empty-space
-    # skipping, the ray batch), with more, smaller garment patches where it tracks a garment; its old name still reads
+    # skipping, the ray batch), with more, smaller garment patches, their placement corrected per frame, where it tracks
+    # a garment; its old name still reads
     g, c = preset("cpu"), preset("cpu-mlp")
     assert g.model.field == "gaussians" and g.model.cvae_width == "auto" and g.model.colour.enabled
     mlp_only = dict(node_width=c.model.node_width, node_depth=c.model.node_depth, feature_dim=c.model.feature_dim,
                     head_width=c.model.head_width, occupancy=c.model.occupancy)
     assert g.model.with_(field="mlp", cvae_width=c.model.cvae_width, colour=c.model.colour, hull=c.model.hull,
-                         **mlp_only) == c.model
+                         track_refine=c.model.track_refine, **mlp_only) == c.model
     assert g.model.hull == replace(c.model.hull, tracked_nodes=256)
+    assert g.model.track_refine == replace(c.model.track_refine, enabled="auto")
     assert g.track and not c.track  # garment tracking: measured with the Gaussian fields only
     assert replace(g, model=c.model, preset="cpu-mlp", rays_per_batch=c.rays_per_batch, track=False) == c
     assert preset("gaussians") == g

@@ -285,6 +285,7 @@ def test_a_fresh_fit_decides_its_model_from_the_hull_survey(monkeypatch):
     garment = True
     cfg, hull, note = loop._decide_hull(cpu, four, None, None, [0, 1], 1)
     assert hull is not None and cfg.model == cpu.model.for_tracked_garment() and cfg.model.num_nodes == 256
+    assert cfg.model.track_refine.enabled is True  # "auto" decided on with the garment's model
     assert [m.num_nodes for m in found] == [128, 256]  # surveyed with the preset's model, placed with the garment's
     assert note == "hull: 256 nodes (garment tracking: 96 Gaussians per node)"
     for case, capture, ranks in (("track off", four, 1), ("three views", three, 1), ("two ranks", four, 2),
@@ -293,10 +294,11 @@ def test_a_fresh_fit_decides_its_model_from_the_hull_survey(monkeypatch):
         base = replace(cpu, track=False) if case == "track off" else \
             resolve_fit_config("cpu", overrides=["model.hull.tracked_nodes=0"]) if case == "tracked_nodes 0" else cpu
         cfg, hull, note = loop._decide_hull(base, capture, None, None, [0, 1], ranks)
-        assert cfg is base and len(found) == 1 and note == "hull: 128 nodes", case
+        assert cfg.model == base.model.with_(track_refine={"enabled": False}), case  # "auto" decided off
+        assert cfg == replace(base, model=cfg.model) and len(found) == 1 and note == "hull: 128 nodes", case
     garment = False  # no loose garment: the preset's model, hull nodes none
     found.clear()
     cfg, hull, _ = loop._decide_hull(cpu, four, None, None, [0, 1], 1)
-    assert cfg is cpu and hull is None and len(found) == 1
+    assert cfg.model == cpu.model.with_(track_refine={"enabled": False}) and hull is None and len(found) == 1
     paper = resolve_fit_config("paper")  # hull nodes off: no survey at all
     assert loop._decide_hull(paper, four, None, None, [0, 1], 1) == (paper, None, None) and len(found) == 1

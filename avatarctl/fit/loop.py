@@ -330,18 +330,21 @@ def _decide_hull(cfg: FitConfig, capture, body, template, train_frames: list[int
                  ) -> "tuple[FitConfig, HullNodes | None, str | None]":
     """A fresh fit's hull nodes (`_place_hull_nodes`), and the model of a fit that will track a loose garment
     (`ModelConfig.for_tracked_garment` where `model.hull.tracked_nodes` asks for it: `track` on, hull nodes placed,
-    `TRACKED_NODES_MIN_VIEWS` training views or more, one process; its hull nodes placed again for it).
-    -> (the config to train and save, the hull nodes or None, the survey's line or None)."""
-    if not (cfg.model.hull.on and cfg.model.variant == "slrf"):
-        return cfg, None, None
-    views = list(capture.split.train_views)
-    hull, note = _place_hull_nodes(cfg.model, cfg.seed, capture, body, template, train_frames, views)
-    garment = cfg.model.for_tracked_garment()
-    if hull is not None and cfg.track and len(views) >= TRACKED_NODES_MIN_VIEWS and ranks == 1 \
-            and garment is not cfg.model:
-        cfg = replace(cfg, model=garment)
-        hull, note = _place_hull_nodes(garment, cfg.seed, capture, body, template, train_frames, views)
-        note += f" (garment tracking: {garment.gaussians.per_node} Gaussians per node)"
+    `TRACKED_NODES_MIN_VIEWS` training views or more, one process; its hull nodes placed again for it; elsewhere
+    `model.track_refine.enabled = "auto"` is decided off). -> (the config to train and save, the hull nodes or
+    None, the survey's line or None)."""
+    hull, note = None, None
+    if cfg.model.hull.on and cfg.model.variant == "slrf":
+        views = list(capture.split.train_views)
+        hull, note = _place_hull_nodes(cfg.model, cfg.seed, capture, body, template, train_frames, views)
+        garment = cfg.model.for_tracked_garment()
+        if hull is not None and cfg.track and len(views) >= TRACKED_NODES_MIN_VIEWS and ranks == 1 \
+                and garment is not cfg.model:
+            cfg = replace(cfg, model=garment)
+            hull, note = _place_hull_nodes(garment, cfg.seed, capture, body, template, train_frames, views)
+            note += f" (garment tracking: {garment.gaussians.per_node} Gaussians per node)"
+    if cfg.model.track_refine.enabled == AUTO:
+        cfg = replace(cfg, model=cfg.model.with_(track_refine={"enabled": False}))
     return cfg, hull, note
 
 

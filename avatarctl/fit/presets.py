@@ -3,8 +3,8 @@
 builds the config; `avatarctl fit --help` (`preset_help`) and docs/fit.md's table (`presets_markdown`, checked by
 tests/test_fit.py) are made from this table. Plain data, no torch: the CLI reads it at start-up.
 
-"auto" (`model.hull.nodes`, `model.pose_refine.enabled`, `model.cvae_width`) is decided from the capture at fit
-start (`fit.loop.decide_auto`, fit/hull_nodes.py).
+"auto" (`model.hull.nodes`, `model.pose_refine.enabled`, `model.cvae_width`, `model.track_refine.enabled`) is
+decided from the capture at fit start (`fit.loop.decide_auto`, fit/hull_nodes.py, `fit.loop._decide_hull`).
 """
 
 from __future__ import annotations
@@ -60,8 +60,8 @@ PRESETS: dict[str, Preset] = {
                 "trained on 4 whole image crops per step; docs/fit.md), hull nodes, pose refinement and the cVAE's "
                 "width (the paper's 128 from two training views per frame, 32 from one) decided from the capture, a "
                 "colour transform per training camera, the training frames' mean latent for novel poses, garment "
-                "tracking when there is a loose garment (from 4 training views on, 256 nodes, half of them on it); 20k "
-                "iterations, validation on half-size images every 1000 steps",
+                "tracking when there is a loose garment (from 4 training views on, 256 nodes, half of them on it, their "
+                "placement corrected per frame); 20k iterations, validation on half-size images every 1000 steps",
         # garment tracking where hull nodes find a loose garment (fit/garment_track.py): synth small, 15 min, two seeds,
         # +0.18 / +0.25 dB held-out and +0.06 / +0.34 novel poses; skipped on tight captures (docs/fit.md)
         fit={**_CPU_FIT, "track": True},
@@ -69,9 +69,10 @@ PRESETS: dict[str, Preset] = {
         # captures, 32 ahead on a monocular one (docs/fit.md "The cVAE at the paper's width"); the camera colour
         # transforms: +0.38 dB on synth realistic, +0.03 on its clean twin (docs/fit.md deviations)
         # with the garment tracked from 4 views or more, 256 nodes of which 128 on the garment (96 Gaussians each, the
-        # same total): synth small, 15 min, +0.15 dB held-out on both seeds (fit.loop.TRACKED_NODES_MIN_VIEWS)
+        # same total): synth small, 15 min, +0.15 dB held-out on both seeds (fit.loop.TRACKED_NODES_MIN_VIEWS); with
+        # it, the tracked nodes' per-frame corrections (model/track_refine.py; docs/fit.md "Garment tracking")
         model={**_CPU_GAUSSIAN_MODEL, "field": "gaussians", "cvae_width": "auto", "colour": {"enabled": True},
-               "hull": {"nodes": "auto", "tracked_nodes": 256}}),
+               "hull": {"nodes": "auto", "tracked_nodes": 256}, "track_refine": {"enabled": "auto"}}),
     "cpu-mlp": Preset(
         meant_for="a 2-core CPU, with the paper's MLP fields (the cpu preset until 2026-11-27; `reproduce` fits it)",
         summary="narrow networks (node 2 x 32 -> 32, heads 64, cVAE 32), empty-space skipping, hull nodes and pose "
@@ -145,6 +146,8 @@ KNOBS: dict[str, tuple[str, str]] = {
     "model.hull.tracked_nodes": ("any", "with the garment tracked from 4 views or more: N in all, half off the body, "
                                         "the Gaussians per node scaled to keep their total (0: N as set; deviation)"),
     "model.novel_latent": ("any", "z of novel poses: zero (the paper) or train_mean (deviation)"),
+    "model.track_refine.enabled": ("any", "with the tracked garment: its nodes' placement corrected per frame, "
+                                          "learned with the avatar: true, false or auto (deviation)"),
     "model.track_free": ("any", "with track: the share of training frames a step places the paper's way (deviation)"),
     "model.pose_refine.enabled": ("any", "per-frame body-pose refinement: true, false or auto (deviation)"),
     "model.colour.enabled": ("any", "a colour transform per training camera, learned with the avatar (deviation)"),

@@ -26,33 +26,42 @@ def make_optimizer(cfg: FitConfig, params) -> torch.optim.Adam:
 def param_groups(cfg: FitConfig, model: torch.nn.Module) -> list[dict]:
     """Adam param groups: the Gaussians' own parameters (`model.field = "gaussians"`) at 3DGS's rates
     (`model.gaussians.lr_*`), the pose-refinement corrections at `cfg.model.pose_refine.lr`, everything else at
-    `cfg.lr`, the camera colour transforms at `cfg.model.colour.lr`. All follow the same decay."""
+    `cfg.lr`, the camera colour transforms at `cfg.model.colour.lr`, the tracked garment's corrections at
+    `cfg.model.track_refine.lr` / `lr_rotation`. All follow the same decay."""
     fields = getattr(model, "fields", None)
     refine = getattr(model, "pose_refine", None)
     pose = list(refine.parameters()) if refine is not None else []
     colour_module = getattr(model, "camera_colour", None)
     colour = list(colour_module.parameters()) if colour_module is not None else []
+    tracked = getattr(model, "track_refine", None)
+    track = [tracked.translation] if tracked is not None else []
+    track_rot = [tracked.rotation] if tracked is not None else []
     splats = fields.gaussian_parameters() if hasattr(fields, "gaussian_parameters") else {}
-    special = {id(p) for p in pose + colour + [q for ps in splats.values() for q in ps]}
+    special = {id(p) for p in pose + colour + track + track_rot + [q for ps in splats.values() for q in ps]}
     rest = [p for p in model.parameters() if id(p) not in special]
     return [{"params": rest}] \
         + [{"params": ps, "lr": getattr(cfg.model.gaussians, name), "name": name} for name, ps in splats.items()] \
         + ([{"params": pose, "lr": cfg.model.pose_refine.lr, "name": "pose"}] if pose else []) \
-        + ([{"params": colour, "lr": cfg.model.colour.lr, "name": "colour"}] if colour else [])
+        + ([{"params": colour, "lr": cfg.model.colour.lr, "name": "colour"}] if colour else []) \
+        + ([{"params": track, "lr": cfg.model.track_refine.lr, "name": "track"},
+            {"params": track_rot, "lr": cfg.model.track_refine.lr_rotation, "name": "track"}] if track else [])
 
 
 def make_scheduler(cfg: FitConfig, optimizer: torch.optim.Optimizer) -> torch.optim.lr_scheduler.LambdaLR:
     """Multiplies the base lr by factor ** (step / every); call `.step()` once per optimisation step. The
-    pose-refinement group (named "pose" by `param_groups`) is 0 before `cfg.model.pose_refine.start`."""
-    factor, every, start = cfg.lr_decay_factor, cfg.lr_decay_every, cfg.model.pose_refine.start
+    pose-refinement groups (named "pose" by `param_groups`) are 0 before `cfg.model.pose_refine.start`, the tracked
+    garment's corrections ("track") before `cfg.model.track_refine.start`."""
+    factor, every = cfg.lr_decay_factor, cfg.lr_decay_every
+    starts = {"pose": cfg.model.pose_refine.start, "track": cfg.model.track_refine.start}
 
     def decay(step: int) -> float:
         return factor ** (step / every)
 
-    def pose(step: int) -> float:
-        return decay(step) if step >= start else 0.0
+    def after(start: int):
+        def gated(step: int) -> float:
+            return decay(step) if step >= start else 0.0
+        return gated
 
-    if start:
-        return torch.optim.lr_scheduler.LambdaLR(
-            optimizer, [pose if g.get("name") == "pose" else decay for g in optimizer.param_groups])
-    return torch.optim.lr_scheduler.LambdaLR(optimizer, decay)
+    return torch.optim.lr_scheduler.LambdaLR(
+        optimizer, [after(starts[g["name"]]) if starts.get(g.get("name"), 0) else decay
+                    for g in optimizer.param_groups])

@@ -82,6 +82,7 @@ class NodeState:
     logvar: torch.Tensor | None = None  # [B, N, Z]
     pose_penalty: torch.Tensor | None = None  # [] pose-refinement penalty of these frames (None when off)
     track_penalty: torch.Tensor | None = None  # [] tracked nodes: |Eq. 3's n_i - tracked centre|^2 (None: no tracks)
+    refine_penalty: torch.Tensor | None = None  # [] their corrections' priors (model/track_refine.py; None: off)
 
     @property
     def num_frames(self) -> int:
@@ -192,6 +193,13 @@ class SlrfAvatar(nn.Module):
                 weights, template.parents) >= cfg.pose_refine.min_share)
             # a rough start; the fit replaces it with centres solved from the training poses (set_centres)
             self.pose_refine.set_centres(skin_weighted_centroids(template.vertices.detach().float(), weights))
+        self.track_refine = None  # the tracked garment nodes' per-frame corrections (model/track_refine.py)
+        if cfg.track_refine.on and num_frames > 0:
+            from avatarctl.model.track_refine import TrackRefinement
+
+            r = cfg.track_refine
+            self.track_refine = TrackRefinement(num_frames, cfg.num_nodes, r.lambda_size, r.lambda_smooth,
+                                                r.rotation_m)
         if cfg.variant == "slrf":
             self.latent = NodeCVAE(cfg, J, num_frames)
         self.field_kind = field_kind(cfg)  # the local fields' kind: every difference between them (local_field.py)
@@ -245,11 +253,11 @@ class SlrfAvatar(nn.Module):
             embed = T.new_zeros(B, N, self.cfg.embed_dim)
         with _float32_geometry(dev):
             centers = posed_node_centers(T, self.node_rest, delta.to(T.dtype))  # [B, N, 3]  Eq. 3
-            track_penalty = None
+            track_penalty = refine_penalty = None
             if self.track_nodes is not None:  # training frames: the tracked garment nodes (fit/garment_track.py)
-                T, centers, track_penalty = self._tracked(T, centers, cond.frame_ids)
+                T, centers, track_penalty, refine_penalty = self._tracked(T, centers, cond.frame_ids)
         return NodeState(transforms=T, centers=centers, delta_n=delta, embed=embed, mu=mu, logvar=logvar,
-                         pose_penalty=pose_penalty, track_penalty=track_penalty)
+                         pose_penalty=pose_penalty, track_penalty=track_penalty, refine_penalty=refine_penalty)
 
     # ---- garment tracks (fit/garment_track.py; a deviation) ------------------------------------------------------
     def set_tracks(self, nodes: torch.Tensor, rotation: torch.Tensor, center: torch.Tensor) -> None:
@@ -268,30 +276,36 @@ class SlrfAvatar(nn.Module):
             self._buffers[name] = value.to(dev).clone()
 
     def _tracked(self, T: torch.Tensor, centers: torch.Tensor, frame_ids: torch.Tensor
-                 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
-        """-> (T, centers) with the tracked nodes placed on training frames, and L_track: the mean over those frames of
+                 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None, torch.Tensor | None]:
+        """-> (T, centers) with the tracked nodes placed on training frames, L_track: the mean over those frames of
         sum over the tracked nodes of |n_i - c_i|^2 (Eq. 3's centre with its Delta n against the tracked centre,
-        metres^2), so that Delta n learns the tracked placement and predicts it on novel poses (None: no training
-        frame here). In training, each frame keeps the paper's placement with probability `cfg.track_free` (the
-        global RNG): the garment is drawn from where Delta n puts it there too, as on novel poses."""
+        metres^2), so that Delta n learns the tracked placement and predicts it on novel poses, and the priors of
+        the placement's per-frame corrections (`track_refine`, model/track_refine.py: c_i and R_i corrected first;
+        None when off). Both None: no training frame here. In training, each frame keeps the paper's placement with
+        probability `cfg.track_free` (the global RNG): the garment is drawn from where Delta n puts it there too, as
+        on novel poses."""
         train = (frame_ids >= 0).nonzero(as_tuple=True)[0]
         if not train.numel():
-            return T, centers, None
+            return T, centers, None, None
         nodes, f = self.track_nodes, frame_ids[train]
         c = self.track_center[f].to(T.dtype)  # [b, M, 3]
-        penalty = ((centers[train][:, nodes] - c) ** 2).sum(dim=(-2, -1)).mean()
+        R = self.track_rotation[f].to(T.dtype)  # [b, M, 3, 3]
+        refine_penalty = None
+        if self.track_refine is not None:
+            R, c = self.track_refine(R, c, f, nodes)
+            refine_penalty = self.track_refine.penalty(f, nodes)
+        penalty = ((centers[train][:, nodes] - c.detach()) ** 2).sum(dim=(-2, -1)).mean()
         if self.training and self.cfg.track_free > 0:  # a share of the frames placed the paper's way this step
             keep = (torch.rand(train.numel()) >= self.cfg.track_free).to(train.device)
             if not keep.any():
-                return T, centers, penalty
-            train, f, c = train[keep], f[keep], c[keep]
-        R = self.track_rotation[f].to(T.dtype)  # [b, M, 3, 3]
+                return T, centers, penalty, refine_penalty
+            train, c, R = train[keep], c[keep], R[keep]
         T, centers = T.clone(), centers.clone()
         b = train[:, None]
         T[b, nodes[None], :3, :3] = R
         T[b, nodes[None], :3, 3] = c - (R @ self.node_rest[nodes].to(T.dtype)[None, ..., None])[..., 0]
         centers[b, nodes[None]] = c
-        return T, centers, penalty
+        return T, centers, penalty, refine_penalty
 
     def set_latent_mean(self, cond: FrameConditioning) -> None:
         """With `cfg.novel_latent = "train_mean"`: store the mean posterior mean of the cVAE over `cond`'s frames (all
@@ -621,7 +635,7 @@ class SlrfAvatar(nn.Module):
                           c.lambda_rec, c.lambda_trans, c.lambda_ebd, c.lambda_kl, mse=mse,
                           pose=state.pose_penalty, lambda_pose=refine.lambda_pose, colour=colour,
                           lambda_colour=c.colour.lambda_identity, track=state.track_penalty,
-                          lambda_track=TRACK_PULL)
+                          lambda_track=TRACK_PULL, refine=state.refine_penalty)
 
 
 def _float32_geometry(device: torch.device):

@@ -17,7 +17,8 @@ presets (`cpu`, `cpu-mlp`, `micro`) are named sets of changes from them, stated 
 The options of one part that only matter when it is used sit in small frozen sub-configs: `hull` (`HullConfig`,
 nodes off the body), `occupancy` (`OccupancyConfig`, empty-space skipping), `pose_refine` (`PoseRefineConfig`,
 per-frame body-pose refinement), `gaussians` (`GaussianConfig`, the Gaussian local fields), `colour` (`ColourConfig`, a
-colour transform per training camera). Configs written before
+colour transform per training camera), `track_refine` (`TrackRefineConfig`, the tracked garment's per-frame
+corrections). Configs written before
 they existed (schema_version 1, flat keys such as `occ_res` or `hull_nodes`) are read through `LEGACY_KEYS`.
 
 Choices beyond the paper text (documented, switchable):
@@ -49,7 +50,7 @@ VARIANTS = ("slrf", "lbs_baseline")
 FIELDS = ("mlp", "gaussians")
 REC_REDUCTIONS = ("sum", "mean")  # Eq. 12 as written (sum over rays) | plain MSE, see model/losses.py
 NOVEL_LATENTS = ("zero", "train_mean")  # z of novel poses: the paper's 0 | the mean of mu over the training frames
-AUTO = "auto"  # `hull.nodes` / `pose_refine.enabled` / `cvae_width`: decided from the capture at fit start
+AUTO = "auto"  # `hull.nodes` / `pose_refine.enabled` / `track_refine.enabled` / `cvae_width`: decided at fit start
 # `cvae_width = "auto"`: (one training view per frame, two or more) -> width. The paper's 128 is ahead on every
 # multi-view capture measured and behind on the monocular one (docs/fit.md "The cVAE at the paper's width")
 CVAE_AUTO_WIDTHS = (32, 128)
@@ -77,6 +78,12 @@ def _check_removed(owner: str, d: dict[str, Any]) -> None:
             if neutral is not None and value != neutral:
                 raise ValueError(f"{owner}: {key}={value!r} was removed in issue 30 (docs/fit.md, \"Tried and "
                                  f"removed\"); this avatar needs avatarctl at commit 0081142, or a new fit")
+
+
+def _need_switch(owner: str, v: Any) -> None:
+    """A switch decided from the capture: true, false or "auto" (a ValueError naming `owner` otherwise)."""
+    if not (isinstance(v, bool) or v == AUTO):
+        raise ValueError(f"{owner}: enabled must be true, false or {AUTO!r}, got {v!r}")
 
 
 def _need_int(owner: str, name: str, v: Any, minimum: int) -> None:
@@ -177,8 +184,7 @@ class PoseRefineConfig(_SubConfig):
             if not ok:
                 raise ValueError(f"PoseRefineConfig: {msg}")
 
-        need(isinstance(self.enabled, bool) or self.enabled == AUTO,
-             f"enabled must be true, false or {AUTO!r}, got {self.enabled!r}")
+        _need_switch("PoseRefineConfig", self.enabled)
         need(self.lambda_pose >= 0, f"lambda_pose must be >= 0, got {self.lambda_pose}")
         need(0.0 <= self.min_share < 1.0, f"min_share must be in [0, 1), got {self.min_share}")
         need(self.lr > 0 and self.lr != float("inf"), f"lr must be > 0, got {self.lr}")
@@ -307,8 +313,42 @@ class ColourConfig(_SubConfig):
             raise ValueError(f"ColourConfig: lr must be > 0, got {self.lr}")
 
 
+@dataclass(frozen=True)
+class TrackRefineConfig(_SubConfig):
+    """Per-training-frame rigid corrections of the tracked garment nodes, learned with the avatar (a deviation when
+    on, model/track_refine.py; issue 48, docs/fit.md "Garment tracking")."""
+
+    # True | False | "auto": on with the tracked garment's model (`ModelConfig.for_tracked_garment`, decided at fit
+    # start by fit.loop); "auto" not decided reads as off. The saved config holds the decision
+    enabled: bool | str = False
+    lambda_size: float = 100.0  # weight of the corrections' size, per m^2 (a radian weighs `rotation_m` metres)
+    lambda_smooth: float = 2000.0  # weight of their change between consecutive training frames, per m^2
+    rotation_m: float = 0.05  # metres a radian of rotation weighs as in both priors
+    lr: float = 1e-3  # Adam rate of the translations (metres); the networks use FitConfig.lr
+    lr_rotation: float = 3e-3  # Adam rate of the rotations (radians)
+    start: int = 800  # the corrections stay frozen (lr 0) before this step: the garment's appearance takes shape first
+
+    def __post_init__(self) -> None:
+        def need(ok: bool, msg: str) -> None:
+            if not ok:
+                raise ValueError(f"TrackRefineConfig: {msg}")
+
+        _need_switch("TrackRefineConfig", self.enabled)
+        for name in ("lambda_size", "lambda_smooth", "rotation_m"):
+            need(getattr(self, name) >= 0, f"{name} must be >= 0, got {getattr(self, name)}")
+        for name in ("lr", "lr_rotation"):
+            v = getattr(self, name)
+            need(v > 0 and v != float("inf"), f"{name} must be > 0, got {v}")
+        _need_int("TrackRefineConfig", "start", self.start, 0)
+
+    @property
+    def on(self) -> bool:
+        """The corrections are learned: `enabled` is true ("auto" undecided is off)."""
+        return self.enabled is True
+
+
 _SUB_CONFIGS = {"hull": HullConfig, "occupancy": OccupancyConfig, "pose_refine": PoseRefineConfig,
-                "gaussians": GaussianConfig, "colour": ColourConfig}
+                "gaussians": GaussianConfig, "colour": ColourConfig, "track_refine": TrackRefineConfig}
 
 
 @dataclass(frozen=True)
@@ -348,6 +388,8 @@ class ModelConfig:
     # training frames places the tracked nodes the paper's way (skeleton + Delta n, Eq. 1-3) instead of by the
     # tracks, so the garment is also learned where the model's own Delta n puts it, as on novel poses
     track_free: float = 0.3
+    # the tracked garment nodes' per-frame corrections (a deviation when on, model/track_refine.py)
+    track_refine: TrackRefineConfig = TrackRefineConfig()
     colour: ColourConfig = ColourConfig()  # a colour transform per training camera (deviation when on, model/colour.py)
     # pose condition (Eq. 8)
     pose_attention_hops: int = 2
@@ -437,13 +479,15 @@ class ModelConfig:
     def for_tracked_garment(self) -> "ModelConfig":
         """The model of a fit that tracks a loose garment (`hull.tracked_nodes` > 0; fit.loop decides when): N =
         `hull.tracked_nodes` nodes, half of them off the body (`hull.auto_fraction` 0.5: many small garment patches,
-        each moved rigidly by the tracks), `gaussians.per_node` scaled so that the Gaussians' total stays (N x K).
-        Unchanged when `hull.tracked_nodes` is 0 or N already."""
+        each moved rigidly by the tracks), `gaussians.per_node` scaled so that the Gaussians' total stays (N x K), and
+        `track_refine.enabled = "auto"` decided on. Unchanged when `hull.tracked_nodes` is 0 or N already."""
         n = self.hull.tracked_nodes
         if not n or n == self.num_nodes:
             return self
         per_node = max(1, round(self.num_nodes * self.gaussians.per_node / n))
-        return self.with_(num_nodes=n, hull={"auto_fraction": 0.5}, gaussians={"per_node": per_node})
+        refine = {"enabled": True} if self.track_refine.enabled == AUTO else {}
+        return self.with_(num_nodes=n, hull={"auto_fraction": 0.5}, gaussians={"per_node": per_node},
+                          track_refine=refine)
 
     @property
     def hull_auto_nodes(self) -> int:

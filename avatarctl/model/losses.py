@@ -32,11 +32,12 @@ class LossTerms:
     pose: torch.Tensor | None = None  # [] pose-refinement penalty (model/pose_refine.py), None when off
     colour: torch.Tensor | None = None  # [] the camera colour transforms' pull to identity (model/colour.py), None: off
     track: torch.Tensor | None = None  # [] Delta n's pull to the tracked garment placement (model/avatar.py), None: off
+    refine: torch.Tensor | None = None  # [] the tracked placement's corrections' priors (model/track_refine.py)
 
     def keys(self) -> tuple[str, ...]:
         """Names of the terms this step has (the optional ones only when on; the same on every rank)."""
         return ("total", "rec", "trans", "ebd", "kl", "mse") + tuple(
-            k for k in ("pose", "colour", "track") if getattr(self, k) is not None)
+            k for k in ("pose", "colour", "track", "refine") if getattr(self, k) is not None)
 
     def as_floats(self) -> dict[str, float]:
         return {k: float(getattr(self, k).detach()) for k in self.keys()}
@@ -76,11 +77,13 @@ def total_loss(rec: torch.Tensor, trans: torch.Tensor, ebd: torch.Tensor, kl: to
                lambda_trans: float, lambda_ebd: float, lambda_kl: float, mse: torch.Tensor,
                pose: torch.Tensor | None = None, lambda_pose: float = 0.0,
                colour: torch.Tensor | None = None, lambda_colour: float = 0.0,
-               track: torch.Tensor | None = None, lambda_track: float = 0.0) -> LossTerms:
+               track: torch.Tensor | None = None, lambda_track: float = 0.0,
+               refine: torch.Tensor | None = None) -> LossTerms:
     """Eq. 11: L = lambda_rec L_rec + lambda_trans L_trans + lambda_ebd L_ebd + lambda_KL L_KL, plus
     lambda_pose L_pose when pose refinement is on (a deviation,
     model/pose_refine.py), plus lambda_colour L_colour when the camera colour transforms are on (a deviation,
-    model/colour.py), plus lambda_track L_track when garment tracks place nodes (a deviation, model/avatar.py). `mse`
+    model/colour.py), plus lambda_track L_track when garment tracks place nodes (a deviation, model/avatar.py) and
+    L_refine, weighted already, when their placement is corrected per frame (model/track_refine.py). `mse`
     (the mean squared colour error) is carried along for the logs only."""
     total = lambda_rec * rec + lambda_trans * trans + lambda_ebd * ebd + lambda_kl * kl
     if pose is not None:
@@ -89,8 +92,10 @@ def total_loss(rec: torch.Tensor, trans: torch.Tensor, ebd: torch.Tensor, kl: to
         total = total + lambda_colour * colour
     if track is not None:
         total = total + lambda_track * track
+    if refine is not None:
+        total = total + refine
     return LossTerms(total=total, rec=rec, trans=trans, ebd=ebd, kl=kl, mse=mse, pose=pose, colour=colour,
-                     track=track)
+                     track=track, refine=refine)
 
 
 def _gaussian_window(size: int = 11, sigma: float = 1.5, device=None, dtype=None) -> torch.Tensor:
