@@ -76,7 +76,7 @@ def test_the_priors_weigh_size_on_the_batch_and_change_between_consecutive_frame
     model2, cond2, *_ = _model_with_tracks(lambda_smooth=0.0)
     with torch.no_grad():
         model2.track_refine.translation[2, 5] = 1.0
-    assert float(model2.node_state(cond2, mode="zero").refine_penalty) == 0.0  # frame 2 not in the batch
+    assert float(model2.node_state(cond2, mode="zero").refine_penalty.detach()) == 0.0  # frame 2 not in the batch
 
 
 def test_the_corrections_are_saved_with_the_weights_and_learn_at_their_own_rate_after_their_start():

@@ -57,11 +57,10 @@ def make_scheduler(cfg: FitConfig, optimizer: torch.optim.Optimizer) -> torch.op
     def decay(step: int) -> float:
         return factor ** (step / every)
 
-    def after(start: int):
-        def gated(step: int) -> float:
-            return decay(step) if step >= start else 0.0
-        return gated
+    def rule(group: dict):
+        start = starts.get(group.get("name"), 0)
+        if not start:
+            return decay
+        return lambda step: decay(step) if step >= start else 0.0
 
-    return torch.optim.lr_scheduler.LambdaLR(
-        optimizer, [after(starts[g["name"]]) if starts.get(g.get("name"), 0) else decay
-                    for g in optimizer.param_groups])
+    return torch.optim.lr_scheduler.LambdaLR(optimizer, [rule(g) for g in optimizer.param_groups])
