@@ -19,7 +19,8 @@ Parts (each timed, each a section of OUT/gpu_suite.json; a part that fails is re
 7. `track`: the garment tracker (`fit/garment_track.py`: the reference surface's stereo, then `track`) on a
    timing scene (a tube of 30 rings 2 cm apart, 72 vertices a ring, in 8 views of 512², 7 frames of random noise,
    the stop rule off) on the device and on the CPU: seconds each, and the largest distance between their tracked
-   vertices.
+   vertices (on noise there is no true surface, so the solves drift apart with the devices' summation orders: a
+   diagnostic, not parity; the tracker's parity is `tests/test_garment_track.py`'s CUDA test).
 
 `--quick`: tiny sizes, so the script itself runs in the CPU test suite (tests/test_gpu_suite.py) and cannot rot.
 """

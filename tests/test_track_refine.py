@@ -115,3 +115,23 @@ def test_auto_is_decided_with_the_tracked_garment_and_checked():
     for bad in ({"enabled": "yes"}, {"lambda_size": -1.0}, {"lr": 0.0}, {"start": -1}):
         with pytest.raises(ValueError, match="TrackRefineConfig"):
             TrackRefineConfig(**bad)
+
+
+@pytest.mark.gpu
+def test_the_corrections_on_cuda_match_the_cpu():
+    """The same corrected placement, priors and gradients on a CUDA device as on the CPU (pure torch both ways)."""
+    model, cond, *_ = _model_with_tracks()
+    with torch.no_grad():
+        model.track_refine.translation[:, 3] = torch.tensor([0.01, -0.02, 0.005])
+        model.track_refine.rotation[1, 5] = torch.tensor([0.1, 0.0, -0.2])
+    results = []
+    for device in ("cpu", "cuda"):
+        m = model.to(device)
+        m.zero_grad()
+        state = m.node_state(cond.to(device), mode="zero")
+        (state.centers.sum() + state.refine_penalty + state.track_penalty).backward()
+        results.append([t.detach().cpu() for t in (state.centers, state.transforms, state.refine_penalty,
+                                                    state.track_penalty, m.track_refine.translation.grad,
+                                                    m.track_refine.rotation.grad)])
+    for cpu, cuda in zip(*results):
+        torch.testing.assert_close(cuda, cpu, rtol=1e-5, atol=1e-6)
