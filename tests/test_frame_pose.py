@@ -62,6 +62,29 @@ def test_a_known_root_shift_is_recovered_and_the_avatar_is_left_as_it_was(toy_ga
     assert (state.centers - true.centers).norm(dim=-1).median() < 0.01
 
 
+def test_the_masks_alone_move_a_shifted_pose_back_without_the_colours(toy_gaussian_project):
+    """`target="masks"`: the same shift recovered from the silhouette; the targets' colours are not read (noise
+    in their place changes nothing)."""
+    from avatarctl.fit.frame_pose import FramePoseConfig, refine_frame_pose
+
+    av, cond = _frame(toy_gaussian_project)
+    bg = torch.tensor(av.background, dtype=torch.float32)
+    views = _views(av, cond, bg)
+    shift = torch.tensor([0.03, -0.02, 0.01])
+    M = cond.joint_transforms.clone()
+    M[..., :3, 3] += shift
+    off = replace(cond, joint_transforms=M)
+    cfg = FramePoseConfig(steps=60, target="masks")
+    pose = refine_frame_pose(av.model, av.template, off, views, bg, "zero", cfg)
+    assert pose.loss_end < pose.loss_start  # (a soft alpha against a binary mask: not to zero)
+    assert np.abs(pose.tau + shift.numpy()).max() < 0.015, pose.tau
+    noise = [replace(v, target=torch.rand_like(v.target)) for v in views]
+    again = refine_frame_pose(av.model, av.template, off, noise, bg, "zero", cfg)
+    assert np.array_equal(again.tau, pose.tau) and again.loss_end == pose.loss_end
+    with pytest.raises(ValueError, match="target"):
+        FramePoseConfig(target="colours")
+
+
 def test_a_pose_that_is_already_right_is_never_made_worse(toy_gaussian_project):
     """Started at the pose the targets were rendered with, the refinement returns a loss no higher than the start's:
     improved, or the estimated pose kept exactly (zero corrections)."""
@@ -109,6 +132,8 @@ def test_refusals(toy_gaussian_project, toy_fitted_project):
         EvalConfig(refine_pose=5, latent="sample")
     with pytest.raises(InputError, match=">= 0 steps"):
         EvalConfig(refine_pose=-1)
+    with pytest.raises(InputError, match="refine-pose-from"):
+        EvalConfig(refine_pose=5, refine_pose_from="colours")
     with pytest.raises(InputError, match="Gaussian local fields"):  # the MLP toy avatar
         evaluate.run(toy_fitted_project, EvalConfig(split="novel_pose", name="refuse", device="cpu", refine_pose=2))
     assert not (toy_fitted_project / "eval" / "refuse").exists()  # nothing half-written
@@ -138,3 +163,13 @@ def test_eval_reports_the_refined_figure_apart(toy_gaussian_project):
     assert "refined_psnr" in rows[0] and all(r.split(",")[8] for r in rows[1:])
     assert (out / "sheet_refined.png").is_file() and (out / "sheet.png").is_file()
     assert any("refined pose" in line and "frozen" in line for line in res.output.splitlines())
+    assert rp["target"] == "images"
+    res = CliRunner().invoke(app, ["eval", str(toy_gaussian_project), "--split", "novel_pose", "--name", "masks",
+                                   "--refine-pose", "12", "--refine-pose-from", "masks", "--device", "cpu"],
+                             env={"COLUMNS": "250"})
+    assert res.exit_code == 0, res.output
+    m = EvalMetrics.from_json(json.loads((toy_gaussian_project / "eval" / "masks" / "metrics.json").read_text()))
+    rp = m.refined_pose
+    assert rp["target"] == "masks" and "masks" in rp["protocol"] and m.psnr == pytest.approx(plain.psnr, abs=1e-9)
+    assert rp["plain_psnr"] == pytest.approx(plain.psnr, abs=1e-9)
+    assert any("refined against its masks" in line for line in res.output.splitlines())

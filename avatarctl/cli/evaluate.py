@@ -64,6 +64,10 @@ def register(app: typer.Typer) -> None:
                                         "avatar frozen (the monocular papers' test-time protocol; reported apart "
                                         "from the plain figure, with its own sheet). Gaussian local fields only. "
                                         "e.g. 40."),
+        refine_pose_from: str = typer.Option("images", "--refine-pose-from", help="What --refine-pose fits each "
+                                             "pose to: images (colours and masks: the monocular papers' protocol) | "
+                                             "masks (the frame's masks alone, not its colours: the avatar's "
+                                             "silhouette, clothes included)."),
         compare: bool = typer.Option(False, "--compare", help="Do not render: print a side-by-side table of the "
                                      "projects' latest metrics.json (same split/protocol), e.g. "
                                      "`avatarctl eval FULL --compare ABL1 ABL2`."),
@@ -96,7 +100,8 @@ def register(app: typer.Typer) -> None:
                              checkpoint=str(checkpoint) if checkpoint else None, save_images=save_images,
                              region=region, knockout=parse_knockout(knockout),
                              test_project=str(test_project) if test_project else None,
-                             camera_colour=camera_colour, refine_pose=refine_pose)
+                             camera_colour=camera_colour, refine_pose=refine_pose,
+                             refine_pose_from=refine_pose_from)
             _run(projects[0], cfg, nproc, wait, console)
 
 
@@ -142,7 +147,8 @@ def _run(project: Path, cfg, nproc: int, wait: bool, console) -> None:
     if m.refined_pose is not None:  # held-out poses refined, apart from the plain figure (issue 51)
         rp = m.refined_pose
         t.add_row("PSNR refined pose", f"{rp['psnr']:.3f} dB  SSIM {rp['ssim']:.4f}  (each frame's body pose "
-                  f"refined against its images, avatar frozen, {rp['steps']} steps; plain {rp['plain_psnr']:.3f} dB; "
+                  f"refined against its {rp.get('target', 'images')}, avatar frozen, {rp['steps']} steps; plain "
+                  f"{rp['plain_psnr']:.3f} dB; "
                   f"root moved {rp['shift_cm']:.1f} cm on average, joints up to {rp['max_angle_deg']:.1f} deg; "
                   f"{rp['seconds']:.0f} s)")
     t.add_row("SSIM", f"{m.ssim:.4f}  (skimage {m.metric_settings['scikit_image']}, "

@@ -103,9 +103,11 @@ class RefinedPose:
     max_angle_deg: float  # the largest joint rotation correction of any frame, degrees
     seconds: float  # refinement time, all frames
     protocol: str
+    target: str = "images"  # what each pose was refined against: images (colours and masks) | masks (alone)
 
 
-def refined_pose(scores: list[ImageScore], steps: int, seconds: float, protocol: str) -> RefinedPose | None:
+def refined_pose(scores: list[ImageScore], steps: int, seconds: float, protocol: str,
+                 target: str = "images") -> RefinedPose | None:
     """The split's `RefinedPose` from the images' `refined` scores (None when no image has one)."""
     import numpy as np
 
@@ -118,7 +120,7 @@ def refined_pose(scores: list[ImageScore], steps: int, seconds: float, protocol:
                        plain_psnr=float(np.mean([min(PSNR_CAP, s.psnr) for s in got])), images=len(got), steps=steps,
                        shift_cm=float(np.mean([r.shift_cm for r in frames.values()])),
                        max_angle_deg=float(max(r.max_angle_deg for r in frames.values())),
-                       seconds=round(seconds, 3), protocol=protocol)
+                       seconds=round(seconds, 3), protocol=protocol, target=target)
 
 
 @dataclass(frozen=True)

@@ -12,6 +12,8 @@ pose error with avatar error. Here, for one frame:
   are centimetres), whose Gaussians are rasterized into each given view's crop, through that camera's colour transform;
 - the loss is the fit's image loss (`model.losses.image_reconstruction_loss`: L1 + D-SSIM + the mask term, the
   avatar's own lambda_ssim / lambda_mask) plus lambda_pose (|delta|^2 + |tau / 0.1 m|^2), Adam on (delta, tau) only;
+  with `target = "masks"` the image loss is the mask term alone, mean |alpha - mask| per view (the avatar's
+  silhouette, clothes included, fitted to the frame's masks; its colours are not used);
 - coarse to fine: the first half of the steps on the images downsampled 2x (area), the rest at full size; a
   frame whose refined loss (full size) is not below the estimated pose's keeps the estimated pose (Adam's steps of
   about `lr` can only move a pose that is already right: on true fits 40 steps lowered the PSNR of some frames by up
@@ -35,6 +37,9 @@ if TYPE_CHECKING:
     from avatarctl.splat import SplatCamera
 
 
+POSE_TARGETS = ("images", "masks")
+
+
 @dataclass(frozen=True)
 class FramePoseConfig:
     """How one frame's pose is refined (module docstring)."""
@@ -42,10 +47,12 @@ class FramePoseConfig:
     steps: int = 40  # Adam steps (the first half at half resolution)
     lr: float = 5e-3  # Adam's step: radians for delta, metres for tau
     lambda_pose: float = 1e-3  # pull of |delta|^2 + |tau / 0.1 m|^2 towards the estimated pose (per image loss unit)
+    target: str = "images"  # what the pose is fitted to: "images" (colours and masks) | "masks" (the masks alone)
 
     def __post_init__(self) -> None:
-        if self.steps < 1 or not self.lr > 0 or self.lambda_pose < 0:
-            raise ValueError(f"FramePoseConfig needs steps >= 1, lr > 0, lambda_pose >= 0; got {self}")
+        if self.steps < 1 or not self.lr > 0 or self.lambda_pose < 0 or self.target not in POSE_TARGETS:
+            raise ValueError(f"FramePoseConfig needs steps >= 1, lr > 0, lambda_pose >= 0, target in "
+                             f"{POSE_TARGETS}; got {self}")
 
 
 @dataclass(frozen=True)
@@ -104,7 +111,8 @@ def refine_frame_pose(model: "SlrfAvatar", template: "BodyTemplate", cond: "Fram
         joints = refine(cond.joint_transforms.to(dev, torch.float32), one)
         state = model.node_state(_with_joints(cond, joints), mode=mode)
         rgb, alpha = _render(model, state, vs, bg)
-        return _image_loss(model, rgb, alpha, vs) + cfg.lambda_pose * refine.penalty(one)
+        fit = _mask_loss(alpha, vs) if cfg.target == "masks" else _image_loss(model, rgb, alpha, vs)
+        return fit + cfg.lambda_pose * refine.penalty(one)
 
     with torch.no_grad():
         start = float(loss_of(views))
@@ -176,6 +184,11 @@ def _image_loss(model: "SlrfAvatar", rgb: list[torch.Tensor], alpha: list[torch.
     g = model.cfg.gaussians
     return image_reconstruction_loss(rgb, [v.target for v in views], alpha, [v.mask for v in views], g.lambda_ssim,
                                      g.lambda_mask, reference_rays=1)[0]
+
+
+def _mask_loss(alpha: list[torch.Tensor], views: list[PoseView]) -> torch.Tensor:
+    """`target = "masks"`: the mean over views of mean |alpha - mask| (module docstring)."""
+    return torch.stack([(a - v.mask.to(a.dtype)).abs().mean() for a, v in zip(alpha, views, strict=True)]).mean()
 
 
 def _downsampled(view: PoseView, f: int) -> PoseView:

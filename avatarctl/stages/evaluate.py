@@ -43,7 +43,9 @@ Held-out poses scored fairly (issue 51; `refine_pose` > 0, `--refine-pose STEPS`
 frame is also scored after its body pose is refined against that frame's scored images with the avatar frozen
 (`fit.frame_pose`, `REFINED_PROTOCOL`: the monocular papers' protocol, whose estimated test poses are off by a limb's
 width), on the same pixels: metrics.json "refined_pose" (`evaluate.report.RefinedPose`), per_frame.csv
-refined_psnr / refined_ssim, its own table row and `sheet_refined.png`. Only the Gaussian local fields.
+refined_psnr / refined_ssim, its own table row and `sheet_refined.png`. Only the Gaussian local fields. With
+`refine_pose_from = "masks"` (`--refine-pose-from masks`) each pose is fitted to the frame's masks alone, the avatar's
+silhouette against them, its colours unused; metrics.json says which ("target").
 
 LPIPS is reported only when the `lpips` package and its AlexNet weights are already on this machine (nothing is
 downloaded); otherwise `"lpips": null` with the reason.
@@ -75,12 +77,17 @@ from avatarctl.stages.common import check_knockout, check_latent_mode, frame_nod
     knocked_out, latent_for, load_fitted, open_fitted, rank_device_name, run_ranked, select_views, writing
 
 SPLITS = ("novel_view", "novel_pose", "train")
-REFINED_PROTOCOL = ("InstantAvatar / GART test-time pose: per frame, the body pose (rotations of the joints that carry "
-                    ">= model.pose_refine.min_share of the skinning weight, about their centres, and the root "
-                    "translation; model/pose_refine.py) optimised against that frame's scored images with the avatar "
-                    "frozen (fit/frame_pose.py: Adam, the fit's L1 + D-SSIM + mask loss over the protocol's crops, "
-                    "the first half of the steps at half resolution), then rendered and scored on the same pixels as "
-                    "the plain figure")
+_REFINED = ("per frame, the body pose (rotations of the joints that carry >= model.pose_refine.min_share of the "
+            "skinning weight, about their centres, and the root translation; model/pose_refine.py) optimised against "
+            "that frame's scored {what} with the avatar frozen (fit/frame_pose.py: Adam, {loss} over the protocol's "
+            "crops, the first half of the steps at half resolution), then rendered and scored on the same pixels as "
+            "the plain figure")
+REFINED_PROTOCOL = {  # by `refine_pose_from`
+    "images": "InstantAvatar / GART test-time pose: " + _REFINED.format(
+        what="images", loss="the fit's L1 + D-SSIM + mask loss"),
+    "masks": "pose from the masks: " + _REFINED.format(
+        what="views' masks (not their colours)", loss="mean |alpha - mask|, the avatar's silhouette against the mask"),
+}
 MATCHED_PROTOCOL = ("NeRF-W: per image, the camera's colour gains (per channel, on the rendered foreground: the "
                     "ratio of the summed colours, evaluate.colour.estimate_colour) from the left half of the "
                     "protocol's region (split at the middle column of its bounding rectangle), on the pixels that are "
@@ -112,6 +119,7 @@ class EvalConfig:
     test_project: str | None = None  # the project of the protocol's test recording (`--test-project`), if any
     camera_colour: str = "auto"  # auto: held-out cameras through ingest's gains (module docstring) | off
     refine_pose: int = 0  # > 0: also score each frame after refining its body pose for this many steps (docstring)
+    refine_pose_from: str = "images"  # what the pose is refined against: images (colours + masks) | masks (alone)
 
     def __post_init__(self) -> None:
         from avatarctl.evaluate.protocols import PROTOCOLS
@@ -136,6 +144,11 @@ class EvalConfig:
         if self.refine_pose < 0:
             raise InputError(f"--refine-pose must be >= 0 steps, got {self.refine_pose}", where="--refine-pose",
                              fix="e.g. --refine-pose 40 (0: off)")
+        from avatarctl.fit.frame_pose import POSE_TARGETS
+
+        if self.refine_pose_from not in POSE_TARGETS:
+            raise InputError(f"unknown --refine-pose-from {self.refine_pose_from!r}", where="--refine-pose-from",
+                             fix=f"use one of: {', '.join(POSE_TARGETS)}")
         if self.refine_pose and self.latent == "sample":
             raise InputError("--refine-pose needs a deterministic latent", where="--latent",
                              fix="drop --latent sample (or --refine-pose)")
@@ -367,7 +380,8 @@ def _run(env: Any, progress: ProgressFn | None, project_dir: str, cfg: EvalConfi
 
         regions = region_scores(scores)
         matched = colour_matched(scores, MATCHED_PROTOCOL)
-        refined_fig = refined_pose(scores, cfg.refine_pose, sum(s.refine_seconds for s in done), REFINED_PROTOCOL)
+        refined_fig = refined_pose(scores, cfg.refine_pose, sum(s.refine_seconds for s in done),
+                                   REFINED_PROTOCOL[cfg.refine_pose_from], cfg.refine_pose_from)
         if cfg.region == "all":
             psnrs = np.minimum(np.array([s.psnr for s in scores], np.float64), PSNR_CAP)  # exact match: inf -> cap
         else:  # images where the region is empty are not scored
@@ -430,7 +444,8 @@ def _run(env: Any, progress: ProgressFn | None, project_dir: str, cfg: EvalConfi
             if refined_rows:
                 comparison_sheet(refined_rows, tmp / "sheet_refined.png",
                                  title=f"{cfg.split} / {cfg.protocol}  step {avatar.step}  after test-time pose "
-                                       f"refinement ({cfg.refine_pose} steps)  PSNR {refined_fig.psnr:.2f} dB  "
+                                       f"refinement against the {cfg.refine_pose_from} ({cfg.refine_pose} steps)  "
+                                       f"PSNR {refined_fig.psnr:.2f} dB  "
                                        f"SSIM {refined_fig.ssim:.4f}")
     seconds = round(time.perf_counter() - t_start, 3)
     project.record("eval", config=cfg.to_json(), outputs=[out_dir], started=started,
@@ -546,7 +561,7 @@ def _refined_state(avatar: Any, cap: Any, cfg: EvalConfig, one: Any, frame: int,
             offset=None if colour is None else torch.tensor(colour[1], dtype=torch.float32)))
     cond = avatar.conditioning(one, frames_are_training=is_train)
     pose = refine_frame_pose(model, avatar.template, cond, pose_views, torch.tensor(background, dtype=torch.float32),
-                             latent, FramePoseConfig(steps=cfg.refine_pose))
+                             latent, FramePoseConfig(steps=cfg.refine_pose, target=cfg.refine_pose_from))
     return knocked_out(avatar, refined_state(model, cond, pose, latent), cfg.knockout), pose
 
 
