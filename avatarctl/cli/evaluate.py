@@ -67,7 +67,8 @@ def register(app: typer.Typer) -> None:
         refine_pose_from: str = typer.Option("images", "--refine-pose-from", help="What --refine-pose fits each "
                                              "pose to: images (colours and masks: the monocular papers' protocol) | "
                                              "masks (the frame's masks alone, not its colours: the avatar's "
-                                             "silhouette, clothes included)."),
+                                             "silhouette, clothes included; slower to converge: e.g. "
+                                             "--refine-pose 80)."),
         compare: bool = typer.Option(False, "--compare", help="Do not render: print a side-by-side table of the "
                                      "projects' latest metrics.json (same split/protocol), e.g. "
                                      "`avatarctl eval FULL --compare ABL1 ABL2`."),
