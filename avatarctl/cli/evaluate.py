@@ -148,7 +148,7 @@ def _run(project: Path, cfg, nproc: int, wait: bool, console) -> None:
     if m.refined_pose is not None:  # held-out poses refined, apart from the plain figure (issue 51)
         rp = m.refined_pose
         t.add_row("PSNR refined pose", f"{rp['psnr']:.3f} dB  SSIM {rp['ssim']:.4f}  (each frame's body pose "
-                  f"refined against its {rp.get('target', 'images')}, avatar frozen, {rp['steps']} steps; plain "
+                  f"refined against its {rp['target']}, avatar frozen, {rp['steps']} steps; plain "
                   f"{rp['plain_psnr']:.3f} dB; "
                   f"root moved {rp['shift_cm']:.1f} cm on average, joints up to {rp['max_angle_deg']:.1f} deg; "
                   f"{rp['seconds']:.0f} s)")

@@ -103,11 +103,11 @@ class RefinedPose:
     max_angle_deg: float  # the largest joint rotation correction of any frame, degrees
     seconds: float  # refinement time, all frames
     protocol: str
-    target: str = "images"  # what each pose was refined against: images (colours and masks) | masks (alone)
+    target: str  # what each pose was refined against: images (colours and masks) | masks (alone)
 
 
 def refined_pose(scores: list[ImageScore], steps: int, seconds: float, protocol: str,
-                 target: str = "images") -> RefinedPose | None:
+                 target: str) -> RefinedPose | None:
     """The split's `RefinedPose` from the images' `refined` scores (None when no image has one)."""
     import numpy as np
 
