@@ -459,3 +459,63 @@ def test_density_query_of_the_gaussians_for_mesh_export():
     assert abs(depth - math.log(2.0)) < 0.01 * (1 + float(abs(s_world - 0.01) / 0.01))
     assert abs((1.0 - math.exp(-depth)) - 0.5) < 0.01  # the opacity a ray through the centre sees: o
 
+
+
+def test_crops_over_a_background_plate_target_the_frame_and_render_over_the_plate(tmp_path, monkeypatch):
+    """`FitConfig.plates` (docs/fit.md "Background plates"): where a camera's plate is known the crop's target is the
+    frame itself and the render is composited over the plate; elsewhere, and without plates, the masked target over
+    the background colour. The fit runs with it."""
+    import numpy as np
+
+    from avatarctl.body.registry import load_body_model
+    from avatarctl.fit.conditioning import build_pose_table
+    from avatarctl.fit.data import FrameStore, ImageSampler
+    from avatarctl.fit.steps import over_plates
+    from avatarctl.io.project_io import Plate, load_project_capture, write_plate
+    from avatarctl.model.avatar import ImageOutputs
+    from avatarctl.project import Project
+    from avatarctl.stages import fit
+    from avatarctl.stages.fit import FitRequest
+
+    cap_dir, proj = _toy_project(tmp_path, monkeypatch)
+    cap = load_project_capture(Project.open(proj))
+    view = cap.split.train_views[0]
+    h, w = cap.mask(view, cap.frames[0]).shape
+    known = np.zeros((h, w), bool)
+    known[:, : w // 2] = True  # the left half of the image known
+    plate_rgb = np.zeros((h, w, 3), np.uint8)
+    plate_rgb[known] = (10, 200, 30)
+    write_plate(Project.open(proj), view, Plate(rgb=plate_rgb, known=known))
+    cap = load_project_capture(Project.open(proj))
+    assert cap.plate(view) is not None and np.array_equal(cap.plate(view).known, known)
+    assert cap.plate(cap.split.train_views[-1]) is None or len(cap.split.train_views) == 1
+
+    poses = build_pose_table(load_body_model(cap.body_model), cap.motion, cap.frames)
+    bg = (0.2, 0.4, 0.6)
+    for plates in (True, False):
+        store = FrameStore(cap, poses, crop_pad=0.1, budget_bytes=2**26)
+        sampler = ImageSampler(store, cap.frames, [view], images_per_batch=1, background=bg, plates=plates)
+        batch = sampler.sample(torch.Generator().manual_seed(0))
+        crop, ct = store.get(view, batch.frames[0]), batch.crops[0]
+        frame = crop.rgb.astype(np.float32) / 255
+        masked = frame * crop.mask[..., None] + np.float32(bg) * (1 - crop.mask[..., None])
+        k = known[crop.y0:crop.y0 + crop.mask.shape[0], crop.x0:crop.x0 + crop.mask.shape[1]]
+        assert k.any() and (~k).any(), "the crop straddles the known half"
+        want = np.where(k[..., None], frame, masked) if plates else masked
+        np.testing.assert_allclose(ct.target.numpy(), want, atol=1e-6)
+        assert (ct.plate is not None) == plates
+        # a transparent avatar rendered over the background colour: over the plate where it is known
+        empty = ImageOutputs(rgb=[torch.tensor(bg, dtype=torch.float32).expand(*crop.mask.shape, 3)],
+                             alpha=[torch.zeros(crop.mask.shape)])
+        out = over_plates(empty, batch, torch.tensor(bg))
+        want_rgb = np.where(k[..., None], np.float32([10, 200, 30]) / 255, np.float32(bg)) if plates else \
+            np.broadcast_to(np.float32(bg), (*crop.mask.shape, 3))
+        np.testing.assert_allclose(out.rgb[0].numpy(), want_rgb, atol=1e-6)
+        # an opaque one keeps its colour
+        full = ImageOutputs(rgb=[torch.full((*crop.mask.shape, 3), 0.5)], alpha=[torch.ones(crop.mask.shape)])
+        assert torch.equal(over_plates(full, batch, torch.tensor(bg)).rgb[0], full.rgb[0])
+
+    fr = fit.run(proj, FitRequest(preset="micro", iters=3, overrides=_TOY_SETS + ("plates=true",),
+                                  model_settings=_TOY_MODEL, device="cpu"), handle_sigint=False)
+    assert fr.step == 3 and math.isfinite(fr.losses["total"])
+    assert json.loads(Project.open(proj).paths.fit_config.read_text())["plates"] is True
