@@ -105,10 +105,6 @@ class ProjectPaths:
     def mask(self, cam: str, frame: int) -> Path:
         return self.ingest / "masks" / cam / f"{frame:06d}.png"
 
-    def plate(self, cam: str) -> Path:
-        """A static camera's background plate estimated by ingest (RGBA PNG: alpha 255 where it is known)."""
-        return self.ingest / "plates" / f"{cam}.png"
-
     # ---- fit ----------------------------------------------------------------------------------------------
     @property
     def fit(self) -> Path:

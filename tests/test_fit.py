@@ -88,9 +88,7 @@ def test_presets_are_stated_once_and_the_defaults_are_the_paper():
     assert g.model.hull == replace(c.model.hull, tracked_nodes=256)
     assert g.model.track_refine == replace(c.model.track_refine, enabled="auto")
     assert g.track and not c.track  # garment tracking: measured with the Gaussian fields only
-    assert g.plates and not c.plates  # background plates: the rasterized crops only
-    assert replace(g, model=c.model, preset="cpu-mlp", rays_per_batch=c.rays_per_batch, track=False,
-                   plates=False) == c
+    assert replace(g, model=c.model, preset="cpu-mlp", rays_per_batch=c.rays_per_batch, track=False) == c
     assert preset("gaussians") == g
     # configs saved under the old names read as the presets' names now (the settings are the saved ones)
     assert FitConfig.from_json({**g.to_json(), "preset": "gaussians"}) == g

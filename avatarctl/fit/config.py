@@ -50,6 +50,8 @@ _REMOVED_KEYS: dict[str, tuple[Any, str]] = {
     # focused sampling on the dilated mask: +0.26 dB at equal steps for 1.5x the time per step, 0 in every preset
     # (issue 49: a switch no preset uses and that measured worse at equal time goes)
     "mask_fraction": (0.0, "3519fa5"),
+    # the crops over ingest's estimated background plates: floaters over the plate (docs/fit.md "Tried and removed")
+    "plates": (False, "4ade4b6"),
 }
 
 
@@ -79,10 +81,6 @@ class FitConfig:
     box_fraction: float = 0.9  # share of rays drawn inside the projected body box (the rest: whole image)
     crop_pad: float = 0.25  # metres the posed body's 3D box is grown by, for the crop and the "inside" region
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)  # target = rgb * mask + background * (1 - mask)
-    # deviation (the rasterized fields' crops): where ingest estimated a camera's background plate (ingest/plates/),
-    # the crop's target is the frame itself and the render is composited over the plate there, so a mask that misses
-    # a limb or holds some floor does not teach the avatar (docs/fit.md "Background plates"); False: the paper's
-    plates: bool = False
     # optimiser (paper: Adam lr 5e-4, betas 0.9 / 0.999, exponential decay every 20k iterations)
     lr: float = 5e-4
     adam_beta1: float = 0.9
@@ -131,7 +129,6 @@ class FitConfig:
         need(self.crop_pad >= 0.0, f"crop_pad must be >= 0 metres, got {self.crop_pad}")
         need(len(self.background) == 3 and all(0.0 <= c <= 1.0 for c in self.background),
              f"background must be 3 values in [0, 1], got {self.background}")
-        need(isinstance(self.plates, bool), f"plates must be true or false, got {self.plates!r}")
         need(self.lr > 0 and math.isfinite(self.lr), f"lr must be > 0, got {self.lr}")
         need(0.0 <= self.adam_beta1 < 1.0 and 0.0 <= self.adam_beta2 < 1.0, "adam betas must be in [0, 1)")
         need(0.0 < self.lr_decay_factor <= 1.0, f"lr_decay_factor must be in (0, 1], got {self.lr_decay_factor}")

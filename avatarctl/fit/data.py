@@ -16,10 +16,6 @@ Target colour (stated convention): the masked image over the fixed background co
 rgb * mask + background * (1 - mask). Pixels outside the crop are taken as background: the crop is the body's box
 grown by `crop_pad` (0.25 m by default), beyond the reach of the node fields around the body; a mask pixel there is
 ignored.
-With background plates (`ImageSampler(plates=True)`, `FitConfig.plates`; a deviation) a crop's pixels where ingest
-knows the camera's plate (`ProjectCapture.plate`) have the frame itself as their target, and the render is
-composited over the plate there (`CropTarget.plate`, applied by `fit.steps`): the mask does not decide those pixels'
-colour; elsewhere the masked target above.
 
 All randomness comes from the `torch.Generator` passed to `sample`, so a run is reproducible and resumable.
 """
@@ -209,10 +205,8 @@ class CropTarget:
     camera: Camera  # the full (undistorted) camera
     x0: int  # crop window in the full image, pixels
     y0: int
-    target: torch.Tensor  # [h, w, 3] float32: rgb * mask + background * (1 - mask); the frame where `plate` is known
+    target: torch.Tensor  # [h, w, 3] float32: rgb * mask + background * (1 - mask)
     mask: torch.Tensor  # [h, w] float32 foreground
-    plate: torch.Tensor | None = None  # [h, w, 4] float32: the camera's plate (RGB) and where it is known (0 / 1);
-    # None: no plate (the render stays over the background colour)
 
 
 @dataclass
@@ -231,19 +225,7 @@ class ImageBatch:
 
 class ImageSampler(PairSampler):
     """Draws `ImageBatch`es: the same (frame, view) pairs as `RaySampler` (`draw_images`), each image's whole crop
-    (the posed body's box grown by `crop_pad`, see the module docstring) as its target instead of scattered rays;
-    `plates`: over the cameras' background plates where the project has them (the module docstring)."""
-
-    def __init__(self, store: FrameStore, train_frames: list[int], train_views: list[str], images_per_batch: int,
-                 background: tuple[float, float, float], pairs: list[tuple[int, str]] | None = None,
-                 plates: bool = False):
-        super().__init__(store, train_frames, train_views, images_per_batch, background, pairs)
-        self._plates: dict[str, np.ndarray | None] = {}  # view -> [H, W, 4] float32 (RGB in [0, 1], known 0 / 1)
-        if plates:
-            for v in self.train_views:
-                p = store.capture.plate(v)
-                self._plates[v] = None if p is None else np.dstack([p.rgb.astype(np.float32) / 255.0,
-                                                                    p.known.astype(np.float32)])
+    (the posed body's box grown by `crop_pad`, see the module docstring) as its target instead of scattered rays."""
 
     def sample(self, generator: torch.Generator, device: str | torch.device = "cpu") -> ImageBatch:
         frames, views = self.draw_images(generator)
@@ -251,14 +233,7 @@ class ImageSampler(PairSampler):
         for frame, view in zip(frames, views):
             crop = self.store.get(view, frame)
             target = ground_truth(crop.rgb, crop.mask, self.background).astype(np.float32)
-            plate = self._plates.get(view)
-            if plate is not None:
-                h, w = crop.mask.shape
-                plate = np.ascontiguousarray(plate[crop.y0:crop.y0 + h, crop.x0:crop.x0 + w])
-                known = plate[..., 3:] > 0
-                target = np.where(known, ground_truth(crop.rgb, np.ones((h, w), bool), self.background), target)
-                plate = torch.from_numpy(plate * known).to(device)
             crops.append(CropTarget(camera=self.store.capture.cameras[view], x0=crop.x0, y0=crop.y0,
-                                    target=torch.from_numpy(target.astype(np.float32)).to(device),
-                                    mask=torch.from_numpy(crop.mask.astype(np.float32)).to(device), plate=plate))
+                                    target=torch.from_numpy(target).to(device),
+                                    mask=torch.from_numpy(crop.mask.astype(np.float32)).to(device)))
         return ImageBatch(crops=crops, cond=self.conditioning(frames, device), frames=frames, views=views)

@@ -61,12 +61,10 @@ PRESETS: dict[str, Preset] = {
                 "width (the paper's 128 from two training views per frame, 32 from one) decided from the capture, a "
                 "colour transform per training camera, the training frames' mean latent for novel poses, garment "
                 "tracking when there is a loose garment (from 4 training views on, 256 nodes, half of them on it, their "
-                "placement corrected per frame), the crops over the background plates ingest estimated (MediaPipe "
-                "masks); 20k iterations, validation on half-size images every 1000 steps",
+                "placement corrected per frame); 20k iterations, validation on half-size images every 1000 steps",
         # garment tracking where hull nodes find a loose garment (fit/garment_track.py): synth small, 15 min, two seeds,
         # +0.18 / +0.25 dB held-out and +0.06 / +0.34 novel poses; skipped on tight captures (docs/fit.md)
-        # the crops over ingest's estimated background plates (synth realistic: docs/fit.md "Background plates")
-        fit={**_CPU_FIT, "track": True, "plates": True},
+        fit={**_CPU_FIT, "track": True},
         # the cVAE's width from the views (model/config.py CVAE_AUTO_WIDTHS): 128 is +0.15-0.32 dB on the multi-view
         # captures, 32 ahead on a monocular one (docs/fit.md "The cVAE at the paper's width"); the camera colour
         # transforms: +0.38 dB on synth realistic, +0.03 on its clean twin (docs/fit.md deviations)
@@ -118,8 +116,6 @@ KNOBS: dict[str, tuple[str, str]] = {
     "rays_per_batch": ("mlp", "rays per step over those images (the paper: 2048)"),
     "box_fraction": ("mlp", "share of the rays drawn inside the projected body box (deviation, 0.9)"),
     "background": ("any", "the colour the target is composited over and the avatar rendered over"),
-    "plates": ("gaussians", "where ingest estimated a camera's background plate: the frame as the target, the "
-                            "render over the plate (deviation)"),
     "lr": ("any", "Adam's learning rate (the paper: 5e-4)"),
     "lr_decay_every": ("any", "iterations per decay period (the paper: 20k)"),
     "lr_decay_factor": ("any", "decay per period (deviation: 0.5; the paper gives none; 1 = off)"),

@@ -94,7 +94,7 @@ class CropSteps:
 
     def sampler(self, store: FrameStore, cfg: "FitConfig", train_frames: list[int], train_views: list[str],
                 pairs: list[tuple[int, str]] | None, rays: int, images: int) -> ImageSampler:
-        return ImageSampler(store, train_frames, train_views, images, cfg.background, pairs, plates=cfg.plates)
+        return ImageSampler(store, train_frames, train_views, images, cfg.background, pairs)
 
     def forward(self, model: "SlrfAvatar", parts: list[tuple[int, ImageBatch]], background: torch.Tensor,
                 jitter: bool, noise_gens: dict[int, torch.Generator], world: int
@@ -108,8 +108,7 @@ class CropSteps:
         for k, b in parts:
             st = model.node_state(b.cond, mode="posterior", generator=noise_gens[k])
             states.append(st)
-            outs.append(over_plates(camera_colour_crops(model, render_crops(model, b, st, background), b, background),
-                                    b, background))
+            outs.append(camera_colour_crops(model, render_crops(model, b, st, background), b, background))
             counts.append(int((b.cond.frame_ids >= 0).sum()))
         state = states[0] if len(states) == 1 else cat_states(states, counts)
         out = ImageOutputs.cat(outs)
@@ -158,20 +157,6 @@ def camera_colour_crops(model: "SlrfAvatar", out: "ImageOutputs", batch: "ImageB
     cams = colour.index(batch.views)
     rgb = [colour(c, a, background.to(c.device), cams[b].to(c.device).expand(a.shape))
            for b, (c, a) in enumerate(zip(out.rgb, out.alpha))]
-    return replace(out, rgb=rgb)
-
-
-def over_plates(out: "ImageOutputs", batch: "ImageBatch", background: torch.Tensor) -> "ImageOutputs":
-    """The crops of `batch` that carry a background plate (`CropTarget.plate`, fit/data.py) composited over it
-    instead of the background colour where it is known: rgb + (1 - alpha) (plate - background) there. After the
-    camera's colour transform: the plate is already in the camera's colours."""
-    if all(c.plate is None for c in batch.crops):
-        return out
-    from dataclasses import replace
-
-    rgb = [c if cr.plate is None else
-           c + (1 - a)[..., None] * cr.plate[..., 3:] * (cr.plate[..., :3] - background.to(c))
-           for c, a, cr in zip(out.rgb, out.alpha, batch.crops)]
     return replace(out, rgb=rgb)
 
 

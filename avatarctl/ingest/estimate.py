@@ -28,15 +28,12 @@ Each step's figures land in `EstimateReport` (shown in the ingest summary and sa
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
-from typing import TYPE_CHECKING, Callable
+from typing import Callable
 
 import numpy as np
 
 from avatarctl.body.motion import BodyMotion
 from avatarctl.progress import ProgressFn, ProgressReport
-
-if TYPE_CHECKING:
-    from avatarctl.io.project_io import Plate
 
 MIN_JOINTS = 8  # triangulated keypoints a frame needs to be fitted
 REPROJ_THRESHOLD = 0.02  # inlier threshold of the triangulation, as a fraction of the image's larger side
@@ -164,22 +161,19 @@ class MaskRefinement:
 
 
 def refine_masks(det: Detections, read_view: ReadView, progress: ProgressFn | None = None
-                 ) -> tuple[Detections, MaskRefinement, dict[str, Plate]]:
+                 ) -> tuple[Detections, MaskRefinement]:
     """`det` with every camera's MediaPipe masks refined against the camera's plate estimated from its own frames
     (`ingest.masks.estimate_plate` over up to `PLATE_FRAMES` evenly spaced frames with a mask, then
     `ingest.masks.refine_mask` on every frame, deciding a band of `MASK_BAND` x the image diagonal about MediaPipe's
-    outline), the report, and the plates (camera -> `Plate`: the cameras with a known plate pixel; the fit composites
-    its renders over them, docs/fit.md "Background plates"). For static cameras (a rig; a phone on a tripod:
-    `check_monocular`). A camera with no known plate pixel keeps MediaPipe's masks and has no plate."""
+    outline). For static cameras (a rig; a phone on a tripod: `check_monocular`). A camera with no known plate pixel
+    keeps MediaPipe's masks."""
     import cv2
 
     from avatarctl.ingest.masks import PLATE_FRAMES, estimate_plate, refine_mask
-    from avatarctl.io.project_io import Plate
 
     out = Detections(cams=det.cams, frames=det.frames, names=det.names, keypoints=det.keypoints,
                      confidence=det.confidence, masks=dict(det.masks))
     known_share, changed, bands = {}, {}, {}
-    plates: dict[str, Plate] = {}
     done, total = 0, len(det.cams) * len(det.frames)
     for c in det.cams:
         with_mask = [f for f in det.frames if det.mask(c, f).any()]
@@ -194,8 +188,6 @@ def refine_masks(det: Detections, read_view: ReadView, progress: ProgressFn | No
         picked = {f: read_view(c, f) for f in pick}  # read once: the plate's frames are refined below too
         plate, known = estimate_plate(np.stack(list(picked.values())), np.stack([det.mask(c, f) for f in pick]), band)
         known_share[c], moved, area = float(known.mean()), 0, 0
-        if known.any():
-            plates[c] = Plate(rgb=plate, known=known)
         for f in det.frames:
             m = det.mask(c, f)
             if known.any() and m.any():
@@ -207,7 +199,7 @@ def refine_masks(det: Detections, read_view: ReadView, progress: ProgressFn | No
             if progress is not None:
                 progress(ProgressReport(done=done, total=total, part="masks"))
         changed[c] = moved / max(area, 1)
-    return out, MaskRefinement(band_px=bands, plate_known=known_share, changed=changed), plates
+    return out, MaskRefinement(band_px=bands, plate_known=known_share, changed=changed)
 
 
 @dataclass(frozen=True)

@@ -197,8 +197,6 @@ class IngestPlan:
     detections: object = None  # `Detections` (with masks for masks "mediapipe") once the people are detected
     resize: float = 1.0  # scale after undistortion (--resize, or the benchmark protocol's)
     benchmark: BenchmarkPlan | None = None  # `--benchmark`: its split, frames and record (avatarctl.ingest.benchmark)
-    plates: dict = field(default_factory=dict)  # camera -> `io.project_io.Plate` estimated from the frames (masks
-    # "mediapipe" refined against them: `ingest.estimate.refine_masks`); written to ingest/plates/
 
 
 def plan_ingest(cfg: IngestConfig) -> IngestPlan:
@@ -275,7 +273,7 @@ def run_ingest(cfg: IngestConfig, progress: ProgressFn | None = None) -> IngestR
     from avatarctl.ingest.split import default_split, restrict_split
     from avatarctl.ingest.undistort import Undistorter
     from avatarctl.io.project_io import save_benchmark, save_camera_colour, save_cameras, save_split, write_frame, \
-        write_mask, write_plate
+        write_mask
     from avatarctl.project import BodyModelRef, Project, SourceRef, hash_tree, now_iso, sha256_file
 
     t0 = time.perf_counter()
@@ -324,13 +322,11 @@ def run_ingest(cfg: IngestConfig, progress: ProgressFn | None = None) -> IngestR
                 if progress is not None:
                     progress(ProgressReport(done=s + k + 1, total=len(frames), part="frames"))
 
-        for c, plate in plan.plates.items():
-            write_plate(proj, c, plate)
         cameras_out = [und[c].target for c in cams]
         save_cameras(proj.paths.cameras, cameras_out)
         motion.save(proj.paths.body)
         save_split(proj.paths.split, split)
-        outputs = [proj.paths.cameras, proj.paths.body, proj.paths.split] + [proj.paths.plate(c) for c in plan.plates]
+        outputs = [proj.paths.cameras, proj.paths.body, proj.paths.split]
         gains = shared.solve(split.train_views) if shared is not None else None
         if gains is not None:
             save_camera_colour(proj.paths.camera_colour, gains)
@@ -413,11 +409,11 @@ def _estimate(cfg: IngestConfig, plan: IngestPlan, und: dict, progress: Progress
     det = detect_people(read_view, cams, frames, progress=progress,
                         masks=plan.masks_mode == "mediapipe" or (silhouette and plan.masks_mode == "background")
                         or src.format == "video")
-    refined, plates = None, {}
+    refined = None
     if plan.masks_mode == "mediapipe" and cfg.refine_masks:  # static cameras: plates estimated from the frames
         from avatarctl.ingest.estimate import refine_masks
 
-        det, refined, plates = refine_masks(det, read_view, progress)
+        det, refined = refine_masks(det, read_view, progress)
     motion, kept = plan.motion, list(frames)
     if src.format == "video" and plan.fits_mode == "keypoints":
         from avatarctl.ingest.estimate import check_monocular, estimate_monocular
@@ -465,7 +461,7 @@ def _estimate(cfg: IngestConfig, plan: IngestPlan, und: dict, progress: Progress
         elif len(kept) < motion.frame_index.shape[0]:
             motion = motion.select([i for i, f in enumerate(motion.frame_index) if int(f) in set(kept)])
     faces = plan.faces if plan.faces is not None else plan.body.template(motion.select([0])).faces.cpu().numpy()
-    return replace(plan, frames=kept, motion=motion, detections=det, faces=faces, plates=plates), report
+    return replace(plan, frames=kept, motion=motion, detections=det, faces=faces), report
 
 
 def _cameras_off_the_body(camera_inside: dict[str, float], masks_mode: str) -> list[str]:

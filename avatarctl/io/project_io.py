@@ -1,9 +1,7 @@
-"""Reading and writing the ingested capture inside a project directory (cameras, split, frames, masks, plates,
-fits).
+"""Reading and writing the ingested capture inside a project directory (cameras, split, frames, masks, fits).
 
 Ingest writes through these functions; fit, render and eval read through them. Paths come from `ProjectPaths`.
-Frames are undistorted RGB (uint8, JPEG quality 95), masks undistorted uint8 0/255 PNG, plates (a static camera's
-background, where ingest estimated it) undistorted RGBA PNG with alpha 255 where known, cameras pinhole.
+Frames are undistorted RGB (uint8, JPEG quality 95), masks undistorted uint8 0/255 PNG, cameras pinhole.
 """
 
 from __future__ import annotations
@@ -22,20 +20,6 @@ from avatarctl.project import Project
 from avatarctl.geometry.cameras import Camera
 
 JPEG_QUALITY = 95
-
-
-@dataclass(frozen=True)
-class Plate:
-    """A static camera's background as ingest estimated it from the frames (`ingest.masks.estimate_plate`)."""
-
-    rgb: np.ndarray  # [H, W, 3] uint8, undistorted like the frames (0 where not known)
-    known: np.ndarray  # [H, W] bool: pixels some frames showed uncovered
-
-    def __post_init__(self) -> None:
-        h, w = self.known.shape
-        if self.rgb.shape != (h, w, 3) or self.rgb.dtype != np.uint8 or self.known.dtype != bool:
-            raise ValueError(f"plate: rgb {self.rgb.shape} {self.rgb.dtype}, known {self.known.shape} "
-                             f"{self.known.dtype} (want uint8 [H, W, 3] and bool [H, W])")
 
 
 @dataclass(frozen=True)
@@ -107,10 +91,6 @@ class ProjectCapture:
     def mask(self, cam: str, frame: int) -> np.ndarray:
         return read_mask(self.project, cam, frame)
 
-    def plate(self, cam: str) -> Plate | None:
-        """The camera's estimated background plate (`write_plate`); None where ingest wrote none."""
-        return read_plate(self.project, cam)
-
 
 def save_cameras(path: Path, cameras: list[Camera]) -> None:
     write_json(path, {"cameras": [c.to_json() for c in cameras]})
@@ -175,28 +155,6 @@ def write_mask(project: Project, cam: str, frame: int, mask: np.ndarray) -> Path
     import cv2
 
     return write_image(project.paths.mask(cam, frame), (np.asarray(mask) > 0).astype(np.uint8) * 255)
-
-
-def write_plate(project: Project, cam: str, plate: Plate) -> Path:
-    """Write a camera's background plate atomically (RGBA PNG, alpha 255 where known)."""
-    import cv2
-
-    bgra = np.dstack([cv2.cvtColor(plate.rgb, cv2.COLOR_RGB2BGR), plate.known.astype(np.uint8) * 255])
-    return write_image(project.paths.plate(cam), bgra)
-
-
-def read_plate(project: Project, cam: str) -> Plate | None:
-    """The camera's plate (`write_plate`), None when the project has none for it."""
-    import cv2
-
-    path = project.paths.plate(cam)
-    if not path.is_file():
-        return None
-    img = _read_image(path, cv2.IMREAD_UNCHANGED, f"plate unreadable: camera {cam}")
-    if img.ndim != 3 or img.shape[2] != 4:
-        raise ProjectError(f"plate of camera {cam} is not an RGBA image ({img.shape})", where=str(path),
-                           fix="re-run `avatarctl ingest`")
-    return Plate(rgb=np.ascontiguousarray(cv2.cvtColor(img[..., :3], cv2.COLOR_BGR2RGB)), known=img[..., 3] > 127)
 
 
 def _read_image(path: Path, flag: int, message: str) -> np.ndarray:
