@@ -552,3 +552,43 @@ def test_silhouette_term_recovers_unobserved_legs():
         else:
             assert fit.silhouette is None
     assert errs[100.0] < 0.5 * errs[0.0], errs  # measured 12.6 cm -> 0.9 cm
+
+
+def test_each_cameras_detector_is_primed_on_the_next_frames_backwards(monkeypatch):
+    """`detect_people` feeds each camera's video-mode detector frames WARMUP_FRAMES..1 (backwards) before the pass
+    from the first frame, and keeps only the pass's results (cold, MediaPipe drops parts of the person on the first
+    frames: docs/own_capture.md)."""
+    from avatarctl.ingest import estimate, keypoints
+
+    calls: list[tuple[int, int]] = []  # (detector, frame)
+
+    class FakeDetector:
+        made = 0
+
+        def __init__(self, masks: bool = True, **kw):
+            FakeDetector.made += 1
+            self.id = FakeDetector.made
+
+        def __enter__(self):
+            return self
+
+        def __exit__(self, *exc):
+            return None
+
+        def __call__(self, rgb):
+            f = int(rgb[0, 0, 0])
+            calls.append((self.id, f))
+            J = len(keypoints.KEYPOINT_NAMES)
+            return keypoints.PersonDetection(keypoints=np.full((J, 2), float(f)), confidence=np.ones(J),
+                                             mask=np.full((4, 4), f % 2 == 0))
+
+    monkeypatch.setattr(keypoints, "PoseDetector", FakeDetector)
+    frames = list(range(10, 18))
+    det = estimate.detect_people(lambda c, f: np.full((4, 4, 3), f, np.uint8), ["a", "b"], frames, masks=True)
+    warm = frames[estimate.WARMUP_FRAMES:0:-1]
+    assert warm == [15, 14, 13, 12, 11]
+    assert calls == [(1, f) for f in warm + frames] + [(2, f) for f in warm + frames]
+    assert np.array_equal(det.keypoints[:, 0, 0, 0], frames)  # the pass's results, in frame order
+    assert det.mask("b", 12).all() and not det.mask("b", 13).any()
+    short = estimate.detect_people(lambda c, f: np.full((4, 4, 3), f, np.uint8), ["a"], [3], masks=False)
+    assert calls[-1] == (3, 3) and short.keypoints.shape[0] == 1  # one frame: nothing to prime on

@@ -39,6 +39,10 @@ MIN_JOINTS = 8  # triangulated keypoints a frame needs to be fitted
 REPROJ_THRESHOLD = 0.02  # inlier threshold of the triangulation, as a fraction of the image's larger side
 MIN_THRESHOLD_PX = 4.0  # ... but at least this many pixels
 MIN_CONFIDENCE = 0.5  # MediaPipe visibility below which a 2D keypoint is not used
+# frames each camera's video-mode detector sees first (the 6th back to the 2nd), their results dropped: cold, it
+# drops parts of the person on the first frames (synth realistic, the lowest quarter's recall on frame 0: 0.47 and
+# 0.75 against 0.80 and 0.94 primed; docs/own_capture.md)
+WARMUP_FRAMES = 5
 DEFAULT_HEIGHT_M = 1.70  # the monocular fit's height prior when the user gives none (an adult's average, both sexes)
 MONO_SILHOUETTE_WEIGHT = 10.0  # the monocular fit's silhouette weight (one view: the masks constrain depth-blind limbs)
 MONO_GROUND_WEIGHT = 1.0  # λ_ground of the monocular fit
@@ -123,7 +127,8 @@ class Detections:
 
 def detect_people(read_view: ReadView, cams: list[str], frames: list[int], masks: bool,
                   progress: ProgressFn | None = None) -> Detections:
-    """Run the detector on every view (camera-major: one tracker per camera stream)."""
+    """Run the detector on every view (camera-major: one tracker per camera stream, primed on the frames after the
+    first, backwards: `WARMUP_FRAMES`)."""
     import cv2
 
     from avatarctl.ingest.keypoints import KEYPOINT_NAMES, PoseDetector
@@ -135,6 +140,8 @@ def detect_people(read_view: ReadView, cams: list[str], frames: list[int], masks
     done, total = 0, len(frames) * len(cams)
     for ci, c in enumerate(cams):
         with PoseDetector(masks=masks) as det:
+            for f in frames[WARMUP_FRAMES:0:-1]:  # the tracker primed on the next frames, backwards to the first
+                det(read_view(c, f))
             for fi, f in enumerate(frames):
                 d = det(read_view(c, f))
                 kp[fi, ci], conf[fi, ci] = d.keypoints, d.confidence
