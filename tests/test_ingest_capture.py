@@ -16,6 +16,8 @@ from avatarctl.cli.app import app
 from fixtures.captures import make_easymocap_capture, ring_cameras
 from fixtures.cli_errors import assert_one_line_error
 
+ARM_RAISE = (0.0, -0.9, 0.0)  # upperarm01.L: the left arm raised sideways, out of the torso's silhouette (front view)
+
 
 def _cli(*args: str):
     return CliRunner().invoke(app, ["ingest", *args])
@@ -391,6 +393,8 @@ def test_missing_mediapipe_is_one_actionable_line(capture, tmp_path, monkeypatch
     assert_one_line_error(_cli(str(capture.root), str(tmp_path / "proj"), "--fits", "nope"), tmp_path / "proj", "--fits")
     assert_one_line_error(_cli(str(capture.root), str(tmp_path / "proj"), "--keypoint-silhouette", "-1"),
                           tmp_path / "proj", "--keypoint-silhouette", "0 to switch")
+    assert_one_line_error(_cli(str(capture.root), str(tmp_path / "proj"), "--keypoint-outline", "nan"),
+                          tmp_path / "proj", "--keypoint-outline", "0 to switch")
 
 
 def test_fits_files_without_fits_names_the_fix(capture, tmp_path):
@@ -506,6 +510,89 @@ def test_silhouette_term_penalises_only_points_outside_in_metres():
     uv_step = cam.K[:2, :2] @ (cam.R @ V.grad[0, 1].numpy())[:2]  # the gradient's direction in the image
     assert uv_step[0] > 0 and abs(uv_step[1]) < 1e-3 * abs(uv_step[0])  # descent moves the point left, inwards
     assert term.inside(V.detach()) == pytest.approx(0.5)
+
+
+def test_outline_term_pulls_the_nearest_projected_point_out_to_the_masks_outline():
+    """The silhouette term's other side: the outline points of a square mask pull the nearest projected point out
+    to them (the one-sided term has nothing to say about points inside the mask), in metres at its depth."""
+    import torch
+
+    from avatarctl.body.fit_keypoints import SilhouetteTargets, SilhouetteTerm, mask_distance, outline_points
+    from avatarctl.geometry.triangulate import projection_matrices
+
+    cam = ring_cameras(1, 128)[0].pinhole()
+    mask = np.zeros((128, 128), dtype=bool)
+    mask[32:96, 32:96] = True
+    field = mask_distance(mask, (64, 64))  # the field's grid at half the image's size
+    pts = outline_points(field, np.array([128.0, 128.0]), n=1000)
+    assert len(pts) == 4 * 31  # the boundary pixels of a 32 x 32 square on the grid
+    assert pts.min() == pytest.approx(32.5, abs=1e-4) and pts.max() == pytest.approx(94.5, abs=1e-4)
+    assert len(outline_points(np.ones((8, 8), np.float32), np.array([16.0, 16.0]))) == 0  # an empty mask
+    sil = SilhouetteTargets(P=projection_matrices([cam]), image_size=np.array([[128.0, 128.0]]),
+                            focal_px=np.array([cam.K[0, 0]]), distance=field[None, None], weight=np.ones((1, 1)))
+    term = SilhouetteTerm(sil, frames=1, dtype=torch.float64)
+    Kinv, R = np.linalg.inv(cam.K), cam.R
+
+    def at(u, v):  # the point at depth 2 m on the ray through pixel (u, v)
+        ray = R.T @ (Kinv @ np.array([u, v, 1.0]))
+        return cam.center + ray * (2.0 / (R @ ray)[2])
+
+    # two points inside the mask: the centre and one 10 px left of its right edge (nearest to the right edge)
+    V = torch.tensor(np.stack([at(64.0, 64.0), at(84.5, 64.0)])[None], dtype=torch.float64, requires_grad=True)
+    assert term.loss(V, 0.05).item() == 0  # inside: the one-sided term is silent
+    d = term.outline_distances(V)  # [1, 1, points] metres from each outline point to the nearer point
+    right = torch.as_tensor((pts[:, 0] > 94) & (np.abs(pts[:, 1] - 64) < 2))
+    assert d[0, 0, :len(pts)][right].min().item() == pytest.approx(10.0 * 2.0 / cam.K[0, 0], rel=0.02)
+    term.outline_loss(V, 0.05).backward()
+    uv_step = cam.K[:2, :2] @ (cam.R @ V.grad[0, 1].numpy())[:2]
+    assert uv_step[0] < 0  # descent moves the point right, out to the outline
+    assert term.outline_mean(V.detach()) > 0
+
+
+def test_outline_term_places_an_unobserved_arm_from_one_view():
+    """Keypoints without the left arm's elbow and wrist, one camera and the true silhouette: the arm raised beside the
+    torso. The one-sided term leaves it where the keypoint fit put it, the outline term pulls it out to the mask;
+    its gate keeps it off when the outline lies further from the body than `outline_gate_m` (loose clothing)."""
+    import torch
+
+    from avatarctl.body.anny_model import AnnyBody
+    from avatarctl.body.fit_keypoints import (FIT_BONES, AnnyKeypoints, KeypointFitConfig, KeypointTargets,
+                                              fit_keypoints)
+    from avatarctl.ingest.estimate import silhouette_targets
+    from avatarctl.ingest.keypoints import KEYPOINT_NAMES
+    from avatarctl.geometry.silhouette import rasterize_silhouette
+
+    body = AnnyBody()
+    kp = AnnyKeypoints(body, KEYPOINT_NAMES)
+    cams = [ring_cameras(4, 128)[0].pinhole()]
+    rot = torch.zeros(1, len(FIT_BONES), 3, dtype=torch.float64)
+    rot[0, FIT_BONES.index("upperarm01.L")] = torch.tensor(ARM_RAISE, dtype=torch.float64)
+    pose = kp.pose_matrices(rot, torch.eye(3, dtype=torch.float64)[None], torch.zeros(1, 3, dtype=torch.float64))
+    pheno = torch.full((6,), 0.5, dtype=torch.float64)
+    with torch.no_grad():
+        K, V = kp(pose, pheno)
+    faces = body.faces().cpu().numpy()
+    masks = {(cams[0].name, 0): rasterize_silhouette(cams[0], V[0].numpy(), faces)}
+    arm = [i for i, n in enumerate(KEYPOINT_NAMES) if n in ("left_elbow", "left_wrist")]
+    w = np.ones(K.shape[:2])
+    w[:, arm] = 0.0
+    targets = KeypointTargets(KEYPOINT_NAMES, K.numpy(), w)
+    sil = silhouette_targets(cams, [cams[0].name], [0], lambda c, f: masks[(c, f)])
+    errs = {}
+    for w_out, gate in ((0.0, 0.1), (30.0, 0.1), (30.0, 0.025)):
+        cfg = KeypointFitConfig(iters=200, fit_shape=False, w_silhouette=100.0, w_outline=w_out,
+                                silhouette_start=0.25, outline_gate_m=gate)
+        fit = fit_keypoints(kp, targets, cfg, silhouettes=sil)
+        with torch.no_grad():
+            K2, _ = kp(torch.as_tensor(fit.motion.pose_parameters, dtype=torch.float64), pheno)
+        errs[w_out, gate] = (K2 - K)[:, arm].norm(dim=-1).mean().item()
+        if w_out:  # the outline 3.7 cm from the body at s_0: on under a 10 cm gate, off under 2.5 cm
+            assert fit.silhouette.outline_on == (gate > 0.037)
+        else:
+            assert np.isnan(fit.silhouette.outline_after_m) and not fit.silhouette.outline_on
+    assert fit.silhouette.outline_before_m == pytest.approx(0.037, abs=0.002)
+    assert errs[30.0, 0.1] < 0.3 * errs[0.0, 0.1], errs  # measured 29.5 cm -> 3.5 cm
+    assert errs[30.0, 0.025] == errs[0.0, 0.1]  # gated off: the fit without the term
 
 
 def test_silhouette_term_recovers_unobserved_legs():

@@ -239,6 +239,9 @@ def test_ingest_one_synthetic_phone_video_as_a_user_would(tmp_path):
     assert "intrinsics" in res.output and "video metadata" in res.output and "W0000" not in res.output
     summary = json.loads((proj / "project.json").read_text())["stages"][0]["summary"]
     assert summary["format"] == "video" and summary["estimate"]["monocular"]
+    # the silhouette term's two sides ran: the masks' outline closer to the projected body at the end
+    assert summary["estimate"]["outline_after_cm"] < summary["estimate"]["outline_before_cm"]
+    assert "outline term" in res.output
     split = json.loads((proj / "ingest" / "split.json").read_text())
     assert split["train_views"] == split["test_views"] == ["cam00"]
     assert max(split["train_frames"]) < min(split["test_frames"])  # held-out frames later in the video

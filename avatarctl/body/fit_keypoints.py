@@ -23,6 +23,7 @@ instead of 2D data):
       + λ_shape  · P(s)                           shape prior: stay near the average subject
       + λ_limit  · mean_f L(θ_f)                  joint limits of the hinge joints (0 where the body model has none)
       + λ_sil    · mean_fcv ρ_s(D_fc(π_c(v)) z_fcv / f_c)    silhouette term (optional, from step s_0 on)
+      + λ_out    · mean_fco ρ_s(min_v ‖π_c(v) − o‖ z_v / f_c)  its other side: the masks' outline (optional, idem)
 
 Monocular fits (one video, `ImageKeypointTargets`: 2D keypoints with confidences in one or more pinhole views)
 replace the 3D data term with a reprojection term and add what one view cannot see:
@@ -48,6 +49,15 @@ weight does not depend on the resolution. It pushes the body *into* the masks an
 loose clothing makes a mask larger than the body. ρ_s is Geman-McClure with its own scale (a mask that misses a
 hand must not drag the arm). It starts at step s_0 (a fraction of the steps), once the keypoints have placed the
 body, and the share of projected vertices inside the masks (1 px tolerance) is reported at s_0 and at the end.
+The outline term is the other side (a chamfer from the masks' outline to the projected body): up to
+`OUTLINE_POINTS` points o spread along each view's mask outline (the boundary pixels of the distance field's inside)
+pull the nearest projected vertex v of the same subset, the distance again in metres at that vertex's depth, ρ_s
+again. It pulls a limb that the keypoints placed beside its silhouette back into it, which the one-sided term cannot
+do when the limb lies over the torso's mask. Loose clothing makes it pull the body towards the cloth's outline, so
+it joins at s_0 only when the outline lies within `OUTLINE_GATE_M` of the projected body on average (tight
+clothes), and it is on for one video (`ingest.estimate.MONO_OUTLINE_WEIGHT`, where one view leaves the limbs'
+placement to the image), off for triangulated keypoints. Reported: the outline's mean distance to the projected body
+(metres at the subject) at s_0 and at the end, and whether the term ran.
 Joint limits L(θ) (anny; none for SMPL yet): knees and elbows are hinges. With φ the rotation about the hinge's
 flexion axis (knees: +x of the reference pose; elbows: the lowerarm bone's own x axis, `reference_bone_orientations`;
 FACTS.md, checked: +φ bends), L = Σ_hinges relu(φ_lo − φ)² + relu(φ − φ_hi)², plus relu(|θ_⊥| − 10°)² for the knees'
@@ -84,6 +94,12 @@ ANNY_HINGES = (("lowerleg01.L", "x", (-5.0, 150.0), 10.0), ("lowerleg01.R", "x",
                ("lowerarm01.L", "own", (-40.0, 115.0), None), ("lowerarm01.R", "own", (-40.0, 115.0), None))
 SILHOUETTE_WEIGHT = 0.0  # the default λ_sil: off (measured: docs/experiments/silhouette_2026-11-25; 10 is the tried setting)
 MAX_FIELD_SIDE = 128  # px: the larger side of the silhouette distance fields (64 KB per view at most)
+OUTLINE_POINTS = 256  # mask outline points per view for the outline term (an even spread of the boundary pixels)
+OUTLINE_WEIGHT = 0.0  # the default λ_out: off (triangulated keypoints; one video: ingest.estimate.MONO_OUTLINE_WEIGHT)
+# the outline term's gate: at s_0 the masks' outline lies 1.2-1.3 cm from the keypoint-fitted body of a subject in
+# tight clothes and 4.5 cm from one in a skirt, whose outline would pull the legs apart (synth phone, seeds 0 and 1,
+# and with a skirt: docs/experiments/outline_term_2026-11-30/)
+OUTLINE_GATE_M = 0.025
 
 
 @dataclass(frozen=True)
@@ -101,6 +117,8 @@ class KeypointFitConfig:
     silhouette_scale_m: float = 0.05  # σ of the silhouette term's Geman-McClure (metres at the subject)
     silhouette_start: float = 0.5  # the silhouette term is on from this fraction of `iters` on
     silhouette_vertices: int = 2000  # posed vertices projected per frame (an even spread of anny's 13,718)
+    w_outline: float = OUTLINE_WEIGHT  # λ_out: the masks' outline pulls the nearest projected vertex (0: off)
+    outline_gate_m: float = OUTLINE_GATE_M  # the outline term joins at s_0 only if the outline is this close (mean)
     height_m: float | None = None  # H of the height prior (metres); None: no height prior
     w_height: float = 1.0  # λ_height (used only with `height_m`)
     w_ground: float = 0.0  # λ_ground (monocular fits; 0: off)
@@ -111,9 +129,10 @@ class KeypointFitConfig:
                 or not (self.w_height >= 0 and self.w_ground >= 0 and self.w_root_smooth >= 0) \
                 or (self.height_m is not None and not 0.5 <= self.height_m <= 2.5):
             raise ValueError(f"bad keypoint-fit settings {self}")
-        if not (self.w_silhouette >= 0 and self.silhouette_scale_m > 0 and 0 <= self.silhouette_start < 1
+        if not (self.w_silhouette >= 0 and self.w_outline >= 0 and self.outline_gate_m > 0
+                and self.silhouette_scale_m > 0 and 0 <= self.silhouette_start < 1
                 and self.silhouette_vertices > 0):
-            raise ValueError(f"bad silhouette settings: weight {self.w_silhouette} (>= 0), scale "
+            raise ValueError(f"bad silhouette settings: weights {self.w_silhouette}, {self.w_outline} (>= 0), scale "
                              f"{self.silhouette_scale_m} (> 0), start {self.silhouette_start} (in [0, 1)), "
                              f"vertices {self.silhouette_vertices} (> 0)")
 
@@ -213,13 +232,21 @@ def field_grid(width: int, height: int) -> tuple[int, int]:
 @dataclass(frozen=True)
 class SilhouetteReport:
     """How the silhouette term moved the fit: share of projected vertices (the term's subset) inside the masks
-    (1 px tolerance), over the views with a mask."""
+    (1 px tolerance), over the views with a mask, and the masks' outline's mean distance to the projected body."""
 
     inside_before: float  # when the term switched on
     inside_after: float  # at the end of the fit
+    outline_before_m: float = float("nan")  # mean distance (metres at the subject) of the masks' outline points to
+    outline_after_m: float = float("nan")  # the nearest projected vertex, idem (NaN: the outline term was off)
+    outline_on: bool = False  # the outline term ran (False: weight 0, or the gate kept it off: loose clothing)
 
-    def to_json(self) -> dict[str, float]:
-        return {"inside_before": round(self.inside_before, 4), "inside_after": round(self.inside_after, 4)}
+    def to_json(self) -> dict[str, float | None]:
+        def num(x: float) -> float | None:
+            return round(x, 4) if np.isfinite(x) else None
+
+        return {"inside_before": num(self.inside_before), "inside_after": num(self.inside_after),
+                "outline_before_m": num(self.outline_before_m), "outline_after_m": num(self.outline_after_m),
+                "outline_on": self.outline_on}
 
 
 @dataclass(frozen=True)
@@ -531,14 +558,26 @@ class SilhouetteTerm:
         f, c, h, w = sil.distance.shape
         self.field = torch.as_tensor(sil.distance, dtype=torch.float32).reshape(f * c, 1, h, w)
         self.weight = torch.as_tensor(sil.weight, dtype=dtype)  # [frames, cams]
+        pts = [outline_points(sil.distance[i, j], sil.image_size[j]) for i in range(f) for j in range(c)]
+        self.outline = torch.zeros(f * c, OUTLINE_POINTS, 2)  # [frames, cams, points, 2] camera pixels
+        self.outline_w = torch.zeros(f * c, OUTLINE_POINTS)  # 1 for a point, 0 for padding
+        for i, p in enumerate(pts):
+            self.outline[i, :len(p)] = torch.as_tensor(p)
+            self.outline_w[i, :len(p)] = 1
+        self.outline = self.outline.reshape(f, c, OUTLINE_POINTS, 2)
+        self.outline_w = self.outline_w.reshape(f, c, OUTLINE_POINTS)
+
+    def project(self, vertices: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """[frames, n, 3] world vertices -> (pixels [frames, cams, n, 2], depth [frames, cams, n])."""
+        x = torch.einsum("cij,fnj->fcni", self.P[..., :3], vertices) + self.P[None, :, None, :, 3]  # [f, c, n, 3]
+        z = x[..., 2].clamp_min(1e-3)
+        return x[..., :2] / z[..., None], z
 
     def distances(self, vertices: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """[frames, n, 3] world vertices -> (metres outside the mask [frames, cams, n], pixels [frames, cams, n])."""
         f, n, _ = vertices.shape
         c = self.P.shape[0]
-        x = torch.einsum("cij,fnj->fcni", self.P[..., :3], vertices) + self.P[None, :, None, :, 3]  # [f, c, n, 3]
-        z = x[..., 2].clamp_min(1e-3)
-        uv = x[..., :2] / z[..., None]
+        uv, z = self.project(vertices)
         g = (uv + 0.5) / self.size[None, :, None, :] * 2 - 1  # grid_sample's coordinates, align_corners=False
         d = torch.nn.functional.grid_sample(self.field, g.reshape(f * c, 1, n, 2).float(), mode="bilinear",
                                             padding_mode="border", align_corners=False)
@@ -551,6 +590,27 @@ class SilhouetteTerm:
         s2 = scale_m ** 2
         per_view = (s2 * r ** 2 / (r ** 2 + s2)).mean(-1)  # [f, c]
         return (self.weight * per_view).sum() / self.weight.sum().clamp_min(1e-9)
+
+    def outline_distances(self, vertices: torch.Tensor) -> torch.Tensor:
+        """[frames, n, 3] world vertices -> [frames, cams, points] metres (at the nearest vertex's depth) from each
+        outline point to the nearest projected vertex."""
+        uv, z = self.project(vertices)
+        d, nearest = torch.cdist(self.outline, uv.float()).min(-1)  # [f, c, points]
+        return d.to(vertices.dtype) * torch.gather(z, 2, nearest) / self.focal[None, :, None]
+
+    def outline_loss(self, vertices: torch.Tensor, scale_m: float) -> torch.Tensor:
+        """Mean over the views with a mask and their outline points of ρ_s(metres to the projected body)."""
+        r = self.outline_distances(vertices)
+        s2 = scale_m ** 2
+        w = self.outline_w.to(r.dtype)
+        per_view = (w * s2 * r ** 2 / (r ** 2 + s2)).sum(-1) / w.sum(-1).clamp_min(1)  # [f, c]
+        return (self.weight * per_view).sum() / self.weight.sum().clamp_min(1e-9)
+
+    def outline_mean(self, vertices: torch.Tensor) -> float:
+        """Mean distance (metres) of the outline points to the projected body, views with a mask."""
+        with torch.no_grad():
+            w = self.outline_w.to(vertices.dtype) * self.weight[..., None]
+            return float((w * self.outline_distances(vertices)).sum() / w.sum().clamp_min(1e-9))
 
     def inside(self, vertices: torch.Tensor) -> float:
         """Share of the projected vertices within 1 px of the masks (views with a mask)."""
@@ -608,11 +668,13 @@ def fit_keypoints(model: KeypointBody, targets: KeypointTargets | ImageKeypointT
     s2 = cfg.robust_scale_m ** 2
     wsum = W.sum().clamp_min(1e-9)
     sil = None
-    if silhouettes is not None and cfg.w_silhouette > 0 and bool((silhouettes.weight > 0).any()):
+    if silhouettes is not None and (cfg.w_silhouette > 0 or cfg.w_outline > 0) \
+            and bool((silhouettes.weight > 0).any()):
         sil = SilhouetteTerm(silhouettes, f, dt)
     sil_start = int(cfg.silhouette_start * cfg.iters)
     sub = None  # [n] the term's vertices, chosen on the first forward pass
-    inside_before = float("nan")
+    inside_before = outline_before = float("nan")
+    outline_on = False  # decided at s_0 by the gate
     focal = torch.as_tensor(targets.focal_px, dtype=dt)[None, :, None] if image else None
     feet = [model.names.index(n) for n in FEET if n in model.names]
     feet_seen = np.zeros(f, dtype=bool)
@@ -654,8 +716,15 @@ def fit_keypoints(model: KeypointBody, targets: KeypointTargets | ImageKeypointT
         if sil is not None and it >= sil_start:
             if sub is None:
                 sub = spread_indices(V.shape[1], cfg.silhouette_vertices)
-                inside_before = sil.inside(V[:, sub].detach())
-            loss = loss + cfg.w_silhouette * sil.loss(V[:, sub], cfg.silhouette_scale_m)
+                if cfg.w_silhouette > 0:
+                    inside_before = sil.inside(V[:, sub].detach())
+                if cfg.w_outline > 0:
+                    outline_before = sil.outline_mean(V[:, sub].detach())
+                    outline_on = outline_before <= cfg.outline_gate_m
+            if cfg.w_silhouette > 0:
+                loss = loss + cfg.w_silhouette * sil.loss(V[:, sub], cfg.silhouette_scale_m)
+            if outline_on:
+                loss = loss + cfg.w_outline * sil.outline_loss(V[:, sub], cfg.silhouette_scale_m)
         loss = loss + cfg.w_pose * (rotvecs ** 2).sum((1, 2)).mean()
         if f > 1:
             loss = loss + cfg.w_smooth * ((rotvecs[1:] - rotvecs[:-1]) ** 2).sum((1, 2)).mean()
@@ -686,13 +755,33 @@ def fit_keypoints(model: KeypointBody, targets: KeypointTargets | ImageKeypointT
             n = ground_n / ground_n.norm()
             ground = np.concatenate([n.numpy(), [float(ground_d)]])
         if sil is not None:
+            started = sub is not None  # the terms switched on during the fit (iters > s_0)
             sub = spread_indices(V.shape[1], cfg.silhouette_vertices) if sub is None else sub
-            after = sil.inside(V[:, sub])
-            report = SilhouetteReport(inside_before=after if inside_before != inside_before else inside_before,
-                                      inside_after=after)
+            after = sil.inside(V[:, sub]) if cfg.w_silhouette > 0 else float("nan")
+            outline_after = sil.outline_mean(V[:, sub]) if cfg.w_outline > 0 else float("nan")
+            report = SilhouetteReport(inside_before=inside_before if started else after, inside_after=after,
+                                      outline_before_m=outline_before if started else outline_after,
+                                      outline_after_m=outline_after, outline_on=outline_on)
         motion = model.to_motion(rotvecs, R, root_t, shape)
     return KeypointFit(motion=motion, names=model.names, error_m=err, seconds=time.perf_counter() - t0,
                        silhouette=report, error_px=err_px, height_m=fitted_height, ground=ground)
+
+
+def outline_points(distance: np.ndarray, image_size: np.ndarray, n: int = OUTLINE_POINTS) -> np.ndarray:
+    """float [H, W] distance field of a mask (`mask_distance`, 0 inside) of an image `image_size` (width, height)
+    px -> [m <= n, 2] camera-pixel points spread evenly along the mask's outline (the inside's boundary pixels, 3 x 3
+    erosion, scan order); none for an empty mask."""
+    import cv2
+
+    inside = (np.asarray(distance) <= 0).astype(np.uint8)
+    eroded = cv2.erode(inside, np.ones((3, 3), np.uint8), borderType=cv2.BORDER_CONSTANT, borderValue=0)
+    ys, xs = np.nonzero(inside & (1 - eroded))
+    if len(xs) == 0:
+        return np.zeros((0, 2), dtype=np.float32)
+    pick = np.linspace(0, len(xs) - 1, min(n, len(xs))).round().astype(np.int64)
+    h, w = inside.shape
+    return np.stack([(xs[pick] + 0.5) * image_size[0] / w - 0.5,
+                     (ys[pick] + 0.5) * image_size[1] / h - 0.5], axis=1).astype(np.float32)
 
 
 def spread_indices(total: int, n: int) -> torch.Tensor:

@@ -38,6 +38,10 @@ def register(app: typer.Typer) -> None:
         keypoint_silhouette: Optional[float] = typer.Option(
             None, "--keypoint-silhouette", help="Weight of the keypoint fit's silhouette term (keeps the projected "
                                                 "body inside the masks); 0 = off; default: the fit's own."),
+        keypoint_outline: Optional[float] = typer.Option(
+            None, "--keypoint-outline", help="Weight of the keypoint fit's outline term (the masks' outline pulls the "
+                                             "body out to it; loose clothes pull it to the cloth); 0 = off; default: "
+                                             "3 for one video, else off."),
         keypoint_offsets: bool = typer.Option(True, "--keypoint-offsets/--no-keypoint-offsets",
                                               help="anny fits: place each keypoint where MediaPipe puts it on a body "
                                                    "(its hips higher than anny's, ...), not at anny's own COCO point."),
@@ -73,6 +77,7 @@ def register(app: typer.Typer) -> None:
             cfg = stage.IngestConfig(capture=capture, project=project, format=format, body_model=body_model,
                                body_model_path=body_model_path, masks=masks, fits=fits,
                                keypoint_fit_iters=keypoint_fit_iters, keypoint_silhouette=keypoint_silhouette,
+                               keypoint_outline=keypoint_outline,
                                keypoint_offsets=keypoint_offsets, refine_masks=refine_masks,
                                frames=frames,
                                views=None if views is None else split_list(views), resize=resize,

@@ -31,6 +31,8 @@ class IngestConfig:
     keypoint_fit_iters: int = 400  # Adam steps of the keypoint fit (--fits keypoints; anny, smpl or smplx)
     keypoint_silhouette: float | None = None  # weight of the keypoint fit's silhouette term (None: the fit's default,
     # avatarctl.body.fit_keypoints.SILHOUETTE_WEIGHT; 0: off)
+    keypoint_outline: float | None = None  # weight of its other side, the masks' outline pulling the body (None: the
+    # fit's default: avatarctl.ingest.estimate.MONO_OUTLINE_WEIGHT for one video, else OUTLINE_WEIGHT; 0: off)
     keypoint_offsets: bool = True  # anny fits: anny's keypoints where MediaPipe puts them
     # (avatarctl.ingest.keypoints.MEDIAPIPE_ANNY_OFFSETS; False: anny's own COCO points)
     refine_masks: bool = True  # masks "mediapipe": refined against each camera's plate estimated from its frames
@@ -66,6 +68,10 @@ class IngestConfig:
                                                          and self.keypoint_silhouette >= 0):
             raise InputError(f"--keypoint-silhouette {self.keypoint_silhouette} must be a weight >= 0",
                              fix="use 0 to switch the silhouette term off, or leave the option out for the default")
+        if self.keypoint_outline is not None and not (math.isfinite(self.keypoint_outline)
+                                                      and self.keypoint_outline >= 0):
+            raise InputError(f"--keypoint-outline {self.keypoint_outline} must be a weight >= 0",
+                             fix="use 0 to switch the outline term off, or leave the option out for the default")
         if not (math.isfinite(self.resize) and 0.05 <= self.resize <= 4.0):
             raise InputError(f"--resize {self.resize} is out of range", fix="use a scale factor in [0.05, 4], e.g. 0.5")
         if self.views is not None:
@@ -98,7 +104,7 @@ class IngestConfig:
                 "project": str(self.project.resolve()), "format": self.format, "body_model": self.body_model,
                 "body_model_path": None if self.body_model_path is None else str(self.body_model_path.resolve()),
                 "masks": self.masks, "fits": self.fits, "keypoint_fit_iters": self.keypoint_fit_iters,
-                "keypoint_silhouette": self.keypoint_silhouette,
+                "keypoint_silhouette": self.keypoint_silhouette, "keypoint_outline": self.keypoint_outline,
                 "frames": self.frames, "views": None if self.views is None else list(self.views),
                 "resize": self.resize, "contact_sheet": self.contact_sheet, "focal_px": self.focal_px,
                 "fov_deg": self.fov_deg, "height_m": self.height_m, "benchmark": self.benchmark}

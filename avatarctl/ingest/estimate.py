@@ -17,7 +17,8 @@ undistortion):
 One video (`estimate_monocular`, one static camera): no triangulation; the body model is fitted to the 2D keypoints
 and their confidences directly (`avatarctl.body.fit_keypoints`'s monocular energy: reprojection, the subject's
 height as the scale prior, ground contact where the feet are seen, root smoothness, joint limits, the silhouette
-term on MediaPipe's masks). Before it, `check_monocular` refuses a video without a person, with the person out of
+term on MediaPipe's masks and its other side, the outline term, where the masks' outline lies close to the body).
+Before it, `check_monocular` refuses a video without a person, with the person out of
 frame in most frames, with several people (`several_people`: MediaPipe Pose tracks one person, so each sampled
 frame is searched again with that person painted out), or from a moving camera (`camera_shift_px`: the background's
 shift between frames by phase correlation).
@@ -45,6 +46,10 @@ MIN_CONFIDENCE = 0.5  # MediaPipe visibility below which a 2D keypoint is not us
 WARMUP_FRAMES = 5
 DEFAULT_HEIGHT_M = 1.70  # the monocular fit's height prior when the user gives none (an adult's average, both sexes)
 MONO_SILHOUETTE_WEIGHT = 10.0  # the monocular fit's silhouette weight (one view: the masks constrain depth-blind limbs)
+# the monocular fit's outline weight (the silhouette term's other side; synth phone seeds 0 / 1, 300-s avatars: held-out
+# frames +0.07 / +0.35 dB, training frames +0.11 / +0.63; at 10 the held-out frames +0.29 / +0.56, the training
+# frames -0.08 / -0.76: docs/experiments/outline_term_2026-11-30/)
+MONO_OUTLINE_WEIGHT = 3.0
 MONO_GROUND_WEIGHT = 1.0  # λ_ground of the monocular fit
 MONO_ROOT_SMOOTH = 1e-3  # λ_root of the monocular fit
 MONO_POSE_WEIGHT = 3e-3  # λ_pose of the monocular fit (the 3D fit's 1e-5 leaves a limb's depth free; measured on the
@@ -230,6 +235,9 @@ class EstimateReport:
     ground: list[float] | None = None  # monocular: the fitted floor plane n·x = d, [nx, ny, nz, d] (world = camera)
     silhouette_inside_before: float = float("nan")  # share of projected vertices inside the masks when the
     silhouette_inside_after: float = float("nan")  # silhouette term switched on / at the end (NaN: term off)
+    outline_before_cm: float = float("nan")  # the masks' outline's mean distance to the projected body when the
+    outline_after_cm: float = float("nan")  # outline term switched on / at the end, cm at the subject (NaN: off)
+    outline_on: bool = False  # the outline term ran (off: weight 0, or its gate found loose clothing)
     keypoint_offsets: bool = False  # the fit placed anny's keypoints where MediaPipe puts them
     masks_refined: MaskRefinement | None = None  # MediaPipe's masks refined against estimated plates (`refine_masks`)
 
@@ -253,6 +261,8 @@ class EstimateReport:
             out.append(("floor", "feet not seen: no ground contact" if self.ground is None else
                         f"normal ({self.ground[0]:+.2f}, {self.ground[1]:+.2f}, {self.ground[2]:+.2f}), "
                         f"camera {-self.ground[3]:.2f} m above it (world = camera frame, +y down)"))
+        if fitted:
+            out.extend(self._silhouette_rows())
         elif fitted:
             out.append(("triangulation", f"{self.mean_reprojection_px:.2f} px mean reprojection error, "
                                          f"{100 * self.views_rejected:.1f}% of 2D keypoints rejected as outliers, "
@@ -260,10 +270,6 @@ class EstimateReport:
             out.append((f"{self.body_model} keypoint fit", f"{self.fit_error_cm:.2f} cm mean keypoint error "
                                              f"({self.fit_seconds:.0f} s)"
                                              + (", MediaPipe's keypoint offsets" if self.keypoint_offsets else "")))
-            if np.isfinite(self.silhouette_inside_after):
-                out.append(("silhouette term", f"{100 * self.silhouette_inside_before:.1f}% -> "
-                                               f"{100 * self.silhouette_inside_after:.1f}% of projected vertices "
-                                               "inside the masks"))
         if self.masks_refined is not None:
             r = self.masks_refined
             lo, hi = (f"{100 * f(r.plate_known.values()):.0f}" for f in (min, max))
@@ -271,6 +277,23 @@ class EstimateReport:
             changed = 100 * float(np.mean(list(r.changed.values())))
             out.append(("masks refined", f"against plates estimated from the frames ({known}% of each image known): "
                                          f"{changed:.1f}% of the mask pixels changed"))
+        return out
+
+    def _silhouette_rows(self) -> list[tuple[str, str]]:
+        out = []
+        if np.isfinite(self.silhouette_inside_after):
+            out.append(("silhouette term", f"{100 * self.silhouette_inside_before:.1f}% -> "
+                                           f"{100 * self.silhouette_inside_after:.1f}% of projected vertices "
+                                           "inside the masks"))
+        if np.isfinite(self.outline_after_cm) and self.outline_on:
+            out.append(("outline term", f"the masks' outline {self.outline_before_cm:.1f} -> "
+                                        f"{self.outline_after_cm:.1f} cm from the projected body (mean)"))
+        elif np.isfinite(self.outline_after_cm):
+            from avatarctl.body.fit_keypoints import OUTLINE_GATE_M
+
+            out.append(("outline term", f"off: the masks' outline lies {self.outline_before_cm:.1f} cm from the "
+                                        f"projected body on average (over {100 * OUTLINE_GATE_M:.1f}: loose "
+                                        "clothing, whose outline would pull the limbs apart)"))
         return out
 
     def to_json(self) -> dict:
@@ -287,6 +310,8 @@ class EstimateReport:
                 "body_model": self.body_model,
                 "silhouette_inside_before": num(self.silhouette_inside_before, 4),
                 "silhouette_inside_after": num(self.silhouette_inside_after, 4),
+                "outline_before_cm": num(self.outline_before_cm, 2), "outline_after_cm": num(self.outline_after_cm, 2),
+                "outline_on": self.outline_on,
                 "keypoint_offsets": self.keypoint_offsets, "monocular": self.monocular,
                 "height_m": num(self.height_m, 3), "height_prior": self.height_prior,
                 "ground": None if self.ground is None else [round(float(g), 4) for g in self.ground],
@@ -298,6 +323,15 @@ class EstimatedFits:
     motion: BodyMotion | None  # rows = the kept frames (None when fits were not estimated)
     kept: list[int]  # frames kept, ascending
     report: EstimateReport
+
+
+def silhouette_report(report) -> dict[str, float]:
+    """The `EstimateReport` fields of a keypoint fit's `SilhouetteReport` (None: the terms were off)."""
+    if report is None:
+        return {}
+    return dict(silhouette_inside_before=report.inside_before, silhouette_inside_after=report.inside_after,
+                outline_before_cm=100 * report.outline_before_m, outline_after_cm=100 * report.outline_after_m,
+                outline_on=report.outline_on)
 
 
 def silhouette_targets(cameras, cams: list[str], frames: list[int], read_mask: ReadMask):
@@ -347,10 +381,11 @@ def triangulate_detections(det: Detections, cameras):
 def estimate_fits(det: Detections, cameras, body, fit_iters: int, fps: float,
                   progress: ProgressFn | None = None, read_mask: ReadMask | None = None,
                   silhouette_weight: float | None = None, limit_weight: float | None = None,
-                  offsets: bool = True) -> EstimatedFits:
+                  offsets: bool = True, outline_weight: float | None = None) -> EstimatedFits:
     """Triangulate the detections with the pinhole `cameras` (order of `det.cams`) and fit `body` (an `AnnyBody`
     or `SmplBody`) to the frames with enough keypoints. With `read_mask` the fit has a silhouette term of weight
-    `silhouette_weight` (None: the keypoint fit's default; 0: off); `limit_weight`: the joint limits' weight (None:
+    `silhouette_weight` and an outline term of weight `outline_weight` (None: the keypoint fit's defaults; 0: off);
+    `limit_weight`: the joint limits' weight (None:
     the default); `offsets`: anny's keypoints where the detector puts them (`detector_offsets`). See the module
     docstring."""
     from avatarctl.body.fit_keypoints import TORSO, KeypointFitConfig, KeypointTargets, fit_keypoints, keypoint_body
@@ -377,18 +412,19 @@ def estimate_fits(det: Detections, cameras, body, fit_iters: int, fps: float,
     cfg = KeypointFitConfig(iters=fit_iters)
     if silhouette_weight is not None:
         cfg = replace(cfg, w_silhouette=float(silhouette_weight))
+    if outline_weight is not None:
+        cfg = replace(cfg, w_outline=float(outline_weight))
     if limit_weight is not None:
         cfg = replace(cfg, w_limits=float(limit_weight))
     sil = None
-    if read_mask is not None and cfg.w_silhouette > 0:
+    if read_mask is not None and (cfg.w_silhouette > 0 or cfg.w_outline > 0):
         sil = silhouette_targets(cameras, det.cams, kept, read_mask)
     table = detector_offsets(body, offsets)
     fit = fit_keypoints(keypoint_body(body, det.names, table), targets, cfg, silhouettes=sil, progress=progress)
     wsum = (targets.select(fit.names).weight > 0).sum(1)
     err = float((fit.error_m * wsum).sum() / wsum.sum())
     if fit.silhouette is not None:
-        report.update(silhouette_inside_before=fit.silhouette.inside_before,
-                      silhouette_inside_after=fit.silhouette.inside_after)
+        report.update(silhouette_report(fit.silhouette))
     return EstimatedFits(fit.to_motion(kept, fps=fps), kept,
                          EstimateReport(**report, fit_error_cm=100 * err, fit_seconds=fit.seconds,
                                         keypoint_offsets=table is not None))
@@ -493,7 +529,7 @@ def check_monocular(det: Detections, read_view: Callable[[int], np.ndarray], whe
 def estimate_monocular(det: Detections, camera, body, fit_iters: int, fps: float, usable: np.ndarray,
                        height_m: float | None = None, progress: ProgressFn | None = None,
                        read_mask: ReadMask | None = None, silhouette_weight: float | None = None,
-                       offsets: bool = True) -> EstimatedFits:
+                       offsets: bool = True, outline_weight: float | None = None) -> EstimatedFits:
     """Fit `body` to the 2D keypoints of ONE camera (`det.cams == [camera.name]`, pinhole `camera`) in the
     `usable` frames; `height_m`: the subject's height (None: `DEFAULT_HEIGHT_M`). See the module docstring."""
     from avatarctl.body.fit_keypoints import (ImageKeypointTargets, KeypointFitConfig, fit_keypoints,
@@ -509,12 +545,14 @@ def estimate_monocular(det: Detections, camera, body, fit_iters: int, fps: float
                                    focal_px=np.array([(camera.K[0, 0] + camera.K[1, 1]) / 2]),
                                    points=np.nan_to_num(det.keypoints[rows]), weight=w)
     w_sil = MONO_SILHOUETTE_WEIGHT if silhouette_weight is None else float(silhouette_weight)
+    w_out = MONO_OUTLINE_WEIGHT if outline_weight is None else float(outline_weight)
     prior = ("given with --height" if height_m is not None else
              f"default {DEFAULT_HEIGHT_M:.2f} m; pass --height")
     height = DEFAULT_HEIGHT_M if height_m is None else float(height_m)
-    cfg = KeypointFitConfig(iters=fit_iters, w_silhouette=w_sil, height_m=height, w_ground=MONO_GROUND_WEIGHT,
-                            w_root_smooth=MONO_ROOT_SMOOTH, w_pose=MONO_POSE_WEIGHT)
-    sil = silhouette_targets([camera], det.cams, kept, read_mask) if read_mask is not None and w_sil > 0 else None
+    cfg = KeypointFitConfig(iters=fit_iters, w_silhouette=w_sil, w_outline=w_out, height_m=height,
+                            w_ground=MONO_GROUND_WEIGHT, w_root_smooth=MONO_ROOT_SMOOTH, w_pose=MONO_POSE_WEIGHT)
+    sil = (silhouette_targets([camera], det.cams, kept, read_mask)
+           if read_mask is not None and (w_sil > 0 or w_out > 0) else None)
     table = detector_offsets(body, offsets)
     fit = fit_keypoints(keypoint_body(body, det.names, table), targets, cfg, silhouettes=sil, progress=progress)
     n = len(det.frames)
@@ -526,7 +564,6 @@ def estimate_monocular(det: Detections, camera, body, fit_iters: int, fps: float
         fit_seconds=fit.seconds, body_model=body.name, monocular=True, height_m=fit.height_m,
         height_prior=f"{height:.2f} m, {prior}",
         ground=None if fit.ground is None else [float(g) for g in fit.ground],
-        silhouette_inside_before=fit.silhouette.inside_before if fit.silhouette else float("nan"),
-        silhouette_inside_after=fit.silhouette.inside_after if fit.silhouette else float("nan"),
+        **silhouette_report(fit.silhouette),
         keypoint_offsets=table is not None)
     return EstimatedFits(fit.to_motion(kept, fps=fps), kept, report)

@@ -400,10 +400,11 @@ def _estimate(cfg: IngestConfig, plan: IngestPlan, und: dict, progress: Progress
         _check_size(rgb, und[c].source, src.images.where(c, f))
         return und[c].image(rgb)
 
-    from avatarctl.body.fit_keypoints import SILHOUETTE_WEIGHT
+    from avatarctl.body.fit_keypoints import OUTLINE_WEIGHT, SILHOUETTE_WEIGHT
 
     w_sil = SILHOUETTE_WEIGHT if cfg.keypoint_silhouette is None else cfg.keypoint_silhouette
-    silhouette = plan.fits_mode == "keypoints" and w_sil > 0
+    w_out = OUTLINE_WEIGHT if cfg.keypoint_outline is None else cfg.keypoint_outline
+    silhouette = plan.fits_mode == "keypoints" and (w_sil > 0 or w_out > 0)
     # the silhouette term's masks: the capture's mask files, else MediaPipe's (also with background plates: the
     # plate matting needs the fitted body as its seed)
     det = detect_people(read_view, cams, frames, progress=progress,
@@ -422,7 +423,8 @@ def _estimate(cfg: IngestConfig, plan: IngestPlan, und: dict, progress: Progress
         est = estimate_monocular(det, und[cams[0]].target, plan.body, cfg.keypoint_fit_iters, src.fps or 30.0,
                                  usable, cfg.height_m, progress,
                                  read_mask=(lambda c, f: det.mask(c, f)) if plan.masks_mode == "mediapipe" else None,
-                                 silhouette_weight=cfg.keypoint_silhouette, offsets=cfg.keypoint_offsets)
+                                 silhouette_weight=cfg.keypoint_silhouette, outline_weight=cfg.keypoint_outline,
+                                 offsets=cfg.keypoint_offsets)
         report, motion, kept = est.report, est.motion, est.kept
     elif plan.fits_mode == "keypoints":
         def read_mask(c: str, f: int) -> np.ndarray:
@@ -434,7 +436,7 @@ def _estimate(cfg: IngestConfig, plan: IngestPlan, und: dict, progress: Progress
 
         est = estimate_fits(det, [und[c].target for c in cams], plan.body, cfg.keypoint_fit_iters, src.fps or 30.0,
                             progress, read_mask=read_mask if silhouette else None,
-                            silhouette_weight=w_sil, offsets=cfg.keypoint_offsets)
+                            silhouette_weight=w_sil, outline_weight=w_out, offsets=cfg.keypoint_offsets)
         report, motion, kept = est.report, est.motion, est.kept
     else:
         found = det.found
