@@ -261,8 +261,6 @@ class EstimateReport:
             out.append(("floor", "feet not seen: no ground contact" if self.ground is None else
                         f"normal ({self.ground[0]:+.2f}, {self.ground[1]:+.2f}, {self.ground[2]:+.2f}), "
                         f"camera {-self.ground[3]:.2f} m above it (world = camera frame, +y down)"))
-        if fitted:
-            out.extend(self._silhouette_rows())
         elif fitted:
             out.append(("triangulation", f"{self.mean_reprojection_px:.2f} px mean reprojection error, "
                                          f"{100 * self.views_rejected:.1f}% of 2D keypoints rejected as outliers, "
@@ -270,6 +268,8 @@ class EstimateReport:
             out.append((f"{self.body_model} keypoint fit", f"{self.fit_error_cm:.2f} cm mean keypoint error "
                                              f"({self.fit_seconds:.0f} s)"
                                              + (", MediaPipe's keypoint offsets" if self.keypoint_offsets else "")))
+        if fitted:
+            out.extend(self._silhouette_rows())
         if self.masks_refined is not None:
             r = self.masks_refined
             lo, hi = (f"{100 * f(r.plate_known.values()):.0f}" for f in (min, max))
