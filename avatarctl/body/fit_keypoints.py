@@ -558,14 +558,23 @@ class SilhouetteTerm:
         f, c, h, w = sil.distance.shape
         self.field = torch.as_tensor(sil.distance, dtype=torch.float32).reshape(f * c, 1, h, w)
         self.weight = torch.as_tensor(sil.weight, dtype=dtype)  # [frames, cams]
-        pts = [outline_points(sil.distance[i, j], sil.image_size[j]) for i in range(f) for j in range(c)]
-        self.outline = torch.zeros(f * c, OUTLINE_POINTS, 2)  # [frames, cams, points, 2] camera pixels
-        self.outline_w = torch.zeros(f * c, OUTLINE_POINTS)  # 1 for a point, 0 for padding
-        for i, p in enumerate(pts):
-            self.outline[i, :len(p)] = torch.as_tensor(p)
-            self.outline_w[i, :len(p)] = 1
-        self.outline = self.outline.reshape(f, c, OUTLINE_POINTS, 2)
-        self.outline_w = self.outline_w.reshape(f, c, OUTLINE_POINTS)
+        self._sil = sil
+        self._outline: tuple[torch.Tensor, torch.Tensor] | None = None  # built by the outline term's first call
+
+    def outline(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """(points [frames, cams, OUTLINE_POINTS, 2] camera pixels, weight [frames, cams, OUTLINE_POINTS]: 1 for a
+        point, 0 for padding) of every view's mask outline (`outline_points`), built once."""
+        if self._outline is None:
+            f, c = self.weight.shape
+            pts = torch.zeros(f, c, OUTLINE_POINTS, 2)
+            w = torch.zeros(f, c, OUTLINE_POINTS)
+            for i in range(f):
+                for j in range(c):
+                    p = outline_points(self._sil.distance[i, j], self._sil.image_size[j])
+                    pts[i, j, :len(p)] = torch.as_tensor(p)
+                    w[i, j, :len(p)] = 1
+            self._outline = pts, w
+        return self._outline
 
     def project(self, vertices: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """[frames, n, 3] world vertices -> (pixels [frames, cams, n, 2], depth [frames, cams, n])."""
@@ -595,21 +604,21 @@ class SilhouetteTerm:
         """[frames, n, 3] world vertices -> [frames, cams, points] metres (at the nearest vertex's depth) from each
         outline point to the nearest projected vertex."""
         uv, z = self.project(vertices)
-        d, nearest = torch.cdist(self.outline, uv.float()).min(-1)  # [f, c, points]
+        d, nearest = torch.cdist(self.outline()[0], uv.float()).min(-1)  # [f, c, points]
         return d.to(vertices.dtype) * torch.gather(z, 2, nearest) / self.focal[None, :, None]
 
     def outline_loss(self, vertices: torch.Tensor, scale_m: float) -> torch.Tensor:
         """Mean over the views with a mask and their outline points of ρ_s(metres to the projected body)."""
         r = self.outline_distances(vertices)
         s2 = scale_m ** 2
-        w = self.outline_w.to(r.dtype)
+        w = self.outline()[1].to(r.dtype)
         per_view = (w * s2 * r ** 2 / (r ** 2 + s2)).sum(-1) / w.sum(-1).clamp_min(1)  # [f, c]
         return (self.weight * per_view).sum() / self.weight.sum().clamp_min(1e-9)
 
     def outline_mean(self, vertices: torch.Tensor) -> float:
         """Mean distance (metres) of the outline points to the projected body, views with a mask."""
         with torch.no_grad():
-            w = self.outline_w.to(vertices.dtype) * self.weight[..., None]
+            w = self.outline()[1].to(vertices.dtype) * self.weight[..., None]
             return float((w * self.outline_distances(vertices)).sum() / w.sum().clamp_min(1e-9))
 
     def inside(self, vertices: torch.Tensor) -> float:

@@ -285,10 +285,10 @@ class EstimateReport:
             out.append(("silhouette term", f"{100 * self.silhouette_inside_before:.1f}% -> "
                                            f"{100 * self.silhouette_inside_after:.1f}% of projected vertices "
                                            "inside the masks"))
-        if np.isfinite(self.outline_after_cm) and self.outline_on:
+        if self.outline_on:
             out.append(("outline term", f"the masks' outline {self.outline_before_cm:.1f} -> "
                                         f"{self.outline_after_cm:.1f} cm from the projected body (mean)"))
-        elif np.isfinite(self.outline_after_cm):
+        elif np.isfinite(self.outline_after_cm):  # the weight was set, the gate kept the term off
             from avatarctl.body.fit_keypoints import OUTLINE_GATE_M
 
             out.append(("outline term", f"off: the masks' outline lies {self.outline_before_cm:.1f} cm from the "
@@ -325,7 +325,7 @@ class EstimatedFits:
     report: EstimateReport
 
 
-def silhouette_report(report) -> dict[str, float]:
+def silhouette_report(report) -> dict[str, float | bool]:
     """The `EstimateReport` fields of a keypoint fit's `SilhouetteReport` (None: the terms were off)."""
     if report is None:
         return {}
@@ -423,8 +423,7 @@ def estimate_fits(det: Detections, cameras, body, fit_iters: int, fps: float,
     fit = fit_keypoints(keypoint_body(body, det.names, table), targets, cfg, silhouettes=sil, progress=progress)
     wsum = (targets.select(fit.names).weight > 0).sum(1)
     err = float((fit.error_m * wsum).sum() / wsum.sum())
-    if fit.silhouette is not None:
-        report.update(silhouette_report(fit.silhouette))
+    report.update(silhouette_report(fit.silhouette))
     return EstimatedFits(fit.to_motion(kept, fps=fps), kept,
                          EstimateReport(**report, fit_error_cm=100 * err, fit_seconds=fit.seconds,
                                         keypoint_offsets=table is not None))
