@@ -335,3 +335,44 @@ def test_one_video_without_the_capture_extra_is_one_line(tmp_path, monkeypatch):
     err = res.stderr.strip()
     assert res.exit_code == 2 and len(err.splitlines()) == 1 and "avatarctl[capture]" in err, err
     assert not (tmp_path / "P").exists()
+
+
+def _striped_video(moves: bool) -> tuple[list[np.ndarray], object]:
+    """12 frames of 96 x 160 with a person (a bright box with a mask) walking across the background. Static: a
+    curtain of vertical stripes (period 24 px, the synth phone video's case). `moves`: a random texture instead (a
+    pan over a periodic curtain is ambiguous to any method), and the whole picture pans 4 px a frame."""
+    import cv2
+
+    from avatarctl.ingest.estimate import Detections
+
+    H, W, n = 160, 96, 12
+    if moves:
+        noise = np.random.default_rng(0).uniform(0, 255, (H, W)).astype(np.float32)
+        curtain = np.repeat(cv2.GaussianBlur(noise, (0, 0), 2.0)[..., None], 3, axis=2)
+    else:
+        curtain = np.repeat((120 + 60 * np.sin(2 * np.pi * np.arange(W) / 24))[None, :, None], H, axis=0)
+        curtain = curtain.repeat(3, axis=2)
+    frames, masks = [], {}
+    for k in range(n):
+        img, m = curtain.copy(), np.zeros((H, W), bool)
+        m[40:130, 10 + 5 * k:30 + 5 * k] = True
+        img[m] = (200, 60, 40)
+        if moves:
+            img, m = np.roll(img, 4 * k, axis=1), np.roll(m, 4 * k, axis=1)
+        frames.append(img.astype(np.uint8))
+        masks[("cam00", k)] = cv2.imencode(".png", m.astype(np.uint8) * 255)[1].tobytes()
+    det = Detections(cams=["cam00"], frames=list(range(n)), names=("nose",), keypoints=np.zeros((n, 1, 1, 2)),
+                     confidence=np.ones((n, 1, 1)))
+    det.masks.update(masks)
+    return frames, det
+
+
+def test_a_striped_background_behind_a_static_camera_is_not_a_moving_camera():
+    """Phase correlation can peak one stripe period away on a periodic background; the shift then has to explain the
+    background better than no shift does (ingest once refused a static synth phone video in front of a curtain)."""
+    from avatarctl.ingest.estimate import camera_shift_px
+
+    frames, det = _striped_video(moves=False)
+    assert camera_shift_px(lambda f: frames[f], det) < 2.0
+    frames, det = _striped_video(moves=True)
+    assert camera_shift_px(lambda f: frames[f], det) > 30.0  # 44 px between the first and the last frame

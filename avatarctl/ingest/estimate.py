@@ -60,6 +60,7 @@ MIN_IN_VIEW = 0.5  # share of the frames in which the person must be usable (in 
 MIN_VIDEO_FRAMES = 10  # a video needs this many frames (after --frames): 2/3 train, 1/3 held out
 PEOPLE_SAMPLES = 6  # frames searched for a second person
 SECOND_PERSON_SHARE = 0.5  # ... a second person in at least this share of them -> several people
+SHIFT_CONFIRM = 0.5  # a background shift counts where it leaves at most this share of the unshifted difference
 MAX_CAMERA_SHIFT = 0.03  # background shift, as a fraction of the image diagonal, above which the camera moves
 
 ReadView = Callable[[str, int], np.ndarray]  # (camera, frame) -> undistorted RGB uint8 [H, W, 3]
@@ -478,7 +479,10 @@ def several_people(read_view: Callable[[int], np.ndarray], det: Detections) -> i
 def camera_shift_px(read_view: Callable[[int], np.ndarray], det: Detections) -> float:
     """The largest shift (pixels) of the background between the first frame with a person and up to
     `PEOPLE_SAMPLES` later ones: phase correlation (`cv2.phaseCorrelate`, Hann window) of the grey images with the
-    person (its dilated mask) filled by the background's mean. A static camera gives ~0; a pan or a walk does not."""
+    person (its dilated mask) filled by the background's mean. A static camera gives ~0; a pan or a walk does not.
+    A shift counts only where it explains the background better than no shift does (the mean absolute difference
+    of the background pixels seen in both frames at most `SHIFT_CONFIRM` of the unshifted one): on a periodic
+    background (a striped curtain) phase correlation can peak a period away although the camera stands still."""
     import cv2
 
     found = np.nonzero(det.found[:, 0])[0]
@@ -486,17 +490,32 @@ def camera_shift_px(read_view: Callable[[int], np.ndarray], det: Detections) -> 
         return 0.0
     picks = found[np.unique(np.linspace(0, len(found) - 1, min(PEOPLE_SAMPLES + 1, len(found))).round().astype(int))]
 
-    def grey(fi: int) -> np.ndarray:
+    def grey(fi: int) -> tuple[np.ndarray, np.ndarray]:
         g = cv2.cvtColor(read_view(det.frames[fi]), cv2.COLOR_RGB2GRAY).astype(np.float32)
         m = det.mask(det.cams[0], det.frames[fi]).astype(np.uint8)
         k = max(3, g.shape[0] // 30)
         m = cv2.dilate(m, np.ones((k, k), np.uint8)) > 0
         g[m] = g[~m].mean() if (~m).any() else 0.0
-        return g
+        return g, ~m
 
-    first = grey(picks[0])
+    def background_difference(g0, b0, g, b) -> float:
+        both = b0 & b
+        return float(np.abs(g - g0)[both].mean()) if both.any() else float("inf")
+
+    first, bg0 = grey(picks[0])
     window = cv2.createHanningWindow(first.shape[::-1], cv2.CV_32F)
-    return max(float(np.hypot(*cv2.phaseCorrelate(first, grey(fi), window)[0])) for fi in picks[1:])
+    shifts = [0.0]
+    for fi in picks[1:]:
+        g, bg = grey(fi)
+        (dx, dy), _ = cv2.phaseCorrelate(first, g, window)
+        back = np.float32([[1, 0, -dx], [0, 1, -dy]])
+        h, w = g.shape
+        g_back = cv2.warpAffine(g, back, (w, h), flags=cv2.INTER_LINEAR)
+        bg_back = cv2.warpAffine(bg.astype(np.uint8), back, (w, h), flags=cv2.INTER_NEAREST) > 0
+        still = background_difference(first, bg0, g, bg)
+        if background_difference(first, bg0, g_back, bg_back) <= SHIFT_CONFIRM * still:
+            shifts.append(float(np.hypot(dx, dy)))
+    return max(shifts)
 
 
 def check_monocular(det: Detections, read_view: Callable[[int], np.ndarray], where: str) -> np.ndarray:
