@@ -235,7 +235,7 @@ def _stand_in_detector(monkeypatch, capture, mask_of) -> None:
 
     from avatarctl.ingest import estimate, keypoints
 
-    def fake_detect(read_view, cams, frames, masks, progress=None):
+    def fake_detect(read_view, cams, frames, masks, progress=None, smooth=False):
         J = len(keypoints.KEYPOINT_NAMES)
         det = estimate.Detections(cams=list(cams), frames=list(frames), names=keypoints.KEYPOINT_NAMES,
                                   keypoints=np.zeros((len(frames), len(cams), J, 2)),
@@ -671,7 +671,8 @@ def test_each_cameras_detector_is_primed_on_the_next_frames_backwards(monkeypatc
 
     monkeypatch.setattr(keypoints, "PoseDetector", FakeDetector)
     frames = list(range(10, 18))
-    det = estimate.detect_people(lambda c, f: np.full((4, 4, 3), f, np.uint8), ["a", "b"], frames, masks=True)
+    # images of 256 px (masks alternately full and empty: odd, but not small images, so no second pass)
+    det = estimate.detect_people(lambda c, f: np.full((256, 256, 3), f, np.uint8), ["a", "b"], frames, masks=True)
     warm = frames[estimate.WARMUP_FRAMES:0:-1]
     assert warm == [15, 14, 13, 12, 11]
     assert calls == [(1, f) for f in warm + frames] + [(2, f) for f in warm + frames]
@@ -679,3 +680,66 @@ def test_each_cameras_detector_is_primed_on_the_next_frames_backwards(monkeypatc
     assert det.mask("b", 12).all() and not det.mask("b", 13).any()
     short = estimate.detect_people(lambda c, f: np.full((4, 4, 3), f, np.uint8), ["a"], [3], masks=False)
     assert calls[-1] == (3, 3) and short.keypoints.shape[0] == 1  # one frame: nothing to prime on
+
+
+def test_a_small_cameras_odd_masks_are_detected_again_on_enlarged_images(monkeypatch):
+    """At 128 px MediaPipe's tracker can lose the person for a stretch of frames (its masks the floor); a camera of
+    small images whose mask areas are odd runs again on images enlarged to DETECT_MIN_SIDE, and each odd frame takes
+    that run's detection where its mask area is not odd (`ingest.keypoints`, "Small images")."""
+    from avatarctl.ingest import estimate, keypoints
+
+    made: list[tuple[str, float]] = []
+    J = len(keypoints.KEYPOINT_NAMES)
+
+    class FakeDetector:
+        def __init__(self, masks: bool = True, scale: float = 1.0, **kw):
+            self.scale = scale
+
+        def __enter__(self):
+            made.append((self.cam, self.scale))
+            return self
+
+        def __exit__(self, *exc):
+            return None
+
+        def __call__(self, rgb):
+            cam, f = int(rgb[0, 0, 1]), int(rgb[0, 0, 0])
+            H, W = rgb.shape[:2]
+            mask = np.zeros((H, W), bool)
+            lost = cam == 0 and f < 2 and self.scale == 1.0 or cam == 0 and f == 5  # frame 5: lost in both runs
+            if lost:
+                mask[:] = True  # the floor: the whole image
+            else:
+                mask[10:30, 10:30] = True
+            tag = 100.0 * (self.scale != 1.0)
+            return keypoints.PersonDetection(keypoints=np.full((J, 2), tag + f), confidence=np.ones(J), mask=mask)
+
+    FakeDetector.cam = "?"
+    monkeypatch.setattr(keypoints, "PoseDetector", FakeDetector)
+
+    def read(c, f, size=64):
+        FakeDetector.cam = c
+        img = np.zeros((size, size, 3), np.uint8)
+        img[..., 0], img[..., 1] = f, int(c[-1])
+        return img
+
+    frames = list(range(8))
+    det = estimate.detect_people(read, ["c0", "c1"], frames, masks=True)
+    assert [s for _, s in made] == [1.0, keypoints.DETECT_MIN_SIDE / 64, 1.0]  # c0 twice, c1 (no odd mask) once
+    src = det.keypoints[:, 0, 0, 0]
+    assert np.array_equal(src, [100, 101, 2, 3, 4, 5, 6, 7])  # frames 0-1 mended; 5 odd in both runs: kept
+    assert det.mask("c0", 0).sum() == 400 and det.mask("c0", 5).all()
+    assert np.array_equal(det.keypoints[:, 1, 0, 0], frames)
+    assert det.enlarged == {"c0": [0, 1]}
+    nan = float("nan")
+    report = estimate.EstimateReport(frames_detected=8, frames_total=8, views_with_person=1.0, frames_skipped=[],
+                                     mean_reprojection_px=nan, views_rejected=nan, keypoints_triangulated=nan,
+                                     fit_error_cm=nan, fit_seconds=0.0, detected_enlarged=det.enlarged)
+    row = dict(report.rows(fitted=False))["detected again"]
+    assert row.startswith("c0 (2 frames)") and f"{keypoints.DETECT_MIN_SIDE} px" in row
+    assert report.to_json()["detected_enlarged"] == {"c0": [0, 1]}
+    made.clear()
+    estimate.detect_people(lambda c, f: read(c, f, size=256), ["c0"], frames, masks=True)
+    assert [s for _, s in made] == [1.0]  # images of 256 px: the odd masks stay as found
+    assert np.array_equal(estimate.odd_masks([np.ones((2, 2), bool), np.ones((2, 3), bool), np.zeros((2, 2), bool)]),
+                          [False, False, True])

@@ -188,7 +188,7 @@ def test_ingest_fits_smpl_to_injected_detections(capture, model_files, tmp_path,
         K, _ = kp.keypoints(*truth)
     want = body.evaluate(kp.to_motion(*truth), with_vertices=False).joints
 
-    def fake_detect(read_view, cams, frames, masks, progress=None):
+    def fake_detect(read_view, cams, frames, masks, progress=None, smooth=False):
         pin = [Undistorter.for_camera(c, 1.0).target for c in capture.cameras if c.name in cams]
         x, _ = project(projection_matrices(pin), K.numpy().reshape(-1, 3))  # [frames * joints, cams, 2]
         x = x.reshape(len(frames), len(kp.names), len(cams), 2).transpose(0, 2, 1, 3)

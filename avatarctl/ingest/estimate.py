@@ -77,6 +77,7 @@ class Detections:
     keypoints: np.ndarray  # [frames, cams, joints, 2] pixels (undistorted geometry), NaN where not found
     confidence: np.ndarray  # [frames, cams, joints] in [0, 1]
     masks: dict[tuple[str, int], bytes] = field(default_factory=dict)  # (cam, frame) -> PNG of the bool mask
+    enlarged: dict[str, list[int]] = field(default_factory=dict)  # cam -> frames detected again enlarged (not saved)
 
     @property
     def found(self) -> np.ndarray:
@@ -132,31 +133,66 @@ class Detections:
 
 
 def detect_people(read_view: ReadView, cams: list[str], frames: list[int], masks: bool,
-                  progress: ProgressFn | None = None) -> Detections:
+                  progress: ProgressFn | None = None, smooth: bool = False) -> Detections:
     """Run the detector on every view (camera-major: one tracker per camera stream, primed on the frames after the
-    first, backwards: `WARMUP_FRAMES`)."""
+    first, backwards: `WARMUP_FRAMES`). `smooth`: MediaPipe's temporal landmark filter (on for one video, off for
+    calibrated cameras: `ingest.keypoints`, "Temporal smoothing"). A camera of small images with odd masks runs
+    again on enlarged images (`odd_masks`; `ingest.keypoints`, "Small images")."""
     import cv2
 
-    from avatarctl.ingest.keypoints import KEYPOINT_NAMES, PoseDetector
+    from avatarctl.ingest.keypoints import DETECT_MIN_SIDE, KEYPOINT_NAMES, PoseDetector
 
     J = len(KEYPOINT_NAMES)
     kp = np.full((len(frames), len(cams), J, 2), np.nan)
     conf = np.zeros((len(frames), len(cams), J))
     out = Detections(cams=list(cams), frames=list(frames), names=KEYPOINT_NAMES, keypoints=kp, confidence=conf)
     done, total = 0, len(frames) * len(cams)
-    for ci, c in enumerate(cams):
-        with PoseDetector(masks=masks) as det:
+
+    def stream(c: str, scale: float, on_frame=None) -> list:
+        found = []
+        with PoseDetector(masks=masks, scale=scale, smooth=smooth) as det:
             for f in frames[WARMUP_FRAMES:0:-1]:  # the tracker primed on the next frames, backwards to the first
                 det(read_view(c, f))
-            for fi, f in enumerate(frames):
-                d = det(read_view(c, f))
-                kp[fi, ci], conf[fi, ci] = d.keypoints, d.confidence
-                if masks:
-                    out.masks[(c, f)] = cv2.imencode(".png", d.mask.astype(np.uint8) * 255)[1].tobytes()
-                done += 1
-                if progress is not None:
-                    progress(ProgressReport(done=done, total=total, part="detect"))
+            for f in frames:
+                found.append(det(read_view(c, f)))
+                if on_frame is not None:
+                    on_frame()
+        return found
+
+    def tick() -> None:
+        nonlocal done
+        done += 1
+        if progress is not None:
+            progress(ProgressReport(done=done, total=total, part="detect"))
+
+    for ci, c in enumerate(cams):
+        found = stream(c, 1.0, tick)
+        odd = odd_masks([d.mask for d in found]) if masks else np.zeros(len(frames), bool)
+        short = min(read_view(c, frames[0]).shape[:2])
+        if odd.any() and short < DETECT_MIN_SIDE:
+            again = stream(c, DETECT_MIN_SIDE / short)
+            mended = odd & ~odd_masks([d.mask for d in again], reference=[d.mask for d in found])
+            found = [a if m else d for d, a, m in zip(found, again, mended)]
+            if mended.any():
+                out.enlarged[c] = [f for f, m in zip(frames, mended) if m]
+        for fi, (f, d) in enumerate(zip(frames, found)):
+            kp[fi, ci], conf[fi, ci] = d.keypoints, d.confidence
+            if masks:
+                out.masks[(c, f)] = cv2.imencode(".png", d.mask.astype(np.uint8) * 255)[1].tobytes()
     return out
+
+
+def odd_masks(masks: list[np.ndarray], reference: list[np.ndarray] | None = None) -> np.ndarray:
+    """[frames] bool: masks whose area is more than `MASK_AREA_ODD` times off the median area of `reference` (default:
+    the masks themselves; empty masks count as odd) either way: a detector that lost the person (its mask the floor)."""
+    from avatarctl.ingest.keypoints import MASK_AREA_ODD
+
+    area = np.array([m.sum() for m in masks], dtype=float)
+    ref = area if reference is None else np.array([m.sum() for m in reference], dtype=float)
+    med = float(np.median(ref[ref > 0])) if (ref > 0).any() else 0.0
+    if med == 0.0:
+        return np.zeros(len(area), bool)
+    return (area > MASK_AREA_ODD * med) | (area < med / MASK_AREA_ODD)
 
 
 @dataclass(frozen=True)
@@ -184,8 +220,7 @@ def refine_masks(det: Detections, read_view: ReadView, progress: ProgressFn | No
 
     from avatarctl.ingest.masks import PLATE_FRAMES, estimate_plate, refine_mask
 
-    out = Detections(cams=det.cams, frames=det.frames, names=det.names, keypoints=det.keypoints,
-                     confidence=det.confidence, masks=dict(det.masks))
+    out = replace(det, masks=dict(det.masks))
     known_share, changed, bands = {}, {}, {}
     done, total = 0, len(det.cams) * len(det.frames)
     for c in det.cams:
@@ -241,6 +276,7 @@ class EstimateReport:
     outline_on: bool = False  # the outline term ran (off: weight 0, or its gate found loose clothing)
     keypoint_offsets: bool = False  # the fit placed anny's keypoints where MediaPipe puts them
     masks_refined: MaskRefinement | None = None  # MediaPipe's masks refined against estimated plates (`refine_masks`)
+    detected_enlarged: dict[str, list[int]] = field(default_factory=dict)  # `Detections.enlarged`
 
     def rows(self, fitted: bool) -> list[tuple[str, str]]:
         """(item, value) lines for the ingest summary; `fitted`: the fits were estimated (else masks only)."""
@@ -271,6 +307,12 @@ class EstimateReport:
                                              + (", MediaPipe's keypoint offsets" if self.keypoint_offsets else "")))
         if fitted:
             out.extend(self._silhouette_rows())
+        if self.detected_enlarged:
+            from avatarctl.ingest.keypoints import DETECT_MIN_SIDE
+
+            cams = ", ".join(f"{c} ({len(f)} frames)" for c, f in self.detected_enlarged.items())
+            out.append(("detected again", f"{cams}: odd masks (the person lost) detected on the images enlarged to "
+                                          f"{DETECT_MIN_SIDE} px"))
         if self.masks_refined is not None:
             r = self.masks_refined
             lo, hi = (f"{100 * f(r.plate_known.values()):.0f}" for f in (min, max))
@@ -316,7 +358,8 @@ class EstimateReport:
                 "keypoint_offsets": self.keypoint_offsets, "monocular": self.monocular,
                 "height_m": num(self.height_m, 3), "height_prior": self.height_prior,
                 "ground": None if self.ground is None else [round(float(g), 4) for g in self.ground],
-                "masks_refined": None if self.masks_refined is None else self.masks_refined.to_json()}
+                "masks_refined": None if self.masks_refined is None else self.masks_refined.to_json(),
+                "detected_enlarged": self.detected_enlarged}
 
 
 @dataclass(frozen=True)

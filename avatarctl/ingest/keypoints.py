@@ -10,6 +10,25 @@ the names of anny's `KeypointsRegressor.coco` labels. MediaPipe's 33 landmarks m
 (both conventions name sides by the subject's left / right). MediaPipe's foot-index point (the tip of the foot)
 stands in for the big toe, so its weight `KEYPOINT_WEIGHTS` is lower.
 
+Temporal smoothing: MediaPipe smooths each landmark over the stream, and so lags behind a moving limb.
+`PoseDetector(smooth=False)` turns that filter off; ingest does so for calibrated cameras and keeps it for one video
+(`ingest.estimate.detect_people`). Against the truth on synth captures
+(docs/experiments/detector_smoothing_2026-12-01/), the filter off moved every capture's keypoints closer (phone videos
+at 10 and 30 fps 5.75 -> 5.47, 5.71 -> 5.37 and 5.23 -> 5.07 px, synth realistic at 6 fps 3.49 -> 3.37, synth tight
+1.66 -> 1.45 px). Triangulated, that made the fits' major joints 3.83 -> 3.19 cm (tight) and 5.18 -> 4.35 (realistic)
+and the held-out poses +1.05 / +0.79 dB (300-s avatars). The monocular fit gained nothing from it (its own priors
+remove the frame-to-frame noise; held-out frames level at 30 fps, -0.36 dB on another seed). The segmentation's own
+filter changes no mask and stays on.
+
+Small images: MediaPipe is fragile below ~256 px. At 128 px it lost the person on 12 of 35 frames of one synth
+`realistic` camera (its masks the floor, three times the person's area), and on none with the frames doubled; but
+doubled frames lost 7 frames of a synth tight camera that the frames as they are did not. So a camera's stream runs at
+its own size, and where its images are smaller than `DETECT_MIN_SIDE` on the shorter side and some masks are odd (an
+area more than `MASK_AREA_ODD` times off the camera's median, either way) the stream runs again enlarged to that size
+(`PoseDetector(scale=...)`, bicubic; keypoints come back in the image's pixels, MediaPipe's coordinates being
+normalised, and the segmentation is shrunk back by area before the threshold); an odd frame takes the second run's
+detection where that one's mask area is not odd (`ingest.estimate.detect_people`).
+
 Pixel convention: OpenCV (pixel centres at integer coordinates). MediaPipe's normalised x, y (0 = left / top
 edge, 1 = right / bottom edge) become ``x * W - 0.5``.
 
@@ -82,6 +101,8 @@ MEDIAPIPE_ANNY_OFFSETS: dict[str, tuple[str, tuple[float, float, float]]] = {
     "right_big_toe": ("foot.R", (-0.027, 0.056, 0.011)),
 }
 CAPTURE_FIX = "pip install 'avatarctl[capture]' (MediaPipe)"
+DETECT_MIN_SIDE = 256  # small images: a camera's odd masks are detected again on images enlarged to this (docstring)
+MASK_AREA_ODD = 1.5  # a mask whose area is off its camera's median by more than this factor (either way) is odd
 MASK_THRESHOLD = 0.5  # MediaPipe's segmentation probability above which a pixel is the person
 MIN_COMPONENT = 0.2  # mask components smaller than this fraction of the largest one are dropped
 
@@ -159,18 +180,21 @@ class PersonDetection:
 
 
 class PoseDetector:
-    """MediaPipe Pose over ONE camera's frames in order (its tracker carries state from frame to frame).
+    """MediaPipe Pose over ONE camera's frames in order (its tracker carries state from frame to frame). `smooth`:
+    MediaPipe's temporal landmark filter; `scale`: images enlarged by this before detection (the module docstring).
 
     Use as a context manager; call with RGB uint8 [H, W, 3] images."""
 
-    def __init__(self, masks: bool = True, min_detection_confidence: float = 0.5, static: bool = False):
+    def __init__(self, masks: bool = True, min_detection_confidence: float = 0.5, static: bool = False,
+                 scale: float = 1.0, smooth: bool = True):
         mp = require_mediapipe("estimating keypoints or masks")
         self.masks = masks
+        self.scale = float(scale)  # each image enlarged by this (bicubic) before MediaPipe sees it
         self._quiet = native_log_filter()
         self._quiet.__enter__()
         try:
             self._pose = mp.solutions.pose.Pose(static_image_mode=static, model_complexity=1,
-                                                enable_segmentation=masks,
+                                                smooth_landmarks=smooth, enable_segmentation=masks,
                                                 min_detection_confidence=min_detection_confidence)
         except BaseException:
             self._quiet.__exit__(None, None, None)
@@ -192,7 +216,11 @@ class PoseDetector:
                 self._quiet = None
 
     def __call__(self, rgb: np.ndarray) -> PersonDetection:
+        import cv2
+
         H, W = rgb.shape[:2]
+        if self.scale != 1.0:
+            rgb = cv2.resize(rgb, (round(W * self.scale), round(H * self.scale)), interpolation=cv2.INTER_CUBIC)
         res = self._pose.process(np.ascontiguousarray(rgb))
         kp = np.full((len(KEYPOINT_NAMES), 2), np.nan)
         conf = np.zeros(len(KEYPOINT_NAMES))
@@ -204,6 +232,8 @@ class PoseDetector:
         mask = None
         if self.masks:
             seg = getattr(res, "segmentation_mask", None)
+            if seg is not None and seg.shape != (H, W):
+                seg = cv2.resize(seg, (W, H), interpolation=cv2.INTER_AREA)
             mask = clean_mask(seg > MASK_THRESHOLD) if seg is not None and res.pose_landmarks is not None \
                 else np.zeros((H, W), dtype=bool)
         return PersonDetection(keypoints=kp, confidence=conf, mask=mask)

@@ -409,7 +409,7 @@ def _estimate(cfg: IngestConfig, plan: IngestPlan, und: dict, progress: Progress
     # plate matting needs the fitted body as its seed)
     det = detect_people(read_view, cams, frames, progress=progress,
                         masks=plan.masks_mode == "mediapipe" or (silhouette and plan.masks_mode == "background")
-                        or src.format == "video")
+                        or src.format == "video", smooth=src.format == "video")
     refined = None
     if plan.masks_mode == "mediapipe" and cfg.refine_masks:  # static cameras: plates estimated from the frames
         from avatarctl.ingest.estimate import refine_masks
@@ -446,6 +446,8 @@ def _estimate(cfg: IngestConfig, plan: IngestPlan, und: dict, progress: Progress
                                 views_rejected=nan, keypoints_triangulated=nan, fit_error_cm=nan, fit_seconds=0.0)
     if refined is not None:
         report = replace(report, masks_refined=refined)
+    if det.enlarged:
+        report = replace(report, detected_enlarged=det.enlarged)
     if plan.masks_mode == "mediapipe":
         no_mask = [f for f in kept if not det.mask_found(f)]
         kept = [f for f in kept if f not in set(no_mask)]
