@@ -550,7 +550,7 @@ def camera_shift_px(read_view: Callable[[int], np.ndarray], det: Detections) -> 
     shifts = [0.0]
     for fi in picks[1:]:
         g, bg = grey(fi)
-        (dx, dy), _ = cv2.phaseCorrelate(first, g, window)
+        (dx, dy), _ = cv2.phaseCorrelate(first.copy(), g.copy(), window)  # OpenCV 5.0.0 windows its inputs in place
         back = np.float32([[1, 0, -dx], [0, 1, -dy]])
         h, w = g.shape
         g_back = cv2.warpAffine(g, back, (w, h), flags=cv2.INTER_LINEAR)
