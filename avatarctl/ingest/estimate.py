@@ -148,13 +148,16 @@ def detect_people(read_view: ReadView, cams: list[str], frames: list[int], masks
     out = Detections(cams=list(cams), frames=list(frames), names=KEYPOINT_NAMES, keypoints=kp, confidence=conf)
     done, total = 0, len(frames) * len(cams)
 
-    def stream(c: str, scale: float, on_frame=None) -> list:
+    def stream(c: str, scale: float, on_frame=None) -> list[tuple[np.ndarray, np.ndarray, bytes, int]]:
+        """Each frame's (keypoints, confidence, PNG of the mask, mask area): masks encoded as they come."""
         found = []
         with PoseDetector(masks=masks, scale=scale, smooth=smooth) as det:
             for f in frames[WARMUP_FRAMES:0:-1]:  # the tracker primed on the next frames, backwards to the first
                 det(read_view(c, f))
             for f in frames:
-                found.append(det(read_view(c, f)))
+                d = det(read_view(c, f))
+                png = cv2.imencode(".png", d.mask.astype(np.uint8) * 255)[1].tobytes() if masks else b""
+                found.append((d.keypoints, d.confidence, png, int(d.mask.sum()) if masks else 0))
                 if on_frame is not None:
                     on_frame()
         return found
@@ -167,28 +170,29 @@ def detect_people(read_view: ReadView, cams: list[str], frames: list[int], masks
 
     for ci, c in enumerate(cams):
         found = stream(c, 1.0, tick)
-        odd = odd_masks([d.mask for d in found]) if masks else np.zeros(len(frames), bool)
-        short = min(read_view(c, frames[0]).shape[:2])
-        if odd.any() and short < DETECT_MIN_SIDE:
+        area = np.array([a for *_, a in found], dtype=float)
+        odd = odd_masks(area) if masks else np.zeros(len(frames), bool)
+        short = min(read_view(c, frames[0]).shape[:2]) if odd.any() else DETECT_MIN_SIDE
+        if short < DETECT_MIN_SIDE:
             again = stream(c, DETECT_MIN_SIDE / short)
-            mended = odd & ~odd_masks([d.mask for d in again], reference=[d.mask for d in found])
+            mended = odd & ~odd_masks(np.array([a for *_, a in again], dtype=float), reference=area)
             found = [a if m else d for d, a, m in zip(found, again, mended)]
             if mended.any():
                 out.enlarged[c] = [f for f, m in zip(frames, mended) if m]
-        for fi, (f, d) in enumerate(zip(frames, found)):
-            kp[fi, ci], conf[fi, ci] = d.keypoints, d.confidence
+        for fi, (f, (k, cf, png, _)) in enumerate(zip(frames, found)):
+            kp[fi, ci], conf[fi, ci] = k, cf
             if masks:
-                out.masks[(c, f)] = cv2.imencode(".png", d.mask.astype(np.uint8) * 255)[1].tobytes()
+                out.masks[(c, f)] = png
     return out
 
 
-def odd_masks(masks: list[np.ndarray], reference: list[np.ndarray] | None = None) -> np.ndarray:
-    """[frames] bool: masks whose area is more than `MASK_AREA_ODD` times off the median area of `reference` (default:
-    the masks themselves; empty masks count as odd) either way: a detector that lost the person (its mask the floor)."""
+def odd_masks(area: np.ndarray, reference: np.ndarray | None = None) -> np.ndarray:
+    """[frames] bool: mask areas [frames] (pixels) more than `MASK_AREA_ODD` times off the median of the non-empty
+    `reference` areas (default: `area` itself), either way; an empty mask is odd. A detector that lost the person
+    (its mask the floor) leaves such masks."""
     from avatarctl.ingest.keypoints import MASK_AREA_ODD
 
-    area = np.array([m.sum() for m in masks], dtype=float)
-    ref = area if reference is None else np.array([m.sum() for m in reference], dtype=float)
+    ref = area if reference is None else reference
     med = float(np.median(ref[ref > 0])) if (ref > 0).any() else 0.0
     if med == 0.0:
         return np.zeros(len(area), bool)
