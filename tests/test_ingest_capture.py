@@ -228,14 +228,18 @@ def test_refine_masks_replaces_every_detected_mask_and_reports_it():
     assert seen[-1] == len(frames)
 
 
-def _stand_in_detector(monkeypatch, capture, mask_of) -> None:
+def _stand_in_detector(monkeypatch, capture, mask_of) -> list[bool]:
     """`--masks mediapipe` without MediaPipe: `detect_people` returns, for every view, `mask_of(camera, true mask)`
-    (the capture's mask file) as the detected person mask, and zero keypoints."""
+    (the capture's mask file) as the detected person mask, and zero keypoints. Returns the list its calls' `smooth`
+    arguments are appended to."""
     import cv2
 
     from avatarctl.ingest import estimate, keypoints
 
+    smooths: list[bool] = []
+
     def fake_detect(read_view, cams, frames, masks, progress=None, smooth=False):
+        smooths.append(smooth)
         J = len(keypoints.KEYPOINT_NAMES)
         det = estimate.Detections(cams=list(cams), frames=list(frames), names=keypoints.KEYPOINT_NAMES,
                                   keypoints=np.zeros((len(frames), len(cams), J, 2)),
@@ -248,6 +252,7 @@ def _stand_in_detector(monkeypatch, capture, mask_of) -> None:
 
     monkeypatch.setattr(keypoints, "require_mediapipe", lambda *a, **k: None)
     monkeypatch.setattr(estimate, "detect_people", fake_detect)
+    return smooths
 
 
 def test_ingest_refines_detected_masks_unless_told_not_to(capture, tmp_path, monkeypatch):
@@ -258,7 +263,7 @@ def test_ingest_refines_detected_masks_unless_told_not_to(capture, tmp_path, mon
 
     from avatarctl.ingest.masks import iou
 
-    _stand_in_detector(monkeypatch, capture, lambda c, truth: np.roll(truth, 2, axis=1))
+    smooths = _stand_in_detector(monkeypatch, capture, lambda c, truth: np.roll(truth, 2, axis=1))
     scores = {}
     for name, extra in (("refined", []), ("detected", ["--no-refine-masks"])):
         proj = tmp_path / name
@@ -273,6 +278,7 @@ def test_ingest_refines_detected_masks_unless_told_not_to(capture, tmp_path, mon
                                     cv2.imread(str(capture.root / "masks" / c.name / f"{f:06d}.png"), 0) > 0)
                                 for c in capture.cameras for f in capture.frames])
     assert scores["refined"] > scores["detected"] + 0.01, scores
+    assert smooths == [False, False]  # calibrated cameras: MediaPipe's landmark filter off (one video keeps it)
 
 
 def test_ingest_names_a_camera_whose_masks_are_not_the_person(capture, tmp_path, monkeypatch):
