@@ -214,21 +214,29 @@ def test_mediapipe_detector_prints_no_native_warnings(capfd):
     assert "W0000" not in err and "inference_feedback_manager" not in err and "XNNPACK" not in err, err
 
 
-def test_calibrated_cameras_run_mediapipe_without_its_landmark_filter_and_one_video_with_it(monkeypatch):
-    """MediaPipe's temporal landmark filter lags behind moving limbs: off for calibrated cameras (the multi-view fits'
-    joints 3.83 -> 3.19 cm on synth tight, 5.18 -> 4.35 on synth realistic), kept for one video, whose fit gained
-    nothing from it (docs/experiments/detector_smoothing_2026-12-01/)."""
-    mp = pytest.importorskip("mediapipe")
-    from avatarctl.ingest import estimate
+def test_detect_people_passes_its_smooth_choice_to_mediapipe(monkeypatch):
+    """MediaPipe's temporal landmark filter lags behind moving limbs: the pipeline turns it off for calibrated cameras
+    (the multi-view fits' joints 3.83 -> 3.19 cm on synth tight, 5.18 -> 4.35 on synth realistic) and keeps it for
+    one video (docs/experiments/detector_smoothing_2026-12-01/). `detect_people(smooth=...)` reaches MediaPipe's Pose
+    as `smooth_landmarks` (a stand-in module: runs without the capture extra)."""
+    from types import SimpleNamespace
+
+    from avatarctl.ingest import estimate, keypoints
 
     seen: list[dict] = []
-    real = mp.solutions.pose.Pose
 
-    def spy(**kw):
-        seen.append(kw)
-        return real(**kw)
+    class FakePose:
+        def __init__(self, **kw):
+            seen.append(kw)
 
-    monkeypatch.setattr(mp.solutions.pose, "Pose", spy)
+        def process(self, rgb):
+            return SimpleNamespace(pose_landmarks=None, segmentation_mask=None)
+
+        def close(self):
+            pass
+
+    fake_mp = SimpleNamespace(solutions=SimpleNamespace(pose=SimpleNamespace(Pose=FakePose)))
+    monkeypatch.setattr(keypoints, "require_mediapipe", lambda *a, **k: fake_mp)
     image = np.zeros((300, 300, 3), np.uint8)
     for smooth in (False, True):
         estimate.detect_people(lambda c, f: image, ["cam00"], [0], masks=False, smooth=smooth)
