@@ -69,6 +69,10 @@ def register(app: typer.Typer) -> None:
                                              "masks (the frame's masks alone, not its colours: the avatar's "
                                              "silhouette, clothes included; slower to converge: e.g. "
                                              "--refine-pose 80)."),
+        held_out_poses: str = typer.Option("fit", "--held-out-poses", help="What drives the held-out frames "
+                                           "(novel_pose): fit (the poses the fit found for them with the avatar's "
+                                           "silhouette against the training views' masks, where it did: estimated "
+                                           "body fits; else ingest's) | ingest (ingest's body fits)."),
         compare: bool = typer.Option(False, "--compare", help="Do not render: print a side-by-side table of the "
                                      "projects' latest metrics.json (same split/protocol), e.g. "
                                      "`avatarctl eval FULL --compare ABL1 ABL2`."),
@@ -102,7 +106,7 @@ def register(app: typer.Typer) -> None:
                              region=region, knockout=parse_knockout(knockout),
                              test_project=str(test_project) if test_project else None,
                              camera_colour=camera_colour, refine_pose=refine_pose,
-                             refine_pose_from=refine_pose_from)
+                             refine_pose_from=refine_pose_from, held_out_poses=held_out_poses)
             _run(projects[0], cfg, nproc, wait, console)
 
 
@@ -145,6 +149,11 @@ def _run(project: Path, cfg, nproc: int, wait: bool, console) -> None:
         t.add_row("PSNR colour-matched", f"{cm['psnr']:.3f} dB  (NeRF-W: each camera's colour fitted on the left "
                   f"half, scored on the right half; plain on the same halves {cm['plain_psnr']:.3f} dB; gains "
                   f"{gains})")
+    if m.held_out_poses is not None:  # the fit's poses of the held-out frames (issue 51)
+        hp = m.held_out_poses
+        t.add_row("held-out poses", f"{hp['frames']} of {hp['of']} frames driven by the fit's poses (ingest's "
+                  f"refined against the masks of {', '.join(hp['views'])} with the avatar's silhouette; "
+                  "--held-out-poses ingest: ingest's)")
     if m.refined_pose is not None:  # held-out poses refined, apart from the plain figure (issue 51)
         rp = m.refined_pose
         t.add_row("PSNR refined pose", f"{rp['psnr']:.3f} dB  SSIM {rp['ssim']:.4f}  (each frame's body pose "

@@ -62,6 +62,9 @@ def _run(project_dir: Path, iters, preset, resume, fresh, seed, device, override
         def progress(p: ProgressReport) -> None:
             import time
 
+            if p.part == "held-out poses":  # after the steps: the held-out frames posed (fit/held_out_poses.py)
+                bar.update(task, info=f"posing the held-out frames: {p.done} / {p.total}")
+                return
             rep = p.detail  # the loop's StepReport
             if bar.tasks[task].total is None:
                 bar.update(task, total=rep.iters, completed=rep.start_step)
@@ -97,6 +100,12 @@ def _run(project_dir: Path, iters, preset, resume, fresh, seed, device, override
         table.add_row("hull nodes", result.hull_nodes.removeprefix("hull: "))
     if result.garment_tracking is not None:  # `track` on: what the garment tracking pass did or why it did not run
         table.add_row("garment tracking", result.garment_tracking.removeprefix("garment tracking: "))
+    if result.held_out_poses is not None:  # `held_out_poses` on: the held-out frames posed by the avatar's silhouette
+        h = result.held_out_poses
+        table.add_row("held-out poses", f"skipped: {h['skipped']}" if "skipped" in h else
+                      f"{h['frames']} of {h['held_out']} held-out frames posed ({h['moved']} moved) against the "
+                      f"masks of {', '.join(h['views'])}: mask loss {h['mask_loss_before']:.4f} -> "
+                      f"{h['mask_loss_after']:.4f}; {h['seconds']:.0f} s -> {project.paths.fit / 'held_out_poses.npz'}")
     table.add_row("checkpoint", str(result.checkpoint))
     table.add_row("log / config", f"{project.paths.fit_log} / {project.paths.fit_config}")
     console.print(table)

@@ -190,6 +190,7 @@ class EvalMetrics:
     test_project: str | None = None  # the project whose images were scored when not this one (`--test-project`)
     camera_colour: dict[str, Any] | None = None  # held-out cameras rendered through ingest's colour gains (issue 51)
     refined_pose: dict[str, Any] | None = None  # RefinedPose as a dict: scored after test-time pose refinement
+    held_out_poses: dict[str, Any] | None = None  # the held-out frames driven by the fit's poses (fit/held_out_poses)
 
     def to_json(self) -> dict[str, Any]:
         return asdict(self)
@@ -198,7 +199,7 @@ class EvalMetrics:
     def from_json(cls, d: dict[str, Any]) -> "EvalMetrics":
         # absent from metrics.json written before `--region`, the benchmark protocols, `--test-project` or issue 51
         optional = {"region", "regions", "benchmark", "comparable_with", "not_comparable", "test_project",
-                    "colour_matched", "camera_colour", "refined_pose"}
+                    "colour_matched", "camera_colour", "refined_pose", "held_out_poses"}
         kw = {f.name: d[f.name] for f in fields(cls) if f.name in d or f.name not in optional}
         kw["model"] = ScoredModel(**{f.name: d["model"][f.name] for f in fields(ScoredModel)})
         return cls(**kw)

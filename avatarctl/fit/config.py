@@ -103,6 +103,10 @@ class FitConfig:
     # training views or more first tracks the garment's surface through the training frames and places the hull
     # nodes by it on those frames; its time counts towards time_budget_s
     track: bool = False
+    # the held-out frames posed after training (fit/held_out_poses.py, a deviation): where pose refinement is on
+    # (estimated fits), each of the capture's test frames that is not a training frame gets this many Adam steps of
+    # its pose against the training views' masks, the avatar frozen (Gaussian fields); 0 = none; after the budget
+    held_out_poses: int = 0
     ablations: tuple[str, ...] = ()  # informational: which --ablation switches made `model`
     model: ModelConfig = field(default_factory=ModelConfig)
 
@@ -119,7 +123,7 @@ class FitConfig:
                      "checkpoint_every", "keep_checkpoints"):
             v = getattr(self, name)
             need(isinstance(v, int) and not isinstance(v, bool) and v > 0, f"{name} must be a positive int, got {v!r}")
-        for name in ("val_every", "val_pairs", "seed"):
+        for name in ("val_every", "val_pairs", "seed", "held_out_poses"):
             v = getattr(self, name)
             need(isinstance(v, int) and not isinstance(v, bool) and v >= 0, f"{name} must be an int >= 0, got {v!r}")
         need(self.preset in PRESETS, f"preset must be one of {tuple(PRESETS)}, got {self.preset!r}")

@@ -33,6 +33,8 @@ import torch
 
 if TYPE_CHECKING:
     from avatarctl.body.base import BodyTemplate
+    from avatarctl.geometry.cameras import Camera
+    from avatarctl.io.project_io import ProjectCapture
     from avatarctl.model.avatar import FrameConditioning, NodeState, SlrfAvatar
     from avatarctl.splat import SplatCamera
 
@@ -132,6 +134,46 @@ def refine_frame_pose(model: "SlrfAvatar", template: "BodyTemplate", cond: "Fram
     delta = (refine.delta[0] * refine.active[:, None]).detach().cpu().numpy()
     return FramePose(joint_transforms=joints.detach(), delta=delta, tau=refine.tau[0].detach().cpu().numpy(),
                      loss_start=start, loss_end=end, seconds=time.perf_counter() - t0)
+
+
+def corrected_joints(model: "SlrfAvatar", template: "BodyTemplate", M: torch.Tensor, delta: torch.Tensor,
+                     tau: torch.Tensor) -> torch.Tensor:
+    """[1, J, 4, 4] M'_j = D_j M_j of one frame from its joint transforms `M` [1, J, 4, 4] and the corrections of a
+    `FramePose` (`delta` [J, 3], `tau` [3]), about the same joints and centres as `refine_frame_pose`."""
+    dev = M.device
+    refine = _refinement(model, template).to(dev)
+    with torch.no_grad():
+        refine.delta.copy_(delta.to(dev, torch.float32)[None])
+        refine.tau.copy_(tau.to(dev, torch.float32)[None])
+        return refine(M.to(torch.float32), torch.zeros(1, dtype=torch.long, device=dev)).detach()
+
+
+def crop_views(capture: "ProjectCapture", frame: int, views: list[str], cams: dict[str, "Camera"],
+               verts: np.ndarray, background: tuple[float, float, float], device: torch.device, *, pad: float,
+               protocol: str = "bbox", colours: dict[str, tuple[np.ndarray, np.ndarray] | None] | None = None,
+               images: bool = True) -> list[PoseView]:
+    """The `PoseView` of each of `views` (pinhole `cams`) at `frame`: the bbox protocol's crop around the posed body
+    `verts` [V, 3] grown by `pad` metres (`protocol` "full": the whole image), its masked image over `background`
+    (zeros with `images` False: the masks alone are read) and mask, through `colours[view]` (gain, offset) if any."""
+    from avatarctl.evaluate.protocols import bbox_region, full_region, ground_truth
+    from avatarctl.splat import SplatCamera
+
+    out = []
+    for view in views:
+        cam = cams[view]
+        region = bbox_region(cam, verts, pad=pad) if protocol == "bbox" else full_region(cam.height, cam.width)
+        x0, y0, x1, y1 = region.crop
+        mask = np.ascontiguousarray(capture.mask(view, frame)[y0:y1, x0:x1], np.float32)
+        gt = ground_truth(capture.image(view, frame), capture.mask(view, frame), background)[y0:y1, x0:x1] \
+            if images else np.zeros(mask.shape + (3,), np.float32)
+        colour = (colours or {}).get(view)
+        out.append(PoseView(
+            camera=SplatCamera.from_camera(cam, device=device).crop(x0, y0, x1 - x0, y1 - y0),
+            target=torch.from_numpy(np.ascontiguousarray(gt, np.float32)).to(device),
+            mask=torch.from_numpy(mask).to(device),
+            gain=None if colour is None else torch.tensor(colour[0], dtype=torch.float32),
+            offset=None if colour is None else torch.tensor(colour[1], dtype=torch.float32)))
+    return out
 
 
 def refined_state(model: "SlrfAvatar", cond: "FrameConditioning", pose: FramePose, mode: str) -> "NodeState":

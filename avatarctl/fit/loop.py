@@ -99,6 +99,7 @@ class FitResult:
     refinement: "RefinementSummary | None" = None  # pose refinement on: how far it moved the fits (fit/refined.py)
     hull_nodes: str | None = None  # model.hull_nodes on (a fresh fit): what the masks showed, how many nodes it placed
     garment_tracking: str | None = None  # `track` on (a fresh fit): what the tracking pass did, or why it did not run
+    held_out_poses: dict[str, Any] | None = None  # `held_out_poses` on: what posing the held-out frames did, or why not
 
 
 @contextlib.contextmanager
@@ -238,6 +239,7 @@ class _Trainer:
     shards: int
     capture: Any  # ProjectCapture
     body: Any  # BodyModel
+    template: Any  # BodyTemplate of the capture's body
     poses: Any  # PoseTable of the training frames
     train_frames: list[int]
     store: Any  # FrameStore (the cache the log reports)
@@ -430,8 +432,8 @@ def _set_up(project: Project, cfg: FitConfig | None, device: str, resume: bool, 
     all_frames = make_conditioning(poses.joint_transforms, poses.pose_features,
                                    *time_stamps(train_frames, train_frames, True), device=dev)
     trainer = _Trainer(project=project, cfg=cfg, dev=dev, env=env, shards=shards, capture=capture, body=body,
-                       poses=poses, train_frames=train_frames, store=store, replicas=replicas, validator=validator,
-                       model=model, optimizer=optimizer, scheduler=scheduler,
+                       template=template, poses=poses, train_frames=train_frames, store=store, replicas=replicas,
+                       validator=validator, model=model, optimizer=optimizer, scheduler=scheduler,
                        background=torch.tensor(cfg.background, dtype=torch.float32, device=dev),
                        all_frames=all_frames, start_step=start_step, resumed=ckpt is not None, hull_note=hull_note)
     if cfg.track and ckpt is None:
@@ -499,6 +501,28 @@ def _track_garment(t: "_Trainer", template, hull_count: int) -> tuple[str, float
             f"{len(tracks.frames)} frames, "
             f"{len(motion.nodes)} of {hull_count} hull nodes placed by it ({seconds:.0f} s)")
     return note, seconds
+
+
+def _pose_held_out(t: _Trainer, step: int, progress: Callable[[Any], None] | None) -> dict[str, Any] | None:
+    """The held-out frames posed against the training views' masks (fit/held_out_poses.py), written as
+    fit/held_out_poses.npz -> its summary ({"skipped": why} where it does not apply, None when it is off);
+    `progress` gets a `ProgressReport` per frame (part "held-out poses"). With a time budget the pass takes at most
+    as long again (the frames it has no time for keep ingest's poses)."""
+    from avatarctl.fit.held_out_poses import FILE_NAME, held_out_frames, pose_held_out_frames
+
+    cfg = t.cfg
+    if not cfg.held_out_poses or t.model.pose_refine is None:  # off, or the body fits are taken as they are
+        return None
+    if not t.model.field_kind.splats:
+        return {"skipped": f"model.field {cfg.model.field!r}: posing renders whole crops (Gaussian fields only)"}
+    frames = held_out_frames(t.capture, t.train_frames)
+    if not frames:
+        return {"skipped": "the capture has no held-out frames"}
+
+    poses = pose_held_out_frames(t.model, t.template, t.body, t.capture, t.train_frames, cfg.background, step,
+                                 cfg.held_out_poses, progress, limit_s=cfg.time_budget_s or None)
+    poses.save(t.project.paths.fit / FILE_NAME)
+    return poses.summary()
 
 
 # ---- one step ----------------------------------------------------------------------------------------------------
@@ -604,9 +628,10 @@ class _Books:
 
 # ---- the loop and its stop ---------------------------------------------------------------------------------------
 def fit(project: Project, cfg: FitConfig | None = None, *, device: str = "auto", resume: bool = False,
-        fresh: bool = False, progress: Callable[[StepReport], None] | None = None, stop: StopFlag | None = None,
+        fresh: bool = False, progress: Callable[[Any], None] | None = None, stop: StopFlag | None = None,
         handle_sigint: bool = True, env: "DistEnv | None" = None, shards: int | None = None) -> FitResult:
     """Train (or resume training) the project's avatar; see the module docstring. `cfg` may be None on resume.
+    `progress` gets a `StepReport` per step, then a `ProgressReport` per held-out frame posed (`_pose_held_out`).
     `env`: this process's rank in a started group (None: one process); `shards`: ray shards (fit/distributed.py;
     None = the world size for a fresh fit, the checkpoint's on resume when the world size divides them). The stop
     rule: before a step, a stop asked for (one process: the local flag; ranks: the flag they agreed on after the last
@@ -614,6 +639,10 @@ def fit(project: Project, cfg: FitConfig | None = None, *, device: str = "auto",
     t_setup = time.perf_counter()
     started = now_iso()
     t, log = _set_up(project, cfg, device, resume, fresh, env, shards)
+    if t.main:  # the held-out frames' poses belong to the checkpoint this run replaces (fit/held_out_poses.py)
+        from avatarctl.fit.held_out_poses import remove_held_out_poses
+
+        remove_held_out_poses(project.paths.fit)
     stop = stop or StopFlag()
     setup_seconds = time.perf_counter() - t_setup
     books = _Books(t, log, progress)
@@ -631,13 +660,13 @@ def fit(project: Project, cfg: FitConfig | None = None, *, device: str = "auto",
             if last.agreed.budget:
                 budget_hit = True
                 break
-    return _finish(t, books, step, last, budget_hit, resume, started, setup_seconds)
+    return _finish(t, books, step, last, budget_hit, resume, started, setup_seconds, progress)
 
 
 def _finish(t: _Trainer, books: _Books, step: int, last: _Step | None, budget_hit: bool, resume: bool,
-            started: str, setup_seconds: float) -> FitResult:
+            started: str, setup_seconds: float, progress: Callable[[Any], None] | None = None) -> FitResult:
     """After the last step: a checkpoint of it, the final validation (not when interrupted), the refined fits, the
-    project record."""
+    held-out frames' poses (not when interrupted), the project record."""
     cfg, paths = t.cfg, t.project.paths
     seconds = books.elapsed()
     if last is not None and step % cfg.log_every:  # stopped between log steps: report the last step's losses
@@ -657,6 +686,7 @@ def _finish(t: _Trainer, books: _Books, step: int, last: _Step | None, budget_hi
         from avatarctl.fit.refined import write_refined_fits
 
         refinement = write_refined_fits(paths.fit, t.body, t.capture.motion, t.poses, t.model.pose_refine)
+    held_out = _pose_held_out(t, step, progress) if t.main and not interrupted else None
     losses, rays_per_s = books.losses, books.rays_per_s
     summary = {"step": step, "iters": cfg.iters, "start_step": t.start_step, "interrupted": interrupted,
                "stop_reason": stop_reason,
@@ -665,7 +695,7 @@ def _finish(t: _Trainer, books: _Books, step: int, last: _Step | None, budget_hi
                "val_psnr_bbox": None if val is None else val.psnr,
                "val_pairs": None if val is None else val.to_json()["pairs"], "ranks": t.world, "ray_shards": t.shards,
                "pose_refinement": None if refinement is None else refinement.to_json(), "hull_nodes": t.hull_note,
-               "garment_tracking": t.track_note,
+               "garment_tracking": t.track_note, "held_out_poses": held_out,
                **config_summary(cfg)}
     if t.main:
         t.project.record("fit", {"fit": cfg.to_json(), "device": str(t.dev), "resume": resume, "ranks": t.world,
@@ -677,4 +707,4 @@ def _finish(t: _Trainer, books: _Books, step: int, last: _Step | None, budget_hi
                      checkpoint=books.last_ckpt, seconds=seconds,
                      setup_seconds=setup_seconds, losses=losses, val=val, rays_per_s=rays_per_s, device=str(t.dev),
                      config=cfg, refinement=refinement, hull_nodes=t.hull_note,
-                     garment_tracking=t.track_note)
+                     garment_tracking=t.track_note, held_out_poses=held_out)

@@ -20,8 +20,9 @@ from avatarctl.progress import ProgressFn
 if TYPE_CHECKING:
     from avatarctl.body.motion import BodyMotion
     from avatarctl.fit.checkpoint import LoadedAvatar
+    from avatarctl.fit.held_out_poses import HeldOutPoses
     from avatarctl.geometry.cameras import Camera
-    from avatarctl.model.avatar import NodeState
+    from avatarctl.model.avatar import FrameConditioning, NodeState
     from avatarctl.project import Project
 
 def quiet_kernels(quiet: bool) -> None:
@@ -84,12 +85,34 @@ def sample_seed(seed: int, frame: int) -> int:
     return int(seed) * 1_000_003 + int(frame)
 
 
-def frame_node_state(avatar: "LoadedAvatar", one: "BodyMotion", frame: int, is_training: bool, latent: str,
-                     seed: int) -> "NodeState":
-    """NodeState of one frame (`one`: a motion of one row) with latent mode `latent` (mean | zero | sample)."""
-    import torch
+def frame_conditioning(avatar: "LoadedAvatar", one: "BodyMotion", frame: int, is_training: bool,
+                       held_out: "HeldOutPoses | None" = None) -> "FrameConditioning":
+    """The conditioning of one frame (`one`: a motion of one row); a held-out frame of the capture that the fit posed
+    (`held_out`, fit/held_out_poses.py; None: none) is driven by its corrected joint transforms."""
+    from dataclasses import replace
 
     cond = avatar.conditioning(one, frames_are_training=is_training)
+    if held_out is not None and not is_training and frame in held_out:
+        cond = replace(cond, joint_transforms=held_out.joint_transforms(avatar.model, avatar.template, frame,
+                                                                        cond.joint_transforms))
+    return cond
+
+
+def fitted_held_out_poses(avatar: "LoadedAvatar") -> "HeldOutPoses | None":
+    """The fit's poses of the capture's held-out frames (fit/held_out_poses.py) when the fit wrote them for the
+    checkpoint `avatar` was loaded from; else None (those frames keep ingest's poses)."""
+    from avatarctl.fit.held_out_poses import load_held_out_poses
+
+    return load_held_out_poses(avatar.capture.project.paths.fit, avatar.step)[0]
+
+
+def frame_node_state(avatar: "LoadedAvatar", one: "BodyMotion", frame: int, is_training: bool, latent: str,
+                     seed: int, held_out: "HeldOutPoses | None" = None) -> "NodeState":
+    """NodeState of one frame (`one`: a motion of one row) with latent mode `latent` (mean | zero | sample);
+    `held_out`: `frame_conditioning`'s."""
+    import torch
+
+    cond = frame_conditioning(avatar, one, frame, is_training, held_out)
     gen = torch.Generator(device=avatar.device).manual_seed(sample_seed(seed, frame)) if latent == "sample" else None
     with torch.no_grad():
         return avatar.model.node_state(cond, mode=latent, generator=gen)

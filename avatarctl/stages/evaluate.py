@@ -39,8 +39,15 @@ printed table): the camera's transform (3 gains + 3 offsets on the foreground, `
 squares on the LEFT half of the protocol's region (where render and mask both hold the subject), the render through it
 scored on the RIGHT half, with the plain render's PSNR on the same right halves to compare with.
 
+The held-out frames' poses (`novel_pose`): ingest's body fits, or, where the fit posed those frames with the avatar's
+silhouette against the training views' masks (fit/held_out_poses.py; estimated fits), the fit's poses, when its
+`fit/held_out_poses.npz` was written for the checkpoint scored (another checkpoint's: a warning, ingest's poses).
+metrics.json "held_out_poses" and a table row say so; `held_out_poses = "ingest"` (`--held-out-poses ingest`) scores
+ingest's poses. The scored pixels (the bbox region) come from ingest's fits either way.
+
 Held-out poses scored fairly (issue 51; `refine_pose` > 0, `--refine-pose STEPS`): beside the plain figure, each
-frame is also scored after its body pose is refined against that frame's scored images with the avatar frozen
+frame is also scored after its body pose (the one the plain figure drives it with) is refined against that frame's
+scored images with the avatar frozen
 (`fit.frame_pose`, `REFINED_PROTOCOL`: the monocular papers' protocol, whose estimated test poses are off by a limb's
 width), on the same pixels: metrics.json "refined_pose" (`evaluate.report.RefinedPose`), per_frame.csv
 refined_psnr / refined_ssim, its own table row and `sheet_refined.png`. Only the Gaussian local fields. With
@@ -73,10 +80,11 @@ from avatarctl.evaluate.report import PSNR_CAP, SCHEMA_VERSION, EvalMetrics, Ima
 from avatarctl.frames import select_frames
 from avatarctl.project import Project, check_name, now_iso
 from avatarctl.progress import ProgressReport, ProgressFn
-from avatarctl.stages.common import check_knockout, check_latent_mode, frame_node_state, \
+from avatarctl.stages.common import check_knockout, check_latent_mode, frame_conditioning, frame_node_state, \
     knocked_out, latent_for, load_fitted, open_fitted, rank_device_name, run_ranked, select_views, writing
 
 SPLITS = ("novel_view", "novel_pose", "train")
+HELD_OUT_POSES = ("fit", "ingest")  # `held_out_poses`: whose poses drive the held-out frames (module docstring)
 _REFINED = ("per frame, the body pose (rotations of the joints that carry >= model.pose_refine.min_share of the "
             "skinning weight, about their centres, and the root translation; model/pose_refine.py) optimised against "
             "that frame's scored {what} with the avatar frozen (fit/frame_pose.py: Adam, {loss} over the protocol's "
@@ -120,6 +128,7 @@ class EvalConfig:
     camera_colour: str = "auto"  # auto: held-out cameras through ingest's gains (module docstring) | off
     refine_pose: int = 0  # > 0: also score each frame after refining its body pose for this many steps (docstring)
     refine_pose_from: str = "images"  # what the pose is refined against: images (colours + masks) | masks (alone)
+    held_out_poses: str = "fit"  # held-out frames' poses: fit (the fit's, where it posed them) | ingest (as ingested)
 
     def __post_init__(self) -> None:
         from avatarctl.evaluate.protocols import PROTOCOLS
@@ -146,6 +155,9 @@ class EvalConfig:
                              fix="e.g. --refine-pose 40 (0: off)")
         from avatarctl.fit.frame_pose import POSE_TARGETS
 
+        if self.held_out_poses not in HELD_OUT_POSES:
+            raise InputError(f"unknown --held-out-poses {self.held_out_poses!r}", where="--held-out-poses",
+                             fix=f"use one of: {', '.join(HELD_OUT_POSES)}")
         if self.refine_pose_from not in POSE_TARGETS:
             raise InputError(f"unknown --refine-pose-from {self.refine_pose_from!r}", where="--refine-pose-from",
                              fix=f"use one of: {', '.join(POSE_TARGETS)}")
@@ -338,6 +350,9 @@ def _run(env: Any, progress: ProgressFn | None, project_dir: str, cfg: EvalConfi
     geometry = None if cfg.region in SILHOUETTE_REGIONS else _gt_geometry(cap.project, cfg.region)
     cams = {v: cap.cameras[v].pinhole() for v in views}
     gains = _held_out_gains(avatar, cap, cfg, views)
+    held, note = _held_out_poses(project, avatar, cfg, is_train, scored)
+    if note is not None:
+        warnings.append(note)
     total = len(frames) * len(views)
     sheet_at = set(np.linspace(0, total - 1, min(cfg.sheet_rows, total)).round().astype(int).tolist()) \
         if cfg.sheet_rows else set()
@@ -354,9 +369,10 @@ def _run(env: Any, progress: ProgressFn | None, project_dir: str, cfg: EvalConfi
         for fi in range(env.rank if world > 1 else 0, len(frames), world):
             frame, one = frames[fi], motion.select([fi])
             verts = avatar.body.pose(one).vertices[0].detach().float().cpu().numpy()  # [V, 3]
-            state = frame_node_state(avatar, one, frame, is_train, latent, cfg.seed)
-            state = knocked_out(avatar, state, cfg.knockout)
-            refined = _refined_state(avatar, cap, cfg, one, frame, is_train, latent, views, cams, verts, background,
+            cond = frame_conditioning(avatar, one, frame, is_train, held)
+            state = knocked_out(avatar, frame_node_state(avatar, one, frame, is_train, latent, cfg.seed, held),
+                                cfg.knockout)
+            refined = _refined_state(avatar, cap, cfg, cond, frame, latent, views, cams, verts, background,
                                      gains) if cfg.refine_pose else None
             for vi, view in enumerate(views):
                 k = fi * len(views) + vi
@@ -431,6 +447,7 @@ def _run(env: Any, progress: ProgressFn | None, project_dir: str, cfg: EvalConfi
             test_project=str(cap.project.root) if scored is not None else None,
             colour_matched=asdict(matched) if matched is not None else None,
             refined_pose=asdict(refined_fig) if refined_fig is not None else None,
+            held_out_poses=_held_out_record(held, frames),
             camera_colour={"source": "ingest/camera_colour.json", "method": cap.camera_colour.method,
                            "gain": {v: [round(float(x), 4) for x in g] for v, g in gains.items()}} if gains else None,
         )
@@ -531,35 +548,20 @@ def _score_image(avatar: Any, cap: Any, cfg: EvalConfig, project: Project, state
                    sheet=sheet)
 
 
-def _refined_state(avatar: Any, cap: Any, cfg: EvalConfig, one: Any, frame: int, is_train: bool, latent: str,
-                   views: list[str], cams: dict[str, Any], verts: np.ndarray, background: tuple[float, float, float],
+def _refined_state(avatar: Any, cap: Any, cfg: EvalConfig, cond: Any, frame: int, latent: str, views: list[str],
+                   cams: dict[str, Any], verts: np.ndarray, background: tuple[float, float, float],
                    gains: dict[str, np.ndarray]) -> tuple[Any, Any]:
-    """(node state, `fit.frame_pose.FramePose`) of `frame` after its body pose is refined against its images in
-    `views` (module docstring), each over the protocol's box crop (the whole image for the other protocols)."""
+    """(node state, `fit.frame_pose.FramePose`) of `frame` (`cond`: its conditioning, the pose it starts from) after
+    its body pose is refined against its images in `views` (module docstring), each over the protocol's box crop (the
+    whole image for the other protocols)."""
     import torch
 
-    from avatarctl.evaluate.protocols import bbox_region, full_region, ground_truth
-    from avatarctl.fit.frame_pose import FramePoseConfig, PoseView, refine_frame_pose, refined_state
-    from avatarctl.splat import SplatCamera
+    from avatarctl.fit.frame_pose import FramePoseConfig, crop_views, refine_frame_pose, refined_state
 
     model = avatar.model
-    dev = avatar.device
-    pose_views = []
-    for view in views:
-        cam = cams[view]
-        region = bbox_region(cam, verts, pad=cfg.bbox_pad) if cfg.protocol == "bbox" \
-            else full_region(cam.height, cam.width)
-        x0, y0, x1, y1 = region.crop
-        mask = cap.mask(view, frame)
-        gt = ground_truth(cap.image(view, frame), mask, background)
-        colour = _camera_colour(avatar, view, gains.get(view))
-        pose_views.append(PoseView(
-            camera=SplatCamera.from_camera(cam, device=dev).crop(x0, y0, x1 - x0, y1 - y0),
-            target=torch.from_numpy(np.ascontiguousarray(gt[y0:y1, x0:x1], np.float32)).to(dev),
-            mask=torch.from_numpy(np.ascontiguousarray(mask[y0:y1, x0:x1], np.float32)).to(dev),
-            gain=None if colour is None else torch.tensor(colour[0], dtype=torch.float32),
-            offset=None if colour is None else torch.tensor(colour[1], dtype=torch.float32)))
-    cond = avatar.conditioning(one, frames_are_training=is_train)
+    colours = {v: _camera_colour(avatar, v, gains.get(v)) for v in views}
+    pose_views = crop_views(cap, frame, views, cams, verts, background, avatar.device, pad=cfg.bbox_pad,
+                            protocol="bbox" if cfg.protocol == "bbox" else "full", colours=colours)
     pose = refine_frame_pose(model, avatar.template, cond, pose_views, torch.tensor(background, dtype=torch.float32),
                              latent, FramePoseConfig(steps=cfg.refine_pose, target=cfg.refine_pose_from))
     return knocked_out(avatar, refined_state(model, cond, pose, latent), cfg.knockout), pose
@@ -574,6 +576,28 @@ def _with_refined(plain: "_Scored", pose: Any, again: "_Scored", first_view: boo
                                                       mse=again.score.mse, shift_cm=round(pose.shift_cm, 3),
                                                       max_angle_deg=round(pose.max_angle_deg, 3)))
     return replace(plain, score=score, refined_sheet=again.sheet, refine_seconds=pose.seconds if first_view else 0.0)
+
+
+def _held_out_poses(project: Project, avatar: Any, cfg: EvalConfig, is_train: bool, scored: Any
+                    ) -> tuple[Any, str | None]:
+    """(the fit's poses of the held-out frames (`fit.held_out_poses.HeldOutPoses`) or None, a warning or None): used
+    for the project's own held-out frames unless `held_out_poses` is "ingest" (module docstring)."""
+    from avatarctl.fit.held_out_poses import load_held_out_poses
+
+    if is_train or scored is not None or cfg.held_out_poses == "ingest":
+        return None, None
+    return load_held_out_poses(project.paths.fit, avatar.step)
+
+
+def _held_out_record(held: Any, frames: list[int]) -> dict[str, Any] | None:
+    """metrics.json "held_out_poses": which scored frames the fit's poses drove, and how they were found."""
+    from avatarctl.fit.held_out_poses import FILE_NAME, PROTOCOL
+
+    if held is None:
+        return None
+    posed = [f for f in frames if f in held]
+    return {"source": f"fit/{FILE_NAME}", "frames": len(posed), "of": len(frames), "views": list(held.views),
+            "steps": held.steps, "checkpoint_step": held.step, "protocol": PROTOCOL} if posed else None
 
 
 def _held_out_gains(avatar: Any, cap: Any, cfg: EvalConfig, views: list[str]) -> dict[str, np.ndarray]:

@@ -54,7 +54,7 @@ from avatarctl.errors import InputError
 from avatarctl.frames import select_frames
 from avatarctl.project import Project, check_name, now_iso
 from avatarctl.progress import ProgressReport, ProgressFn
-from avatarctl.stages.common import check_latent_mode, frame_node_state, latent_for, \
+from avatarctl.stages.common import check_latent_mode, fitted_held_out_poses, frame_node_state, latent_for, \
     load_fitted, motion_for_avatar, open_fitted, writing
 
 if TYPE_CHECKING:
@@ -214,6 +214,7 @@ def _run(project_dir: str | Path, cfg: ExportConfig, progress: ProgressFn | None
     if "ply" in cfg.formats or "obj" in cfg.formats:
         _require("trimesh", "writing .ply / .obj", "or use --format glb")
     avatar = load_fitted(project, cfg.device, cfg.checkpoint)
+    held = fitted_held_out_poses(avatar) if cfg.poses is None else None  # the project's held-out frames: the fit's
     cap = avatar.capture
     basis = up_to_y_basis(up_from_cameras(list(cap.cameras.values())))
     train_set = set(int(f) for f in avatar.train_frames)
@@ -265,7 +266,7 @@ def _run(project_dir: str | Path, cfg: ExportConfig, progress: ProgressFn | None
             is_train = cfg.poses is None and frame in train_set
             latent = latent_for(cfg.latent, is_train)
             one = motion.for_frames([frame])
-            state = frame_node_state(avatar, one, frame, is_train, latent, cfg.seed)
+            state = frame_node_state(avatar, one, frame, is_train, latent, cfg.seed, held)
             if splat_formats:
                 splat_columns.append(_splats(tmp, frame, avatar, state, "splat" in splat_formats, splat_files))
             if not mesh_formats:

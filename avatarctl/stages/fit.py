@@ -163,10 +163,14 @@ def _train(plan: FitPlan, cfg: FitRequest, progress: ProgressFn | None, stop: "S
     project, fit_cfg = plan.project, plan.config
     t0 = time.perf_counter()
 
-    def on_step(rep: StepReport) -> None:
-        if progress is not None:
-            progress(ProgressReport(stage="fit", done=rep.step, total=rep.iters, seconds=time.perf_counter() - t0,
-                                    detail=rep))
+    def on_step(rep: "StepReport | ProgressReport") -> None:
+        if progress is None:
+            return
+        if isinstance(rep, ProgressReport):  # a pass after the steps (the held-out frames' poses), frames done
+            progress(replace(rep, stage="fit", seconds=time.perf_counter() - t0))
+            return
+        progress(ProgressReport(stage="fit", done=rep.step, total=rep.iters, seconds=time.perf_counter() - t0,
+                                detail=rep))
 
     if cfg.nproc > 1:
         return launch(_fit_rank, cfg.nproc, (str(project.root), cfg), on_progress=on_step, what="fit",

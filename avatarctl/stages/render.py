@@ -3,7 +3,8 @@
 Steps:
 1. load the fitted avatar (`stages.common.load_fitted`);
 2. choose the motion: the project's own frames (training frames render with the cVAE latent z = mu, novel frames
-   with z = 0, paper Sec. 4.1) or a motion file (`--poses`, always novel: z = 0 unless `--latent sample`; any rig:
+   with z = 0, paper Sec. 4.1; a held-out frame the fit posed, fit/held_out_poses.py, with the fit's pose) or a
+   motion file (`--poses`, always novel: z = 0 unless `--latent sample`; any rig:
    anny / AMASS npz, AIST++ pkl, BVH, retargeted onto the avatar's body model when made for another,
    `io.motion_convert`); a motion file's body shape is replaced by the avatar's own (`adopt_subject`) and, by default, its translation
    is moved so its first frame starts where the avatar's first training frame stands (`recenter`);
@@ -40,7 +41,7 @@ from avatarctl.geometry.cameras import Camera
 from avatarctl.lists import split_list
 from avatarctl.project import Project, check_name, now_iso
 from avatarctl.progress import ProgressReport, ProgressFn
-from avatarctl.stages.common import check_knockout, check_latent_mode, frame_node_state, \
+from avatarctl.stages.common import check_knockout, check_latent_mode, fitted_held_out_poses, frame_node_state, \
     knocked_out, latent_for, load_fitted, motion_for_avatar, open_fitted, rank_device_name, run_ranked, select_views, \
     writing
 
@@ -202,6 +203,7 @@ def _run(env: Any, progress: ProgressFn | None, project_dir: str, cfg: RenderCon
     avatar = load_fitted(project, rank_device_name(env, cfg.device), cfg.checkpoint)
     background, transparent = parse_background(cfg.background, avatar.background)
     plan = _plan(avatar, cfg)
+    held = fitted_held_out_poses(avatar) if cfg.poses is None else None  # the project's frames: the fit's poses
     out_dir = project.paths.render(cfg.name)
 
     images: list[RenderedImage] = []
@@ -219,7 +221,7 @@ def _run(env: Any, progress: ProgressFn | None, project_dir: str, cfg: RenderCon
             if state_cache is None or state_cache[0] != pos:
                 state_cache = (pos, knocked_out(avatar, frame_node_state(
                     avatar, plan.motion.select([pos]), plan.frames[pos], plan.training[pos], plan.latents[pos],
-                    cfg.seed), cfg.knockout))
+                    cfg.seed, held), cfg.knockout))
             image, rgb8 = _render_shot(avatar, state_cache[1], plan, i, background, transparent, cfg, tmp)
             if progress is not None:
                 progress(ProgressReport(stage="render", done=min((n + 1) * world, total), total=total,

@@ -28,8 +28,8 @@ from typing import Any, Callable
 import numpy as np
 
 from avatarctl.errors import AvatarError, InputError
-from avatarctl.stages.common import check_latent_mode, frame_node_state, latent_for, load_fitted, \
-    motion_for_avatar, open_fitted
+from avatarctl.stages.common import check_latent_mode, fitted_held_out_poses, frame_node_state, latent_for, \
+    load_fitted, motion_for_avatar, open_fitted
 
 
 @dataclass(frozen=True)
@@ -114,8 +114,9 @@ def _motion(avatar: Any, cfg: ViewConfig, name: str) -> Any:
 
     cap = avatar.capture
     train_set = set(int(f) for f in avatar.train_frames)
-    note = None
+    note, held = None, None
     if name == PROJECT:
+        held = fitted_held_out_poses(avatar)  # the held-out frames at the fit's poses, where it posed them
         motion = cap.motion
         test = set(int(f) for f in cap.split.test_frames)
         frames = [ViewerFrame(label=f"frame {f} ({'train' if f in train_set else 'test'})", frame=f,
@@ -142,7 +143,7 @@ def _motion(avatar: Any, cfg: ViewConfig, name: str) -> Any:
         except AvatarError:  # "mean" on a novel frame: the viewer shows the novel-pose latent rather than failing
             latent = "novel"
         return frame_node_state(avatar, motion.for_frames([fr.frame]), fr.frame, is_train, latent,
-                                cfg.seed)
+                                cfg.seed, held)
 
     return ViewerMotion(name=name, frames=frames, state_fn=state_fn, fps=fps, note=note)
 
