@@ -298,9 +298,10 @@ def test_four_d_dress_trains_on_one_take_and_scores_another(dress_projects, monk
     driven = []  # the body fits the avatar is driven with
     state_of = evaluate.frame_node_state
 
-    def spy(avatar, one, frame, is_train, latent, seed):
+    def spy(avatar, one, frame, is_train, latent, seed, held_out=None):
+        assert held_out is None  # another recording's frames: never the fit's held-out poses of this one
         driven.append((frame, is_train, one.global_orient[0].copy()))
-        return state_of(avatar, one, frame, is_train, latent, seed)
+        return state_of(avatar, one, frame, is_train, latent, seed, held_out)
 
     monkeypatch.setattr(evaluate, "frame_node_state", spy)
     er = evaluate.run(P, EvalConfig(device="cpu", sheet_rows=0, test_project=str(Q), save_images=True))
