@@ -91,10 +91,13 @@ def _eval(proj, **kw):
 
 
 def test_the_poses_belong_to_their_checkpoint(posed_project, tmp_path):
-    """Written for another step: eval warns and scores ingest's poses; a resumed fit poses the frames again for its
-    checkpoint; a fit that runs again without the pass removes the file."""
+    """Written for another step: eval warns and scores ingest's poses; a resumed fit (the CLI, its progress and table)
+    poses the frames again for its checkpoint; a fit that runs again without the pass removes the file."""
     import shutil
 
+    from typer.testing import CliRunner
+
+    from avatarctl.cli.app import app
     from avatarctl.fit.held_out_poses import FILE_NAME, HeldOutPoses
     from avatarctl.stages import evaluate, fit
     from avatarctl.stages.evaluate import EvalConfig
@@ -108,8 +111,11 @@ def test_the_poses_belong_to_their_checkpoint(posed_project, tmp_path):
     res = evaluate.run(proj, EvalConfig(split="novel_pose", name="stale", device="cpu"))
     assert res.metrics.held_out_poses is None
     assert any("step 7" in w and "ingest's poses" in w for w in res.warnings), res.warnings
-    fit.run(proj, FitRequest(iters=102, resume=True, device="cpu"), handle_sigint=False)
+    res = CliRunner().invoke(app, ["fit", str(proj), "--resume", "--iters", "102", "--device", "cpu"],
+                             env={"COLUMNS": "250"})
+    assert res.exit_code == 0, res.output
     assert HeldOutPoses.load(path).step == 102  # posed again for the new checkpoint
+    assert any("held-out poses" in line and "1 of 1 held-out frames posed" in line for line in res.output.splitlines())
     sets = ("model.field=gaussians", "model.gaussians.per_node=24", "val_every=0", "model.pose_refine.enabled=true",
             "held_out_poses=0")
     fit.run(proj, FitRequest(preset="micro", iters=2, fresh=True, overrides=sets, device="cpu"), handle_sigint=False)
