@@ -163,8 +163,9 @@ def crop_views(capture: "ProjectCapture", frame: int, views: list[str], cams: di
         cam = cams[view]
         region = bbox_region(cam, verts, pad=pad) if protocol == "bbox" else full_region(cam.height, cam.width)
         x0, y0, x1, y1 = region.crop
-        mask = np.ascontiguousarray(capture.mask(view, frame)[y0:y1, x0:x1], np.float32)
-        gt = ground_truth(capture.image(view, frame), capture.mask(view, frame), background)[y0:y1, x0:x1] \
+        whole = capture.mask(view, frame)
+        mask = np.ascontiguousarray(whole[y0:y1, x0:x1], np.float32)
+        gt = ground_truth(capture.image(view, frame), whole, background)[y0:y1, x0:x1] \
             if images else np.zeros(mask.shape + (3,), np.float32)
         colour = (colours or {}).get(view)
         out.append(PoseView(

@@ -187,5 +187,3 @@ def load_held_out_poses(fit_dir: Path, step: int) -> tuple["HeldOutPoses | None"
 def remove_held_out_poses(fit_dir: Path) -> None:
     """A fit that runs again makes the file stale (module docstring)."""
     (Path(fit_dir) / FILE_NAME).unlink(missing_ok=True)
-
-

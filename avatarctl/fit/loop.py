@@ -686,6 +686,8 @@ def _finish(t: _Trainer, books: _Books, step: int, last: _Step | None, budget_hi
         from avatarctl.fit.refined import write_refined_fits
 
         refinement = write_refined_fits(paths.fit, t.body, t.capture.motion, t.poses, t.model.pose_refine)
+    from avatarctl.fit.held_out_poses import FILE_NAME as HELD_OUT_FILE
+
     held_out = _pose_held_out(t, step, progress) if t.main and not interrupted else None
     losses, rays_per_s = books.losses, books.rays_per_s
     summary = {"step": step, "iters": cfg.iters, "start_step": t.start_step, "interrupted": interrupted,
@@ -701,7 +703,9 @@ def _finish(t: _Trainer, books: _Books, step: int, last: _Step | None, budget_hi
         t.project.record("fit", {"fit": cfg.to_json(), "device": str(t.dev), "resume": resume, "ranks": t.world,
                                  "ray_shards": t.shards},
                          [paths.fit_config, paths.fit_log, paths.latest_checkpoint]
-                         + ([refinement.path] if refinement is not None and refinement.path else []), started,
+                         + ([refinement.path] if refinement is not None and refinement.path else [])
+                         + ([paths.fit / HELD_OUT_FILE] if held_out and "skipped" not in held_out else []),
+                         started,
                          summary)
     return FitResult(step=step, iters=cfg.iters, interrupted=interrupted, stop_reason=stop_reason,
                      checkpoint=books.last_ckpt, seconds=seconds,
