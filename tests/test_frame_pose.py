@@ -38,16 +38,21 @@ def _views(av, cond, bg):
     return out
 
 
-def test_a_known_root_shift_is_recovered_and_the_avatar_is_left_as_it_was(toy_gaussian_project):
-    from avatarctl.fit.frame_pose import FramePoseConfig, refine_frame_pose, refined_state
-
-    av, cond = _frame(toy_gaussian_project)
+def _shifted(project):
+    """(avatar, true conditioning, background, views rendered at it, the root shift, the conditioning shifted)."""
+    av, cond = _frame(project)
     bg = torch.tensor(av.background, dtype=torch.float32)
     views = _views(av, cond, bg)
     shift = torch.tensor([0.03, -0.02, 0.01])
     M = cond.joint_transforms.clone()
     M[..., :3, 3] += shift  # every joint moved: the root translation is off by `shift`
-    off = replace(cond, joint_transforms=M)
+    return av, cond, bg, views, shift, replace(cond, joint_transforms=M)
+
+
+def test_a_known_root_shift_is_recovered_and_the_avatar_is_left_as_it_was(toy_gaussian_project):
+    from avatarctl.fit.frame_pose import FramePoseConfig, refine_frame_pose, refined_state
+
+    av, cond, bg, views, shift, off = _shifted(toy_gaussian_project)
     before = {k: v.clone() for k, v in av.model.state_dict().items()}
     pose = refine_frame_pose(av.model, av.template, off, views, bg, "zero", FramePoseConfig(steps=60))
     assert pose.loss_end < 0.25 * pose.loss_start
@@ -67,13 +72,7 @@ def test_the_masks_alone_move_a_shifted_pose_back_without_the_colours(toy_gaussi
     in their place changes nothing)."""
     from avatarctl.fit.frame_pose import FramePoseConfig, refine_frame_pose
 
-    av, cond = _frame(toy_gaussian_project)
-    bg = torch.tensor(av.background, dtype=torch.float32)
-    views = _views(av, cond, bg)
-    shift = torch.tensor([0.03, -0.02, 0.01])
-    M = cond.joint_transforms.clone()
-    M[..., :3, 3] += shift
-    off = replace(cond, joint_transforms=M)
+    av, cond, bg, views, shift, off = _shifted(toy_gaussian_project)
     cfg = FramePoseConfig(steps=60, target="masks")
     pose = refine_frame_pose(av.model, av.template, off, views, bg, "zero", cfg)
     assert pose.loss_end < pose.loss_start  # (a soft alpha against a binary mask: not to zero)
@@ -98,6 +97,23 @@ def test_a_pose_that_is_already_right_is_never_made_worse(toy_gaussian_project):
     if pose.loss_end == pose.loss_start:
         assert not pose.tau.any() and not pose.delta.any()
         assert torch.equal(pose.joint_transforms, cond.joint_transforms)
+
+
+def test_a_start_from_a_neighbour_is_kept_only_where_it_is_better(toy_gaussian_project):
+    """`start_from`: Adam starts at the given corrections; the frame keeps the best of the estimated pose, that start
+    and the end. Started at the true correction with steps far too large, it keeps the start; started at a wrong
+    one, it never ends worse than the estimated pose."""
+    from avatarctl.fit.frame_pose import FramePoseConfig, refine_frame_pose
+
+    av, cond, bg, views, shift, off = _shifted(toy_gaussian_project)
+    J = cond.joint_transforms.shape[1]
+    right = (np.zeros((J, 3), np.float32), -shift.numpy())
+    cfg = FramePoseConfig(steps=4, lr=0.2, target="masks")  # steps far too large: Adam wanders off
+    kept = refine_frame_pose(av.model, av.template, off, views, bg, "zero", cfg, start_from=right)
+    assert kept.loss_end < kept.loss_start and np.abs(kept.tau + shift.numpy()).max() < 0.005, kept.tau  # the start
+    wrong = (np.zeros((J, 3), np.float32), 3 * shift.numpy())
+    safe = refine_frame_pose(av.model, av.template, off, views, bg, "zero", cfg, start_from=wrong)
+    assert safe.loss_end <= safe.loss_start
 
 
 def test_the_coarse_camera_sees_the_downsampled_image():

@@ -130,17 +130,9 @@ def test_where_it_does_not_apply(toy_gaussian_project):
     assert FitConfig().held_out_poses == 0 and preset("cpu").held_out_poses > 0
 
 
-def test_spread_order_keeps_every_prefix_spread():
-    from avatarctl.fit.held_out_poses import spread_order
-
-    assert spread_order(9) == [0, 8, 4, 2, 6, 1, 3, 5, 7]
-    for n in (1, 2, 5, 17, 36):
-        assert sorted(spread_order(n)) == list(range(n))
-
-
-def test_a_pass_cut_short_poses_spread_frames_and_says_how_many(posed_project):
-    """With a time limit it cannot meet, the pass poses the first frame of its order only; the record says of how
-    many; without one it poses every frame, sorted."""
+def test_a_pass_cut_short_poses_the_first_frames_and_says_how_many(posed_project):
+    """With a time limit it cannot meet, the pass poses the first frame only; the record says of how many; without
+    one it poses every frame, in time order."""
     from avatarctl.fit.held_out_poses import pose_held_out_frames
     from avatarctl.stages.common import load_fitted
     from avatarctl.project import Project
@@ -153,3 +145,34 @@ def test_a_pass_cut_short_poses_spread_frames_and_says_how_many(posed_project):
     assert short.frames == (int(every[0]),) and short.held_out == len(every) and short.summary()["held_out"] == 4
     full = pose_held_out_frames(*args)
     assert full.frames == tuple(int(f) for f in sorted(every)) and full.held_out == len(every)
+    assert np.all(full.loss_end <= full.loss_start)  # never worse than ingest's pose
+
+
+def test_from_one_view_each_frame_starts_from_the_frame_before(posed_project, monkeypatch):
+    """One training view: frame i starts from frame i - 1's corrections; several: every frame from ingest's pose."""
+    import avatarctl.fit.frame_pose as fp
+    from avatarctl.fit.held_out_poses import pose_held_out_frames
+    from avatarctl.project import Project
+    from avatarctl.stages.common import load_fitted
+
+    av = load_fitted(Project.open(posed_project[0]), "cpu", None)
+    every = list(av.capture.motion.frame_index)
+    starts = []
+    real = fp.refine_frame_pose
+
+    def spy(*args, start_from=None, **kw):
+        starts.append(start_from)
+        return real(*args, start_from=start_from, **kw)
+
+    monkeypatch.setattr(fp, "refine_frame_pose", spy)
+    split = replace(av.capture.split, test_frames=every)
+    for train_views, warm in ((av.capture.split.train_views[:1], True), (av.capture.split.train_views, False)):
+        starts.clear()
+        capture = replace(av.capture, split=replace(split, train_views=list(train_views)))
+        poses = pose_held_out_frames(av.model, av.template, av.body, capture, [], av.background, av.step, 6)
+        assert starts[0] is None and len(starts) == len(every)
+        if warm:
+            assert all(np.array_equal(s[1], poses.tau[i]) for i, s in enumerate(starts[1:]))
+        else:
+            assert all(s is None for s in starts)
+

@@ -90,10 +90,13 @@ class FramePose:
 
 def refine_frame_pose(model: "SlrfAvatar", template: "BodyTemplate", cond: "FrameConditioning",
                       views: list[PoseView], background: torch.Tensor, mode: str,
-                      cfg: FramePoseConfig = FramePoseConfig()) -> FramePose:
+                      cfg: FramePoseConfig = FramePoseConfig(),
+                      start_from: tuple[np.ndarray, np.ndarray] | None = None) -> FramePose:
     """Refine the pose of the one frame of `cond` against `views` (module docstring); `template`: the avatar's body
     template; `mode`: the latent mode the frame is rendered with (`SlrfAvatar.node_state`; "sample" is not
-    deterministic and is refused)."""
+    deterministic and is refused). `start_from`: corrections (delta [J, 3], tau [3]) Adam starts from instead of
+    zero (a neighbouring frame's, `fit/held_out_poses.py`); the frame then keeps the best of the estimated pose, that
+    start and the end."""
     if not model.field_kind.splats:
         raise ValueError(f"pose refinement renders whole crops: it needs model.field 'gaussians', this avatar's is "
                          f"{model.cfg.field!r}")
@@ -118,6 +121,13 @@ def refine_frame_pose(model: "SlrfAvatar", template: "BodyTemplate", cond: "Fram
 
     with torch.no_grad():
         start = float(loss_of(views))
+        best = (start, refine.delta.clone(), refine.tau.clone())  # the estimated pose (zero corrections)
+        if start_from is not None:
+            refine.delta.copy_(torch.as_tensor(start_from[0], dtype=torch.float32, device=dev)[None])
+            refine.tau.copy_(torch.as_tensor(start_from[1], dtype=torch.float32, device=dev)[None])
+            warm = float(loss_of(views))
+            if warm < best[0]:
+                best = (warm, refine.delta.clone(), refine.tau.clone())
     for step in range(cfg.steps):
         loss = loss_of(coarse if step < cfg.steps // 2 else views)
         grads = torch.autograd.grad(loss, params)  # the avatar's weights get no gradient
@@ -126,10 +136,10 @@ def refine_frame_pose(model: "SlrfAvatar", template: "BodyTemplate", cond: "Fram
         opt.step()
     with torch.no_grad():
         end = float(loss_of(views))
-        if not end < start:  # no better than the estimated pose: keep it
-            refine.delta.zero_()
-            refine.tau.zero_()
-            end = start
+        if not end < best[0]:  # no better than the estimated pose (or the start given): keep that
+            end = best[0]
+            refine.delta.copy_(best[1])
+            refine.tau.copy_(best[2])
         joints = refine(cond.joint_transforms.to(dev, torch.float32), one)
     delta = (refine.delta[0] * refine.active[:, None]).detach().cpu().numpy()
     return FramePose(joint_transforms=joints.detach(), delta=delta, tau=refine.tau[0].detach().cpu().numpy(),

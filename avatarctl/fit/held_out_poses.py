@@ -16,9 +16,13 @@ The result is `fit/held_out_poses.npz` (`HeldOutPoses`: per frame the correction
 for that checkpoint only: a fit that runs again removes it first. `eval` and `render` drive a test frame with its
 corrected joint transforms (`HeldOutPoses.joint_transforms`) when the file matches the checkpoint they load, and name
 it (`eval --held-out-poses ingest` scores ingest's poses). It costs `steps` renders of every training view per test
-frame after the training budget (synth `phone`: 17 frames x 1 view of 288 x 512, 80 steps, 99 s on 2 cores); with a
-time budget it takes at most as long again: the frames are posed in `spread_order`, so a pass cut short leaves
-evenly spaced frames posed and the rest at ingest's poses (`held_out` says how many there were).
+frame after the training budget (synth `phone`: 17 frames x 1 view of 288 x 512, 80 steps, ~90 s on 2 cores). The
+frames are posed in time order. From one training view (a video), each starts from the corrections of the frame
+before it and keeps the best of ingest's pose, that start and where Adam ends: one silhouette leaves the pose
+loosely held, and a neighbour's error is much like the frame's own (synth `phone` seeds 0 / 1: +0.34 / +0.55 dB over
+starting at ingest's pose); from three views it cost synth `realistic` (6 fps) −0.25 / −0.11 / 0.00 dB, so there
+each frame starts at ingest's pose (`WARM_START_MAX_VIEWS`). With a time budget the pass takes at most as long
+again: the frames it has no time for keep ingest's poses (`held_out` says how many there were).
 """
 
 from __future__ import annotations
@@ -40,6 +44,7 @@ if TYPE_CHECKING:
     from avatarctl.progress import ProgressFn
 
 FILE_NAME = "held_out_poses.npz"
+WARM_START_MAX_VIEWS = 1  # up to this many training views a frame starts from the frame before's corrections
 BBOX_PAD = 0.05  # metres the posed body's box is grown by for each view's crop (the bbox protocol's Neural Body pad)
 PROTOCOL = ("the capture's test frames posed by the fit: ingest's estimated pose refined against the training views' "
             "masks with the avatar frozen (fit/held_out_poses.py: the avatar's silhouette, mean |alpha - mask|); the "
@@ -111,28 +116,21 @@ def held_out_frames(capture: "ProjectCapture", train_frames: list[int]) -> list[
     return sorted({int(f) for f in capture.split.test_frames} - trained)
 
 
-def spread_order(n: int) -> list[int]:
-    """0 .. n-1 ordered so that every prefix is spread over the range: 0, then the multiples of the largest power of
-    two below n, then the odd multiples of its half, ... (a pass cut short leaves its frames evenly spaced)."""
-    def level(i: int) -> int:
-        return n.bit_length() if i == 0 else (i & -i).bit_length()
-    return sorted(range(n), key=lambda i: (-level(i), i))
-
-
 def pose_held_out_frames(model: "SlrfAvatar", template: "BodyTemplate", body: "BodyModel", capture: "ProjectCapture",
                          train_frames: list[int], background: tuple[float, float, float], step: int, steps: int,
                          progress: "ProgressFn | None" = None, limit_s: float | None = None) -> HeldOutPoses:
-    """Pose the held-out frames against the training views' masks (module docstring), in `spread_order`; with
-    `limit_s`, no frame is started that the mean time per frame so far says would end past it (the others keep
-    ingest's poses). The model is left as it was."""
+    """Pose the held-out frames against the training views' masks (module docstring), in time order, each started
+    from the corrections of the frame before it up to `WARM_START_MAX_VIEWS` training views; with `limit_s`, no frame
+    is started that the mean time per frame so far says would end past it (the later ones keep ingest's poses). The
+    model is left as it was."""
     from avatarctl.fit.conditioning import conditioning_for_motion
     from avatarctl.fit.frame_pose import FramePoseConfig, crop_views, refine_frame_pose
     from avatarctl.progress import ProgressReport
 
     t0 = time.perf_counter()
-    pending = held_out_frames(capture, train_frames)
-    frames = [pending[i] for i in spread_order(len(pending))]
+    frames = held_out_frames(capture, train_frames)
     views = list(capture.split.train_views)
+    warm = len(views) <= WARM_START_MAX_VIEWS
     dev = model.node_rest.device
     bg = torch.tensor(background, dtype=torch.float32)
     cfg = FramePoseConfig(steps=steps, target="masks")
@@ -155,16 +153,16 @@ def pose_held_out_frames(model: "SlrfAvatar", template: "BodyTemplate", body: "B
                 verts = body.pose(one).vertices[0].detach().float().cpu().numpy()
             pose_views = crop_views(capture, frame, views, cams, verts, background, dev, pad=BBOX_PAD, images=False)
             cond = conditioning_for_motion(body, one, train_frames, False, dev)
-            pose = refine_frame_pose(model, template, cond, pose_views, bg, "novel", cfg)
+            pose = refine_frame_pose(model, template, cond, pose_views, bg, "novel", cfg,
+                                     start_from=(delta[i - 1], tau[i - 1]) if i and warm else None)
             delta[i], tau[i], start[i], end[i] = pose.delta, pose.tau, pose.loss_start, pose.loss_end
             done = i + 1
             if progress is not None:
                 progress(ProgressReport(done=done, total=len(frames), part="held-out poses"))
     finally:
         model.train(was_training)
-    rows = np.argsort(frames[:done], kind="stable")
-    return HeldOutPoses(frames=tuple(int(frames[r]) for r in rows), delta=delta[rows], tau=tau[rows],
-                        loss_start=start[rows], loss_end=end[rows], step=int(step), steps=steps, views=tuple(views),
+    return HeldOutPoses(frames=tuple(frames[:done]), delta=delta[:done], tau=tau[:done], loss_start=start[:done],
+                        loss_end=end[:done], step=int(step), steps=steps, views=tuple(views),
                         seconds=time.perf_counter() - t0, held_out=len(frames))
 
 
