@@ -47,10 +47,10 @@ ingest's poses. The scored pixels (the bbox region) come from ingest's fits eith
 
 Held-out poses scored fairly (issue 51; `refine_pose` > 0, `--refine-pose STEPS`): beside the plain figure, each
 frame is also scored after its body pose (the one the plain figure drives it with) is refined against that frame's
-scored images with the avatar frozen
-(`fit.frame_pose`, `REFINED_PROTOCOL`: the monocular papers' protocol, whose estimated test poses are off by a limb's
-width), on the same pixels: metrics.json "refined_pose" (`evaluate.report.RefinedPose`), per_frame.csv
-refined_psnr / refined_ssim, its own table row and `sheet_refined.png`. Only the Gaussian local fields. With
+scored images with the avatar frozen (`fit.frame_pose`, `REFINED_PROTOCOL`: the monocular papers' protocol, whose
+estimated test poses are off by a limb's width), on the same pixels: metrics.json "refined_pose"
+(`evaluate.report.RefinedPose`), per_frame.csv refined_psnr / refined_ssim, its own table row and `sheet_refined.png`.
+Only the Gaussian local fields. With
 `refine_pose_from = "masks"` (`--refine-pose-from masks`) each pose is fitted to the frame's masks alone, the avatar's
 silhouette against them, its colours unused; metrics.json says which ("target").
 
@@ -369,11 +369,10 @@ def _run(env: Any, progress: ProgressFn | None, project_dir: str, cfg: EvalConfi
         for fi in range(env.rank if world > 1 else 0, len(frames), world):
             frame, one = frames[fi], motion.select([fi])
             verts = avatar.body.pose(one).vertices[0].detach().float().cpu().numpy()  # [V, 3]
-            cond = frame_conditioning(avatar, one, frame, is_train, held)
             state = knocked_out(avatar, frame_node_state(avatar, one, frame, is_train, latent, cfg.seed, held),
                                 cfg.knockout)
-            refined = _refined_state(avatar, cap, cfg, cond, frame, latent, views, cams, verts, background,
-                                     gains) if cfg.refine_pose else None
+            refined = _refined_state(avatar, cap, cfg, frame_conditioning(avatar, one, frame, is_train, held), frame,
+                                     latent, views, cams, verts, background, gains) if cfg.refine_pose else None
             for vi, view in enumerate(views):
                 k = fi * len(views) + vi
                 mine.append(_score_image(avatar, cap, cfg, project, state, verts, frame, view, cams[view], latent,
