@@ -49,6 +49,7 @@ def test_the_fit_moves_a_held_out_frame_back_to_its_masks(posed_project):
     summary = result.held_out_poses
     assert summary is not None and "skipped" not in summary, summary
     poses = HeldOutPoses.load(proj / "fit" / FILE_NAME)
+    assert summary["path"] == str(proj / "fit" / FILE_NAME)  # the file the fit's table and record name
     assert list(poses.frames) == test_frames and poses.step == result.step == 100 and poses.steps == 40
     assert poses.views == tuple(json.loads((proj / "ingest" / "split.json").read_text())["train_views"])
     assert summary["moved"] == len(test_frames) and summary["mask_loss_after"] < summary["mask_loss_before"]

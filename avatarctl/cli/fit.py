@@ -105,7 +105,7 @@ def _run(project_dir: Path, iters, preset, resume, fresh, seed, device, override
         table.add_row("held-out poses", f"skipped: {h['skipped']}" if "skipped" in h else
                       f"{h['frames']} of {h['held_out']} held-out frames posed ({h['moved']} moved) against the "
                       f"masks of {', '.join(h['views'])}: mask loss {h['mask_loss_before']:.4f} -> "
-                      f"{h['mask_loss_after']:.4f}; {h['seconds']:.0f} s -> {project.paths.fit / 'held_out_poses.npz'}")
+                      f"{h['mask_loss_after']:.4f}; {h['seconds']:.0f} s -> {h['path']}")
     table.add_row("checkpoint", str(result.checkpoint))
     table.add_row("log / config", f"{project.paths.fit_log} / {project.paths.fit_config}")
     console.print(table)

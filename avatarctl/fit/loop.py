@@ -505,7 +505,7 @@ def _track_garment(t: "_Trainer", template, hull_count: int) -> tuple[str, float
 
 def _pose_held_out(t: _Trainer, step: int, progress: Callable[[Any], None] | None) -> dict[str, Any] | None:
     """The held-out frames posed against the training views' masks (fit/held_out_poses.py), written as
-    fit/held_out_poses.npz -> its summary ({"skipped": why} where it does not apply, None when it is off);
+    fit/held_out_poses.npz -> its summary and "path" ({"skipped": why} where it does not apply, None when off);
     `progress` gets a `ProgressReport` per frame (part "held-out poses"). With a time budget the pass takes at most
     as long again (the frames it has no time for keep ingest's poses)."""
     from avatarctl.fit.held_out_poses import FILE_NAME, held_out_frames, pose_held_out_frames
@@ -521,8 +521,9 @@ def _pose_held_out(t: _Trainer, step: int, progress: Callable[[Any], None] | Non
 
     poses = pose_held_out_frames(t.model, t.template, t.body, t.capture, t.train_frames, cfg.background, step,
                                  cfg.held_out_poses, progress, limit_s=cfg.time_budget_s or None)
-    poses.save(t.project.paths.fit / FILE_NAME)
-    return poses.summary()
+    path = t.project.paths.fit / FILE_NAME
+    poses.save(path)
+    return {**poses.summary(), "path": str(path)}
 
 
 # ---- one step ----------------------------------------------------------------------------------------------------
@@ -686,8 +687,6 @@ def _finish(t: _Trainer, books: _Books, step: int, last: _Step | None, budget_hi
         from avatarctl.fit.refined import write_refined_fits
 
         refinement = write_refined_fits(paths.fit, t.body, t.capture.motion, t.poses, t.model.pose_refine)
-    from avatarctl.fit.held_out_poses import FILE_NAME as HELD_OUT_FILE
-
     held_out = _pose_held_out(t, step, progress) if t.main and not interrupted else None
     losses, rays_per_s = books.losses, books.rays_per_s
     summary = {"step": step, "iters": cfg.iters, "start_step": t.start_step, "interrupted": interrupted,
@@ -704,7 +703,7 @@ def _finish(t: _Trainer, books: _Books, step: int, last: _Step | None, budget_hi
                                  "ray_shards": t.shards},
                          [paths.fit_config, paths.fit_log, paths.latest_checkpoint]
                          + ([refinement.path] if refinement is not None and refinement.path else [])
-                         + ([paths.fit / HELD_OUT_FILE] if held_out and "skipped" not in held_out else []),
+                         + ([Path(held_out["path"])] if held_out and "path" in held_out else []),
                          started,
                          summary)
     return FitResult(step=step, iters=cfg.iters, interrupted=interrupted, stop_reason=stop_reason,
