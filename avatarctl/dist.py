@@ -232,19 +232,42 @@ def _rank_main(rank: int, fn: Callable, world: int, port: int, channel: RankChan
 
 
 def _leave(channel: RankChannel, code: int) -> None:
-    """End a spawned rank once its messages are delivered: flush, then `os._exit` without the interpreter's
-    teardown (as multiprocessing's forked workers end). The rank's work and files are complete by now; what the
-    teardown would do is destroy the native thread pools of torch / gloo, and there a rank of a finished run
-    occasionally aborted ("terminate called without an active exception", SIGABRT: 2 of 6 full test runs), which
-    the launcher had to report as a failed run."""
-    import sys
-
+    """End a spawned rank once its messages are delivered (the queue closed, its feeder joined), see `exit_now`."""
     channel.queue.close()
     channel.queue.join_thread()  # the result / error message is in the pipe before the process ends
+    exit_now(code)
+
+
+def exit_now(code: int) -> None:
+    """Flush stdio and end the process with `os._exit`, without the interpreter's teardown (as multiprocessing's
+    forked workers end). For a rank whose work and files are complete: what the teardown would do is destroy the
+    native thread pools of torch / gloo, and there a rank of a finished run occasionally aborted ("terminate called
+    without an active exception", SIGABRT: 2 of 6 full test runs for spawned ranks, 1 CI run in about 70 for a
+    torchrun rank), which the launcher then reported as a failed run."""
+    import sys
+
     for stream in (sys.stdout, sys.stderr):
         with contextlib.suppress(Exception):
             stream.flush()
     os._exit(code)
+
+
+def run_as_process(main: Callable[[], None]) -> None:
+    """Run a command line's `main` and end the process: through `exit_now` when torchrun started it as a rank
+    (WORLD_SIZE set), normally otherwise. The exit status is `main`'s (its SystemExit code, 0 when it returns)."""
+    import sys
+
+    if "WORLD_SIZE" not in os.environ:
+        main()
+        return
+    try:
+        main()
+        code = 0
+    except SystemExit as e:
+        if isinstance(e.code, str):  # what the interpreter would print for it
+            print(e.code, file=sys.stderr)
+        code = e.code if isinstance(e.code, int) else int(e.code is not None)
+    exit_now(code)
 
 
 def _lost_peer(e: BaseException) -> bool:

@@ -170,10 +170,27 @@ def test_torchrun_ranks_read_the_environment_and_train_like_one_process(toy_proj
                            "--preset", "micro", "--iters", "2", "--device", "cpu",
                            *sum((["--set", s] for s in TINY), [])], capture_output=True, text=True, env=_env(),
                           timeout=WAIT_S)
-    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert proc.returncode == 0, proc.stderr[:4000] + "\n[...]\n" + proc.stderr[-1500:]  # the ranks' lines come first
     assert proc.stdout.count("avatarctl fit") == 1  # rank 0 reports, rank 1 is quiet
     latest = lambda p: p / "fit" / "checkpoints" / "latest.pt"  # noqa: E731
     assert _max_diff(_params(latest(one)), _params(latest(two))) <= RANK_TOL
+
+
+@pytest.mark.parametrize("rank", [False, True])
+def test_a_torchrun_rank_ends_without_the_interpreter_teardown_and_keeps_its_exit_status(rank):
+    """Under torchrun (WORLD_SIZE set) `python -m avatarctl` ends through `os._exit` once its output is flushed: no
+    teardown of torch / gloo thread pools (where a finished rank occasionally aborted), the command's exit status."""
+    code = ("import atexit, sys; atexit.register(lambda: print('teardown ran')); sys.argv = ['avatarctl'] + "
+            "sys.argv[1:]; from avatarctl.__main__ import run; run()")
+    env = {k: v for k, v in _env().items() if k not in ("WORLD_SIZE", "RANK")}
+    env.update({"WORLD_SIZE": "1", "RANK": "0"} if rank else {})
+    ok = subprocess.run([sys.executable, "-c", code, "--version"], capture_output=True, text=True, env=env,
+                        timeout=WAIT_S)
+    assert ok.returncode == 0 and ok.stdout.startswith("avatarctl ")
+    assert ("teardown ran" in ok.stdout) is not rank
+    bad = subprocess.run([sys.executable, "-c", code, "no-such-command"], capture_output=True, text=True, env=env,
+                         timeout=WAIT_S)
+    assert bad.returncode == 2 and "No such command" in bad.stderr
 
 
 def test_bad_rank_options_are_one_line_errors_before_or_from_the_ranks(toy_project, tmp_path):
