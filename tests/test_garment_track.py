@@ -100,11 +100,10 @@ def scene():
     return inp, verts, faces, frames
 
 
-@pytest.mark.parametrize("segments", [60, 72], ids=["ring-moves", "any-mesh"])
-def test_the_tracker_follows_the_turning_print(scene, segments):
+def test_the_tracker_follows_the_turning_print(scene):
     inp, verts, faces, truth = scene
     mesh = gt.GarmentMesh(truth[1], faces, frame=1)
-    tracks = gt.track(inp, mesh, ref=1, settings=gt.TrackSettings(tube_segments=segments))  # 72: not seen as a tube
+    tracks = gt.track(inp, mesh, ref=1)
     assert tracks.vertices.shape == (3, len(verts), 3)
     np.testing.assert_array_equal(tracks.vertices[1], truth[1])
     for f in (0, 2):
@@ -113,47 +112,6 @@ def test_the_tracker_follows_the_turning_print(scene, segments):
         assert still > 0.015
         assert err < 0.3 * still, (f, err, still)
     assert (tracks.seen[[0, 2]] >= 2).mean() > 0.5
-
-
-def test_a_tube_is_recognised_by_its_rings_in_any_triangle_order_and_nothing_else_is():
-    verts, faces, _ = _tube()  # 12 rings of 60, triangles in another order and orientation than tube_faces'
-    assert gt.tube_rings(gt.GarmentMesh(verts, faces, frame=0), 60) == 12
-    assert gt.tube_rings(gt.GarmentMesh(verts, gt.tube_faces(12, 60), frame=0), 60) == 12
-    assert gt.tube_rings(gt.GarmentMesh(verts, faces, frame=0), 72) == 0  # 720 vertices are 10 rings of 72: no
-    assert gt.tube_rings(gt.GarmentMesh(verts, faces[1:], frame=0), 60) == 0  # a triangle missing
-
-
-def _angle(X: np.ndarray, Y: np.ndarray) -> np.ndarray:
-    """Per vertex: the angle (radians) about z from X [V, 3] to Y [V, 3]."""
-    return np.angle((Y[:, 0] + 1j * Y[:, 1]) / (X[:, 0] + 1j * X[:, 1]))
-
-
-def test_the_ring_twist_turns_the_start_as_far_as_the_print_turned(scene):
-    inp, verts, faces, truth = scene
-    tracker = gt._Tracker(inp, gt.GarmentMesh(truth[1], faces, frame=1), 1, gt.TrackSettings(tube_segments=60))
-    assert tracker.segments == 60
-    vis = gt.visibility(inp, 1, truth[1], faces)
-    turned = tracker.twist(truth[1], truth[1], vis, 1, 2)  # the start: the tube where it was a frame earlier
-    angle = _angle(truth[1], turned).reshape(12, 60)
-    assert np.allclose(angle, angle[:, :1], atol=1e-9)  # each ring turned as one
-    assert np.abs(angle[:, 0] - TURN).max() < np.radians(1.5), np.degrees(angle[:, 0])  # 1 degree steps
-    still = np.linalg.norm(truth[2] - truth[1], axis=-1).mean()
-    assert np.linalg.norm(turned - truth[2], axis=-1).mean() < 0.3 * still
-    np.testing.assert_allclose(turned[:, 2], truth[1][:, 2], atol=1e-12)  # about up only
-
-
-def test_the_hull_start_grows_a_start_inside_the_cloth_out_to_it_and_leaves_one_on_it(scene):
-    inp, verts, faces, truth = scene
-    tracker = gt._Tracker(inp, gt.GarmentMesh(truth[1], faces, frame=1), 1, gt.TrackSettings(tube_segments=60))
-    radius = lambda X: np.linalg.norm(X[:, :2], axis=-1)  # noqa: E731
-    shrunk = truth[2] * np.array([0.85, 0.85, 1.0])  # 4.5 cm inside the cloth, folds included
-    grown = tracker.hull_start(shrunk, 2)
-    before, after = np.abs(radius(shrunk) - radius(truth[2])), np.abs(radius(grown) - radius(truth[2]))
-    assert after.mean() < 0.3 * before.mean(), (after.mean(), before.mean())
-    assert (radius(grown) >= radius(shrunk) - 1e-9).all()  # growth only: the hull cannot carve a fold's hollow
-    np.testing.assert_allclose(_angle(shrunk, grown), 0.0, atol=1e-9)  # outwards, along each vertex's own ray
-    on = tracker.hull_start(truth[2], 2)
-    assert np.abs(radius(on) - radius(truth[2])).mean() < 0.01
 
 
 def test_the_reference_surface_is_a_tube_around_the_garment_from_the_masks(scene):

@@ -17,11 +17,7 @@ first, the way the garment methods of the field do (sequential, warm-started, ap
    "Garment tracking"). No truth is needed.
 2. **Tracking** (`track`): from the reference frame forwards, then backwards, each frame's surface starts from the
    previous one moved by the skeleton (each vertex by the blended transform of its nearest body vertex, Eq. 1) plus
-   the previous step's motion beyond the skeleton (constant velocity); on `reference_mesh`'s tube the start is then
-   grown out to the frame's visual hull less each vertex's depth under the reference frame's (`hull_start`: a skirt
-   that flares is wider than the skeleton moves it) and each ring turned about up by the angle within `twist_deg`
-   whose colours best match the previous frame's (`twist`: a twirling hem turns farther than a pixel-scale gradient
-   reaches; neighbouring rings' costs pooled); it is then solved by L-BFGS over an image
+   the previous step's motion beyond the skeleton (constant velocity), and is then solved by L-BFGS over an image
    pyramid (Gaussian blur `sigmas`, pixels: 1 then 0.5; the start is within a few pixels, and a coarser level blurs
    the print away, whose minimum then pulls a twirling skirt off the cloth) for: the colour of each surface sample
    (vertices and 4 points per triangle) in every training view that saw it at the previous frame equal to its colour
@@ -65,8 +61,6 @@ class TrackSettings:
     silhouette: float = 1.0  # squared pixels outside the frame's mask, per view
     anchor: float = 0.3  # the reference frame's colours, against the previous frame's (1)
     residual_velocity: float = 1.0  # share of the last step's motion beyond the skeleton carried forward
-    hull_start: bool = True  # each frame's start grown out to its visual hull, less the reference surface's depth
-    twist_deg: float = 12.0  # each ring of the start turned about up by the best of +-this many degrees; 0 = off
     lost: float = 2.0  # a direction stops where a frame's loss exceeds this x the median of its first 5 frames
     voxel: float = 0.02  # the reference surface's hull grid, metres
     stereo_iters: int = 60  # L-BFGS iterations per level of the reference surface's multi-view stereo
@@ -173,7 +167,7 @@ def reference_mesh(inp: TrackingInput, ref: int, settings: TrackSettings = Track
     """Step 1 of the module docstring at frame index `ref` of `inp` (before the stereo). An empty mesh when nothing
     is off the body."""
     import cv2
-    from scipy.ndimage import gaussian_filter, gaussian_filter1d
+    from scipy.ndimage import gaussian_filter, gaussian_filter1d, map_coordinates
     from scipy.spatial import cKDTree
 
     from avatarctl.geometry.hull import carve
@@ -195,7 +189,11 @@ def reference_mesh(inp: TrackingInput, ref: int, settings: TrackSettings = Track
     if len(off) < 8:
         return empty
     hull = carve(cams, masks, lo, hi, vox)
-    grid = _occupancy(hull, lo, hi, vox)
+    shape = tuple(int(round((b - a) / vox)) for a, b in zip(lo, hi))
+    grid = np.zeros(shape, dtype=np.float32)
+    idx = np.floor((hull - lo) / vox).astype(np.int64)
+    grid[tuple(idx[((idx >= 0) & (idx < np.array(shape))).all(1)].T)] = 1.0
+    grid = gaussian_filter(grid, 1.0)
     # the rings: heights along up, each centred on the hull's cross-section near the body there
     h_off = off @ up
     heights = np.arange(np.percentile(h_off, 1), np.percentile(h_off, 99) + settings.tube_top + 1e-9, vox)
@@ -215,11 +213,14 @@ def reference_mesh(inp: TrackingInput, ref: int, settings: TrackSettings = Track
     e2 = np.cross(up, e1)
     angles = np.arange(settings.tube_segments) * 2 * np.pi / settings.tube_segments
     ray = np.cos(angles)[:, None] * e1 + np.sin(angles)[:, None] * e2  # [A, 3]
-    origin = np.broadcast_to((centres + heights[:, None] * up)[:, None], (len(heights), len(ray), 3))
-    R, hit = _outer_boundary(grid, lo, vox, origin.reshape(-1, 3), np.broadcast_to(ray, origin.shape).reshape(-1, 3))
-    R, hit = R.reshape(origin.shape[:2]), hit.reshape(origin.shape[:2])  # [H, A]
+    radii = np.arange(0.9, 0.0, -vox / 4)  # from outside inwards: the first voxel inside is the outer boundary
+    X = (centres[:, None, None] + heights[:, None, None, None] * up + radii[None, None, :, None] * ray[None, :, None])
+    occupied = map_coordinates(grid, ((X.reshape(-1, 3) - lo) / vox - 0.5).T, order=1, mode="constant",
+                               cval=0.0).reshape(X.shape[:3]) > 0.5  # [H, A, R]
+    hit = occupied.any(-1)
     if hit.mean() < 0.5:
         return empty
+    R = radii[np.argmax(occupied, -1)]  # [H, A]
     ring = np.array([np.median(r[k]) if k.any() else np.median(R[hit]) for r, k in zip(R, hit)])
     R = np.where(hit, R, ring[:, None])  # a ray through a gap: the ring's median
     R = gaussian_filter(R, 0.7, mode=("nearest", "wrap"))
@@ -230,43 +231,6 @@ def reference_mesh(inp: TrackingInput, ref: int, settings: TrackSettings = Track
     if (np.einsum("vi,vi->v", vertex_normals(verts, faces), outward) < 0).mean() > 0.5:
         faces = faces[:, [0, 2, 1]]
     return GarmentMesh(vertices=verts, faces=faces, frame=frame)
-
-
-def _occupancy(points: np.ndarray, lo: np.ndarray, hi: np.ndarray, vox: float) -> np.ndarray:
-    """Voxel centres `points` [n, 3] (a carved hull) -> occupancy [X, Y, Z] float32 of the box lo..hi, blurred by one
-    voxel (a smooth boundary to interpolate)."""
-    from scipy.ndimage import gaussian_filter
-
-    shape = tuple(int(round((b - a) / vox)) for a, b in zip(lo, hi))
-    grid = np.zeros(shape, dtype=np.float32)
-    idx = np.floor((points - lo) / vox).astype(np.int64)
-    grid[tuple(idx[((idx >= 0) & (idx < np.array(shape))).all(1)].T)] = 1.0
-    return gaussian_filter(grid, 1.0)
-
-
-def _outer_boundary(grid: np.ndarray, lo: np.ndarray, vox: float, origin: np.ndarray, ray: np.ndarray
-                    ) -> tuple[np.ndarray, np.ndarray]:
-    """The occupancy `grid`'s outer boundary along each ray origin [n, 3] + r ray [n, 3] (unit), marched from 0.9 m
-    inwards in steps of vox / 4: -> (r [n], hit [n] bool); r = 0.9 where the ray meets nothing (hit False)."""
-    from scipy.ndimage import map_coordinates
-
-    radii = np.arange(0.9, 0.0, -vox / 4)  # from outside inwards: the first voxel inside is the outer boundary
-    X = origin[:, None] + radii[None, :, None] * ray[:, None]  # [n, R, 3]
-    occupied = map_coordinates(grid, ((X.reshape(-1, 3) - lo) / vox - 0.5).T, order=1, mode="constant",
-                               cval=0.0).reshape(X.shape[:2]) > 0.5
-    return radii[np.argmax(occupied, -1)], occupied.any(-1)
-
-
-def tube_rings(mesh: GarmentMesh, segments: int) -> int:
-    """The number of rings when `mesh` is a tube with `segments` vertices per ring, ring by ring, triangulated as
-    `tube_faces` (in any order and orientation; as `reference_mesh` builds it); 0 for any other mesh."""
-    V = len(mesh.vertices)
-    if segments < 3 or V < 2 * segments or V % segments:
-        return 0
-    f = tube_faces(V // segments, segments)
-    same = mesh.faces.shape == f.shape and np.array_equal(np.unique(np.sort(mesh.faces, 1), axis=0),
-                                                          np.unique(np.sort(f, 1), axis=0))
-    return V // segments if same else 0
 
 
 # ---- 2. tracking ------------------------------------------------------------------------------------------------
@@ -339,12 +303,6 @@ def visibility(inp: TrackingInput, fi: int, X: np.ndarray, faces: np.ndarray) ->
     return seen_by(caster, inp.centers, X, vertex_normals(X, faces), min_cos=0.25, two_sided=True)
 
 
-def _turn(v: np.ndarray, up: np.ndarray, angle: float | np.ndarray) -> np.ndarray:
-    """Vectors v [n, 3] turned about the unit axis `up` by `angle` radians (one, or [n]; Rodrigues)."""
-    a = np.broadcast_to(np.asarray(angle, dtype=np.float64), (len(v),))[:, None]
-    return v * np.cos(a) + np.cross(up, v) * np.sin(a) + (v @ up)[:, None] * up * (1 - np.cos(a))
-
-
 def skin_move(inp: TrackingInput, X: np.ndarray, fa: int, fb: int) -> np.ndarray:
     """X [n, 3] at frame index fa moved to frame index fb by the blended transform of its nearest body vertex."""
     from scipy.spatial import cKDTree
@@ -373,79 +331,6 @@ class _Tracker:
             c = _sample(self.frames.colour(inp.frames[ref], sigma), _project(self.P, _samples(X0, self.faces)))
             k = svis.sum(0)  # [S]
             self.tex[sigma] = ((svis[..., None] * c).sum(0) / k.clamp(min=1)[:, None], (k > 0).float())
-        # the start's ring moves (step 2): only on reference_mesh's tube
-        self.segments = settings.tube_segments if tube_rings(mesh, settings.tube_segments) else 0
-        self._hull: tuple[int, np.ndarray, np.ndarray] | None = None
-        if self.segments and settings.hull_start:
-            R, r, _, _ = self._radii(mesh.vertices, ref)
-            self.depth = np.clip(R - r, 0.0, None)  # [V] each vertex under the reference frame's hull, metres
-
-    def _hull_grid(self, fi: int) -> tuple[np.ndarray, np.ndarray]:
-        """Frame index `fi`'s visual hull of the training masks as `reference_mesh` builds it: (grid, corner lo)."""
-        from avatarctl.geometry.hull import carve
-
-        if self._hull is None or self._hull[0] != fi:
-            body, vox = self.inp.body_vertices[fi], self.s.voxel
-            lo, hi = body.min(0) - 0.35, body.max(0) + 0.35
-            cams = list(self.inp.cameras)
-            hull = carve(cams, [self.inp.mask(c, self.inp.frames[fi]) for c in range(len(cams))], lo, hi, vox)
-            self._hull = (fi, _occupancy(hull, lo, hi, vox), lo)
-        return self._hull[1], self._hull[2]
-
-    def _rings(self, X: np.ndarray, fi: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(up [3], each vertex's ring centre [V, 3], each vertex from it [V, 3]) of the tube X at frame index fi."""
-        up = self.inp.up[fi] / np.linalg.norm(self.inp.up[fi])
-        centre = np.repeat(X.reshape(-1, self.segments, 3).mean(1), self.segments, 0)
-        return up, centre, X - centre
-
-    def _radii(self, X: np.ndarray, fi: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """Per vertex of the tube X: (the frame's hull's outer boundary [V] and the vertex's own distance [V] from its
-        ring's axis, along the horizontal direction [V, 3] from that axis; hit [V]: the ray met the hull)."""
-        up, centre, rel = self._rings(X, fi)
-        flat = rel - (rel @ up)[:, None] * up
-        r = np.linalg.norm(flat, axis=1)
-        ray = flat / r.clip(min=1e-6)[:, None]
-        grid, lo = self._hull_grid(fi)
-        R, hit = _outer_boundary(grid, lo, self.s.voxel, centre + (rel @ up)[:, None] * up, ray)
-        return np.where(hit, R, r), r, ray, hit
-
-    def hull_start(self, X: np.ndarray, fi: int) -> np.ndarray:
-        """The start X [V, 3] at frame index fi grown out to the frame's visual hull less each vertex's depth under
-        the reference frame's (growth only: the hull cannot carve a fold's hollow), smoothed over 1 ring and 2
-        segments: a skirt that flares is wider than the skeleton moves it, and the silhouette term alone pulls a
-        start that far inside the cloth only partly out (docs/fit.md "Garment tracking")."""
-        from scipy.ndimage import gaussian_filter
-
-        R, r, ray, _ = self._radii(X, fi)
-        grow = np.clip(R - self.depth - r, 0.0, None).reshape(-1, self.segments)
-        grow = gaussian_filter(grow, (1.0, 2.0), mode=("nearest", "wrap")).ravel()
-        return X + grow[:, None] * ray
-
-    def twist(self, X: np.ndarray, Xp: np.ndarray, vis: np.ndarray, fa: int, fb: int) -> np.ndarray:
-        """Each ring of the start X [V, 3] at frame index fb turned about up (through the ring's centre) by the angle
-        in +-`twist_deg` (1 degree steps) at which its vertices' colours in fb's views best match their colours at
-        fa (surface Xp, views `vis` [C, V]); the costs are averaged over neighbouring rings (1.5 rings) and the
-        chosen angles smoothed (1 ring): the print's gradient alone does not turn a twirling hem as far as it goes,
-        nor all of it alike."""
-        from scipy.ndimage import gaussian_filter1d
-
-        sigma, A = self.s.sigmas[-1], self.segments
-        f32 = dict(dtype=torch.float32, device=self.dev)
-        c0 = _sample(self.frames.colour(self.inp.frames[fa], sigma), _project(self.P, torch.as_tensor(Xp, **f32)))
-        img = self.frames.colour(self.inp.frames[fb], sigma)
-        w = torch.as_tensor(vis, **f32)  # [C, V]
-        up, centre, rel = self._rings(X, fb)
-        angles = np.radians(np.arange(-self.s.twist_deg, self.s.twist_deg + 0.5, 1.0))
-        cost = np.zeros((len(X) // A, len(angles)))
-        with torch.no_grad():
-            for k, a in enumerate(angles):
-                c1 = _sample(img, _project(self.P, torch.as_tensor(centre + _turn(rel, up, a), **f32)))
-                cost[:, k] = (w * ((c1 - c0) ** 2).sum(-1)).sum(0).reshape(-1, A).sum(1).cpu().numpy()
-        seen = w.sum(0).reshape(-1, A).sum(1).cpu().numpy()[:, None]
-        cost = gaussian_filter1d(cost, 1.5, axis=0, mode="nearest") / np.maximum(
-            gaussian_filter1d(np.broadcast_to(seen, cost.shape), 1.5, axis=0, mode="nearest"), 1e-9)
-        best = gaussian_filter1d(angles[np.argmin(cost, 1)], 1.0, mode="nearest")  # [rings]
-        return centre + _turn(rel, up, np.repeat(best, A))
 
     def _sample_vis(self, vis: torch.Tensor) -> torch.Tensor:
         """[C, V] vertex visibility -> [C, S] sample visibility (a triangle's points: all three vertices seen)."""
@@ -473,10 +358,6 @@ class _Tracker:
         init = skin_move(inp, Xp, fa, fb)
         if Xpp is not None and s.residual_velocity:
             init = init + s.residual_velocity * (Xp - skin_move(inp, Xpp, 2 * fa - fb, fa))
-        if self.segments and s.hull_start:
-            init = self.hull_start(init, fb)
-        if self.segments and s.twist_deg > 0:
-            init = self.twist(init, Xp, vis_np, fa, fb)
         Xp_t = torch.as_tensor(Xp, dtype=torch.float32, device=self.dev)
         X = torch.as_tensor(init, dtype=torch.float32, device=self.dev).clone().requires_grad_(True)
         e0, e1 = self.edges[:, 0], self.edges[:, 1]
