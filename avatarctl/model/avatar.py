@@ -366,12 +366,6 @@ class SlrfAvatar(nn.Module):
         c, g = self.cfg, self.cfg.gaussians
         rec, mse = image_reconstruction_loss(rgb, target, alpha, mask, g.lambda_ssim, g.lambda_mask,
                                              c.rec_reference_rays)
-        if g.lambda_opacity or g.lambda_scale:
-            f = self.fields
-            reg = g.lambda_opacity * torch.sigmoid(f.opacity_logits).mean() + g.lambda_scale * f.log_scales.exp().mean()
-            rec = rec + 3 * c.rec_reference_rays * reg
-        if g.lambda_surface:
-            rec = rec + 3 * c.rec_reference_rays * g.lambda_surface * self.fields.surface_penalty(g.surface_margin)
         return self._with_regularisers(rec, mse, state)
 
     # ---- step 2: rendering --------------------------------------------------------------------------------------

@@ -261,13 +261,6 @@ class GaussianConfig(_SubConfig):
     # tight clothing (docs/fit.md, docs/experiments/gaussian_tiny_2026-11-27)
     lambda_ssim: float = 0.1
     lambda_mask: float = 0.1
-    # EXPERIMENT (issue 51): 3DGS-MCMC's L1 on the Gaussians' base opacities and on their scales (metres), weighed as
-    # against the per-channel L1 of the image loss
-    lambda_opacity: float = 0.0
-    lambda_scale: float = 0.0
-    # EXPERIMENT: body nodes' Gaussians pulled back within surface_margin (metres) of the template surface
-    lambda_surface: float = 0.0
-    surface_margin: float = 0.03
     # learning rates of the Gaussians' own parameters (3DGS's; the networks use FitConfig.lr)
     lr_means: float = 1.6e-4  # metres
     lr_scales: float = 5e-3  # log metres
@@ -295,7 +288,7 @@ class GaussianConfig(_SubConfig):
         need(0 <= self.min_opacity < self.init_opacity, f"min_opacity must be in [0, init_opacity), got "
              f"{self.min_opacity}")
         need(0 <= self.lambda_ssim <= 1, f"lambda_ssim must be in [0, 1], got {self.lambda_ssim}")
-        for name in ("offset_scale", "lambda_mask", "low_pass", "lambda_opacity", "lambda_scale", "lambda_surface", "surface_margin"):
+        for name in ("offset_scale", "lambda_mask", "low_pass"):
             need(getattr(self, name) >= 0, f"{name} must be >= 0, got {getattr(self, name)}")
         for name in ("lr_means", "lr_scales", "lr_quats", "lr_opacity", "lr_colors"):
             need(getattr(self, name) > 0, f"{name} must be > 0, got {getattr(self, name)}")

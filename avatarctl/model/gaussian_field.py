@@ -211,25 +211,6 @@ class NodeGaussians(nn.Module):
             self.register_buffer("normals", init_normals.clone().float())  # [N, K, 3] n_ik, node frame (fixed)
             self.light = nn.Parameter(torch.zeros(8, 3))  # l: E = 1 + sum_j l_j Y_j, per colour channel
 
-    def set_surface(self, local: torch.Tensor, on_body: torch.Tensor) -> None:
-        """EXPERIMENT: template vertices near each node [N, M, 3] (node-local), which nodes are on the body [N]."""
-        self.register_buffer("surface_local", local.float(), persistent=False)
-        self.register_buffer("surface_on_body", on_body, persistent=False)
-
-    def surface_penalty(self, margin: float) -> torch.Tensor:
-        """EXPERIMENT: mean over the body nodes' Gaussians of (max(0, d - margin) / margin)^2, d the distance of the
-        mean to the nearest template vertex."""
-        b = self.surface_on_body
-        means, surface = self.means[b], self.surface_local[b]  # [Nb, K, 3], [Nb, M, 3]
-        calls = getattr(self, "_surface_calls", 0)
-        self._surface_calls = calls + 1
-        if calls % 10 == 0:  # the nearest vertices refreshed every 10 steps (the means move < 2 mm in between)
-            with torch.no_grad():
-                self._surface_near = torch.cdist(means, surface).argmin(-1)  # [Nb, K]
-        near = self._surface_near
-        d = (means - torch.gather(surface, 1, near[..., None].expand(-1, -1, 3))).norm(dim=-1)
-        return (torch.relu(d - margin) / margin).pow(2).mean()
-
     def gaussian_parameters(self) -> dict[str, list[nn.Parameter]]:
         """The per-Gaussian parameters by learning-rate group (names of `GaussianConfig.lr_*`)."""
         return {"lr_means": [self.means], "lr_scales": [self.log_scales], "lr_quats": [self.quats],

@@ -131,12 +131,6 @@ class Rasterized:
                                   ).reshape(means.shape) if cfg.gaussians.shading == "irradiance" else None
         avatar.fields = NodeGaussians(cfg.gaussians, cfg.num_nodes, cfg.embed_dim, means, log_scales, cfg.sigma,
                                       normals)
-        if cfg.gaussians.lambda_surface:
-            V = template.vertices.detach().float().cpu()
-            r = rest.detach().float().cpu()
-            d = torch.cdist(r, V)
-            knn = d.topk(min(512, V.shape[0]), largest=False).indices
-            avatar.fields.set_surface(V[knn] - r[:, None], d.min(1).values < 1e-4)
 
     def query(self, avatar: "SlrfAvatar", points: torch.Tensor, dirs: torch.Tensor, point_frame: torch.Tensor,
               state: "NodeState", candidates: tuple[torch.Tensor, torch.Tensor] | None = None
