@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 import torch
 
-from avatarctl.fit.hull_nodes import HullSurvey, auto_hull_nodes, mesh_volume, off_body_canonical, persistent_cells
+from avatarctl.fit.hull_nodes import (HullSurvey, auto_hull_nodes, mesh_volume, off_body_canonical, persistent_cells,
+                                     worn_cells)
 from avatarctl.geometry.cameras import Camera, look_at
 from avatarctl.geometry.hull import carve
 from avatarctl.model import ModelConfig
@@ -89,6 +90,26 @@ def test_persistence_drops_what_one_frame_shows():
     assert len(kept) >= 1 and np.abs(kept - [0.3, 0.0, -0.4]).max() < 0.06
     assert not (np.linalg.norm(kept - 2.0, axis=-1) < 0.1).any()
     assert persistent_cells([], 0.05, 2).shape == (0, 3)
+
+
+def test_only_cells_connected_to_the_body_are_worn():
+    """A skirt's shell of cells reaching out from the legs is kept whole, its far hem included; a floor patch as
+    large, 40 cm from the body, is dropped, and so is a lone cell just beyond reach."""
+    body = np.stack(np.meshgrid(np.linspace(-0.1, 0.1, 5), np.linspace(-0.1, 0.1, 5), np.linspace(-0.8, 0.6, 30)),
+                    -1).reshape(-1, 3)  # a column of vertices
+    a, t = np.meshgrid(np.linspace(0, 2 * np.pi, 120, endpoint=False), np.linspace(0, 1, 40))
+    r, z = 0.15 + 0.3 * t, -0.1 - 0.4 * t  # a cone from the hips out to a hem 0.35 m from the column
+    skirt = np.stack([r * np.cos(a), r * np.sin(a), z], -1).reshape(-1, 3)
+    skirt = np.unique(np.floor(skirt / 0.05), axis=0) * 0.05 + 0.025  # one point per 5 cm cell
+    floor = np.stack(np.meshgrid(np.arange(12), np.arange(12)), -1).reshape(-1, 2) * 0.05 + [0.6, 0.0]
+    floor = np.concatenate([floor, np.full((len(floor), 1), -1.0)], 1) + 0.025
+    lone = np.array([[0.0, 0.26, 0.3]])  # 0.16 m from the column
+    kept, dropped = worn_cells(np.concatenate([skirt, floor, lone]), 0.05, body, reach=0.14)
+    assert len(kept) == len(skirt) and dropped == len(floor) + 1
+    assert np.allclose(np.sort(kept, axis=0), np.sort(skirt, axis=0))
+    assert worn_cells(np.zeros((0, 3)), 0.05, body, 0.14)[0].shape == (0, 3)
+    survey = HullSurvey(cells=kept, cell=0.05, frames=6, body_volume=0.06, apart=dropped)
+    assert f"{dropped} more apart from the body, dropped" in survey.describe()
 
 
 @pytest.mark.parametrize("frames, need", [(1, 1), (2, 2), (10, 2), (24, 4), (80, 12)])

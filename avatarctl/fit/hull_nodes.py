@@ -17,7 +17,10 @@ the training masks:
 3. each is mapped to the canonical space with the inverse skinning transform of its nearest posed body vertex
    (Eq. 1 inverted); of the pooled points, only the 5 cm cells that points of at least 15 % of the carved frames (and
    at least two; one carved frame keeps all its cells) fall in are kept (one frame's phantom hull volume, or a hem
-   mapped through a swinging leg, is not);
+   mapped through a swinging leg, is not); of these, only the connected groups of cells (cubes sharing a face, an
+   edge or a corner) that come within `min_dist` of the canonical body are kept (`worn_cells`): a garment hangs from
+   the body, while a mask error that persists (a patch of floor or shadow MediaPipe keeps in its masks) lies apart
+   from it;
 4. K nodes are chosen among them by farthest point sampling, starting from the surface nodes (so they go where the
    surface nodes are not), each skinned like its nearest canonical body vertex. When fewer than K points remain
    (tight clothing; one training view, which carves nothing), the missing nodes go on the surface, farthest from
@@ -50,6 +53,7 @@ class HullSurvey:
     cell: float  # side of a cell, metres
     frames: int  # training frames carved
     body_volume: float  # the canonical template mesh's volume, m^3
+    apart: int = 0  # persistent cells dropped as apart from the body (`worn_cells`)
 
     def __post_init__(self) -> None:
         assert self.cells.ndim == 2 and self.cells.shape[1] == 3, f"cells {self.cells.shape}"
@@ -66,7 +70,10 @@ class HullSurvey:
 
     def describe(self) -> str:
         return (f"{len(self.cells):,} persistent off-body cells of {self.frames} frames ({self.volume * 1e3:.1f} l, "
-                f"{100 * self.share:.1f} % of the body volume)")
+                f"{100 * self.share:.1f} % of the body volume{self._apart()})")
+
+    def _apart(self) -> str:
+        return f"; {self.apart:,} more apart from the body, dropped" if self.apart else ""
 
 
 @dataclass(frozen=True)
@@ -124,6 +131,26 @@ def persistent_cells(per_frame: list[np.ndarray], cell: float, min_frames: int) 
     return mean[frames_in >= min_frames]
 
 
+def worn_cells(cells: np.ndarray, cell: float, body_vertices: np.ndarray, reach: float) -> tuple[np.ndarray, int]:
+    """The cells of `persistent_cells` ([C, 3], cubes of side `cell`) that belong to a connected group (cubes
+    sharing a face, an edge or a corner) of which at least one cell lies within `reach` of the canonical body
+    (`body_vertices` [V, 3]) -> (those cells [C', 3], how many were dropped)."""
+    from scipy import ndimage
+    from scipy.spatial import cKDTree
+
+    if not len(cells):
+        return cells, 0
+    keys = np.floor(cells / cell).astype(np.int64)
+    keys -= keys.min(0)
+    grid = np.zeros(keys.max(0) + 1, dtype=bool)
+    grid[tuple(keys.T)] = True
+    labels, _ = ndimage.label(grid, structure=np.ones((3, 3, 3), dtype=bool))
+    group = labels[tuple(keys.T)]  # [C] 1..n
+    near = cKDTree(body_vertices).query(cells)[0] <= reach
+    keep = np.isin(group, np.unique(group[near]))
+    return cells[keep], int((~keep).sum())
+
+
 def persistence_threshold(frames: int, min_share: float) -> int:
     """How many of `frames` carved frames must show a cell for `persistent_cells` to keep it: `min_share` of them and
     at least two, but never more than there are (one carved frame, a static multi-view capture, keeps its cells)."""
@@ -169,8 +196,9 @@ def survey_hull(capture, body, template, frames: list[int], views: list[str], su
         Tv = blend_transforms(W, posed.joint_transforms[t:t + 1].double())[0]  # [V, 4, 4]
         pooled.append(off_body_canonical(pts, V, Tv, V[surface_vertex].numpy(), min_dist))
     cells = persistent_cells(pooled, cell=2 * voxel, min_frames=persistence_threshold(len(use), min_share))
+    cells, apart = worn_cells(cells, 2 * voxel, template.vertices.detach().cpu().numpy(), min_dist)
     return HullSurvey(cells=cells, cell=2 * voxel, frames=len(use),
-                      body_volume=mesh_volume(template.vertices, template.faces))
+                      body_volume=mesh_volume(template.vertices, template.faces), apart=apart)
 
 
 def auto_hull_nodes(survey: HullSurvey, k: int, min_volume: float) -> int:

@@ -113,7 +113,9 @@ class HullConfig(_SubConfig):
     the training masks' visual hull keeps showing the subject beyond the body (loose clothing)."""
 
     nodes: int | str = 0  # K (0: all N on the surface, Sec. 3.1) | "auto": decided from the masks at fit start
-    min_dist: float = 0.14  # hull points farther than this (metres) from every surface node are off-body
+    # hull points farther than this (metres) from every surface node are off-body; a group of off-body cells none of
+    # which comes this close to the canonical body is not worn (fit/hull_nodes.py `worn_cells`)
+    min_dist: float = 0.14
     auto_fraction: float = 0.25  # "auto" says yes: this share of the N nodes goes off the body (32 of 128)
     auto_min_volume: float = 0.1  # "auto" says yes when the persistent off-body cells hold >= this x body volume
     # garment tracking on a loose garment (FitConfig.track, "auto" said yes): the nodes in all, half of them off the
