@@ -7,7 +7,11 @@ For a synth preset and seed (default `realistic`: 4 cameras, every imperfection)
 anny, or `fit_noise`: fits with --fit-noise errors), ingests each (`--masks mediapipe` / `--fits keypoints` where the
 capture leaves them out), fits each for the same wall-time budget (`--set time_budget_s=...`), evaluates the held-out
 views of the training frames (bbox protocol; the plain PSNR and NeRF-W's colour-matched one, `avatarctl eval`), and
-writes the table: per capture its PSNR / SSIM, the colour-matched PSNR, and the cost against the clean twin. With
+writes the table: per capture its PSNR / SSIM, the colour-matched PSNR, and the cost against the clean twin; and the
+same images in the clean twin's units (`clean_units_psnr`): a camera g times brighter records the avatar's error
+g times larger too, so a capture whose held-out camera is brighter than the clean twin's loses 20 log10 g dB however
+good its avatar; each image's error is divided per channel by its camera's true gain (capture.json "camera_colour",
+per-channel MSE from per_frame.csv), and `units_cost_db` is the cost left against the clean twin. With
 `--colour` every capture is also fitted with the per-camera colour transforms on (`model.colour.enabled=true`,
 rows `<name>+colour`): the lever measured against the capture it is meant for.
 
@@ -42,7 +46,9 @@ SINGLES: dict[str, tuple[str, ...]] = {
 }
 PROTOCOL = ("novel_view split (training frames, held-out views), bbox protocol; psnr: plain; matched_psnr: NeRF-W's "
             "colour-matched PSNR (colour fitted on the left half, scored on the right half; matched_plain_psnr: the "
-            "plain render on the same right halves); cost_db: clean twin's psnr minus this capture's")
+            "plain render on the same right halves); cost_db: clean twin's psnr minus this capture's; "
+            "clean_units_psnr: the same images with each channel's error divided by the camera's true gain "
+            "(capture.json camera_colour), mean over images; units_cost_db: the clean twin's psnr minus it")
 
 
 @dataclass(frozen=True)
@@ -76,6 +82,24 @@ def ingest_options(config: Any) -> dict[str, str]:
             "fits": "keypoints" if config.fits == "none" else "files"}
 
 
+def clean_units_psnr(rows: list[dict[str, Any]], gains: dict[str, list[float]]) -> float | None:
+    """The mean over images (`rows`: per_frame.csv's, `evaluate.report.read_per_frame_csv`) of the PSNR with each
+    channel's squared error divided by the square of its camera's true gain (`gains`: view -> [3], a synth capture's
+    capture.json "camera_colour"; 1 for a view without one): the error as a camera with the clean twin's exposure
+    would record it. None without per-channel errors."""
+    import numpy as np
+
+    from avatarctl.evaluate.metrics import psnr_from_mse
+
+    if not rows or any(r.get("mse_rgb") is None for r in rows):
+        return None
+    out = []
+    for r in rows:
+        g = np.asarray(gains.get(r["view"], (1.0, 1.0, 1.0)), dtype=np.float64)
+        out.append(psnr_from_mse(float(np.mean(np.asarray(r["mse_rgb"]) / g ** 2))))
+    return float(np.mean(out))
+
+
 def _peak_rss_gb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20
 
@@ -106,6 +130,7 @@ def _build(cap: Capture, root: Path, reuse: bool, log) -> tuple[Path, dict[str, 
 
 def _fit_and_eval(name: str, project: Path, fit_preset: str, budget_s: float, sets: list[str], every: int,
                   device: str, sheets: Path, log) -> dict[str, Any]:
+    from avatarctl.evaluate.report import read_per_frame_csv
     from avatarctl.stages import evaluate, fit
     from avatarctl.stages.evaluate import EvalConfig
     from avatarctl.stages.fit import FitRequest
@@ -121,7 +146,10 @@ def _fit_and_eval(name: str, project: Path, fit_preset: str, budget_s: float, se
     if (er.out_dir / "sheet.png").is_file():
         shutil.copyfile(er.out_dir / "sheet.png", sheets / f"{name}.png")
     cm = m.colour_matched
+    gains = json.loads((project.parent / "capture" / "capture.json").read_text()).get("camera_colour", {})
+    units = clean_units_psnr(read_per_frame_csv(er.out_dir / "per_frame.csv"), gains)
     row = {"name": name, "psnr": round(m.psnr, 4), "ssim": round(m.ssim, 5),
+           "clean_units_psnr": round(units, 4) if units is not None else None,
            "matched_psnr": round(cm["psnr"], 4) if cm else None,
            "matched_plain_psnr": round(cm["plain_psnr"], 4) if cm else None,
            "matched_gain": json.dumps(cm["gain"]) if cm else None, "images": m.images,
@@ -194,8 +222,11 @@ def main(argv: list[str] | None = None) -> Result:
     for r in rows:
         base = clean.get(r["colour_transform"])
         r["cost_db"] = round(base - r["psnr"], 4) if base is not None else None
+        u = r["clean_units_psnr"]
+        r["units_cost_db"] = round(base - u, 4) if base is not None and u is not None else None
     keys = ["name", "capture", "colour_transform", "imperfections", "psnr", "ssim", "matched_psnr",
-            "matched_plain_psnr", "cost_db", "matched_gain", "images", "fit_steps", "fit_seconds", "fit_wall_s",
+            "matched_plain_psnr", "cost_db", "clean_units_psnr", "units_cost_db", "matched_gain", "images",
+            "fit_steps", "fit_seconds", "fit_wall_s",
             "eval_s", "synth_s", "ingest_s", "peak_rss_gb"]
     csv_path, json_path = out / "results.csv", out / "results.json"
     with csv_path.open("w", newline="") as fh:
@@ -208,6 +239,7 @@ def main(argv: list[str] | None = None) -> Result:
                                      "rows": rows}, indent=2) + "\n")
     for r in rows:
         log(f"{r['name']:<22} PSNR {r['psnr']:7.3f}  cost {r['cost_db'] if r['cost_db'] is not None else '-':>8}  "
+            f"clean units {r['clean_units_psnr']} (cost {r['units_cost_db']})  "
             f"matched {r['matched_psnr']}  steps {r['fit_steps']}")
     return Result(rows=rows, csv=csv_path, json=json_path)
 

@@ -52,3 +52,31 @@ def test_the_benchmark_runs_at_toy_scale(tmp_path):
     meta = json.loads(res.json.read_text())
     assert "NeRF-W" in meta["protocol"] and meta["synth"]["colour"]["exposure_ev"] == 0.4
     assert meta["synth"]["clean"]["exposure_ev"] == 0.0 and meta["budget_s"] == 1.0
+    # the clean twin's cameras have gain 1: its images in its own units are its plain figure
+    assert math.isclose(clean["clean_units_psnr"], clean["psnr"], abs_tol=0.05)
+    assert colour["clean_units_psnr"] is not None and colour["units_cost_db"] is not None
+
+
+def test_clean_units_psnr_takes_a_brighter_camera_back_to_the_clean_exposure():
+    """An avatar as good as the clean twin's, seen by a camera g times brighter per channel (render and photograph
+    alike), scores lower by the brightness alone; in the clean twin's units it scores what the clean twin did."""
+    import numpy as np
+
+    from avatarctl.evaluate.metrics import mse, mse_channels, psnr
+    from benchmarks.realistic_capture import clean_units_psnr
+
+    rng = np.random.default_rng(0)
+    truth = rng.uniform(0.1, 0.6, (2, 16, 16, 3))
+    render = np.clip(truth + rng.normal(0, 0.05, truth.shape), 0, 1)
+    g = np.array([1.4, 1.3, 1.2])
+    rows = []
+    for k in range(2):
+        channels = mse_channels(render[k] * g, truth[k] * g)
+        assert math.isclose(channels.mean(), mse(render[k] * g, truth[k] * g), rel_tol=1e-6)
+        rows.append({"view": "cam01", "mse_rgb": tuple(channels)})
+    clean = float(np.mean([psnr(render[k], truth[k]) for k in range(2)]))
+    bright = float(np.mean([psnr(render[k] * g, truth[k] * g) for k in range(2)]))
+    assert bright < clean - 2.0  # the brightness alone costs 20 log10(~1.3) dB
+    assert math.isclose(clean_units_psnr(rows, {"cam01": list(g)}), clean, abs_tol=1e-4)  # float32 images
+    assert math.isclose(clean_units_psnr(rows, {}), bright, abs_tol=1e-4)  # a view without a gain: as recorded
+    assert clean_units_psnr([{"view": "cam01", "mse_rgb": None}], {}) is None

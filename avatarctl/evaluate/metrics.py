@@ -25,8 +25,8 @@ def to_float(img: np.ndarray) -> np.ndarray:
     return a.astype(np.float32)
 
 
-def mse(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray | None = None) -> float:
-    """Mean squared error over pixels (and channels); over `mask` pixels only when given ([H, W] bool)."""
+def _squared_errors(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray | None) -> np.ndarray:
+    """(pred - gt)^2 [H, W, C], or [n, C] over the `mask` pixels ([H, W] bool) when given."""
     p, g = to_float(pred), to_float(gt)
     assert p.shape == g.shape, f"pred {p.shape} vs gt {g.shape}"
     d = (p - g) ** 2
@@ -36,7 +36,19 @@ def mse(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray | None = None) -> flo
         if not m.any():
             raise ValueError("empty evaluation mask")
         d = d[m]
-    return float(d.mean(dtype=np.float64))
+    return d
+
+
+def mse(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray | None = None) -> float:
+    """Mean squared error over pixels (and channels); over `mask` pixels only when given ([H, W] bool)."""
+    return float(_squared_errors(pred, gt, mask).mean(dtype=np.float64))
+
+
+def mse_channels(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray | None = None) -> np.ndarray:
+    """[C] the mean squared error of each channel over the pixels (over `mask` pixels when given); `mse` is their
+    mean. A camera g_k times brighter in channel k scales that channel's error by g_k^2."""
+    d = _squared_errors(pred, gt, mask)
+    return d.reshape(-1, d.shape[-1]).mean(0, dtype=np.float64)
 
 
 def psnr_from_mse(m: float) -> float:

@@ -30,6 +30,7 @@ class ImageScore:
     region_pixels: dict[str, int] | None = None
     matched: "MatchedScore | None" = None  # the colour-matched score (NeRF-W's protocol), None: a half was empty
     refined: "RefinedScore | None" = None  # the same image after its frame's pose refinement (`--refine-pose`)
+    mse_rgb: tuple[float, float, float] | None = None  # per channel over the same pixels (`mse` is their mean)
 
 
 @dataclass(frozen=True)
@@ -253,7 +254,8 @@ def per_frame_csv(scores: list[ImageScore]) -> str:
     from avatarctl.evaluate.metrics import psnr_from_mse
 
     names = list(scores[0].region_pixels) if scores and scores[0].region_pixels is not None else []
-    w.writerow(["frame", "view", "psnr", "ssim", "mse", "pixels", "matched_psnr", "matched_plain_psnr",
+    w.writerow(["frame", "view", "psnr", "ssim", "mse", "mse_r", "mse_g", "mse_b", "pixels", "matched_psnr",
+                "matched_plain_psnr",
                 "refined_psnr", "refined_ssim", "latent", "render_seconds"]
                + [f"{n}_{k}" for n in names for k in ("psnr", "pixels")])
     for s in scores:
@@ -265,8 +267,9 @@ def per_frame_csv(scores: list[ImageScore]) -> str:
                                                       for e in (s.matched.mse, s.matched.plain_mse)]
         refined = ["", ""] if s.refined is None else [f"{min(s.refined.psnr, PSNR_CAP):.4f}",
                                                        f"{s.refined.ssim:.6f}"]
-        w.writerow([s.frame, s.view, f"{min(s.psnr, PSNR_CAP):.4f}", f"{s.ssim:.6f}", f"{s.mse:.8f}", s.pixels]
-                   + matched + refined + [s.latent, f"{s.seconds:.3f}"] + extra)
+        channels = ["", "", ""] if s.mse_rgb is None else [f"{e:.8f}" for e in s.mse_rgb]
+        w.writerow([s.frame, s.view, f"{min(s.psnr, PSNR_CAP):.4f}", f"{s.ssim:.6f}", f"{s.mse:.8f}"] + channels
+                   + [s.pixels] + matched + refined + [s.latent, f"{s.seconds:.3f}"] + extra)
     return buf.getvalue()
 
 
@@ -275,6 +278,7 @@ def read_per_frame_csv(path: str | Path) -> list[dict[str, Any]]:
     rows = []
     with open(path, newline="") as fh:
         for r in csv.DictReader(fh):
+            rgb = tuple(float(r[k]) for k in ("mse_r", "mse_g", "mse_b")) if r.get("mse_r") else None
             rows.append({"frame": int(r["frame"]), "view": r["view"], "psnr": float(r["psnr"]),
-                         "ssim": float(r["ssim"]), "mse": float(r["mse"]), "pixels": int(r["pixels"])})
+                         "ssim": float(r["ssim"]), "mse": float(r["mse"]), "mse_rgb": rgb, "pixels": int(r["pixels"])})
     return rows

@@ -497,7 +497,7 @@ def _score_image(avatar: Any, cap: Any, cfg: EvalConfig, project: Project, state
     """Render one (frame, view) over `background` and the protocol's region and score it against the ground truth
     of `cap` (the avatar's capture, or the test project's); `gain` [3]: the held-out camera's colour gains
     (`_held_out_gains`)."""
-    from avatarctl.evaluate.metrics import mse, psnr_from_mse, ssim
+    from avatarctl.evaluate.metrics import mse, mse_channels, psnr_from_mse, ssim
     from avatarctl.evaluate.protocols import bbox_region, full_region, ground_truth, mpmavatar_images
     from avatarctl.evaluate.regions import SILHOUETTE_REGIONS, silhouette_band, split_silhouette
     from avatarctl.evaluate.sheet import SheetRow
@@ -534,7 +534,9 @@ def _score_image(avatar: Any, cap: Any, cfg: EvalConfig, project: Project, state
                                                  SILHOUETTE_REGIONS)
     elif geometry is not None:
         region_mse, region_pixels = _garment_errors(rgb, gt, region.mask, cam, geometry, frame)
-    score = ImageScore(frame=frame, view=view, psnr=psnr_from_mse(e), ssim=s, mse=e, pixels=int(region.mask.sum()),
+    rgb_mse = tuple(float(x) for x in mse_channels(rgb, gt, region.mask))
+    score = ImageScore(frame=frame, view=view, psnr=psnr_from_mse(e), ssim=s, mse=e, mse_rgb=rgb_mse,
+                       pixels=int(region.mask.sum()),
                        latent=latent, seconds=round(view_out.seconds, 4), region_mse=region_mse,
                        region_pixels=region_pixels,
                        matched=_matched_score(rgb, view_out.alpha, gt, mask, background, region.mask, region.crop))
