@@ -322,9 +322,10 @@ def _open_run(project: Project, cfg: FitConfig | None, resume: bool, fresh: bool
     return capture, train_frames, cfg, ckpt
 
 
-# `model.hull.tracked_nodes` needs this many training views: synth small (8 views, 15 min) +0.15 dB held-out on both
-# seeds; synth realistic (3 views, 300 s) -0.14 / -0.18, where the tracker follows 11-21 of 24 frames and more, smaller
-# patches pay only once their motion is right (docs/experiments/garment_tracking_ceiling_2026-11-30/)
+# `model.hull.tracked_nodes` and the garment tracking pass need this many training views: synth small (8 views, 15 min)
+# +0.15 dB held-out on both seeds with the tracked model; synth realistic (3 views, 300 s) -0.14 / -0.18 with it, and
+# the tracker itself -0.02 / -0.25 / -0.19 (seeds 0 / 1 / 7) against none: its tube from MediaPipe's masks is farther
+# from the cloth than the skeleton (docs/experiments/garment_tracking_ceiling_2026-11-30/, realistic_costs_2026-12-02/)
 TRACKED_NODES_MIN_VIEWS = 4
 
 
@@ -459,6 +460,9 @@ def _track_garment(t: "_Trainer", template, hull_count: int) -> tuple[str, float
         return "garment tracking: skipped (no hull nodes: no loose garment found)", 0.0
     if len(views) < 2:
         return "garment tracking: skipped (one training view: the cloth cannot be placed in depth)", 0.0
+    if len(views) < TRACKED_NODES_MIN_VIEWS:
+        return (f"garment tracking: skipped ({len(views)} training views: from so few masks the tracked surface places "
+                f"the garment worse than the skeleton; {TRACKED_NODES_MIN_VIEWS} or more)"), 0.0
     if t.replicas.distributed:
         return "garment tracking: skipped (one process only; run without --nproc)", 0.0
     inp = gt.capture_input(t.capture, t.body, template, t.train_frames, views)
