@@ -10,8 +10,8 @@ views of the training frames (bbox protocol; the plain PSNR and NeRF-W's colour-
 writes the table: per capture its PSNR / SSIM, the colour-matched PSNR, and the cost against the clean twin; and the
 same images in the clean twin's units (`clean_units_psnr`): a camera g times brighter records the avatar's error
 g times larger too, so a capture whose held-out camera is brighter than the clean twin's loses 20 log10 g dB however
-good its avatar; each image's error is divided per channel by its camera's true gain (capture.json "camera_colour",
-per-channel MSE from per_frame.csv), and `units_cost_db` is the cost left against the clean twin. With
+good its avatar; each image's error is divided per channel by its camera's true gain (capture.json "camera_colour";
+the eval's per-channel MSE), and `units_cost_db` is the cost left against the clean twin. With
 `--colour` every capture is also fitted with the per-camera colour transforms on (`model.colour.enabled=true`,
 rows `<name>+colour`): the lever measured against the capture it is meant for.
 
@@ -82,21 +82,21 @@ def ingest_options(config: Any) -> dict[str, str]:
             "fits": "keypoints" if config.fits == "none" else "files"}
 
 
-def clean_units_psnr(rows: list[dict[str, Any]], gains: dict[str, list[float]]) -> float | None:
-    """The mean over images (`rows`: per_frame.csv's, `evaluate.report.read_per_frame_csv`) of the PSNR with each
-    channel's squared error divided by the square of its camera's true gain (`gains`: view -> [3], a synth capture's
+def clean_units_psnr(scores: list[Any], gains: dict[str, list[float]]) -> float | None:
+    """The mean over images (`scores`: an eval's `evaluate.report.ImageScore`s) of the PSNR with each channel's
+    squared error divided by the square of its camera's true gain (`gains`: view -> [3], a synth capture's
     capture.json "camera_colour"; 1 for a view without one): the error as a camera with the clean twin's exposure
     would record it. None without per-channel errors."""
     import numpy as np
 
     from avatarctl.evaluate.metrics import psnr_from_mse
 
-    if not rows or any(r.get("mse_rgb") is None for r in rows):
+    if not scores or any(s.mse_rgb is None for s in scores):
         return None
     out = []
-    for r in rows:
-        g = np.asarray(gains.get(r["view"], (1.0, 1.0, 1.0)), dtype=np.float64)
-        out.append(psnr_from_mse(float(np.mean(np.asarray(r["mse_rgb"]) / g ** 2))))
+    for s in scores:
+        g = np.asarray(gains.get(s.view, (1.0, 1.0, 1.0)), dtype=np.float64)
+        out.append(psnr_from_mse(float(np.mean(np.asarray(s.mse_rgb) / g ** 2))))
     return float(np.mean(out))
 
 
@@ -130,7 +130,6 @@ def _build(cap: Capture, root: Path, reuse: bool, log) -> tuple[Path, dict[str, 
 
 def _fit_and_eval(name: str, project: Path, fit_preset: str, budget_s: float, sets: list[str], every: int,
                   device: str, sheets: Path, log) -> dict[str, Any]:
-    from avatarctl.evaluate.report import read_per_frame_csv
     from avatarctl.stages import evaluate, fit
     from avatarctl.stages.evaluate import EvalConfig
     from avatarctl.stages.fit import FitRequest
@@ -147,7 +146,7 @@ def _fit_and_eval(name: str, project: Path, fit_preset: str, budget_s: float, se
         shutil.copyfile(er.out_dir / "sheet.png", sheets / f"{name}.png")
     cm = m.colour_matched
     gains = json.loads((project.parent / "capture" / "capture.json").read_text()).get("camera_colour", {})
-    units = clean_units_psnr(read_per_frame_csv(er.out_dir / "per_frame.csv"), gains)
+    units = clean_units_psnr(er.scores, gains)
     row = {"name": name, "psnr": round(m.psnr, 4), "ssim": round(m.ssim, 5),
            "clean_units_psnr": round(units, 4) if units is not None else None,
            "matched_psnr": round(cm["psnr"], 4) if cm else None,

@@ -63,7 +63,12 @@ def test_clean_units_psnr_takes_a_brighter_camera_back_to_the_clean_exposure():
     import numpy as np
 
     from avatarctl.evaluate.metrics import mse, mse_channels, psnr
+    from avatarctl.evaluate.report import ImageScore
     from benchmarks.realistic_capture import clean_units_psnr
+
+    def score(channels):  # the fields clean_units_psnr reads; the rest as an eval would fill them
+        return ImageScore(frame=0, view="cam01", psnr=0.0, ssim=0.0, mse=0.0, pixels=1, latent="mean", seconds=0.0,
+                          mse_rgb=channels)
 
     rng = np.random.default_rng(0)
     truth = rng.uniform(0.1, 0.6, (2, 16, 16, 3))
@@ -73,10 +78,10 @@ def test_clean_units_psnr_takes_a_brighter_camera_back_to_the_clean_exposure():
     for k in range(2):
         channels = mse_channels(render[k] * g, truth[k] * g)
         assert math.isclose(channels.mean(), mse(render[k] * g, truth[k] * g), rel_tol=1e-6)
-        rows.append({"view": "cam01", "mse_rgb": tuple(channels)})
+        rows.append(score(tuple(float(c) for c in channels)))
     clean = float(np.mean([psnr(render[k], truth[k]) for k in range(2)]))
     bright = float(np.mean([psnr(render[k] * g, truth[k] * g) for k in range(2)]))
     assert bright < clean - 2.0  # the brightness alone costs 20 log10(~1.3) dB
     assert math.isclose(clean_units_psnr(rows, {"cam01": list(g)}), clean, abs_tol=1e-4)  # float32 images
     assert math.isclose(clean_units_psnr(rows, {}), bright, abs_tol=1e-4)  # a view without a gain: as recorded
-    assert clean_units_psnr([{"view": "cam01", "mse_rgb": None}], {}) is None
+    assert clean_units_psnr([score(None)], {}) is None

@@ -278,7 +278,6 @@ def read_per_frame_csv(path: str | Path) -> list[dict[str, Any]]:
     rows = []
     with open(path, newline="") as fh:
         for r in csv.DictReader(fh):
-            rgb = tuple(float(r[k]) for k in ("mse_r", "mse_g", "mse_b")) if r.get("mse_r") else None
             rows.append({"frame": int(r["frame"]), "view": r["view"], "psnr": float(r["psnr"]),
-                         "ssim": float(r["ssim"]), "mse": float(r["mse"]), "mse_rgb": rgb, "pixels": int(r["pixels"])})
+                         "ssim": float(r["ssim"]), "mse": float(r["mse"]), "pixels": int(r["pixels"])})
     return rows

@@ -497,7 +497,7 @@ def _score_image(avatar: Any, cap: Any, cfg: EvalConfig, project: Project, state
     """Render one (frame, view) over `background` and the protocol's region and score it against the ground truth
     of `cap` (the avatar's capture, or the test project's); `gain` [3]: the held-out camera's colour gains
     (`_held_out_gains`)."""
-    from avatarctl.evaluate.metrics import mse, mse_channels, psnr_from_mse, ssim
+    from avatarctl.evaluate.metrics import mse_channels, psnr_from_mse, ssim
     from avatarctl.evaluate.protocols import bbox_region, full_region, ground_truth, mpmavatar_images
     from avatarctl.evaluate.regions import SILHOUETTE_REGIONS, silhouette_band, split_silhouette
     from avatarctl.evaluate.sheet import SheetRow
@@ -521,7 +521,8 @@ def _score_image(avatar: Any, cap: Any, cfg: EvalConfig, project: Project, state
     gt = ground_truth(cap.image(view, frame), mask, background)  # [H, W, 3]
     if cfg.protocol in ("mpmavatar", "mpmavatar_4d_dress"):
         rgb, gt = mpmavatar_images(rgb, gt, mask, white_cut=cfg.protocol == "mpmavatar")
-    e = mse(rgb, gt, region.mask)
+    channel_mse = mse_channels(rgb, gt, region.mask)  # [3]
+    e = float(channel_mse.mean())
     pred_crop, gt_crop = region.crop_image(rgb), region.crop_image(gt)
     try:
         s = ssim(pred_crop, gt_crop)
@@ -534,8 +535,8 @@ def _score_image(avatar: Any, cap: Any, cfg: EvalConfig, project: Project, state
                                                  SILHOUETTE_REGIONS)
     elif geometry is not None:
         region_mse, region_pixels = _garment_errors(rgb, gt, region.mask, cam, geometry, frame)
-    rgb_mse = tuple(float(x) for x in mse_channels(rgb, gt, region.mask))
-    score = ImageScore(frame=frame, view=view, psnr=psnr_from_mse(e), ssim=s, mse=e, mse_rgb=rgb_mse,
+    score = ImageScore(frame=frame, view=view, psnr=psnr_from_mse(e), ssim=s, mse=e,
+                       mse_rgb=tuple(float(x) for x in channel_mse),
                        pixels=int(region.mask.sum()),
                        latent=latent, seconds=round(view_out.seconds, 4), region_mse=region_mse,
                        region_pixels=region_pixels,
