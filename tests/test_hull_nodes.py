@@ -323,3 +323,28 @@ def test_a_fresh_fit_decides_its_model_from_the_hull_survey(monkeypatch):
     assert cfg.model == cpu.model.with_(track_refine={"enabled": False}) and hull is None and len(found) == 1
     paper = resolve_fit_config("paper")  # hull nodes off: no survey at all
     assert loop._decide_hull(paper, four, None, None, [0, 1], 1) == (paper, None, None) and len(found) == 1
+
+
+def test_the_tracking_pass_says_why_it_skips_before_it_reads_a_frame():
+    """`fit.loop._track_garment`: no hull nodes, one training view, fewer than `TRACKED_NODES_MIN_VIEWS` (three views:
+    the tracked tube placed synth realistic's skirt worse than the skeleton) or several processes -> one line that
+    says why, 0 s, and nothing tracked (the trainer stand-in has no images, body or model to read)."""
+    from types import SimpleNamespace
+
+    from avatarctl.fit import loop
+
+    def trainer(n_views: int, distributed: bool = False) -> SimpleNamespace:
+        views = tuple(f"cam{i:02d}" for i in range(n_views))
+        return SimpleNamespace(capture=SimpleNamespace(split=SimpleNamespace(train_views=views)),
+                               replicas=SimpleNamespace(distributed=distributed))
+
+    cases = ((trainer(4), 0, "no hull nodes"), (trainer(1), 8, "one training view"),
+             (trainer(2), 8, "2 training views"), (trainer(3), 8, "3 training views"),
+             (trainer(4, distributed=True), 8, "one process only"))
+    for t, hull_count, why in cases:
+        note, seconds = loop._track_garment(t, None, hull_count)
+        assert note.startswith("garment tracking: skipped (") and why in note and "\n" not in note, note
+        assert seconds == 0.0
+    assert "4 or more" in loop._track_garment(trainer(3), None, 8)[0]
+    with pytest.raises(AttributeError):  # four views, one process: the pass goes on to read the capture
+        loop._track_garment(trainer(4), None, 8)
