@@ -84,7 +84,8 @@ def test_presets_are_stated_once_and_the_defaults_are_the_paper():
     mlp_only = dict(node_width=c.model.node_width, node_depth=c.model.node_depth, feature_dim=c.model.feature_dim,
                     head_width=c.model.head_width, occupancy=c.model.occupancy)
     assert g.model.with_(field="mlp", cvae_width=c.model.cvae_width, colour=c.model.colour, hull=c.model.hull,
-                         track_refine=c.model.track_refine, **mlp_only) == c.model
+                         track_refine=c.model.track_refine, gaussians=c.model.gaussians, **mlp_only) == c.model
+    assert g.model.gaussians == replace(c.model.gaussians, mask_border_px="auto")
     assert g.model.hull == replace(c.model.hull, tracked_nodes=256)
     assert g.model.track_refine == replace(c.model.track_refine, enabled="auto")
     assert g.track and not c.track  # garment tracking: measured with the Gaussian fields only

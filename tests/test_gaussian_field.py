@@ -459,3 +459,56 @@ def test_density_query_of_the_gaussians_for_mesh_export():
     assert abs(depth - math.log(2.0)) < 0.01 * (1 + float(abs(s_world - 0.01) / 0.01))
     assert abs((1.0 - math.exp(-depth)) - 0.5) < 0.01  # the opacity a ray through the centre sees: o
 
+
+
+def test_mask_border_band_is_left_out_of_the_image_loss():
+    """`mask_border_px`: a target wrong only within 1 px of the mask's outline costs no L1 and no mask term, and
+    far less than plain; 0 gives the plain loss; a wrong pixel farther in still counts."""
+    from avatarctl.model.losses import image_reconstruction_loss, mask_border_weight
+
+    g = torch.Generator().manual_seed(0)
+    mask = torch.zeros(24, 20)
+    mask[5:19, 6:15] = 1
+    w = mask_border_weight(mask, 1)
+    assert w.shape == mask.shape and w[12, 10] == 1 and w[0, 0] == 1
+    assert w[5, 10] == 0 and w[4, 10] == 0 and w[3, 10] == 1 and w[6, 10] == 1  # 1 px either side of the outline
+    assert mask_border_weight(torch.ones(6, 6), 1).eq(1).all()  # the crop's own edge is no outline
+    assert int((mask_border_weight(mask, 2) == 0).sum()) > int((w == 0).sum())
+    rgb = torch.rand(24, 20, 3, generator=g)
+    wrong = rgb.clone()
+    wrong[w == 0] = 1 - wrong[w == 0]  # the outline's pixels mislabelled, the avatar's alpha the other way there
+    alpha = mask.clone()
+    alpha[w == 0] = 1 - alpha[w == 0]
+
+    def loss(target, ssim=0.1, border=1):
+        return float(image_reconstruction_loss([rgb], [target], [alpha], [mask], ssim, 0.1, border_px=border)[0])
+
+    assert loss(wrong, ssim=0.0) < 1e-3 < 100 < loss(wrong, ssim=0.0, border=0)  # L1 and the mask term: not seen
+    assert loss(wrong) < 0.25 * loss(wrong, border=0)  # the SSIM windows beside the outline still read it
+    plain = image_reconstruction_loss([rgb], [rgb], [mask], [mask], 0.1, 0.1)[0]
+    assert float(plain) == float(image_reconstruction_loss([rgb], [rgb], [mask], [mask], 0.1, 0.1, border_px=0)[0])
+    inside = rgb.clone()
+    inside[12, 10] = 1 - inside[12, 10]
+    assert loss(inside) > loss(rgb) + 1.0
+
+
+def test_mask_border_auto_is_decided_from_the_masks_source():
+    """`mask_border_px = "auto"` (cpu): 1 px where the masks are estimated and there are two training views or more,
+    0 where they are the capture's truth or from one view; a model cannot train on "auto"; --set takes a number or
+    auto."""
+    from avatarctl.fit.config import apply_overrides, preset
+    from avatarctl.model.config import GaussianConfig
+
+    auto = GaussianConfig(mask_border_px="auto")
+    assert auto.resolved(False, 3).border_px == 1 and auto.resolved(True, 3).border_px == 0
+    assert auto.resolved(False, 1).border_px == 0  # one view: the outline is the shape's only measure
+    assert GaussianConfig(mask_border_px=2).resolved(True, 1).border_px == 2  # a number stays
+    with pytest.raises(ValueError, match="decided from the capture"):
+        auto.border_px
+    with pytest.raises(ValueError, match="mask_border_px"):
+        GaussianConfig(mask_border_px=-1)
+    cfg = preset("cpu")
+    assert cfg.model.gaussians.mask_border_px == "auto" and preset("paper").model.gaussians.mask_border_px == 0
+    assert apply_overrides(cfg, ["model.gaussians.mask_border_px=2"]).model.gaussians.mask_border_px == 2
+    paper = apply_overrides(preset("paper"), ["model.field=gaussians", "model.gaussians.mask_border_px=auto"])
+    assert paper.model.gaussians.mask_border_px == "auto"

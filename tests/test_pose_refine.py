@@ -169,8 +169,11 @@ def test_pose_refinement_is_on_by_default_unless_the_fits_are_ground_truth(tmp_p
     assert decided(FitRequest(preset="paper")) is False
     assert decided(FitRequest(overrides=("model.pose_refine=false",))) is False  # the flat key of old configs
     assert decided(FitRequest(preset="paper", overrides=("model.pose_refine.enabled=auto",))) is True
+    border = decide_auto(fit_config(p, FitRequest()), p).model.gaussians.mask_border_px
+    assert border == 1  # the same rule for the masks (GaussianConfig.mask_border_px): a capture's own masks
     (cap / "capture.json").write_text(json.dumps({"generator": "synth-1", "config": {"fit_noise_deg": 0.0}}))
     assert decided(FitRequest()) is False  # synth with exact fits
+    assert decide_auto(fit_config(p, FitRequest()), p).model.gaussians.mask_border_px == 0  # and its true masks
     (cap / "capture.json").write_text(json.dumps({"generator": "synth-1", "config": {"fit_noise_deg": 2.0}}))
     assert decided(FitRequest()) is True
     res = fit.run(proj, FitRequest(preset="micro", iters=1, device="cpu", overrides=("val_every=0",)),

@@ -170,7 +170,7 @@ def test_motion_blur_changes_moving_edges_only(captures):
 
 @pytest.mark.anny
 def test_masks_and_fits_left_to_ingest_keep_the_truth_under_gt(captures):
-    from avatarctl.io.gt_geometry import fits_are_ground_truth
+    from avatarctl.io.gt_geometry import fits_are_ground_truth, masks_are_ground_truth
 
     clean, cap = captures["clean"], captures["estimate"]
     assert not (cap / "masks").exists() and not (cap / "motion.npz").exists()
@@ -179,6 +179,8 @@ def test_masks_and_fits_left_to_ingest_keep_the_truth_under_gt(captures):
     assert (cap / "gt" / "motion.npz").read_bytes() == (clean / "motion.npz").read_bytes()
     _same_files(cap, clean, "images/*/*.jpg")
     assert fits_are_ground_truth(clean) and not fits_are_ground_truth(cap)
+    assert masks_are_ground_truth(clean, "files")  # the mask border decision (GaussianConfig.mask_border_px auto)
+    assert not masks_are_ground_truth(clean, "mediapipe") and not masks_are_ground_truth(cap, "mediapipe")
 
 
 @pytest.mark.anny

@@ -238,7 +238,8 @@ def _model_with(model: ModelConfig, changes: dict[str, Any]) -> ModelConfig:
 
 
 _NOT_SETTABLE = {"ablations": "use --ablation", "model": "use model.<field>=value", "preset": "use --preset"}
-_AUTO_KEYS = ("model.hull.nodes", "model.pose_refine.enabled", "model.cvae_width")  # may be "auto": from the capture
+_AUTO_KEYS = ("model.hull.nodes", "model.pose_refine.enabled", "model.cvae_width",  # may be "auto": from the capture
+              "model.gaussians.mask_border_px")
 
 
 def _parse_value(key: str, text: str, current: Any) -> Any:

@@ -212,17 +212,26 @@ def _place_hull_nodes(model_cfg: ModelConfig, seed: int, capture, body, template
 def decide_auto(cfg: FitConfig, project: Project) -> FitConfig:
     """`cfg` with the "auto" values of the model decided from the project's capture (the saved config holds the
     decisions): `model.pose_refine.enabled` on when its body fits are not ground truth (real captures, synth with
-    --fit-noise); `model.cvae_width` from the number of training views of each frame
-    (`ModelConfig.with_cvae_width_for`). `model.hull.nodes` is decided later, from the masks (`_place_hull_nodes`)."""
+    --fit-noise); `model.gaussians.mask_border_px` 1 when its masks are not ground truth (estimated by ingest, or a real
+    capture's) and each frame has two training views or more; `model.cvae_width` from the number of training views of
+    each frame (`ModelConfig.with_cvae_width_for`). `model.hull.nodes` is decided later, from the masks
+    (`_place_hull_nodes`)."""
+    from avatarctl.io.project_io import load_split
+
     model = cfg.model
     if model.pose_refine.enabled == AUTO:
         from avatarctl.io.gt_geometry import fits_are_ground_truth
 
         model = model.with_(pose_refine=model.pose_refine.resolved(
             fits_are_ground_truth(project.manifest.source.path)))
-    if model.cvae_width == AUTO:
-        from avatarctl.io.project_io import load_split
+    if model.gaussians.mask_border_px == AUTO:
+        from avatarctl.io.gt_geometry import masks_are_ground_truth
 
+        ingest = project.last("ingest")
+        masks = ingest.config.get("resolved", {}).get("masks") if ingest is not None else None
+        model = model.with_(gaussians=model.gaussians.resolved(masks_are_ground_truth(
+            project.manifest.source.path, masks), len(load_split(project.paths.split).train_views)))
+    if model.cvae_width == AUTO:
         model = model.with_cvae_width_for(len(load_split(project.paths.split).train_views))
     return cfg if model is cfg.model else replace(cfg, model=model)
 

@@ -3,7 +3,8 @@
 builds the config; `avatarctl fit --help` (`preset_help`) and docs/fit.md's table (`presets_markdown`, checked by
 tests/test_fit.py) are made from this table. Plain data, no torch: the CLI reads it at start-up.
 
-"auto" (`model.hull.nodes`, `model.pose_refine.enabled`, `model.cvae_width`, `model.track_refine.enabled`) is
+"auto" (`model.hull.nodes`, `model.pose_refine.enabled`, `model.cvae_width`, `model.track_refine.enabled`,
+`model.gaussians.mask_border_px`) is
 decided from the capture at fit start (`fit.loop.decide_auto`, fit/hull_nodes.py, `fit.loop._decide_hull`).
 """
 
@@ -62,7 +63,8 @@ PRESETS: dict[str, Preset] = {
                 "colour transform per training camera, the training frames' mean latent for novel poses, garment "
                 "tracking when there is a loose garment (from 4 training views on, 256 nodes, half of them on it, their "
                 "placement corrected per frame), the held-out frames posed by the avatar's silhouette after "
-                "the fit where the fits are estimated; 20k iterations, validation on half-size images every 1000 steps",
+                "the fit where the fits are estimated, the masks' outline left out of the image loss where the masks "
+                "are estimated (from two training views on); 20k iterations, validation on half-size images every 1000 steps",
         # garment tracking where hull nodes find a loose garment (fit/garment_track.py): synth small, 15 min, two seeds,
         # +0.18 / +0.25 dB held-out and +0.06 / +0.34 novel poses; skipped on tight captures (docs/fit.md)
         # the held-out frames posed against the training views' masks after the fit (fit/held_out_poses.py), where
@@ -74,8 +76,11 @@ PRESETS: dict[str, Preset] = {
         # with the garment tracked from 4 views or more, 256 nodes of which 128 on the garment (96 Gaussians each, the
         # same total): synth small, 15 min, +0.15 dB held-out on both seeds (fit.loop.TRACKED_NODES_MIN_VIEWS); with
         # it, the tracked nodes' per-frame corrections (model/track_refine.py; docs/fit.md "Garment tracking")
+        # the estimated masks' outline (1 px either side) left out of the image loss from two training views on: synth
+        # realistic, 300 s, +0.07 / +0.15 dB held-out; a phone video level (docs/fit.md "The masks' outline left out")
         model={**_CPU_GAUSSIAN_MODEL, "field": "gaussians", "cvae_width": "auto", "colour": {"enabled": True},
-               "hull": {"nodes": "auto", "tracked_nodes": 256}, "track_refine": {"enabled": "auto"}}),
+               "hull": {"nodes": "auto", "tracked_nodes": 256}, "track_refine": {"enabled": "auto"},
+               "gaussians": {"mask_border_px": "auto"}}),
     "cpu-mlp": Preset(
         meant_for="a 2-core CPU, with the paper's MLP fields (the cpu preset until 2026-11-27; `reproduce` fits it)",
         summary="narrow networks (node 2 x 32 -> 32, heads 64, cVAE 32), empty-space skipping, hull nodes and pose "
@@ -161,6 +166,8 @@ KNOBS: dict[str, tuple[str, str]] = {
     "model.gaussians.low_pass": ("gaussians", "px^2 added to every splat's 2D covariance (3DGS: 0.3)"),
     "model.gaussians.shading": ("gaussians", "irradiance (shading under fixed lights) or none"),
     "model.gaussians.lambda_ssim": ("gaussians", "D-SSIM weight of the image loss (3DGS: 0.2)"),
+    "model.gaussians.mask_border_px": ("gaussians", "pixels either side of each mask's outline left out of the image "
+                                                    "loss: a number or auto (deviation)"),
     "model.gaussians.sh_degree": ("gaussians", "spherical-harmonic degree of the colours (0 or 1)"),
 }
 FIELD_NAMES = {"mlp": "the MLP fields (model.field=mlp)", "gaussians": "the Gaussian fields (model.field=gaussians)"}

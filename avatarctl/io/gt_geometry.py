@@ -83,6 +83,21 @@ def fits_are_ground_truth(capture_dir: str | Path) -> bool:
         return False
 
 
+def masks_are_ground_truth(capture_dir: str | Path, masks: str | None) -> bool:
+    """True when the masks a project was ingested with (`masks`: ingest's resolved mask source) are the files of a
+    capture made by `avatarctl synth` with its true masks (no `--masks none`); estimated masks (MediaPipe, plates) or
+    any other capture's -> False."""
+    import json
+
+    if masks != "files":
+        return False
+    try:
+        info = json.loads((Path(capture_dir) / "capture.json").read_text())
+        return str(info["generator"]).startswith("synth") and info["config"].get("masks", "truth") == "truth"
+    except (OSError, ValueError, KeyError, TypeError, AttributeError):
+        return False
+
+
 def find_gt_geometry(capture_dir: str | Path) -> Path | None:
     """The capture's ground-truth geometry file, or None when it carries none."""
     p = Path(capture_dir) / GT_GEOMETRY

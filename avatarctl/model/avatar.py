@@ -365,7 +365,7 @@ class SlrfAvatar(nn.Module):
         L1 + D-SSIM + mask, per image crop) and the paper's regularisers (Eq. 13-15) as in `losses`."""
         c, g = self.cfg, self.cfg.gaussians
         rec, mse = image_reconstruction_loss(rgb, target, alpha, mask, g.lambda_ssim, g.lambda_mask,
-                                             c.rec_reference_rays)
+                                             c.rec_reference_rays, border_px=g.border_px)
         return self._with_regularisers(rec, mse, state)
 
     # ---- step 2: rendering --------------------------------------------------------------------------------------

@@ -121,19 +121,37 @@ def ssim_map(a: torch.Tensor, b: torch.Tensor, window: int = 11) -> torch.Tensor
     return ((2 * mu_a * mu_b + c1) * (2 * cov + c2)) / ((mu_a * mu_a + mu_b * mu_b + c1) * (va + vb + c2))
 
 
+def mask_border_weight(mask: torch.Tensor, border_px: int) -> torch.Tensor:
+    """0 within `border_px` pixels either side of `mask`'s outline (mask [h, w], thresholded at 0.5), 1 elsewhere:
+    the pixels an estimated mask's wrong outline mislabels, left out of the image loss as Neural Body leaves out its
+    masks' border (`GaussianConfig.mask_border_px`). The crop's own edge is no outline. -> [h, w]"""
+    m = (mask > 0.5).to(torch.float32)[None, None]
+    k = 2 * border_px + 1
+    grown = torch.nn.functional.max_pool2d(m, k, stride=1, padding=border_px)
+    shrunk = -torch.nn.functional.max_pool2d(-m, k, stride=1, padding=border_px)
+    return (1 - (grown - shrunk))[0, 0]
+
+
 def image_reconstruction_loss(rgb: list[torch.Tensor], target: list[torch.Tensor], alpha: list[torch.Tensor],
                               mask: list[torch.Tensor], lambda_ssim: float, lambda_mask: float,
-                              reference_rays: int = 2048) -> tuple[torch.Tensor, torch.Tensor]:
+                              reference_rays: int = 2048, border_px: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
     """L_rec of the rasterized (Gaussian) field, trained on whole image crops (3DGS's loss, a deviation from Eq. 12):
     per image (1 - lambda_ssim) L1 + lambda_ssim (1 - SSIM) over pixels, summed over channels, plus lambda_mask
     |alpha - mask| per pixel; averaged over the images and scaled by `reference_rays`, so that it weighs against
     the regularisers of Eq. 11 as Eq. 12's sum over the paper's 2048 rays does. rgb / target [h, w, 3], alpha / mask
-    [h, w] per image (images of different sizes). -> (loss, mean squared colour error for the logs)."""
+    [h, w] per image (images of different sizes). `border_px` > 0: the L1, the SSIM map and the mask term weighted by
+    `mask_border_weight` (the outline's pixels out; the SSIM windows of the pixels beside them still read them), each
+    a mean over the pixels left in. -> (loss, mean squared colour error for the logs)."""
     terms, se, n = [], 0.0, 0
     for c, t, a, m in zip(rgb, target, alpha, mask, strict=True):
         t = t.to(c.dtype)
-        photo = (1 - lambda_ssim) * (c - t).abs().mean() + lambda_ssim * (1 - ssim_map(c, t)).mean()
-        terms.append(3 * photo + lambda_mask * (a - m.to(a.dtype)).abs().mean())
+        l1, dssim, mask_err = (c - t).abs(), 1 - ssim_map(c, t), (a - m.to(a.dtype)).abs()
+        if border_px > 0:
+            w = mask_border_weight(m, border_px).to(c.dtype)
+            share = w.mean().clamp_min(1e-6)
+            l1, dssim, mask_err = l1 * w[..., None] / share, dssim * w[..., None] / share, mask_err * w / share
+        photo = (1 - lambda_ssim) * l1.mean() + lambda_ssim * dssim.mean()
+        terms.append(3 * photo + lambda_mask * mask_err.mean())
         se = se + ((c.detach() - t) ** 2).sum()
         n += c.numel()
     return torch.stack(terms).mean() * reference_rays, se / max(n, 1)
