@@ -77,7 +77,7 @@ PRESETS: dict[str, Preset] = {
         # same total): synth small, 15 min, +0.15 dB held-out on both seeds (fit.loop.TRACKED_NODES_MIN_VIEWS); with
         # it, the tracked nodes' per-frame corrections (model/track_refine.py; docs/fit.md "Garment tracking")
         # the estimated masks' outline (1 px either side) left out of the image loss from two training views on: synth
-        # realistic, 300 s, +0.07 / +0.15 dB held-out; a phone video level (docs/fit.md "The masks' outline left out")
+        # realistic, 300 s, +0.06 / +0.10 dB held-out; a phone video level (docs/fit.md "The masks' outline left out")
         model={**_CPU_GAUSSIAN_MODEL, "field": "gaussians", "cvae_width": "auto", "colour": {"enabled": True},
                "hull": {"nodes": "auto", "tracked_nodes": 256}, "track_refine": {"enabled": "auto"},
                "gaussians": {"mask_border_px": "auto"}}),

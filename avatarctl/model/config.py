@@ -267,7 +267,7 @@ class GaussianConfig(_SubConfig):
     # Neural Body leaves out its masks' border: an estimated mask's outline is wrong by a pixel or two. "auto": 1 where
     # the masks are not the capture's ground truth (estimated by ingest, or a real capture's) and each frame has two
     # training views or more, else 0; decided at fit start (`resolved`), the saved config holds the decision. Synth
-    # realistic, 300 s: +0.07 / +0.15 dB held-out; a phone video level (docs/fit.md "The masks' outline left out")
+    # realistic, 300 s: +0.06 / +0.10 dB held-out; a phone video level (docs/fit.md "The masks' outline left out")
     mask_border_px: int | str = 0
     # learning rates of the Gaussians' own parameters (3DGS's; the networks use FitConfig.lr)
     lr_means: float = 1.6e-4  # metres
