@@ -219,6 +219,8 @@ def decide_auto(cfg: FitConfig, project: Project) -> FitConfig:
     from avatarctl.io.project_io import load_split
 
     model = cfg.model
+    train_views = len(load_split(project.paths.split).train_views) \
+        if AUTO in (model.gaussians.mask_border_px, model.cvae_width) else 0
     if model.pose_refine.enabled == AUTO:
         from avatarctl.io.gt_geometry import fits_are_ground_truth
 
@@ -230,9 +232,9 @@ def decide_auto(cfg: FitConfig, project: Project) -> FitConfig:
         ingest = project.last("ingest")
         masks = ingest.config.get("resolved", {}).get("masks") if ingest is not None else None
         model = model.with_(gaussians=model.gaussians.resolved(masks_are_ground_truth(
-            project.manifest.source.path, masks), len(load_split(project.paths.split).train_views)))
+            project.manifest.source.path, masks), train_views))
     if model.cvae_width == AUTO:
-        model = model.with_cvae_width_for(len(load_split(project.paths.split).train_views))
+        model = model.with_cvae_width_for(train_views)
     return cfg if model is cfg.model else replace(cfg, model=model)
 
 

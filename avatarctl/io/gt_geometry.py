@@ -68,34 +68,34 @@ class GroundTruthGeometry:
                              garment_vertices=self.garment_vertices[r], garment_faces=self.garment_faces)
 
 
-def fits_are_ground_truth(capture_dir: str | Path) -> bool:
-    """True for a capture made by `avatarctl synth` with exact body fits (no `--fit-noise`, no `--fits none`): its
-    motion.npz is the pose the images were rendered from. Any other capture (real, or synth with noisy or estimated
-    fits) -> False."""
+def _synth_config(capture_dir: str | Path) -> dict | None:
+    """The `avatarctl synth` config a capture's capture.json records, or None for any other capture (real, unreadable,
+    or made by another generator)."""
     import json
 
     try:
         info = json.loads((Path(capture_dir) / "capture.json").read_text())
         cfg = info["config"]
-        return str(info["generator"]).startswith("synth") and not cfg.get("fit_noise_deg") \
-            and not cfg.get("fit_noise_cm") and cfg.get("fits", "truth") == "truth"  # "fits": since issue 51
+        return cfg if str(info["generator"]).startswith("synth") and isinstance(cfg, dict) else None
     except (OSError, ValueError, KeyError, TypeError):
-        return False
+        return None
+
+
+def fits_are_ground_truth(capture_dir: str | Path) -> bool:
+    """True for a capture made by `avatarctl synth` with exact body fits (no `--fit-noise`, no `--fits none`): its
+    motion.npz is the pose the images were rendered from. Any other capture (real, or synth with noisy or estimated
+    fits) -> False."""
+    cfg = _synth_config(capture_dir)
+    return cfg is not None and not cfg.get("fit_noise_deg") and not cfg.get("fit_noise_cm") \
+        and cfg.get("fits", "truth") == "truth"  # "fits": since issue 51
 
 
 def masks_are_ground_truth(capture_dir: str | Path, masks: str | None) -> bool:
     """True when the masks a project was ingested with (`masks`: ingest's resolved mask source) are the files of a
     capture made by `avatarctl synth` with its true masks (no `--masks none`); estimated masks (MediaPipe, plates) or
     any other capture's -> False."""
-    import json
-
-    if masks != "files":
-        return False
-    try:
-        info = json.loads((Path(capture_dir) / "capture.json").read_text())
-        return str(info["generator"]).startswith("synth") and info["config"].get("masks", "truth") == "truth"
-    except (OSError, ValueError, KeyError, TypeError, AttributeError):
-        return False
+    cfg = _synth_config(capture_dir) if masks == "files" else None
+    return cfg is not None and cfg.get("masks", "truth") == "truth"
 
 
 def find_gt_geometry(capture_dir: str | Path) -> Path | None:
