@@ -11,7 +11,11 @@ writes the table: per capture its PSNR / SSIM, the colour-matched PSNR, and the 
 same images in the clean twin's units (`clean_units_psnr`): a camera g times brighter records the avatar's error
 g times larger too, so a capture whose held-out camera is brighter than the clean twin's loses 20 log10 g dB however
 good its avatar; each image's error is divided per channel by its camera's true gain (capture.json "camera_colour";
-the eval's per-channel MSE), and `units_cost_db` is the cost left against the clean twin. With
+the eval's per-channel MSE), and `units_cost_db` is the cost left against the clean twin. A capture whose masks
+ingest estimated is scored against the held-out views' estimated masks (what a user's eval does); `true_masks_psnr`
+(and `true_masks_units_psnr`, in the clean twin's units) scores the same avatar against the held-out views' true
+masks (the synth capture's, undistorted as ingest does: `true_masks_project`), so the gap splits into the avatar's
+and the estimated ground truth's. With
 `--colour` every capture is also fitted with the per-camera colour transforms on (`model.colour.enabled=true`,
 rows `<name>+colour`): the lever measured against the capture it is meant for.
 
@@ -48,7 +52,9 @@ PROTOCOL = ("novel_view split (training frames, held-out views), bbox protocol; 
             "colour-matched PSNR (colour fitted on the left half, scored on the right half; matched_plain_psnr: the "
             "plain render on the same right halves); cost_db: clean twin's psnr minus this capture's; "
             "clean_units_psnr: the same images with each channel's error divided by the camera's true gain "
-            "(capture.json camera_colour), mean over images; units_cost_db: the clean twin's psnr minus it")
+            "(capture.json camera_colour), mean over images; units_cost_db: the clean twin's psnr minus it; "
+            "true_masks_psnr / true_masks_units_psnr: the same avatar and images with the held-out views' true masks "
+            "(captures whose masks ingest estimated); true_masks_units_cost_db: the clean twin's psnr minus the latter")
 
 
 @dataclass(frozen=True)
@@ -100,6 +106,37 @@ def clean_units_psnr(scores: list[Any], gains: dict[str, list[float]]) -> float 
     return float(np.mean(out))
 
 
+def true_masks_project(project: Path, capture: Path, out: Path) -> Path | None:
+    """A copy at `out` of the fitted `project` (its ingest and fit; no eval) whose held-out views' masks are the synth
+    `capture`'s true ones (gt/masks, or masks/ where synth left the truth there), undistorted and resized as ingest
+    does (`Undistorter.mask`): an eval there scores the avatar against the true silhouette. None when the project's
+    masks are the capture's files already (nothing to replace) or the capture holds no true masks."""
+    import cv2
+
+    from avatarctl.ingest.readers import read_easymocap
+    from avatarctl.ingest.undistort import Undistorter
+    from avatarctl.io.gt_geometry import masks_are_ground_truth
+    from avatarctl.io.project_io import write_mask
+    from avatarctl.project import Project
+    from avatarctl.synth.capture import GT_MASKS
+
+    ingest = Project.open(project).require("ingest")
+    truth = next((d for d in (capture / GT_MASKS, capture / "masks") if d.is_dir()), None)
+    if truth is None or masks_are_ground_truth(capture, ingest.config.get("resolved", {}).get("masks")):
+        return None
+    if out.exists():
+        shutil.rmtree(out)
+    shutil.copytree(project, out, ignore=shutil.ignore_patterns("eval"))
+    copy = Project.open(out)
+    cams = {c.name: c for c in read_easymocap(capture).cameras}
+    for v in json.loads((project / "ingest" / "split.json").read_text())["test_views"]:
+        und = Undistorter.for_camera(cams[v], float(ingest.config.get("resize", 1.0)))
+        for path in sorted((truth / v).glob("*.png")):
+            if copy.paths.mask(v, int(path.stem)).is_file():
+                write_mask(copy, v, int(path.stem), und.mask(cv2.imread(str(path), cv2.IMREAD_GRAYSCALE) > 127))
+    return out
+
+
 def _peak_rss_gb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20
 
@@ -147,8 +184,18 @@ def _fit_and_eval(name: str, project: Path, fit_preset: str, budget_s: float, se
     cm = m.colour_matched
     gains = json.loads((project.parent / "capture" / "capture.json").read_text()).get("camera_colour", {})
     units = clean_units_psnr(er.scores, gains)
+    true_psnr = true_units = None
+    copy = true_masks_project(project, project.parent / "capture", project.parent / "true_masks_project")
+    if copy is not None:
+        tr = evaluate.run(copy, EvalConfig(split="novel_view", name="bench_true_masks", every=every, device=device))
+        true_psnr, true_units = tr.metrics.psnr, clean_units_psnr(tr.scores, gains)
+        if (tr.out_dir / "sheet.png").is_file():
+            shutil.copyfile(tr.out_dir / "sheet.png", sheets / f"{name}_true_masks.png")
+        shutil.rmtree(copy)
     row = {"name": name, "psnr": round(m.psnr, 4), "ssim": round(m.ssim, 5),
            "clean_units_psnr": round(units, 4) if units is not None else None,
+           "true_masks_psnr": round(true_psnr, 4) if true_psnr is not None else None,
+           "true_masks_units_psnr": round(true_units, 4) if true_units is not None else None,
            "matched_psnr": round(cm["psnr"], 4) if cm else None,
            "matched_plain_psnr": round(cm["plain_psnr"], 4) if cm else None,
            "matched_gain": json.dumps(cm["gain"]) if cm else None, "images": m.images,
@@ -223,8 +270,11 @@ def main(argv: list[str] | None = None) -> Result:
         r["cost_db"] = round(base - r["psnr"], 4) if base is not None else None
         u = r["clean_units_psnr"]
         r["units_cost_db"] = round(base - u, 4) if base is not None and u is not None else None
+        t = r["true_masks_units_psnr"]
+        r["true_masks_units_cost_db"] = round(base - t, 4) if base is not None and t is not None else None
     keys = ["name", "capture", "colour_transform", "imperfections", "psnr", "ssim", "matched_psnr",
-            "matched_plain_psnr", "cost_db", "clean_units_psnr", "units_cost_db", "matched_gain", "images",
+            "matched_plain_psnr", "cost_db", "clean_units_psnr", "units_cost_db", "true_masks_psnr",
+            "true_masks_units_psnr", "true_masks_units_cost_db", "matched_gain", "images",
             "fit_steps", "fit_seconds", "fit_wall_s",
             "eval_s", "synth_s", "ingest_s", "peak_rss_gb"]
     csv_path, json_path = out / "results.csv", out / "results.json"
@@ -239,6 +289,7 @@ def main(argv: list[str] | None = None) -> Result:
     for r in rows:
         log(f"{r['name']:<22} PSNR {r['psnr']:7.3f}  cost {r['cost_db'] if r['cost_db'] is not None else '-':>8}  "
             f"clean units {r['clean_units_psnr']} (cost {r['units_cost_db']})  "
+            f"true masks {r['true_masks_psnr']} / units {r['true_masks_units_psnr']}  "
             f"matched {r['matched_psnr']}  steps {r['fit_steps']}")
     return Result(rows=rows, csv=csv_path, json=json_path)
 

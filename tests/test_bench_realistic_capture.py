@@ -85,3 +85,51 @@ def test_clean_units_psnr_takes_a_brighter_camera_back_to_the_clean_exposure():
     assert math.isclose(clean_units_psnr(rows, {"cam01": list(g)}), clean, abs_tol=1e-4)  # float32 images
     assert math.isclose(clean_units_psnr(rows, {}), bright, abs_tol=1e-4)  # a view without a gain: as recorded
     assert clean_units_psnr([score(None)], {}) is None
+
+
+@pytest.mark.anny
+def test_true_masks_project_scores_against_the_true_silhouette_where_ingest_estimated_it(tmp_path):
+    """A project whose masks ingest estimated (here from background plates) gets, in a copy, its held-out views'
+    true masks exactly as ingest writes a capture's mask files (the same undistortion); its training views and the
+    original project are untouched; a project ingested from the true masks gets no copy."""
+    import shutil
+
+    import numpy as np
+
+    from avatarctl.io.project_io import read_mask
+    from avatarctl.project import Project
+    from avatarctl.stages import ingest, synth
+    from avatarctl.stages.ingest import IngestConfig
+    from avatarctl.synth import SynthConfig
+    from benchmarks.realistic_capture import true_masks_project
+
+    cfg = SynthConfig.preset("micro", 2, train_frames=2, test_frames=1, garment="none", masks="none")
+    cap, proj = tmp_path / "cap", tmp_path / "proj"
+    synth.run(cap, cfg)
+    ingest.run(proj, IngestConfig(capture=cap, project=proj, masks="background", contact_sheet=False))
+    # the same capture with its true masks where ingest reads mask files: what ingest makes of the truth
+    cap2, proj2 = tmp_path / "cap2", tmp_path / "proj2"
+    shutil.copytree(cap, cap2)
+    shutil.move(cap2 / "gt" / "masks", cap2 / "masks")
+    meta = json.loads((cap2 / "capture.json").read_text())
+    meta["config"]["masks"] = "truth"
+    (cap2 / "capture.json").write_text(json.dumps(meta))
+    ingest.run(proj2, IngestConfig(capture=cap2, project=proj2, contact_sheet=False))
+
+    before = {p: p.read_bytes() for p in (proj / "ingest" / "masks").rglob("*.png")}
+    copy = true_masks_project(proj, cap, tmp_path / "copy")
+    assert copy is not None and {p: p.read_bytes() for p in (proj / "ingest" / "masks").rglob("*.png")} == before
+    split = json.loads((proj / "ingest" / "split.json").read_text())
+    P, C, T = Project.open(proj), Project.open(copy), Project.open(proj2)
+    frames = sorted(int(p.stem) for p in (proj / "ingest" / "masks" / split["test_views"][0]).glob("*.png"))
+    assert frames
+    changed = 0
+    for v in split["test_views"]:
+        for f in frames:
+            assert np.array_equal(read_mask(C, v, f), read_mask(T, v, f))
+            changed += int(not np.array_equal(read_mask(C, v, f), read_mask(P, v, f)))
+    for v in split["train_views"]:
+        for f in frames:
+            assert np.array_equal(read_mask(C, v, f), read_mask(P, v, f))
+    assert changed > 0  # the plates' masks are not the truth on every frame
+    assert true_masks_project(proj2, cap2, tmp_path / "copy2") is None
