@@ -116,7 +116,7 @@ def true_masks_project(project: Path, capture: Path, out: Path) -> Path | None:
     from avatarctl.ingest.readers import read_easymocap
     from avatarctl.ingest.undistort import Undistorter
     from avatarctl.io.gt_geometry import masks_are_ground_truth
-    from avatarctl.io.project_io import write_mask
+    from avatarctl.io.project_io import load_split, write_mask
     from avatarctl.project import Project
     from avatarctl.synth.capture import GT_MASKS
 
@@ -129,7 +129,7 @@ def true_masks_project(project: Path, capture: Path, out: Path) -> Path | None:
     shutil.copytree(project, out, ignore=shutil.ignore_patterns("eval"))
     copy = Project.open(out)
     cams = {c.name: c for c in read_easymocap(capture).cameras}
-    for v in json.loads((project / "ingest" / "split.json").read_text())["test_views"]:
+    for v in load_split(copy.paths.split).test_views:
         und = Undistorter.for_camera(cams[v], float(ingest.config.get("resize", 1.0)))
         for path in sorted((truth / v).glob("*.png")):
             if copy.paths.mask(v, int(path.stem)).is_file():

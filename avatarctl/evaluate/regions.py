@@ -58,12 +58,10 @@ def split_region(region_mask: np.ndarray, garment: np.ndarray) -> dict[str, np.n
 
 def silhouette_band(mask: np.ndarray, px: int = EDGE_PX) -> np.ndarray:
     """[H, W] bool: the pixels within `px` of the boundary of `mask` ([H, W] bool), on either side (the image's own
-    border is not a boundary)."""
-    import cv2
+    border is not a boundary; `geometry.silhouette.outline_band`, the rule the fit's image loss leaves out too)."""
+    from avatarctl.geometry.silhouette import outline_band
 
-    m = np.asarray(mask).astype(np.uint8)
-    kernel = np.ones((2 * px + 1, 2 * px + 1), np.uint8)
-    return cv2.dilate(m, kernel) > cv2.erode(m, kernel)
+    return outline_band(np.asarray(mask), px).numpy()
 
 
 def split_silhouette(region_mask: np.ndarray, band: np.ndarray) -> dict[str, np.ndarray]:

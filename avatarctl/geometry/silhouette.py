@@ -1,4 +1,5 @@
-"""Projected body-mesh silhouettes (the seed for background matting, the contact-sheet overlay, the hull-node carve)."""
+"""Projected body-mesh silhouettes (the seed for background matting, the contact-sheet overlay, the hull-node carve),
+and the band along a mask's outline."""
 
 from __future__ import annotations
 
@@ -50,3 +51,17 @@ def fraction_inside(cam: Camera, vertices: np.ndarray, mask: np.ndarray, toleran
     inside = np.zeros(len(px), dtype=bool)
     inside[ok] = mask[px[ok, 1], px[ok, 0]]
     return float(inside.mean()) if len(px) else 0.0
+
+
+def outline_band(mask, px: int):
+    """bool [H, W] torch tensor (on `mask`'s device): the pixels within `px` of the outline of `mask` ([H, W] tensor
+    or array, foreground > 0.5), on either side: the mask grown minus the mask shrunk by a (2 px + 1)-square window;
+    the image's own border is no outline. The one rule of the image loss's left-out outline
+    (`model.losses.mask_border_weight`) and eval's edge region (`evaluate.regions.silhouette_band`)."""
+    import torch
+
+    m = (torch.as_tensor(mask).to(torch.float32) > 0.5).to(torch.float32)[None, None]
+    k = 2 * px + 1
+    grown = torch.nn.functional.max_pool2d(m, k, stride=1, padding=px)
+    shrunk = -torch.nn.functional.max_pool2d(-m, k, stride=1, padding=px)
+    return (grown > shrunk)[0, 0]

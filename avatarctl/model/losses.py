@@ -124,12 +124,11 @@ def ssim_map(a: torch.Tensor, b: torch.Tensor, window: int = 11) -> torch.Tensor
 def mask_border_weight(mask: torch.Tensor, border_px: int) -> torch.Tensor:
     """0 within `border_px` pixels either side of `mask`'s outline (mask [h, w], thresholded at 0.5), 1 elsewhere:
     the pixels an estimated mask's wrong outline mislabels, left out of the image loss as Neural Body leaves out its
-    masks' border (`GaussianConfig.mask_border_px`). The crop's own edge is no outline. -> [h, w]"""
-    m = (mask > 0.5).to(torch.float32)[None, None]
-    k = 2 * border_px + 1
-    grown = torch.nn.functional.max_pool2d(m, k, stride=1, padding=border_px)
-    shrunk = -torch.nn.functional.max_pool2d(-m, k, stride=1, padding=border_px)
-    return (1 - (grown - shrunk))[0, 0]
+    masks' border (`GaussianConfig.mask_border_px`; the band: `geometry.silhouette.outline_band`). The crop's own
+    edge is no outline. -> [h, w] float32"""
+    from avatarctl.geometry.silhouette import outline_band
+
+    return 1 - outline_band(mask, border_px).to(torch.float32)
 
 
 def image_reconstruction_loss(rgb: list[torch.Tensor], target: list[torch.Tensor], alpha: list[torch.Tensor],
