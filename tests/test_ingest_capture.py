@@ -208,6 +208,36 @@ def test_plate_estimated_from_the_frames_refines_a_detector_mask():
         estimate_plate(images[:, :-1], detected, margin_px=2)
 
 
+def test_sharpen_outline_places_a_low_contrast_outline_at_half_coverage():
+    """A printed disk whose colour differs from the background by ~55 (RGB distance), drawn with anti-aliased edges:
+    a half-covered outline pixel differs by ~27, under any fixed threshold that noise allows. A mask 1 px too thin
+    (or too fat) comes back to the pixels covered at least half."""
+    import cv2
+
+    from avatarctl.ingest.masks import color_difference, iou, sharpen_outline
+
+    ss, size = 8, 64
+    yy, xx = (np.mgrid[:size * ss, :size * ss] + 0.5) / ss
+    inside = (xx - 31.3) ** 2 + (yy - 32.6) ** 2 <= 19.4 ** 2
+    print_ = np.where(((yy.astype(int) // 2) % 2 == 0)[..., None], [150, 120, 100], [100, 150, 120])
+    hi = np.where(inside[..., None], print_, [100, 100, 100]).astype(np.float32)
+    rgb = cv2.resize(hi, (size, size), interpolation=cv2.INTER_AREA)  # box filter: mixed outline pixels
+    cover = cv2.resize(inside.astype(np.float32), (size, size), interpolation=cv2.INTER_AREA)
+    truth = cover >= 0.5
+    plate = np.full((size, size, 3), 100, np.uint8)
+    diff = color_difference(np.rint(rgb).astype(np.uint8), plate)
+    assert 15 < diff[(cover > 0.4) & (cover < 0.6)].mean() < 35  # the mixed pixels: low contrast
+    known = np.ones((size, size), bool)
+    disk = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (3, 3))
+    thin = cv2.erode(truth.astype(np.uint8), disk) > 0
+    fat = cv2.dilate(truth.astype(np.uint8), disk) > 0
+    for start in (thin, fat):
+        out = sharpen_outline(diff, known, start)
+        assert iou(start, truth) < 0.92 and iou(out, truth) > 0.97
+    # where the plate is not known the mask is kept as it is
+    assert np.array_equal(sharpen_outline(diff, np.zeros_like(known), thin), thin)
+
+
 def test_refine_masks_replaces_every_detected_mask_and_reports_it():
     import cv2
 
