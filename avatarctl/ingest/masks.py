@@ -12,7 +12,8 @@ All inputs are in the same (undistorted) image geometry. Steps:
    else definite background. (Letting GrabCut decide whole regions lost textured garment parts that happen to
    match the plate's colours.) Parameters were chosen on `avatarctl synth` small-preset frames (docs/formats.md);
 4. clean-up: keep the connected components that touch the body silhouette (drops shadows and plate changes
-   away from the subject), fill enclosed holes smaller than 1 % of the foreground.
+   away from the subject), fill enclosed holes smaller than 1 % of the foreground;
+5. the outline's pixels decided by their share of the person's local contrast with the plate (`sharpen_outline`).
 
 Without a plate, a static camera's plate is estimated from its own frames (`estimate_plate`: per pixel, the median
 of the frames in which a detector's person mask, grown by a margin, leaves it uncovered) and a detector's mask is
@@ -77,7 +78,7 @@ def background_mask(rgb: np.ndarray, background: np.ndarray, silhouette: np.ndar
 
     if rgb.shape != background.shape:
         raise ValueError(f"frame {rgb.shape} and background {background.shape} differ in size")
-    diff = color_difference(rgb, background)
+    raw = diff = color_difference(rgb, background)
     if params.diff_close_px:
         diff = cv2.morphologyEx(diff, cv2.MORPH_CLOSE, _disk(params.diff_close_px))
     fg = (diff > params.threshold).astype(np.uint8)
@@ -91,7 +92,7 @@ def background_mask(rgb: np.ndarray, background: np.ndarray, silhouette: np.ndar
     out = fg > 0
     if params.grabcut_iters and out.any():
         out = _grabcut_band(rgb, diff, fg, params)
-    return _clean(out, sil > 0, params)
+    return sharpen_outline(raw, np.ones(out.shape, bool), _clean(out, sil > 0, params))
 
 
 def _grabcut_band(rgb: np.ndarray, diff: np.ndarray, fg: np.ndarray, params: MattingParams) -> np.ndarray:
