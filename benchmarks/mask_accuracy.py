@@ -58,7 +58,8 @@ def _rings(distance: np.ndarray) -> list[np.ndarray]:
 def _views(capture, split: str) -> list[tuple[str, int]]:
     s = capture.split
     if split == "test":  # eval's novel_view (held-out views, training frames) and novel_pose images
-        novel_view = [(v, f) for v in s.test_views if v not in set(s.train_views) for f in s.train_frames]
+        trained = set(s.train_views)
+        novel_view = [(v, f) for v in s.test_views if v not in trained for f in s.train_frames]
         return novel_view + [(v, f) for v in s.test_views for f in s.test_frames]
     if split == "train":
         return [(v, f) for v in s.train_views for f in s.train_frames]
@@ -76,7 +77,8 @@ def measure(project_dir: str | Path, truth_dir: str | Path, split: str = "all") 
 
     est = load_project_capture(Project.open(project_dir))
     tru = load_project_capture(Project.open(truth_dir))
-    views = [(v, f) for v, f in _views(est, split) if v in tru.cameras and f in set(tru.frames)]
+    held = set(tru.frames)
+    views = [(v, f) for v, f in _views(est, split) if v in tru.cameras and f in held]
     if not views:
         raise SystemExit(f"{project_dir} and {truth_dir} share no view of the {split!r} split: ingest the same "
                          "capture twice (estimated masks, true masks)")
