@@ -258,6 +258,38 @@ def test_refine_masks_replaces_every_detected_mask_and_reports_it():
     assert seen[-1] == len(frames)
 
 
+def test_refine_masks_takes_the_captures_plate_where_it_agrees_with_the_frames():
+    """The capture's plate refines where the frames alone know no plate (two frames: a pixel needs three), and is
+    refused for the estimate when it disagrees with the frames (shot brighter)."""
+    import cv2
+
+    from avatarctl.ingest.estimate import Detections, refine_masks
+    from avatarctl.ingest.masks import iou
+
+    bg, images, truth, detected = _plate_scene(shift=2)
+
+    def refined(frames, plates):
+        det = Detections(cams=["a"], frames=frames, names=("nose",), keypoints=np.zeros((len(frames), 1, 1, 2)),
+                         confidence=np.ones((len(frames), 1, 1)),
+                         masks={("a", f): cv2.imencode(".png", detected[f].astype(np.uint8) * 255)[1].tobytes()
+                                for f in frames})
+        out, report = refine_masks(det, lambda c, f: images[f], plates=plates)
+        return np.mean([iou(out.mask("a", f), truth[f]) for f in frames]), report
+
+    two = [5, 6]
+    raw = np.mean([iou(detected[f], truth[f]) for f in two])
+    score, report = refined(two, None)
+    assert report.plate["a"] == "estimated" and report.plate_known["a"] == 0.0 and score == raw
+    score, report = refined(two, {"a": bg})
+    assert report.plate["a"] == "capture" and report.plate_known["a"] == 1.0 and score > raw + 0.05
+    every = list(range(len(images)))
+    own, report = refined(every, {"a": bg})
+    assert report.plate["a"] == "capture" and own > 0.97
+    brighter = np.clip(bg.astype(int) * 5 // 4 + 10, 0, 255).astype(np.uint8)
+    score, report = refined(every, {"a": brighter})
+    assert report.plate["a"] == "estimated" and score == refined(every, None)[0]
+
+
 def _stand_in_detector(monkeypatch, capture, mask_of) -> list[bool]:
     """`--masks mediapipe` without MediaPipe: `detect_people` returns, for every view, `mask_of(camera, true mask)`
     (the capture's mask file) as the detected person mask, and zero keypoints. Returns the list its calls' `smooth`
@@ -309,6 +341,28 @@ def test_ingest_refines_detected_masks_unless_told_not_to(capture, tmp_path, mon
                                 for c in capture.cameras for f in capture.frames])
     assert scores["refined"] > scores["detected"] + 0.01, scores
     assert smooths == [False, False]  # calibrated cameras: MediaPipe's landmark filter off (one video keeps it)
+
+
+def test_auto_masks_with_plates_refine_the_detectors_masks_against_them(capture, tmp_path, monkeypatch):
+    """A capture with plates and no masks: `--masks auto` takes MediaPipe's masks refined against the capture's plates
+    when MediaPipe is installed (a stand-in detector here: the truth shifted by 2 px), and mattes the plates when it is
+    not."""
+    cap = tmp_path / "cap"
+    shutil.copytree(capture.root, cap)
+    shutil.rmtree(cap / "masks")
+    monkeypatch.setitem(sys.modules, "mediapipe", None)
+    res = _cli(str(cap), str(tmp_path / "matted"), "--frames", "0,3", "--no-contact-sheet")
+    assert res.exit_code == 0, res.output
+    summary = json.loads((tmp_path / "matted" / "project.json").read_text())["stages"][0]["summary"]
+    assert summary["masks"] == "background"
+    _stand_in_detector(monkeypatch, capture, lambda c, truth: np.roll(truth, 2, axis=1))
+    res = _cli(str(cap), str(tmp_path / "proj"), "--frames", "0,3", "--no-contact-sheet")
+    assert res.exit_code == 0, res.output
+    summary = json.loads((tmp_path / "proj" / "project.json").read_text())["stages"][0]["summary"]
+    assert summary["masks"] == "mediapipe"
+    plates = summary["estimate"]["masks_refined"]["plate"]
+    assert set(plates) == {c.name for c in capture.cameras} and set(plates.values()) == {"capture"}
+    assert "against the capture's plates" in " ".join(res.output.split())
 
 
 def test_ingest_names_a_camera_whose_masks_are_not_the_person(capture, tmp_path, monkeypatch):

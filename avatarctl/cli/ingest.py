@@ -26,9 +26,11 @@ def register(app: typer.Typer) -> None:
                                                       "anny for --fits keypoints)"),
         body_model_path: Optional[Path] = typer.Option(None, "--body-model-path",
                                                        help="SMPL / SMPL-X model file (.pkl or .npz)."),
-        masks: str = typer.Option("auto", "--masks", help="auto | files | background (matting against "
-                                                          "background/<cam>.jpg seeded by the body mesh) | mediapipe "
-                                                          "(person segmentation; pip install 'avatarctl[capture]')"),
+        masks: str = typer.Option("auto", "--masks", help="auto (files, else mediapipe if installed, else "
+                                                          "background) | files | "
+                                                          "background (matting against background/<cam>.jpg seeded "
+                                                          "by the body mesh) | mediapipe (person segmentation; pip "
+                                                          "install 'avatarctl[capture]')"),
         fits: str = typer.Option("auto", "--fits", help="auto | files (motion.npz / smpl/*.json) | keypoints "
                                                         "(MediaPipe keypoints -> triangulation -> a fit of "
                                                         "--body-model: anny, or smpl / smplx with "
@@ -47,7 +49,8 @@ def register(app: typer.Typer) -> None:
                                                    "(its hips higher than anny's, ...), not at anny's own COCO point."),
         refine_masks: bool = typer.Option(True, "--refine-masks/--no-refine-masks",
                                           help="--masks mediapipe: refine each mask's outline against the camera's "
-                                               "background estimated from its frames (static cameras)."),
+                                               "background: background/<cam>.jpg, else estimated from its frames "
+                                               "(static cameras)."),
         frames: Optional[str] = typer.Option(None, "--frames",
                                              help="Frame numbers: start:stop[:step] (stop exclusive) or a,b,c."),
         views: Optional[str] = typer.Option(None, "--views", help="Comma-separated camera names (default: all)."),

@@ -25,8 +25,8 @@ class IngestConfig:
     format: str = "auto"  # capture layout; "auto" detects it (avatarctl.io.detect)
     body_model: str | None = None  # anny | smpl | smplx | toy; None: the body model the capture's fits are for
     body_model_path: Path | None = None  # SMPL / SMPL-X model file (.pkl / .npz); not needed for anny
-    masks: str = "auto"  # files | background | mediapipe | auto (files if the capture has masks, else background
-    # plates if every camera has one, else mediapipe)
+    masks: str = "auto"  # files | background | mediapipe | auto (files if the capture has masks, else mediapipe if
+    # installed, else background plates if every camera has one)
     fits: str = "auto"  # files | keypoints (MediaPipe keypoints -> triangulation -> body fit) | auto (files if any)
     keypoint_fit_iters: int = 400  # Adam steps of the keypoint fit (--fits keypoints; anny, smpl or smplx)
     keypoint_silhouette: float | None = None  # weight of the keypoint fit's silhouette term (None: the fit's default,
@@ -35,8 +35,8 @@ class IngestConfig:
     # fit's default: avatarctl.ingest.estimate.MONO_OUTLINE_WEIGHT for one video, else OUTLINE_WEIGHT; 0: off)
     keypoint_offsets: bool = True  # anny fits: anny's keypoints where MediaPipe puts them
     # (avatarctl.ingest.keypoints.MEDIAPIPE_ANNY_OFFSETS; False: anny's own COCO points)
-    refine_masks: bool = True  # masks "mediapipe": refined against each camera's plate estimated from its frames
-    # (avatarctl.ingest.estimate.refine_masks; static cameras)
+    refine_masks: bool = True  # masks "mediapipe": refined against each camera's plate, the capture's or estimated
+    # from its frames (avatarctl.ingest.estimate.refine_masks; static cameras)
     frames: str | None = None  # "start:stop[:step]" or "a,b,c" capture frame numbers (avatarctl.frames); None: all
     views: tuple[str, ...] | None = None  # camera names to ingest; None: every calibrated camera
     resize: float = 1.0  # scale factor applied after undistortion (e.g. 0.5)

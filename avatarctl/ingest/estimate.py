@@ -207,25 +207,28 @@ class MaskRefinement:
     band_px: dict[str, int]
     plate_known: dict[str, float]
     changed: dict[str, float]
+    plate: dict[str, str] = field(default_factory=dict)  # camera -> "capture" (its background/<cam> image) or
+    # "estimated" (from its frames)
 
     def to_json(self) -> dict:
         return {"band_px": self.band_px, "plate_known": {c: round(v, 4) for c, v in self.plate_known.items()},
-                "changed": {c: round(v, 4) for c, v in self.changed.items()}}
+                "changed": {c: round(v, 4) for c, v in self.changed.items()}, "plate": self.plate}
 
 
-def refine_masks(det: Detections, read_view: ReadView, progress: ProgressFn | None = None
-                 ) -> tuple[Detections, MaskRefinement]:
-    """`det` with every camera's MediaPipe masks refined against the camera's plate estimated from its own frames
-    (`ingest.masks.estimate_plate` over up to `PLATE_FRAMES` evenly spaced frames with a mask, then
-    `ingest.masks.refine_mask` on every frame, deciding a band of `MASK_BAND` x the image diagonal about MediaPipe's
-    outline). For static cameras (a rig; a phone on a tripod: `check_monocular`). A camera with no known plate pixel
-    keeps MediaPipe's masks."""
+def refine_masks(det: Detections, read_view: ReadView, progress: ProgressFn | None = None,
+                 plates: dict[str, np.ndarray] | None = None) -> tuple[Detections, MaskRefinement]:
+    """`det` with every camera's MediaPipe masks refined against the camera's plate (`ingest.masks.refine_mask` on
+    every frame, deciding a band of `MASK_BAND` x the image diagonal about MediaPipe's outline). The plate is the
+    capture's own (`plates`: camera -> undistorted background image, known everywhere) where it agrees with the
+    plate estimated from the camera's frames (`ingest.masks.estimate_plate` over up to `PLATE_FRAMES` evenly spaced
+    frames with a mask; `plate_agrees`), else that estimate. For static cameras (a rig; a phone on a tripod:
+    `check_monocular`). A camera with no known plate pixel keeps MediaPipe's masks."""
     import cv2
 
-    from avatarctl.ingest.masks import PLATE_FRAMES, estimate_plate, refine_mask
+    from avatarctl.ingest.masks import PLATE_FRAMES, estimate_plate, plate_agrees, refine_mask
 
     out = replace(det, masks=dict(det.masks))
-    known_share, changed, bands = {}, {}, {}
+    known_share, changed, bands, source = {}, {}, {}, {}
     done, total = 0, len(det.cams) * len(det.frames)
     for c in det.cams:
         with_mask = [f for f in det.frames if det.mask(c, f).any()]
@@ -239,6 +242,9 @@ def refine_masks(det: Detections, read_view: ReadView, progress: ProgressFn | No
         band = bands[c] = max(2, int(round(MASK_BAND * np.hypot(h, w))))
         picked = {f: read_view(c, f) for f in pick}  # read once: the plate's frames are refined below too
         plate, known = estimate_plate(np.stack(list(picked.values())), np.stack([det.mask(c, f) for f in pick]), band)
+        source[c] = "estimated"
+        if plates is not None and c in plates and plate_agrees(plates[c], plate, known):
+            plate, known, source[c] = plates[c], np.ones_like(known), "capture"
         known_share[c], moved, area = float(known.mean()), 0, 0
         for f in det.frames:
             m = det.mask(c, f)
@@ -251,7 +257,7 @@ def refine_masks(det: Detections, read_view: ReadView, progress: ProgressFn | No
             if progress is not None:
                 progress(ProgressReport(done=done, total=total, part="masks"))
         changed[c] = moved / max(area, 1)
-    return out, MaskRefinement(band_px=bands, plate_known=known_share, changed=changed)
+    return out, MaskRefinement(band_px=bands, plate_known=known_share, changed=changed, plate=source)
 
 
 @dataclass(frozen=True)
@@ -322,7 +328,11 @@ class EstimateReport:
             lo, hi = (f"{100 * f(r.plate_known.values()):.0f}" for f in (min, max))
             known = lo if lo == hi else f"{lo}-{hi}"
             changed = 100 * float(np.mean(list(r.changed.values())))
-            out.append(("masks refined", f"against plates estimated from the frames ({known}% of each image known): "
+            own = sorted(c for c, v in r.plate.items() if v == "capture")
+            against = ("the capture's plates" if own and len(own) == len(r.plate) else
+                       f"the capture's plates ({', '.join(own)}), else plates estimated from the frames" if own else
+                       "plates estimated from the frames")
+            out.append(("masks refined", f"against {against} ({known}% of each image known): "
                                          f"{changed:.1f}% of the mask pixels changed"))
         return out
 

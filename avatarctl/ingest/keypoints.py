@@ -166,6 +166,15 @@ def require_mediapipe(why: str, alternative: str = "") -> ModuleType:
     return mp
 
 
+def mediapipe_installed() -> bool:
+    """Whether `require_mediapipe` would find MediaPipe (the `capture` extra)."""
+    try:
+        require_mediapipe("")
+    except InputError:
+        return False
+    return True
+
+
 @dataclass(frozen=True)
 class PersonDetection:
     """What the detector found in one image."""

@@ -171,6 +171,17 @@ def estimate_plate(images: np.ndarray, masks: np.ndarray, margin_px: int) -> tup
     return plate, known
 
 
+def plate_agrees(plate: np.ndarray, estimate: np.ndarray, known: np.ndarray) -> bool:
+    """Whether a capture's background `plate` (uint8 [H, W, 3]) shows what the camera's frames show: its median RGB
+    distance to the `estimate` from the frames (`estimate_plate`, `known` bool [H, W]) over the known pixels is below
+    `REFINE_MATCH` (the distance at which `refine_mask` still takes a pixel for the plate's). A plate shot at another
+    exposure, white balance or framing than the frames fails; where the frames show no background pixel there is
+    nothing to check and the plate is taken as it is."""
+    if plate.shape != estimate.shape:
+        return False
+    return not known.any() or float(np.median(color_difference(plate, estimate)[known])) < REFINE_MATCH
+
+
 def refine_mask(rgb: np.ndarray, plate: np.ndarray, known: np.ndarray, mask: np.ndarray, band_px: int,
                 match: float = REFINE_MATCH, differ: float = REFINE_DIFFER) -> np.ndarray:
     """A detector's person `mask` (bool [H, W]) of frame `rgb` [H, W, 3] refined against an estimated `plate`

@@ -5,12 +5,13 @@ Steps:
    protocol's frames, held-out views and scale: `avatarctl.ingest.benchmark`), validate: cameras with
    images, complete frame grids for images and masks, fits for every frame, metres not millimetres;
 2. convert the fits to the body model's `BodyMotion` (EasyMocap/ZJU Rh/Th -> SMPL global_orient/transl) — or,
-   for a capture without fits (`--fits keypoints`) and/or without masks or plates (`--masks mediapipe`), detect
-   the person in every view and estimate anny / SMPL / SMPL-X fits and / or masks (`avatarctl.ingest.estimate`);
+   for a capture without fits (`--fits keypoints`) and/or without masks (`--masks mediapipe`), detect the person in
+   every view and estimate anny / SMPL / SMPL-X fits and / or masks (`avatarctl.ingest.estimate`: MediaPipe's,
+   refined against the capture's background plates or plates estimated from the frames);
    frames where no person is found are reported and left out — and pose the body mesh for every frame;
 3. per frame and camera: undistort (and resize) the frame and mask — masks from the capture's files, from the
-   background plate matted with the projected body mesh as seed, or MediaPipe's person segmentation — and write
-   them;
+   background plate matted with the projected body mesh as seed (`--masks background`; `auto` without MediaPipe), or
+   MediaPipe's person segmentation — and write them;
 4. with 2+ cameras, every camera's colour gains from the posed body's colours across cameras on up to
    `COLOUR_FRAMES` training frames (`avatarctl.evaluate.colour.SharedColours`: exposure and white balance differ
    between cameras; `eval` shows a held-out camera through them);
@@ -155,9 +156,12 @@ def resolve_fits(cfg: IngestConfig, src: CaptureSource) -> str:
 
 def resolve_masks(cfg: IngestConfig, src: CaptureSource, cams: list[str], frames: list[int]) -> str:
     mode = cfg.masks
-    if mode == "auto":
+    if mode == "auto":  # MediaPipe's masks refined against the plates beat the plates' matting (docs/formats.md)
+        from avatarctl.ingest.keypoints import mediapipe_installed
+
         mode = ("files" if src.masks is not None else
-                "background" if all(c in src.backgrounds for c in cams) else "mediapipe")
+                "background" if all(c in src.backgrounds for c in cams) and not mediapipe_installed() else
+                "mediapipe")
     if mode == "files":
         if src.masks is None or src.mask_frames is None:
             raise InputError("the capture has no mask files", where=str(src.root),
@@ -411,10 +415,10 @@ def _estimate(cfg: IngestConfig, plan: IngestPlan, und: dict, progress: Progress
                         masks=plan.masks_mode == "mediapipe" or (silhouette and plan.masks_mode == "background")
                         or src.format == "video", smooth=src.format == "video")
     refined = None
-    if plan.masks_mode == "mediapipe" and cfg.refine_masks:  # static cameras: plates estimated from the frames
+    if plan.masks_mode == "mediapipe" and cfg.refine_masks:  # static cameras: the capture's plates, else estimated
         from avatarctl.ingest.estimate import refine_masks
 
-        det, refined = refine_masks(det, read_view, progress)
+        det, refined = refine_masks(det, read_view, progress, plates=_undistorted_plates(src, und))
     motion, kept = plan.motion, list(frames)
     if src.format == "video" and plan.fits_mode == "keypoints":
         from avatarctl.ingest.estimate import check_monocular, estimate_monocular
@@ -494,11 +498,13 @@ def _detected_points(det, cam: str, frame: int) -> np.ndarray | None:
 
 
 def _undistorted_plates(src: CaptureSource, und: dict) -> dict[str, np.ndarray]:
-    """camera -> undistorted (and resized) background plate, RGB uint8 [H, W, 3]."""
+    """camera -> undistorted (and resized) background plate, RGB uint8 [H, W, 3], for the cameras that have one."""
     from avatarctl.io.capture import read_image_file
 
     plates = {}
     for c, u in und.items():
+        if c not in src.backgrounds:
+            continue
         plate = read_image_file(src.backgrounds[c], c, -1)
         _check_size(plate, u.source, str(src.backgrounds[c]))
         plates[c] = u.image(plate)
