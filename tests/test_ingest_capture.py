@@ -363,6 +363,17 @@ def test_auto_masks_with_plates_refine_the_detectors_masks_against_them(capture,
     plates = summary["estimate"]["masks_refined"]["plate"]
     assert set(plates) == {c.name for c in capture.cameras} and set(plates.values()) == {"capture"}
     assert "against the capture's plates" in " ".join(res.output.split())
+    # a plate of another size than its camera is left out of the refinement (that camera's plate estimated)
+    import cv2
+
+    first = capture.cameras[0].name
+    plate = next((cap / "background").glob(f"{first}.*"))
+    cv2.imwrite(str(plate), cv2.resize(cv2.imread(str(plate)), (40, 30)))
+    res = _cli(str(cap), str(tmp_path / "small"), "--frames", "0,3", "--no-contact-sheet")
+    assert res.exit_code == 0, res.output
+    plates = json.loads((tmp_path / "small" / "project.json").read_text())["stages"][0]["summary"]["estimate"][
+        "masks_refined"]["plate"]
+    assert plates[first] == "estimated" and {plates[c.name] for c in capture.cameras[1:]} == {"capture"}
 
 
 def test_ingest_names_a_camera_whose_masks_are_not_the_person(capture, tmp_path, monkeypatch):

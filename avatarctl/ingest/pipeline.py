@@ -418,7 +418,7 @@ def _estimate(cfg: IngestConfig, plan: IngestPlan, und: dict, progress: Progress
     if plan.masks_mode == "mediapipe" and cfg.refine_masks:  # static cameras: the capture's plates, else estimated
         from avatarctl.ingest.estimate import refine_masks
 
-        det, refined = refine_masks(det, read_view, progress, plates=_undistorted_plates(src, und))
+        det, refined = refine_masks(det, read_view, progress, plates=_undistorted_plates(src, und, strict=False))
     motion, kept = plan.motion, list(frames)
     if src.format == "video" and plan.fits_mode == "keypoints":
         from avatarctl.ingest.estimate import check_monocular, estimate_monocular
@@ -497,16 +497,23 @@ def _detected_points(det, cam: str, frame: int) -> np.ndarray | None:
     return det.keypoints[det.frames.index(frame), det.cams.index(cam)]
 
 
-def _undistorted_plates(src: CaptureSource, und: dict) -> dict[str, np.ndarray]:
-    """camera -> undistorted (and resized) background plate, RGB uint8 [H, W, 3], for the cameras that have one."""
+def _undistorted_plates(src: CaptureSource, und: dict, strict: bool = True) -> dict[str, np.ndarray]:
+    """camera -> undistorted (and resized) background plate, RGB uint8 [H, W, 3], for the cameras that have one. A
+    plate that cannot be read or has another size than its camera's calibration is an `InputError`, or with `strict`
+    False left out (the masks' refinement then estimates that camera's plate from its frames)."""
     from avatarctl.io.capture import read_image_file
 
     plates = {}
     for c, u in und.items():
         if c not in src.backgrounds:
             continue
-        plate = read_image_file(src.backgrounds[c], c, -1)
-        _check_size(plate, u.source, str(src.backgrounds[c]))
+        try:
+            plate = read_image_file(src.backgrounds[c], c, -1)
+            _check_size(plate, u.source, str(src.backgrounds[c]))
+        except InputError:
+            if strict:
+                raise
+            continue
         plates[c] = u.image(plate)
     return plates
 
