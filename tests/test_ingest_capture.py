@@ -273,7 +273,7 @@ def test_refine_masks_takes_the_captures_plate_where_it_agrees_with_the_frames()
                          confidence=np.ones((len(frames), 1, 1)),
                          masks={("a", f): cv2.imencode(".png", detected[f].astype(np.uint8) * 255)[1].tobytes()
                                 for f in frames})
-        out, report = refine_masks(det, lambda c, f: images[f], plates=plates)
+        out, report = refine_masks(det, lambda c, f: images[f], plate_of=None if plates is None else plates.get)
         return np.mean([iou(out.mask("a", f), truth[f]) for f in frames]), report
 
     two = [5, 6]

@@ -216,10 +216,11 @@ class MaskRefinement:
 
 
 def refine_masks(det: Detections, read_view: ReadView, progress: ProgressFn | None = None,
-                 plates: dict[str, np.ndarray] | None = None) -> tuple[Detections, MaskRefinement]:
+                 plate_of: Callable[[str], np.ndarray | None] | None = None) -> tuple[Detections, MaskRefinement]:
     """`det` with every camera's MediaPipe masks refined against the camera's plate (`ingest.masks.refine_mask` on
     every frame, deciding a band of `MASK_BAND` x the image diagonal about MediaPipe's outline). The plate is the
-    capture's own (`plates`: camera -> undistorted background image, known everywhere) where it agrees with the
+    capture's own (`plate_of(camera)`: its undistorted background image, known everywhere; None where the camera has
+    none; read one camera at a time) where it agrees with the
     plate estimated from the camera's frames (`ingest.masks.estimate_plate` over up to `PLATE_FRAMES` evenly spaced
     frames with a mask; `plate_agrees`), else that estimate. For static cameras (a rig; a phone on a tripod:
     `check_monocular`). A camera with no known plate pixel keeps MediaPipe's masks."""
@@ -243,8 +244,9 @@ def refine_masks(det: Detections, read_view: ReadView, progress: ProgressFn | No
         picked = {f: read_view(c, f) for f in pick}  # read once: the plate's frames are refined below too
         plate, known = estimate_plate(np.stack(list(picked.values())), np.stack([det.mask(c, f) for f in pick]), band)
         source[c] = "estimated"
-        if plates is not None and c in plates and plate_agrees(plates[c], plate, known):
-            plate, known, source[c] = plates[c], np.ones_like(known), "capture"
+        own = plate_of(c) if plate_of is not None else None
+        if own is not None and plate_agrees(own, plate, known):
+            plate, known, source[c] = own, np.ones_like(known), "capture"
         known_share[c], moved, area = float(known.mean()), 0, 0
         for f in det.frames:
             m = det.mask(c, f)

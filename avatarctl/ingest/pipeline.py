@@ -418,7 +418,8 @@ def _estimate(cfg: IngestConfig, plan: IngestPlan, und: dict, progress: Progress
     if plan.masks_mode == "mediapipe" and cfg.refine_masks:  # static cameras: the capture's plates, else estimated
         from avatarctl.ingest.estimate import refine_masks
 
-        det, refined = refine_masks(det, read_view, progress, plates=_undistorted_plates(src, und, strict=False))
+        det, refined = refine_masks(det, read_view, progress,
+                                    plate_of=lambda c: _undistorted_plates(src, {c: und[c]}, strict=False).get(c))
     motion, kept = plan.motion, list(frames)
     if src.format == "video" and plan.fits_mode == "keypoints":
         from avatarctl.ingest.estimate import check_monocular, estimate_monocular
