@@ -419,7 +419,7 @@ def _estimate(cfg: IngestConfig, plan: IngestPlan, und: dict, progress: Progress
         from avatarctl.ingest.estimate import refine_masks
 
         det, refined = refine_masks(det, read_view, progress,
-                                    plate_of=lambda c: _undistorted_plates(src, {c: und[c]}, strict=False).get(c))
+                                    plate_of=lambda c: _usable_plate(src, und, c))
     motion, kept = plan.motion, list(frames)
     if src.format == "video" and plan.fits_mode == "keypoints":
         from avatarctl.ingest.estimate import check_monocular, estimate_monocular
@@ -498,25 +498,28 @@ def _detected_points(det, cam: str, frame: int) -> np.ndarray | None:
     return det.keypoints[det.frames.index(frame), det.cams.index(cam)]
 
 
-def _undistorted_plates(src: CaptureSource, und: dict, strict: bool = True) -> dict[str, np.ndarray]:
-    """camera -> undistorted (and resized) background plate, RGB uint8 [H, W, 3], for the cameras that have one. A
-    plate that cannot be read or has another size than its camera's calibration is an `InputError`, or with `strict`
-    False left out (the masks' refinement then estimates that camera's plate from its frames)."""
+def _undistorted_plates(src: CaptureSource, und: dict) -> dict[str, np.ndarray]:
+    """camera -> undistorted (and resized) background plate, RGB uint8 [H, W, 3]; a plate that cannot be read or has
+    another size than its camera's calibration is an `InputError`."""
     from avatarctl.io.capture import read_image_file
 
     plates = {}
     for c, u in und.items():
-        if c not in src.backgrounds:
-            continue
-        try:
-            plate = read_image_file(src.backgrounds[c], c, -1)
-            _check_size(plate, u.source, str(src.backgrounds[c]))
-        except InputError:
-            if strict:
-                raise
-            continue
+        plate = read_image_file(src.backgrounds[c], c, -1)
+        _check_size(plate, u.source, str(src.backgrounds[c]))
         plates[c] = u.image(plate)
     return plates
+
+
+def _usable_plate(src: CaptureSource, und: dict, cam: str) -> np.ndarray | None:
+    """Camera `cam`'s plate as `_undistorted_plates` gives it, or None where it has none or it cannot be used (the
+    masks' refinement then estimates that camera's plate from its frames)."""
+    if cam not in src.backgrounds:
+        return None
+    try:
+        return _undistorted_plates(src, {cam: und[cam]})[cam]
+    except InputError:
+        return None
 
 
 def _process_view(plan: IngestPlan, u, plate: np.ndarray | None, cam: str, frame: int, verts: np.ndarray,
