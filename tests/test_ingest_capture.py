@@ -425,18 +425,29 @@ def test_anny_joint_limits_allow_bending_and_punish_a_backward_knee_or_elbow():
         KeypointFitConfig(w_limits=-1.0)
 
 
-def test_kabsch_recovers_a_rigid_motion():
+def test_rigid_align_recovers_rigid_motions_batched_and_weighted():
     from scipy.spatial.transform import Rotation
 
-    from avatarctl.body.fit_keypoints import kabsch
+    from avatarctl.geometry.align import rigid_align
 
     rng = np.random.default_rng(1)
-    src = rng.normal(size=(6, 3))
-    R = Rotation.from_rotvec([0.3, -1.2, 2.0]).as_matrix()
-    t = np.array([0.5, -1.0, 2.0])
-    R2, t2 = kabsch(src, src @ R.T + t, np.ones(6))
+    src = rng.normal(size=(4, 6, 3))
+    R = Rotation.from_rotvec(rng.normal(size=(4, 3))).as_matrix()
+    t = rng.normal(size=(4, 3))
+    dst = np.einsum("bij,bnj->bni", R, src) + t[:, None]
+    R2, t2 = rigid_align(src, dst)
     np.testing.assert_allclose(R2, R, atol=1e-9)
     np.testing.assert_allclose(t2, t, atol=1e-9)
+    bad = dst.copy()
+    bad[:, 0] += 5.0  # an outlier given no weight leaves the motion exact; given weight, it does not
+    w = np.ones((4, 6))
+    w[:, 0] = 0.0
+    R3, t3 = rigid_align(src, bad, w)
+    np.testing.assert_allclose(R3, R, atol=1e-9)
+    np.testing.assert_allclose(t3, t, atol=1e-9)
+    assert np.abs(rigid_align(src, bad)[1] - t).max() > 0.1
+    R4, _ = rigid_align(src[0], dst[0] * np.array([1.0, 1.0, -1.0]))  # a reflection: still a rotation
+    assert np.isclose(np.linalg.det(R4), 1.0)
 
 
 def test_estimate_fits_from_detections_skips_frames_without_a_person():

@@ -82,6 +82,7 @@ import numpy as np
 import torch
 
 from avatarctl.body.motion import BodyMotion
+from avatarctl.geometry.align import rigid_align
 from avatarctl.progress import ProgressFn, ProgressReport
 
 FIT_BONES = ("spine05", "spine04", "spine03", "spine02", "spine01", "neck01", "neck02", "neck03", "head",
@@ -432,18 +433,6 @@ def _anny_hinges(body, bones: tuple[str, ...]) -> Hinges | None:
                   off=radians([np.inf if off is None else off for *_, off in rows]))
 
 
-def kabsch(src: np.ndarray, dst: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Weighted rigid alignment (Kabsch 1976; Umeyama 1991 without scale): R [3, 3], t [3] minimising
-    Σ_i w_i ‖R src_i + t − dst_i‖² for src, dst [n, 3], w [n] (needs three non-collinear weighted points)."""
-    w = w / w.sum()
-    ms, md = (w[:, None] * src).sum(0), (w[:, None] * dst).sum(0)
-    H = ((src - ms) * w[:, None]).T @ (dst - md)
-    U, _, Vt = np.linalg.svd(H)
-    d = np.sign(np.linalg.det(Vt.T @ U.T))
-    R = Vt.T @ np.diag([1.0, 1.0, d]) @ U.T
-    return R, md - R @ ms
-
-
 def initial_root(rest: np.ndarray, targets: KeypointTargets) -> tuple[np.ndarray, np.ndarray]:
     """Per-frame root (R [frames, 3, 3], t [frames, 3]) aligning the reference pose's torso keypoints (`rest`
     [joints, 3]) to the targets; frames with fewer than three torso points use every observed keypoint."""
@@ -453,7 +442,7 @@ def initial_root(rest: np.ndarray, targets: KeypointTargets) -> tuple[np.ndarray
         w = targets.weight[f] * torso
         if (w > 0).sum() < 3:
             w = targets.weight[f]
-        R, t = kabsch(rest, targets.points[f], w)
+        R, t = rigid_align(rest, targets.points[f], w)
         Rs.append(R)
         ts.append(t)
     return np.stack(Rs), np.stack(ts)
@@ -518,7 +507,7 @@ def initial_root_2d(rest: np.ndarray, targets: ImageKeypointTargets, scale: floa
         if (wt > 0).sum() < 3:
             wt = w[f]
         X = back_project(P, np.nan_to_num(x[f]), depth[f])
-        R0, _ = kabsch(rest * scale, X, wt)
+        R0, _ = rigid_align(rest * scale, X, wt)
         wn = wt / wt.sum()
         c_dst = (wn[:, None] * X).sum(0)
         c_src = (wn[:, None] * rest * scale).sum(0)

@@ -43,6 +43,7 @@ from typing import Callable
 import numpy as np
 import torch
 
+from avatarctl.geometry.align import rigid_align
 from avatarctl.geometry.cameras import Camera
 from avatarctl.geometry.normals import vertex_normals
 from avatarctl.progress import ProgressFn, ProgressReport
@@ -508,15 +509,7 @@ def node_motions(tracks: GarmentTracks, ref: int, nodes: np.ndarray, centers: np
         if len(idx) < min_vertices:
             continue
         Y = X[:, idx]  # [F, p, 3]
-        x0 = Y[ref] - Y[ref].mean(0)
-        yc = Y - Y.mean(1, keepdims=True)
-        U, _, Vt = np.linalg.svd(np.einsum("pi,fpj->fij", x0, yc))
-        d = np.sign(np.linalg.det(np.einsum("fij,fjk->fik", Vt.transpose(0, 2, 1), U.transpose(0, 2, 1))))
-        D = np.zeros((len(d), 3, 3))
-        D[:, 0, 0] = D[:, 1, 1] = 1.0
-        D[:, 2, 2] = d
-        R = Vt.transpose(0, 2, 1) @ D @ U.transpose(0, 2, 1)  # [F, 3, 3]: y = R x
-        t = Y.mean(1) - np.einsum("fij,j->fi", R, Y[ref].mean(0))
+        R, t = rigid_align(np.broadcast_to(Y[ref], Y.shape), Y)  # [F, 3, 3], [F, 3]: y = R x + t
         rows.append(int(nodes[k]))
         Rs.append(R)
         ts.append(t)

@@ -1,5 +1,6 @@
-"""Similarity alignment of two point sets (Umeyama 1991): what a monocular reconstruction is compared with the
-truth after (its world frame and scale are its own)."""
+"""Alignment of point sets: the similarity (Umeyama 1991) a monocular reconstruction is compared with the truth
+after (its world frame and scale are its own), and the weighted rigid motion (Kabsch 1976), batched, that fits a body's
+root to keypoints and a garment patch's motion to its tracked surface."""
 
 from __future__ import annotations
 
@@ -33,6 +34,26 @@ def similarity_align(src: np.ndarray, dst: np.ndarray) -> Similarity:
     R = U @ d @ Vt
     scale = float(np.trace(np.diag(S) @ d) / (a ** 2).sum(1).mean())
     return Similarity(scale=scale, R=R, t=md - scale * R @ ms)
+
+
+def rigid_align(src: np.ndarray, dst: np.ndarray, w: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """The rotation R [..., 3, 3] and translation t [..., 3] minimising Σ_i w_i ‖R src_i + t − dst_i‖² for src, dst
+    [..., n, 3] and weights w [..., n] (default 1; three non-collinear weighted points needed), batched over the
+    leading axes."""
+    src, dst = np.asarray(src, np.float64), np.asarray(dst, np.float64)
+    if src.shape != dst.shape or src.ndim < 2 or src.shape[-1] != 3:
+        raise ValueError(f"rigid_align: src {src.shape} and dst {dst.shape} must be the same [..., n, 3]")
+    w = np.ones(src.shape[:-1]) if w is None else np.broadcast_to(np.asarray(w, np.float64), src.shape[:-1])
+    w = w / w.sum(-1, keepdims=True)
+    ms, md = (w[..., None] * src).sum(-2), (w[..., None] * dst).sum(-2)
+    H = np.swapaxes((src - ms[..., None, :]) * w[..., None], -1, -2) @ (dst - md[..., None, :])  # [..., 3, 3]
+    U, _, Vt = np.linalg.svd(H)
+    V, Ut = np.swapaxes(Vt, -1, -2), np.swapaxes(U, -1, -2)
+    D = np.zeros(H.shape)
+    D[..., 0, 0] = D[..., 1, 1] = 1.0
+    D[..., 2, 2] = np.sign(np.linalg.det(V @ Ut))
+    R = V @ D @ Ut
+    return R, md - (R @ ms[..., None])[..., 0]
 
 
 def aligned_errors(est: np.ndarray, ref: np.ndarray) -> tuple[np.ndarray, Similarity]:
