@@ -257,6 +257,62 @@ def test_without_the_stop_rule_every_frame_is_tracked(scene, monkeypatch):
             truth[1] - truth[f], axis=-1).mean()
 
 
+def test_carry_moves_each_point_with_the_surface_nearest_it():
+    rng = np.random.default_rng(2)
+    Y0 = np.concatenate([rng.normal(size=(50, 3)) * 0.05, rng.normal(size=(50, 3)) * 0.05 + [1.0, 0.0, 0.0]])
+    turn = _turned(np.eye(3), 0.5).T
+    Y = np.concatenate([Y0[:50] @ turn.T + [0.0, 0.2, 0.0], Y0[50:] + [0.0, 0.0, -0.3]])  # two pieces, two motions
+    X = np.array([[0.02, 0.01, 0.0], [1.01, -0.02, 0.03]])
+    moved = gt.carry(X, Y0, Y, k=10)
+    np.testing.assert_allclose(moved[0], X[0] @ turn.T + [0.0, 0.2, 0.0], atol=1e-9)
+    np.testing.assert_allclose(moved[1], X[1] + [0.0, 0.0, -0.3], atol=1e-9)
+
+
+def test_the_spread_frame_has_the_most_mask_the_body_does_not_explain_and_ignores_one_odd_frame():
+    from avatarctl.geometry.silhouette import rasterize_silhouette
+
+    body = _body()
+    cams = _cameras(2)
+    F = 7
+    extra = [4, 6, 10, 14, 12, 8, 40]  # half-widths (pixels) of the garment's patch; frame 6 one odd mask
+    sil = [rasterize_silhouette(c, body[0], body[1], supersample=1) for c in cams]
+
+    def mask(c: int, f: int) -> np.ndarray:
+        m = sil[c].copy()
+        h = SIZE // 2
+        m[h + 25:h + 35, h - extra[f]:h + extra[f]] = True  # below the body's silhouette
+        return m
+
+    inp = gt.TrackingInput(frames=tuple(range(F)), cameras=cams, mask=mask,
+                           image=lambda c, f: np.zeros((SIZE, SIZE, 3), np.uint8),
+                           body_vertices=np.stack([body[0]] * F), body_faces=body[1],
+                           body_transforms=lambda fi, j: np.repeat(np.eye(4)[None], len(j), 0),
+                           up=np.tile([0.0, 0.0, 1.0], (F, 1)))
+    assert gt.spread_frame(inp, list(range(F))) == 3  # the widest over three frames, not the lone frame 6
+    assert gt.spread_frame(inp, [0, 1, 2]) == 2
+    assert gt.spread_frame(inp, [5, 4, 3]) == 3  # frames in either order
+
+
+def test_rescue_follows_the_frames_the_tracker_lost_and_keeps_the_rest(scene, monkeypatch):
+    """Both directions lost at once (the stop rule made to judge every frame lost): the rescue's second surface,
+    built from the masks at each lost frame, carries the first one onto the turned print."""
+    inp, verts, faces, truth = scene
+    mesh = gt.GarmentMesh(truth[1], faces, frame=1)
+    with monkeypatch.context() as m:
+        m.setattr(gt._Tracker, "explains", lambda self, X, fi: 1.0)
+        lost = gt.track(inp, mesh, ref=1)
+    assert lost.tracked.tolist() == [False, True, False]
+    untouched = gt.rescue(inp, lost, 1)  # fewer lost frames than `rescue_min_frames` on each side
+    assert untouched.tracked.tolist() == [False, True, False]
+    rescued = gt.rescue(inp, lost, 1, gt.TrackSettings(rescue_min_frames=1))
+    assert rescued.tracked.all()
+    np.testing.assert_array_equal(rescued.vertices[1], truth[1])
+    for f in (0, 2):
+        still = np.linalg.norm(truth[1] - truth[f], axis=-1).mean()
+        assert np.linalg.norm(rescued.vertices[f] - truth[f], axis=-1).mean() < 0.5 * still, f
+        assert (rescued.seen[f] >= 2).mean() > 0.5
+
+
 @pytest.mark.gpu
 def test_the_tracker_on_cuda_follows_the_print_as_on_the_cpu(scene):
     """The same photometric solves on a CUDA device: both follow the turning print, and agree to a few millimetres

@@ -103,6 +103,9 @@ class FitConfig:
     # training views or more first tracks the garment's surface through the training frames and places the hull
     # nodes by it on those frames; its time counts towards time_budget_s
     track: bool = False
+    # with track: where the tracker lost the garment (a twirl), a second surface built where it is most spread carries
+    # the first over the lost frames (garment_track.rescue, a deviation)
+    track_rescue: bool = False
     # the held-out frames posed after training (fit/held_out_poses.py, a deviation): where pose refinement is on
     # (estimated fits), each of the capture's test frames that is not a training frame gets this many Adam steps of
     # its pose against the training views' masks, the avatar frozen (Gaussian fields); 0 = none; after the budget

@@ -27,6 +27,11 @@ first, the way the garment methods of the field do (sequential, warm-started, ap
    (`smooth`), every vertex inside the frame's masks (`silhouette`, squared pixels outside). Visibility: a ray from
    the camera to the vertex hits the body or the surface within 1 cm of it (Warp's BVH, `geometry.raycast`), the
    surface not seen edge-on.
+2b. **Rescue** (`rescue`, `track_rescue`): where a direction lost the surface (a twirl flares the hem beyond the tube
+   built where the skirt hangs), a second, stiff tube is built at the lost frame where the garment is most spread,
+   tracked back to the last frame tracked and forward over the lost ones; the first surface follows its motion there
+   (each vertex by the rigid motion of its nearest second-tube vertices), kept on the frames where it explains the
+   reference colours better than the skeleton does.
 3. **Node motions** (`node_motions`): each node given to track owns its `patch` nearest surface vertices within
    `reach` at the reference frame; per frame, the best rigid motion (Kabsch) of those vertices from the reference
    frame is the node's motion. The fit places the node by it on training frames (`SlrfAvatar.set_tracks`); on
@@ -71,6 +76,10 @@ class TrackSettings:
     explain_px: int = 2  # the body's silhouette grown by this many pixels before it explains a mask pixel
     tube_top: float = 0.08  # the tube reaches this far (metres) above the garment's off-body volume
     tube_segments: int = 72  # tube vertices around each ring
+    rescue_min_frames: int = 3  # step 2b on a side of the reference with at least this many frames lost
+    rescue_isometry: float = 100.0  # the second surface's `isometry` (step 2b: a tube where the cloth is spread)
+    rescue_smooth: float = 1.0  # its `smooth`
+    rescue_k: int = 10  # the second surface's vertices whose rigid motion carries each first-surface vertex
 
 
 @dataclass(frozen=True)
@@ -134,7 +143,8 @@ class GarmentTracks:
     vertices: np.ndarray  # [F, V, 3] world metres
     seen: np.ndarray  # [F, V] int: training views that saw each vertex (at the frame it was tracked from)
     loss: np.ndarray  # [F] photometric loss after tracking (0 at the reference frame)
-    tracked: np.ndarray  # [F] bool: the frames the surface was followed to (`track`'s stop rule ends a direction)
+    tracked: np.ndarray  # [F] bool: the frames the surface was followed to (`track`'s stop rule ends a direction;
+    # `rescue` adds lost frames it found the surface on)
     seconds: float = 0.0
 
     def __post_init__(self) -> None:
@@ -351,14 +361,17 @@ class _Tracker:
         w = svis * has
         return float((w * ((c - tex) ** 2).sum(-1)).sum() / w.sum().clamp(min=1))
 
-    def step(self, Xp: np.ndarray, Xpp: np.ndarray | None, fa: int, fb: int) -> tuple[np.ndarray, np.ndarray, float]:
-        """Frame index fa -> fb (adjacent): -> (vertices [V, 3], views seeing each vertex at fa [V], loss)."""
+    def step(self, Xp: np.ndarray, Xpp: np.ndarray | None, fa: int, fb: int, init: np.ndarray | None = None
+             ) -> tuple[np.ndarray, np.ndarray, float]:
+        """Frame index fa -> fb (adjacent): -> (vertices [V, 3], views seeing each vertex at fa [V], loss). `init`:
+        the solve's start [V, 3] (default: Xp moved by the skeleton and the constant velocity)."""
         s, inp = self.s, self.inp
         vis_np = visibility(inp, fa, Xp, self.faces_np)
         svis = self._sample_vis(torch.as_tensor(vis_np, device=self.dev).float())
-        init = skin_move(inp, Xp, fa, fb)
-        if Xpp is not None and s.residual_velocity:
-            init = init + s.residual_velocity * (Xp - skin_move(inp, Xpp, 2 * fa - fb, fa))
+        if init is None:
+            init = skin_move(inp, Xp, fa, fb)
+            if Xpp is not None and s.residual_velocity:
+                init = init + s.residual_velocity * (Xp - skin_move(inp, Xpp, 2 * fa - fb, fa))
         Xp_t = torch.as_tensor(Xp, dtype=torch.float32, device=self.dev)
         X = torch.as_tensor(init, dtype=torch.float32, device=self.dev).clone().requires_grad_(True)
         e0, e1 = self.edges[:, 0], self.edges[:, 1]
@@ -441,6 +454,92 @@ def track(inp: TrackingInput, mesh: GarmentMesh, ref: int, settings: TrackSettin
     seen[ref] = visibility(inp, ref, mesh.vertices, mesh.faces).sum(0)
     return GarmentTracks(mesh=mesh, frames=tuple(inp.frames), vertices=out, seen=seen, loss=loss, tracked=tracked,
                          seconds=time.perf_counter() - t0)
+
+
+# ---- 2b. rescue ----------------------------------------------------------------------------------------------
+def spread_frame(inp: TrackingInput, frames: list[int], settings: TrackSettings = TrackSettings()) -> int:
+    """The frame index among `frames` (consecutive, in time order) where the garment is most spread: the most mask
+    pixels over the views that the body's silhouette (grown by `explain_px`) does not explain, each frame's count
+    the least of its own and its neighbours' in `frames` (one odd mask does not choose)."""
+    import cv2
+
+    from avatarctl.geometry.silhouette import rasterize_silhouette
+
+    grow = np.ones((2 * settings.explain_px + 1,) * 2, dtype=np.uint8)
+    count = []
+    for fi in frames:
+        n = 0
+        for c, cam in enumerate(inp.cameras):
+            body = rasterize_silhouette(cam, inp.body_vertices[fi], inp.body_faces, supersample=1).astype(np.uint8)
+            n += int((inp.mask(c, inp.frames[fi]) & ~(cv2.dilate(body, grow) > 0)).sum())
+        count.append(n)
+    count = np.asarray(count)
+    low = np.minimum(count, np.minimum(np.r_[count[:1], count[:-1]], np.r_[count[1:], count[-1:]]))
+    return frames[int(np.argmax(low))]
+
+
+def carry(X: np.ndarray, Y0: np.ndarray, Y: np.ndarray, k: int) -> np.ndarray:
+    """X [n, 3] moved as the surface Y0 [m, 3] moves to Y [m, 3]: each point by the rigid motion (Kabsch) of its k
+    nearest points of Y0."""
+    from scipy.spatial import cKDTree
+
+    _, j = cKDTree(Y0).query(X, k=min(k, len(Y0)))
+    j = j.reshape(len(X), -1)
+    R, t = rigid_align(Y0[j], Y[j])  # [n, 3, 3], [n, 3]
+    return (R @ X[..., None])[..., 0] + t
+
+
+def rescue(inp: TrackingInput, tracks: GarmentTracks, ref: int, settings: TrackSettings = TrackSettings(),
+           progress: ProgressFn | None = None, device: str | torch.device = "cpu") -> GarmentTracks:
+    """Step 2b of the module docstring: on each side of the reference frame where `track` lost the surface on
+    `rescue_min_frames` frames or more, a second tube built (step 1) at the frame where the garment is most spread
+    among the lost ones (`spread_frame`; stiff: `rescue_isometry`, `rescue_smooth`), tracked back to the last frame
+    tracked and from there forward over the lost frames (its first step starting where the way back found it); the
+    tracked surface carried from that last frame by the second tube's motion (`carry`) is kept on each lost frame
+    where the reference colours fit the frame better than with the surface moved by the skeleton from that frame
+    (the placement the fit would hold there). -> the tracks with those frames tracked."""
+    import time
+    from dataclasses import replace
+
+    t0 = time.perf_counter()
+    F = len(inp.frames)
+    out, seen, tracked = tracks.vertices.copy(), tracks.seen.copy(), tracks.tracked.copy()
+    stiff = replace(settings, isometry=settings.rescue_isometry, smooth=settings.rescue_smooth)
+    first = None
+    sides = [[f for f in range(ref + d, F if d > 0 else -1, d) if not tracked[f]] for d in (1, -1)]
+    total, count = sum(2 * len(lost) for lost in sides if len(lost) >= settings.rescue_min_frames), 0
+    for d, lost in zip((1, -1), sides):
+        if len(lost) < settings.rescue_min_frames:
+            continue
+        s = lost[0] - d  # the last frame tracked on this side (a direction stops at its first lost frame)
+        r = spread_frame(inp, sorted(lost), settings)
+        second = refine_reference(inp, reference_mesh(inp, r, stiff), r, stiff, device)
+        if len(second.vertices) < 20:
+            continue
+        tracker = _Tracker(inp, second, r, stiff, device)
+        back = {r: second.vertices}
+        for f in range(r - d, s - d, -d):  # r -> s
+            back[f] = tracker.step(back[f + d], back.get(f + 2 * d), f + d, f)[0]
+            tracker.frames.forget({inp.frames[f], inp.frames[f + d], inp.frames[r]})
+            count += 1
+            if progress is not None:
+                progress(ProgressReport(done=count, total=total, part="rescue"))
+        Y = {s: back[s]}
+        for f in lost:  # s -> the side's last frame
+            Y[f] = tracker.step(Y[f - d], Y.get(f - 2 * d), f - d, f, init=back.get(f) if f - d == s else None)[0]
+            tracker.frames.forget({inp.frames[f], inp.frames[f - d], inp.frames[r]})
+            count += 1
+            if progress is not None:
+                progress(ProgressReport(done=count, total=total, part="rescue"))
+        if first is None:
+            first = _Tracker(inp, tracks.mesh, ref, settings, device)
+        for f in lost:
+            X = carry(out[s], Y[s], Y[f], settings.rescue_k)
+            if first.explains(X, f) < first.explains(skin_move(inp, out[s], s, f), f):
+                out[f], tracked[f] = X, True
+                seen[f] = visibility(inp, f, X, tracks.mesh.faces).sum(0)
+    return GarmentTracks(mesh=tracks.mesh, frames=tracks.frames, vertices=out, seen=seen, loss=tracks.loss,
+                         tracked=tracked, seconds=tracks.seconds + time.perf_counter() - t0)
 
 
 def refine_reference(inp: TrackingInput, mesh: GarmentMesh, ref: int, settings: TrackSettings = TrackSettings(),

@@ -457,9 +457,10 @@ def _set_up(project: Project, cfg: FitConfig | None, device: str, resume: bool, 
 
 def _track_garment(t: "_Trainer", template, hull_count: int) -> tuple[str, float]:
     """The garment tracking pass (fit/garment_track.py) of a fresh fit: the reference surface at the middle training
-    frame, tracked through the training frames; the last `hull_count` nodes (the hull nodes) that own a patch of it
-    are placed by its motion on training frames (`SlrfAvatar.set_tracks`). Writes fit/track/summary.json and
-    tracks.npz (the surface per frame). -> (the line for the log, seconds)."""
+    frame, tracked through the training frames (and rescued where lost, with `track_rescue`); the last `hull_count`
+    nodes (the hull nodes) that own a patch of it are placed by its motion on training frames
+    (`SlrfAvatar.set_tracks`). Writes fit/track/summary.json and tracks.npz (the surface per frame). -> (the line for
+    the log, seconds)."""
     import numpy as np
 
     from avatarctl.body.lbs import transform_points
@@ -483,6 +484,10 @@ def _track_garment(t: "_Trainer", template, hull_count: int) -> tuple[str, float
     if len(mesh.vertices) < 20:
         return "garment tracking: skipped (the masks show no garment off the body at the reference frame)", 0.0
     tracks = gt.track(inp, mesh, ref, settings, device=t.dev)
+    followed = int(tracks.tracked.sum())
+    if t.cfg.track_rescue:
+        tracks = gt.rescue(inp, tracks, ref, settings, device=t.dev)
+    rescued = int(tracks.tracked.sum()) - followed
     model, N = t.model, t.cfg.model.num_nodes
     nodes = torch.arange(N - hull_count, N)
     with torch.no_grad():  # the hull nodes placed by the skeleton on every training frame (Eq. 1, 3, Delta n = 0)
@@ -509,11 +514,12 @@ def _track_garment(t: "_Trainer", template, hull_count: int) -> tuple[str, float
                "frames": len(tracks.frames), "tracked_nodes": int(len(motion.nodes)), "hull_nodes": hull_count,
                "patch_vertices_median": float(np.median(motion.vertices)) if len(motion.nodes) else 0.0,
                "seen_by_two_views": float((tracks.seen >= 2).mean()), "frames_tracked": int(tracks.tracked.sum()),
+               "frames_rescued": rescued,
                "loss": [round(float(x), 3) for x in tracks.loss], "seconds": round(seconds, 1),
                "settings": {k: (list(v) if isinstance(v, tuple) else v) for k, v in vars(settings).items()}}
     write_json(folder / "summary.json", summary)
     note = (f"garment tracking: {len(mesh.vertices)} surface vertices through {int(tracks.tracked.sum())} of "
-            f"{len(tracks.frames)} frames, "
+            f"{len(tracks.frames)} frames{f' ({rescued} rescued)' if t.cfg.track_rescue else ''}, "
             f"{len(motion.nodes)} of {hull_count} hull nodes placed by it ({seconds:.0f} s)")
     return note, seconds
 

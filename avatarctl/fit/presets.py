@@ -119,6 +119,8 @@ KNOBS: dict[str, tuple[str, str]] = {
     "val_pairs": ("any", "(held-out view, training frame) pairs per validation (0: none)"),
     "val_scale": ("any", "image scale of the validation renders"),
     "track": ("any", "garment tracking before the fit: hull nodes placed by the tracked cloth (deviation)"),
+    "track_rescue": ("any", "with track: frames the tracker lost followed by a second surface built where the "
+                            "garment is most spread (deviation)"),
     "held_out_poses": ("gaussians", "steps posing each held-out frame against the training views' masks after "
                                     "the fit, where the fits are estimated (deviation; 0: none)"),
     # the batch and the optimiser (the paper's)
