@@ -28,7 +28,8 @@ first, the way the garment methods of the field do (sequential, warm-started, ap
    the camera to the vertex hits the body or the surface within 1 cm of it (Warp's BVH, `geometry.raycast`), the
    surface not seen edge-on.
 2b. **Rescue** (`rescue`, `track_rescue`): where a direction lost the surface (a twirl flares the hem beyond the tube
-   built where the skirt hangs), a second, stiff tube is built at the lost frame where the garment is most spread,
+   built where the skirt hangs), a second, stiff tube is built at the lost frame where the garment is most spread
+   (and at the frames before it: the one whose way back to the last frame tracked lands on the surface held there),
    tracked back to the last frame tracked and forward over the lost ones; the first surface follows its motion there
    (each vertex by the rigid motion of its nearest second-tube vertices), kept on the frames where it explains the
    reference colours better than the skeleton does.
@@ -80,6 +81,7 @@ class TrackSettings:
     rescue_isometry: float = 100.0  # the second surface's `isometry` (step 2b: a tube where the cloth is spread)
     rescue_smooth: float = 1.0  # its `smooth`
     rescue_k: int = 10  # the second surface's vertices whose rigid motion carries each first-surface vertex
+    rescue_candidates: int = 3  # second surfaces tried: at the spread frame and the frames before it (step 2b)
 
 
 @dataclass(frozen=True)
@@ -489,15 +491,24 @@ def carry(X: np.ndarray, Y0: np.ndarray, Y: np.ndarray, k: int) -> np.ndarray:
     return (R @ X[..., None])[..., 0] + t
 
 
+def _chamfer(A: np.ndarray, B: np.ndarray) -> float:
+    """Mean distance (metres) of A's points [n, 3] to B's nearest and of B's [m, 3] to A's, averaged."""
+    from scipy.spatial import cKDTree
+
+    return 0.5 * float(cKDTree(B).query(A)[0].mean() + cKDTree(A).query(B)[0].mean())
+
+
 def rescue(inp: TrackingInput, tracks: GarmentTracks, ref: int, settings: TrackSettings = TrackSettings(),
            progress: ProgressFn | None = None, device: str | torch.device = "cpu") -> GarmentTracks:
     """Step 2b of the module docstring: on each side of the reference frame where `track` lost the surface on
-    `rescue_min_frames` frames or more, a second tube built (step 1) at the frame where the garment is most spread
-    among the lost ones (`spread_frame`; stiff: `rescue_isometry`, `rescue_smooth`), tracked back to the last frame
-    tracked and from there forward over the lost frames (its first step starting where the way back found it); the
-    tracked surface carried from that last frame by the second tube's motion (`carry`) is kept on each lost frame
-    where the reference colours fit the frame better than with the surface moved by the skeleton from that frame
-    (the placement the fit would hold there). -> the tracks with those frames tracked."""
+    `rescue_min_frames` frames or more, a second tube built (step 1; stiff: `rescue_isometry`, `rescue_smooth`) at
+    the frame where the garment is most spread among the lost ones (`spread_frame`) and at each of the
+    `rescue_candidates` - 1 frames before it, each tracked back to the last frame tracked; the one that arrives
+    nearest the tracked surface there (`_chamfer`: the way back held the cloth) is tracked from there forward over
+    the lost frames (its first step starting where the way back found it); the tracked surface carried from that
+    last frame by the second tube's motion (`carry`) is kept on each lost frame where the reference colours fit the
+    frame better than with the surface moved by the skeleton from that frame (the placement the fit would hold
+    there). -> the tracks with those frames tracked."""
     import time
     from dataclasses import replace
 
@@ -507,27 +518,36 @@ def rescue(inp: TrackingInput, tracks: GarmentTracks, ref: int, settings: TrackS
     stiff = replace(settings, isometry=settings.rescue_isometry, smooth=settings.rescue_smooth)
     first = None
     sides = [[f for f in range(ref + d, F if d > 0 else -1, d) if not tracked[f]] for d in (1, -1)]
-    total, count = sum(2 * len(lost) for lost in sides if len(lost) >= settings.rescue_min_frames), 0
+    total = sum(len(lost) + settings.rescue_candidates for lost in sides if len(lost) >= settings.rescue_min_frames)
+    count = 0
     for d, lost in zip((1, -1), sides):
         if len(lost) < settings.rescue_min_frames:
             continue
         s = lost[0] - d  # the last frame tracked on this side (a direction stops at its first lost frame)
         r = spread_frame(inp, sorted(lost), settings)
-        second = refine_reference(inp, reference_mesh(inp, r, stiff), r, stiff, device)
-        if len(second.vertices) < 20:
-            continue
-        tracker = _Tracker(inp, second, r, stiff, device)
-        back = {r: second.vertices}
-        for f in range(r - d, s - d, -d):  # r -> s
-            back[f] = tracker.step(back[f + d], back.get(f + 2 * d), f + d, f)[0]
-            tracker.frames.forget({inp.frames[f], inp.frames[f + d], inp.frames[r]})
+        best = None
+        for c in [r - k * d for k in range(settings.rescue_candidates) if (r - k * d - s) * d > 0]:
+            second = refine_reference(inp, reference_mesh(inp, c, stiff), c, stiff, device)
+            if len(second.vertices) < 20:
+                continue
+            tracker = _Tracker(inp, second, c, stiff, device)
+            back = {c: second.vertices}
+            for f in range(c - d, s - d, -d):  # c -> s
+                back[f] = tracker.step(back[f + d], back.get(f + 2 * d), f + d, f)[0]
+                tracker.frames.forget({inp.frames[f], inp.frames[f + d], inp.frames[c]})
+            gap = _chamfer(back[s], out[s])
+            if best is None or gap < best[0]:
+                best = (gap, tracker, back)
             count += 1
             if progress is not None:
                 progress(ProgressReport(done=count, total=total, part="rescue"))
+        if best is None:
+            continue
+        _, tracker, back = best
         Y = {s: back[s]}
         for f in lost:  # s -> the side's last frame
             Y[f] = tracker.step(Y[f - d], Y.get(f - 2 * d), f - d, f, init=back.get(f) if f - d == s else None)[0]
-            tracker.frames.forget({inp.frames[f], inp.frames[f - d], inp.frames[r]})
+            tracker.frames.forget({inp.frames[f], inp.frames[f - d], inp.frames[tracker.ref]})
             count += 1
             if progress is not None:
                 progress(ProgressReport(done=count, total=total, part="rescue"))
