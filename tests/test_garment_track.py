@@ -208,6 +208,17 @@ def test_the_model_places_tracked_nodes_on_training_frames_only(tmp_path):
     torch.testing.assert_close(again.node_state(cond, mode="zero").centers, after.centers)
     with pytest.raises(ValueError, match="tracks for 3 frames"):
         model.set_tracks(nodes, rot[:2], centre[:2])
+    # Delta n pulled elsewhere than the placement (the rescued frames' placement without the rescue)
+    offset = torch.zeros(3, 2, 3)
+    offset[1] = 0.5
+    model.set_tracks(nodes, rot, centre, offset)
+    pulled = model.node_state(cond, mode="zero")
+    torch.testing.assert_close(pulled.centers, after.centers)  # placed as before
+    torch.testing.assert_close(pulled.track_penalty, ((before.centers[:2, nodes] - centre[:2] - offset[:2]) ** 2
+                                                      ).sum((-2, -1)).mean())
+    old = {k: v for k, v in model.state_dict().items() if k != "track_pull"}  # a fit saved before the pull existed
+    again.load_state_dict(old)
+    torch.testing.assert_close(again.node_state(cond, mode="zero").track_penalty, after.track_penalty)
 
 
 def test_in_training_a_share_of_the_frames_keeps_the_paper_placement():

@@ -483,25 +483,31 @@ def _track_garment(t: "_Trainer", template, hull_count: int) -> tuple[str, float
     mesh = gt.refine_reference(inp, gt.reference_mesh(inp, ref, settings), ref, settings, device=t.dev)
     if len(mesh.vertices) < 20:
         return "garment tracking: skipped (the masks show no garment off the body at the reference frame)", 0.0
-    tracks = gt.track(inp, mesh, ref, settings, device=t.dev)
-    followed = int(tracks.tracked.sum())
+    tracks = followed = gt.track(inp, mesh, ref, settings, device=t.dev)
     if t.cfg.track_rescue:
-        tracks = gt.rescue(inp, tracks, ref, settings, device=t.dev)
-    rescued = int(tracks.tracked.sum()) - followed
+        tracks = gt.rescue(inp, followed, ref, settings, device=t.dev)
+    rescued = int(tracks.tracked.sum() - followed.tracked.sum())
     model, N = t.model, t.cfg.model.num_nodes
     nodes = torch.arange(N - hull_count, N)
     with torch.no_grad():  # the hull nodes placed by the skeleton on every training frame (Eq. 1, 3, Delta n = 0)
         T = model.node_state(t.all_frames, mode="zero").transforms[:, nodes].double().cpu()  # [F, M, 4, 4]
     A = T[..., :3, :3].numpy()  # [F, M, 3, 3]
     c = transform_points(T, model.node_rest[nodes].double().cpu()).numpy()  # [F, M, 3] Eq. 2
-    motion = gt.node_motions(tracks, ref, nodes.numpy(), c[ref])
-    keep = np.searchsorted(nodes.numpy(), motion.nodes)
-    R, tr = motion.rotation, motion.translation  # [F, M', 3, 3], [F, M', 3]
-    rotation = R @ A[ref, keep][None]
-    center = np.einsum("fmij,mj->fmi", R, c[ref, keep]) + tr
-    rotation, center = gt.placement(rotation, center, A[:, keep], c[:, keep], tracks.tracked, ref)
+
+    def placed(tr: "gt.GarmentTracks") -> tuple["gt.NodeMotions", np.ndarray, np.ndarray]:
+        motion = gt.node_motions(tr, ref, nodes.numpy(), c[ref])
+        keep = np.searchsorted(nodes.numpy(), motion.nodes)
+        R, shift = motion.rotation, motion.translation  # [F, M', 3, 3], [F, M', 3]
+        rotation = R @ A[ref, keep][None]
+        center = np.einsum("fmij,mj->fmi", R, c[ref, keep]) + shift
+        return (motion, *gt.placement(rotation, center, A[:, keep], c[:, keep], tr.tracked, ref))
+
+    motion, rotation, center = placed(tracks)
+    # Delta n is pulled to the placement without the rescue (its offsets on the rescued frames cost novel poses)
+    pull = placed(followed)[2] - center if tracks is not followed else np.zeros_like(center)
     if len(motion.nodes):
-        model.set_tracks(torch.as_tensor(motion.nodes), torch.as_tensor(rotation), torch.as_tensor(center))
+        model.set_tracks(torch.as_tensor(motion.nodes), torch.as_tensor(rotation), torch.as_tensor(center),
+                         torch.as_tensor(pull))
     seconds = time.perf_counter() - t0
     folder = t.project.paths.fit / "track"
     folder.mkdir(parents=True, exist_ok=True)

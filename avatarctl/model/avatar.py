@@ -170,7 +170,7 @@ class SlrfAvatar(nn.Module):
             idx = torch.cat([surface, hull_nodes[1].to(surface)])
             rest = torch.cat([template.vertices.detach().float()[surface], hull_nodes[0].float().to(surface.device)])
         # buffers: saved in state_dict, follow .to(device)
-        for name in ("track_nodes", "track_rotation", "track_center"):  # garment tracks (`set_tracks`): none yet
+        for name in ("track_nodes", "track_rotation", "track_center", "track_pull"):  # garment tracks (`set_tracks`)
             self.register_buffer(name, None)
         self.register_buffer("node_vertex_index", idx.clone())  # [N] long, template vertex of (nearest to) each node
         self.register_buffer("node_rest", rest.clone())  # [N, 3] n_bar_i
@@ -207,8 +207,9 @@ class SlrfAvatar(nn.Module):
 
     def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):
         if prefix + "track_nodes" in state_dict:  # a fit with garment tracks: the buffers take the saved shapes
-            self.set_tracks(state_dict[prefix + "track_nodes"], state_dict[prefix + "track_rotation"],
-                            state_dict[prefix + "track_center"])
+            centre = state_dict[prefix + "track_center"]
+            pull = state_dict.setdefault(prefix + "track_pull", torch.zeros_like(centre))  # older fits: none
+            self.set_tracks(state_dict[prefix + "track_nodes"], state_dict[prefix + "track_rotation"], centre, pull)
         # checkpoints written before `occupancy_updates` existed: their grids are past any warm-up
         key = prefix + "occupancy_updates"
         if self.cfg.uses_occupancy and prefix + "occupancy" in state_dict and key not in state_dict:
@@ -260,19 +261,22 @@ class SlrfAvatar(nn.Module):
                          pose_penalty=pose_penalty, track_penalty=track_penalty, refine_penalty=refine_penalty)
 
     # ---- garment tracks (fit/garment_track.py; a deviation) ------------------------------------------------------
-    def set_tracks(self, nodes: torch.Tensor, rotation: torch.Tensor, center: torch.Tensor) -> None:
+    def set_tracks(self, nodes: torch.Tensor, rotation: torch.Tensor, center: torch.Tensor,
+                   pull_offset: torch.Tensor | None = None) -> None:
         """Place the nodes `nodes` [M] on training frame f at the tracked linear part rotation[f] [M, 3, 3] and centre
         center[f] [M, 3] (world) instead of T_i's skinned linear part and Eq. 3's n_i: T_i = [R | c - R n_bar_i], so
-        n_i = c; their Delta n is pulled there instead (L_track, `_tracked`) and places them on novel poses
-        (frame_ids -1: the paper's placement). Saved with the weights (buffers)."""
+        n_i = c; their Delta n is pulled there instead (L_track, `_tracked`; to c + pull_offset[f] [M, 3] where given:
+        the rescued frames' placement without the rescue, fit/garment_track.py step 2b) and places them on novel
+        poses (frame_ids -1: the paper's placement). Saved with the weights (buffers)."""
         F = self.num_frames
         M = int(nodes.shape[0])
-        if rotation.shape != (F, M, 3, 3) or center.shape != (F, M, 3):
+        pull_offset = torch.zeros_like(center) if pull_offset is None else pull_offset
+        if rotation.shape != (F, M, 3, 3) or center.shape != (F, M, 3) or pull_offset.shape != (F, M, 3):
             raise ValueError(f"tracks for {F} frames and {M} nodes: rotation {tuple(rotation.shape)}, "
-                             f"center {tuple(center.shape)}")
+                             f"center {tuple(center.shape)}, pull_offset {tuple(pull_offset.shape)}")
         dev = self.node_rest.device
         for name, value in (("track_nodes", nodes.long()), ("track_rotation", rotation.float()),
-                            ("track_center", center.float())):
+                            ("track_center", center.float()), ("track_pull", pull_offset.float())):
             self._buffers[name] = value.to(dev).clone()
 
     def _tracked(self, T: torch.Tensor, centers: torch.Tensor, frame_ids: torch.Tensor
@@ -294,7 +298,8 @@ class SlrfAvatar(nn.Module):
         if self.track_refine is not None:
             R, c = self.track_refine(R, c, f, nodes)
             refine_penalty = self.track_refine.penalty(f, nodes)
-        penalty = ((centers[train][:, nodes] - c.detach()) ** 2).sum(dim=(-2, -1)).mean()
+        pull = c.detach() + self.track_pull[f].to(T.dtype)
+        penalty = ((centers[train][:, nodes] - pull) ** 2).sum(dim=(-2, -1)).mean()
         if self.training and self.cfg.track_free > 0:  # a share of the frames placed the paper's way this step
             keep = (torch.rand(train.numel()) >= self.cfg.track_free).to(train.device)
             if not keep.any():
