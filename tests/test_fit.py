@@ -77,8 +77,8 @@ def test_presets_are_stated_once_and_the_defaults_are_the_paper():
     assert all(f"'{name}'" in preset_help() for name in PRESETS)
     # the cpu preset is cpu-mlp with the Gaussian local fields, the cVAE's width decided from the capture and the
     # camera colour transforms, less the keys that do nothing for the Gaussian fields (the MLP widths, empty-space
-    # skipping, the ray batch), with more, smaller garment patches, their placement corrected per frame, where it tracks
-    # a garment, and the held-out frames posed after the fit; its old name still reads
+    # skipping, the ray batch), with more, smaller garment patches, their placement corrected per frame and the lost
+    # frames rescued, where it tracks a garment, and the held-out frames posed after the fit; its old name still reads
     g, c = preset("cpu"), preset("cpu-mlp")
     assert g.model.field == "gaussians" and g.model.cvae_width == "auto" and g.model.colour.enabled
     mlp_only = dict(node_width=c.model.node_width, node_depth=c.model.node_depth, feature_dim=c.model.feature_dim,
@@ -88,10 +88,10 @@ def test_presets_are_stated_once_and_the_defaults_are_the_paper():
     assert g.model.gaussians == replace(c.model.gaussians, mask_border_px="auto")
     assert g.model.hull == replace(c.model.hull, tracked_nodes=256)
     assert g.model.track_refine == replace(c.model.track_refine, enabled="auto")
-    assert g.track and not c.track  # garment tracking: measured with the Gaussian fields only
+    assert g.track and g.track_rescue and not c.track  # garment tracking: measured with the Gaussian fields only
     assert g.held_out_poses and not c.held_out_poses  # the held-out frames posed: renders whole crops (Gaussians)
     assert replace(g, model=c.model, preset="cpu-mlp", rays_per_batch=c.rays_per_batch, track=False,
-                   held_out_poses=0) == c
+                   track_rescue=False, held_out_poses=0) == c
     assert preset("gaussians") == g
     # configs saved under the old names read as the presets' names now (the settings are the saved ones)
     assert FitConfig.from_json({**g.to_json(), "preset": "gaussians"}) == g

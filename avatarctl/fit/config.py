@@ -104,7 +104,7 @@ class FitConfig:
     # nodes by it on those frames; its time counts towards time_budget_s
     track: bool = False
     # with track: where the tracker lost the garment (a twirl), a second surface built where it is most spread carries
-    # the first over the lost frames (garment_track.rescue, a deviation)
+    # the first over the lost frames (garment_track.rescue, a deviation; on in the cpu preset)
     track_rescue: bool = False
     # the held-out frames posed after training (fit/held_out_poses.py, a deviation): where pose refinement is on
     # (estimated fits), each of the capture's test frames that is not a training frame gets this many Adam steps of
