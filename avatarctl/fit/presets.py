@@ -62,12 +62,13 @@ PRESETS: dict[str, Preset] = {
                 "width (the paper's 128 from two training views per frame, 32 from one) decided from the capture, a "
                 "colour transform per training camera, the training frames' mean latent for novel poses, garment "
                 "tracking when there is a loose garment (from 4 training views on, 256 nodes, half of them on it, their "
-                "placement corrected per frame, the frames the tracker loses rescued), the held-out frames posed by the avatar's silhouette after "
+                "placement corrected per frame, the frames the tracker loses rescued), the held-out frames posed "
+                "by the avatar's silhouette after "
                 "the fit where the fits are estimated, the masks' outline left out of the image loss where the masks "
                 "are estimated (from two training views on); 20k iterations, validation on half-size images every 1000 steps",
         # garment tracking where hull nodes find a loose garment (fit/garment_track.py): synth small, 15 min, two seeds,
-        # +0.18 / +0.25 dB held-out and +0.06 / +0.34 novel poses; skipped on tight captures (docs/fit.md); the frames it
-        # loses rescued (garment_track.rescue): the same, +0.33 / +0.52 dB held-out, novel poses level
+        # +0.18 / +0.25 dB held-out and +0.06 / +0.34 novel poses; skipped on tight captures (docs/fit.md); the frames
+        # it loses rescued (garment_track.rescue): the same, +0.33 / +0.52 dB held-out, novel poses level
         # the held-out frames posed against the training views' masks after the fit (fit/held_out_poses.py), where
         # pose refinement is on: synth phone, 300 s, the plain held-out figure +4 dB (docs/fit.md)
         fit={**_CPU_FIT, "track": True, "track_rescue": True, "held_out_poses": 80},
