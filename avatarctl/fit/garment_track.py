@@ -176,15 +176,26 @@ def tube_faces(rings: int, segments: int) -> np.ndarray:
                           ).astype(np.int64)
 
 
+def body_explains(inp: TrackingInput, fi: int, settings: TrackSettings = TrackSettings()) -> list[np.ndarray]:
+    """Per training view, bool [H, W]: the mask pixels the posed body explains at frame index `fi` (its silhouette
+    grown by `explain_px`); the rest of a mask is the garment's, or the masks' error."""
+    import cv2
+
+    from avatarctl.geometry.silhouette import rasterize_silhouette
+
+    grow = np.ones((2 * settings.explain_px + 1,) * 2, dtype=np.uint8)
+    body = inp.body_vertices[fi].astype(np.float64)
+    return [cv2.dilate(rasterize_silhouette(c, body, inp.body_faces, supersample=1).astype(np.uint8), grow) > 0
+            for c in inp.cameras]
+
+
 def reference_mesh(inp: TrackingInput, ref: int, settings: TrackSettings = TrackSettings()) -> GarmentMesh:
     """Step 1 of the module docstring at frame index `ref` of `inp` (before the stereo). An empty mesh when nothing
     is off the body."""
-    import cv2
     from scipy.ndimage import gaussian_filter, gaussian_filter1d, map_coordinates
     from scipy.spatial import cKDTree
 
     from avatarctl.geometry.hull import carve
-    from avatarctl.geometry.silhouette import rasterize_silhouette
 
     frame = inp.frames[ref]
     body = inp.body_vertices[ref].astype(np.float64)
@@ -194,9 +205,7 @@ def reference_mesh(inp: TrackingInput, ref: int, settings: TrackSettings = Track
     vox = settings.voxel
     lo, hi = body.min(0) - 0.35, body.max(0) + 0.35
     empty = GarmentMesh(np.zeros((0, 3)), np.zeros((0, 3), dtype=np.int64), frame)
-    grow = np.ones((2 * settings.explain_px + 1,) * 2, dtype=np.uint8)
-    explained = [cv2.dilate(rasterize_silhouette(c, body, inp.body_faces, supersample=1).astype(np.uint8), grow) > 0
-                 for c in cams]
+    explained = body_explains(inp, ref, settings)
     off = carve(cams, masks, lo, hi, vox, explained=explained)  # [M, 3] voxel centres no body explains
     off = off[cKDTree(body).query(off)[0] > settings.off_body] if len(off) else off
     if len(off) < 8:
@@ -463,19 +472,8 @@ def spread_frame(inp: TrackingInput, frames: list[int], settings: TrackSettings 
     """The frame index among `frames` (consecutive, in time order) where the garment is most spread: the most mask
     pixels over the views that the body's silhouette (grown by `explain_px`) does not explain, each frame's count
     the least of its own and its neighbours' in `frames` (one odd mask does not choose)."""
-    import cv2
-
-    from avatarctl.geometry.silhouette import rasterize_silhouette
-
-    grow = np.ones((2 * settings.explain_px + 1,) * 2, dtype=np.uint8)
-    count = []
-    for fi in frames:
-        n = 0
-        for c, cam in enumerate(inp.cameras):
-            body = rasterize_silhouette(cam, inp.body_vertices[fi], inp.body_faces, supersample=1).astype(np.uint8)
-            n += int((inp.mask(c, inp.frames[fi]) & ~(cv2.dilate(body, grow) > 0)).sum())
-        count.append(n)
-    count = np.asarray(count)
+    count = np.asarray([sum(int((inp.mask(c, inp.frames[fi]) & ~e).sum())
+                            for c, e in enumerate(body_explains(inp, fi, settings))) for fi in frames])
     low = np.minimum(count, np.minimum(np.r_[count[:1], count[:-1]], np.r_[count[1:], count[-1:]]))
     return frames[int(np.argmax(low))]
 

@@ -27,12 +27,10 @@ def similarity_align(src: np.ndarray, dst: np.ndarray) -> Similarity:
     src, dst = np.asarray(src, np.float64), np.asarray(dst, np.float64)
     if src.shape != dst.shape or src.ndim != 2 or src.shape[1] != 3 or src.shape[0] < 3:
         raise ValueError(f"similarity_align: src {src.shape} and dst {dst.shape} must be the same [n >= 3, 3]")
+    R, _ = rigid_align(src, dst)  # Umeyama's rotation does not depend on the scale
     ms, md = src.mean(0), dst.mean(0)
     a, b = src - ms, dst - md
-    U, S, Vt = np.linalg.svd(b.T @ a / len(src))
-    d = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
-    R = U @ d @ Vt
-    scale = float(np.trace(np.diag(S) @ d) / (a ** 2).sum(1).mean())
+    scale = float((b * (a @ R.T)).sum() / (a ** 2).sum())  # trace(D S) / the source's variance
     return Similarity(scale=scale, R=R, t=md - scale * R @ ms)
 
 
