@@ -254,58 +254,6 @@ def test_in_training_a_share_of_the_frames_keeps_the_paper_placement():
         ModelConfig(track_free=1.0)
 
 
-def test_the_free_frames_colour_is_a_residual_of_the_free_placement_only():
-    """`model.track_free_colour`: `NodeState.free` marks the tracked nodes placed the paper's way (free frames in
-    training, novel poses always); their Gaussians add `sh_free` to their colour there and nowhere else, so a loss on
-    the frames placed by the tracks gives `sh_free` no gradient; relocation carries it with the Gaussian."""
-    from fixtures.toy_capture import toy_motion
-
-    from avatarctl.body.toy import ToyBody
-    from avatarctl.model import ModelConfig
-    from avatarctl.model.avatar import FrameConditioning, SlrfAvatar
-    from avatarctl.model.config import GaussianConfig
-    from avatarctl.model.densify import relocate_dead
-
-    body = ToyBody()
-    motion = toy_motion(3)
-    template = body.template(motion)
-    cfg = ModelConfig(num_nodes=16, field="gaussians", track_free=0.5, track_free_colour=True,
-                      gaussians=GaussianConfig(per_node=8))
-    model = SlrfAvatar(cfg, template, num_frames=3)
-    assert model.fields.sh_free is not None and not model.fields.sh_free.any()
-    J = body.pose(motion).joint_transforms.shape[1]
-    ids = torch.tensor([0, 1, 2, 0, 1, 2, -1, -1])
-    cond = FrameConditioning(body.pose(motion).joint_transforms.float()[ids.clamp(min=0)], torch.zeros(8, J, 3),
-                             torch.linspace(0, 1, 8), ids)
-    assert model.node_state(cond, mode="zero").free is None  # no tracks: nothing is free
-    nodes = torch.tensor([3, 5])
-    centre = torch.rand(3, 2, 3)
-    model.set_tracks(nodes, torch.eye(3).expand(3, 2, 3, 3).clone(), centre)
-    with torch.no_grad():
-        model.fields.sh_free.normal_()
-    torch.manual_seed(0)
-    state = model.train().node_state(cond, mode="zero")
-    others = torch.tensor([i for i in range(16) if i not in (3, 5)])
-    assert not state.free[:, others].any() and (state.free[6:, nodes] == 1).all()  # novel poses: free
-    placed = (state.centers[:6, nodes] == centre[ids[:6]]).all(-1).all(-1)  # [6] frames placed by the tracks
-    assert placed.any() and not placed.all()
-    torch.testing.assert_close(state.free[:6, 3], (~placed).float())
-    posed = model.posed_gaussians(state)
-    bare = model.fields(state.transforms, state.centers, state.embed)  # no free flags: the tracked colours
-    K = model.fields.per_node
-    diff = (posed.sh - bare.sh).abs().reshape(8, 16, K, -1).amax((-2, -1))  # [B, N]
-    assert (diff[state.free > 0] > 0).all() and (diff[state.free == 0] == 0).all()
-    kept = torch.nonzero(placed).flatten()
-    posed.sh[kept].sum().backward()  # a loss on the tracked frames only
-    assert not model.fields.sh_free.grad.any() and model.fields.sh.grad.any()
-    assert any(p is model.fields.sh_free for p in model.fields.gaussian_parameters()["lr_colors"])
-    with torch.no_grad():  # relocation: a dead Gaussian takes its source's residual colour
-        model.fields.opacity_logits[3, 0] = -20.0
-    opt = torch.optim.Adam([p for ps in model.fields.gaussian_parameters().values() for p in ps])
-    assert relocate_dead(model.fields, opt, min_opacity=0.005, seed=0, step=1) >= 1
-    assert any(torch.equal(model.fields.sh_free[3, 0], model.fields.sh_free[3, k]) for k in range(1, K))
-
-
 def test_without_the_stop_rule_every_frame_is_tracked(scene, monkeypatch):
     """`track(stop=False)` (benchmarks.garment_tracking --through) goes on where the stop rule ends a direction."""
     inp, verts, faces, truth = scene

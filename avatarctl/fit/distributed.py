@@ -242,4 +242,4 @@ def cat_states(states: list["NodeState"], train_counts: list[int]) -> "NodeState
     if all(s.pose_penalty is not None for s in states) and sum(train_counts):
         pose = sum(s.pose_penalty * n for s, n in zip(states, train_counts)) / sum(train_counts)
     return NodeState(transforms=cat("transforms"), centers=cat("centers"), delta_n=cat("delta_n"),
-                     embed=cat("embed"), mu=cat("mu"), logvar=cat("logvar"), pose_penalty=pose, free=cat("free"))
+                     embed=cat("embed"), mu=cat("mu"), logvar=cat("logvar"), pose_penalty=pose)

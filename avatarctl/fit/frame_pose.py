@@ -223,8 +223,7 @@ def _render(model: "SlrfAvatar", state: "NodeState", views: list[PoseView], bg: 
 
     B = len(views)
     batched = NodeState(transforms=state.transforms.expand(B, -1, -1, -1), centers=state.centers.expand(B, -1, -1),
-                        delta_n=state.delta_n.expand(B, -1, -1), embed=state.embed.expand(B, -1, -1),
-                        free=None if state.free is None else state.free.expand(B, -1))
+                        delta_n=state.delta_n.expand(B, -1, -1), embed=state.embed.expand(B, -1, -1))
     rgb, alpha = model.render_images(model.posed_gaussians(batched), [v.camera for v in views], bg)
     rgb = [c if v.gain is None else apply_colour(c, a, bg, v.gain.to(c), v.offset.to(c))
            for c, a, v in zip(rgb, alpha, views)]

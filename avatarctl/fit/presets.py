@@ -163,8 +163,6 @@ KNOBS: dict[str, tuple[str, str]] = {
     "model.track_refine.enabled": ("any", "with the tracked garment: its nodes' placement corrected per frame, "
                                           "learned with the avatar: true, false or auto (deviation)"),
     "model.track_free": ("any", "with track: the share of training frames a step places the paper's way (deviation)"),
-    "model.track_free_colour": ("gaussians", "with track: a second colour per Gaussian where its node is placed the "
-                                             "paper's way (deviation)"),
     "model.pose_refine.enabled": ("any", "per-frame body-pose refinement: true, false or auto (deviation)"),
     "model.colour.enabled": ("any", "a colour transform per training camera, learned with the avatar (deviation)"),
     # the Gaussian fields' knobs the docs teach (each a measured choice against 3DGS's)

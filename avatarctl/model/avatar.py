@@ -83,9 +83,6 @@ class NodeState:
     pose_penalty: torch.Tensor | None = None  # [] pose-refinement penalty of these frames (None when off)
     track_penalty: torch.Tensor | None = None  # [] tracked nodes: |Eq. 3's n_i - tracked centre|^2 (None: no tracks)
     refine_penalty: torch.Tensor | None = None  # [] their corrections' priors (model/track_refine.py; None: off)
-    # [B, N] 1 where a tracked node is placed the paper's way (free frames, novel poses), else 0; None without tracks
-    # or `track_free_colour` (model/gaussian_field.py's second colour)
-    free: torch.Tensor | None = None
 
     @property
     def num_frames(self) -> int:
@@ -95,7 +92,7 @@ class NodeState:
         """The nodes of frame `slot` alone, a batch of one (transforms, centres, Delta n, e; no cVAE statistics)."""
         one = slice(slot, slot + 1)
         return NodeState(transforms=self.transforms[one], centers=self.centers[one], delta_n=self.delta_n[one],
-                         embed=self.embed[one], free=None if self.free is None else self.free[one])
+                         embed=self.embed[one])
 
 
 @dataclass
@@ -257,12 +254,11 @@ class SlrfAvatar(nn.Module):
             embed = T.new_zeros(B, N, self.cfg.embed_dim)
         with _float32_geometry(dev):
             centers = posed_node_centers(T, self.node_rest, delta.to(T.dtype))  # [B, N, 3]  Eq. 3
-            track_penalty = refine_penalty = free = None
+            track_penalty = refine_penalty = None
             if self.track_nodes is not None:  # training frames: the tracked garment nodes (fit/garment_track.py)
-                T, centers, track_penalty, refine_penalty, free = self._tracked(T, centers, cond.frame_ids)
+                T, centers, track_penalty, refine_penalty = self._tracked(T, centers, cond.frame_ids)
         return NodeState(transforms=T, centers=centers, delta_n=delta, embed=embed, mu=mu, logvar=logvar,
-                         pose_penalty=pose_penalty, track_penalty=track_penalty, refine_penalty=refine_penalty,
-                         free=free if self.cfg.track_free_colour else None)
+                         pose_penalty=pose_penalty, track_penalty=track_penalty, refine_penalty=refine_penalty)
 
     # ---- garment tracks (fit/garment_track.py; a deviation) ------------------------------------------------------
     def set_tracks(self, nodes: torch.Tensor, rotation: torch.Tensor, center: torch.Tensor,
@@ -284,21 +280,18 @@ class SlrfAvatar(nn.Module):
             self._buffers[name] = value.to(dev).clone()
 
     def _tracked(self, T: torch.Tensor, centers: torch.Tensor, frame_ids: torch.Tensor
-                 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None, torch.Tensor | None, torch.Tensor]:
+                 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None, torch.Tensor | None]:
         """-> (T, centers) with the tracked nodes placed on training frames, L_track: the mean over those frames of
         sum over the tracked nodes of |n_i - c_i|^2 (Eq. 3's centre with its Delta n against the tracked centre,
         metres^2), so that Delta n learns the tracked placement and predicts it on novel poses, and the priors of
         the placement's per-frame corrections (`track_refine`, model/track_refine.py: c_i and R_i corrected first;
         None when off). Both None: no training frame here. In training, each frame keeps the paper's placement with
         probability `cfg.track_free` (the global RNG): the garment is drawn from where Delta n puts it there too, as
-        on novel poses. Last, `free` [B, N]: 1 on the tracked nodes of the frames placed the paper's way."""
-        nodes = self.track_nodes
-        free = T.new_zeros(T.shape[:2])
-        free[:, nodes] = 1.0
+        on novel poses."""
         train = (frame_ids >= 0).nonzero(as_tuple=True)[0]
         if not train.numel():
-            return T, centers, None, None, free
-        f = frame_ids[train]
+            return T, centers, None, None
+        nodes, f = self.track_nodes, frame_ids[train]
         c = self.track_center[f].to(T.dtype)  # [b, M, 3]
         R = self.track_rotation[f].to(T.dtype)  # [b, M, 3, 3]
         refine_penalty = None
@@ -310,15 +303,14 @@ class SlrfAvatar(nn.Module):
         if self.training and self.cfg.track_free > 0:  # a share of the frames placed the paper's way this step
             keep = (torch.rand(train.numel()) >= self.cfg.track_free).to(train.device)
             if not keep.any():
-                return T, centers, penalty, refine_penalty, free
+                return T, centers, penalty, refine_penalty
             train, c, R = train[keep], c[keep], R[keep]
         T, centers = T.clone(), centers.clone()
         b = train[:, None]
         T[b, nodes[None], :3, :3] = R
         T[b, nodes[None], :3, 3] = c - (R @ self.node_rest[nodes].to(T.dtype)[None, ..., None])[..., 0]
         centers[b, nodes[None]] = c
-        free[b, nodes[None]] = 0.0
-        return T, centers, penalty, refine_penalty, free
+        return T, centers, penalty, refine_penalty
 
     def set_latent_mean(self, cond: FrameConditioning) -> None:
         """With `cfg.novel_latent = "train_mean"`: store the mean posterior mean of the cVAE over `cond`'s frames (all
@@ -337,7 +329,7 @@ class SlrfAvatar(nn.Module):
         with _float32_geometry(state.transforms.device):
             centers = posed_node_centers(state.transforms, self.node_rest, delta.to(state.transforms.dtype))
         return NodeState(transforms=state.transforms, centers=centers, delta_n=delta, embed=embed, mu=state.mu,
-                         logvar=state.logvar, free=state.free)
+                         logvar=state.logvar)
 
     # ---- step 2 (field "gaussians"): rasterizing ------------------------------------------------------------------
     def posed_gaussians(self, state: NodeState) -> "PosedGaussians":
@@ -345,7 +337,7 @@ class SlrfAvatar(nn.Module):
         if not self.field_kind.splats:
             raise ValueError(f"posed_gaussians needs model.field = 'gaussians', this avatar's is {self.cfg.field!r}")
         with _float32_geometry(state.transforms.device):
-            return self.fields(state.transforms, state.centers, state.embed, state.free)
+            return self.fields(state.transforms, state.centers, state.embed)
 
     def render_image(self, posed: "PosedGaussians", slot: int, camera: "SplatCamera", background: torch.Tensor,
                      backend: str = "auto") -> tuple[torch.Tensor, torch.Tensor]:

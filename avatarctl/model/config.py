@@ -413,10 +413,6 @@ class ModelConfig:
     # training frames places the tracked nodes the paper's way (skeleton + Delta n, Eq. 1-3) instead of by the
     # tracks, so the garment is also learned where the model's own Delta n puts it, as on novel poses
     track_free: float = 0.3
-    # with field "gaussians" and track_free > 0: each Gaussian has a second colour, a residual added to its own where
-    # its node is placed the paper's way (the free frames and novel poses), so that the colours drawn where the tracks
-    # place the garment are not averaged with those drawn where Delta n places it (a deviation; `SlrfAvatar._tracked`)
-    track_free_colour: bool = False
     # the tracked garment nodes' per-frame corrections (a deviation when on, model/track_refine.py)
     track_refine: TrackRefineConfig = TrackRefineConfig()
     colour: ColourConfig = ColourConfig()  # a colour transform per training camera (deviation when on, model/colour.py)
@@ -477,8 +473,6 @@ class ModelConfig:
         need(0 < self.eps < 1, f"eps must be in (0, 1), got {self.eps}")
         need(self.latent in LATENTS, f"latent must be one of {LATENTS}, got {self.latent!r}")
         need(0.0 <= self.track_free < 1.0, f"track_free must be in [0, 1), got {self.track_free!r}")
-        need(isinstance(self.track_free_colour, bool), f"track_free_colour must be a bool, got "
-             f"{self.track_free_colour!r}")
         need(self.novel_latent in NOVEL_LATENTS, f"novel_latent must be one of {NOVEL_LATENTS}, got "
              f"{self.novel_latent!r}")
         need(self.variant in VARIANTS, f"variant must be one of {VARIANTS}, got {self.variant!r}")

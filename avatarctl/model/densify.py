@@ -50,8 +50,6 @@ def relocate_dead(fields: NodeGaussians, optimizer: torch.optim.Optimizer, min_o
                "features": fields.features[node, src]}
     if fields.shaded:
         targets["normals"] = fields.normals[node, src]
-    if fields.sh_free is not None:
-        targets["sh_free"] = fields.sh_free[node, src]
     for name, value in targets.items():
         p = getattr(fields, name)
         block = p[rows]

@@ -185,8 +185,7 @@ class NodeGaussians(nn.Module):
     """The N nodes' K Gaussians and their per-node decoder (see the module docstring)."""
 
     def __init__(self, cfg: GaussianConfig, num_nodes: int, embed_dim: int, init_means: torch.Tensor,
-                 init_log_scales: torch.Tensor, sigma: float = 0.05, init_normals: torch.Tensor | None = None,
-                 free_colour: bool = False):
+                 init_log_scales: torch.Tensor, sigma: float = 0.05, init_normals: torch.Tensor | None = None):
         super().__init__()
         N, K = num_nodes, cfg.per_node
         assert init_means.shape == (N, K, 3), f"init_means: expected [{N}, {K}, 3], got {tuple(init_means.shape)}"
@@ -201,8 +200,6 @@ class NodeGaussians(nn.Module):
         self.opacity_logits = nn.Parameter(torch.full((N, K), math.log(p / (1 - p))))  # [N, K]
         self.sh = nn.Parameter(torch.zeros(N, K, S, 3))  # [N, K, S, 3]: grey at the start
         self.features = nn.Parameter(0.1 * torch.randn(N, K, cfg.feature_dim))  # [N, K, F]
-        # `ModelConfig.track_free_colour`: the residual colour of a Gaussian whose node is placed the paper's way
-        self.sh_free = nn.Parameter(torch.zeros(N, K, S, 3)) if free_colour else None  # [N, K, S, 3]
         self.embed = BatchedLinear(N, embed_dim, cfg.decoder_width, bias=False)  # e_i's first-layer term
         self.coord_scale = 1.0 / sigma  # the decoder sees mu_ik / sigma (Eq. 6 sigma, metres)
         self.decoder = BatchedMLP(N, [cfg.feature_dim + 3, cfg.decoder_width, 3 * S + 3 + 1], last_init_scale=0.0)
@@ -218,14 +215,11 @@ class NodeGaussians(nn.Module):
         """The per-Gaussian parameters by learning-rate group (names of `GaussianConfig.lr_*`)."""
         return {"lr_means": [self.means], "lr_scales": [self.log_scales], "lr_quats": [self.quats],
                 "lr_opacity": [self.opacity_logits],
-                "lr_colors": [self.sh, self.features] + ([self.light] if self.shaded else [])
-                + ([self.sh_free] if self.sh_free is not None else [])}
+                "lr_colors": [self.sh, self.features] + ([self.light] if self.shaded else [])}
 
-    def forward(self, transforms: torch.Tensor, centers: torch.Tensor, embed: torch.Tensor,
-                free: torch.Tensor | None = None) -> PosedGaussians:
+    def forward(self, transforms: torch.Tensor, centers: torch.Tensor, embed: torch.Tensor) -> PosedGaussians:
         """transforms [B, N, 4, 4] T_i (Eq. 1), centers [B, N, 3] posed nodes n_i (Eq. 3), embed [B, N, E] e_i ->
-        the posed Gaussians of the B frames. `free` [B, N] (`NodeState.free`): where 1, the node's Gaussians add their
-        residual colour `sh_free` (`ModelConfig.track_free_colour`; ignored without it)."""
+        the posed Gaussians of the B frames."""
         B, N, K, S = centers.shape[0], self.num_nodes, self.per_node, self.num_sh
         F = self.features.shape[-1]
         bias = self.embed(embed.transpose(0, 1))  # [N, B, width]
@@ -234,8 +228,6 @@ class NodeGaussians(nn.Module):
         first = bias[:, :, None, :].expand(N, B, K, bias.shape[-1]).reshape(N, B * K, -1)
         out = self.decoder(x, first_bias=first).reshape(N, B, K, -1).transpose(0, 1)  # [B, N, K, 3S + 4]
         sh = self.sh[None] + out[..., :3 * S].reshape(B, N, K, S, 3)
-        if self.sh_free is not None and free is not None:
-            sh = sh + free.to(sh.dtype)[:, :, None, None, None] * self.sh_free[None]
         offset = out[..., 3 * S:3 * S + 3] * self.cfg.offset_scale
         opacity = torch.sigmoid(self.opacity_logits[None] + out[..., -1])  # [B, N, K]
         A = transforms[..., :3, :3]  # [B, N, 3, 3]

@@ -130,7 +130,7 @@ class Rasterized:
                                   (means + rest.detach().float().cpu()[:, None]).reshape(-1, 3)
                                   ).reshape(means.shape) if cfg.gaussians.shading == "irradiance" else None
         avatar.fields = NodeGaussians(cfg.gaussians, cfg.num_nodes, cfg.embed_dim, means, log_scales, cfg.sigma,
-                                      normals, free_colour=cfg.track_free_colour)
+                                      normals)
 
     def query(self, avatar: "SlrfAvatar", points: torch.Tensor, dirs: torch.Tensor, point_frame: torch.Tensor,
               state: "NodeState", candidates: tuple[torch.Tensor, torch.Tensor] | None = None
