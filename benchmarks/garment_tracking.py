@@ -492,7 +492,8 @@ def surface_error(av, gt, frames: list[int], path: Path, through: bool = False) 
     ref = int(d["reference"])  # frame index of the reference surface
     inp = capture_input(av.capture, av.body, av.template, frames, list(av.capture.split.train_views))
     if through:
-        again = track(inp, GarmentMesh(X[ref], d["faces"].astype(np.int64), frames[ref]), ref,
+        segments = int(d["segments"]) if "segments" in d else 0  # tracks of a fit before the twist pre-solve: none
+        again = track(inp, GarmentMesh(X[ref], d["faces"].astype(np.int64), frames[ref], segments), ref,
                       saved_settings(path.parent / "summary.json"), stop=False)
         X, tracked = again.vertices, again.tracked
     faces = gt.garment_faces.astype(np.int64)

@@ -316,7 +316,7 @@ def part_track(device: str, quick: bool) -> dict:
                            mask=lambda c, k: np.ones((size, size), bool), body_vertices=np.stack([body] * frames),
                            body_faces=body_faces, body_transforms=lambda fi, v: np.repeat(eye, len(v), 0),
                            up=np.tile([0.0, 0.0, 1.0], (frames, 1)))
-    mesh = gt.GarmentMesh(tube, faces, frame=frames // 2)
+    mesh = gt.GarmentMesh(tube, faces, frame=frames // 2, segments=segments)
     settings = gt.TrackSettings(iters=5, stereo_iters=5) if quick else gt.TrackSettings()
     out, seconds = {}, {}
     for dev in dict.fromkeys([device, "cpu"]):

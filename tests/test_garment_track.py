@@ -84,13 +84,19 @@ def _turned(verts: np.ndarray, angle: float) -> np.ndarray:
     return verts @ np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]]).T
 
 
-@pytest.fixture(scope="module")
-def scene():
-    """Three frames of the tube turning by TURN per frame around the still box, in six views."""
+def _swung(verts: np.ndarray, angle: float) -> np.ndarray:
+    """The tube's rings turned by `angle` at its lower rim, less towards the top (none there): a skirt's swing."""
+    share = (verts[:, 2].max() - verts[:, 2]) / np.ptp(verts[:, 2])
+    return np.stack([_turned(v[None], angle * w)[0] for v, w in zip(verts, share)])
+
+
+def _scene(turn: float, swing: bool = False):
+    """Three frames of the tube turning by `turn` radians per frame around the still box (`swing`: at its lower rim
+    only, less towards the top), in six views."""
     verts, faces, uv = _tube()
     body = _body()
     cams = _cameras()
-    frames = [_turned(verts, TURN * (f - 1)) for f in range(3)]
+    frames = [(_swung if swing else _turned)(verts, turn * (f - 1)) for f in range(3)]
     shots = {(c, f): _render(cam, frames[f], faces, uv, body) for c, cam in enumerate(cams) for f in range(3)}
     eye = np.broadcast_to(np.eye(4), (1, 4, 4))
     inp = gt.TrackingInput(frames=(0, 1, 2), cameras=cams, image=lambda c, f: shots[(c, f)][0],
@@ -98,6 +104,11 @@ def scene():
                            body_faces=body[1], body_transforms=lambda fi, j: np.repeat(eye, len(j), 0),
                            up=np.tile([0.0, 0.0, 1.0], (3, 1)))
     return inp, verts, faces, frames
+
+
+@pytest.fixture(scope="module")
+def scene():
+    return _scene(TURN)
 
 
 def test_the_tracker_follows_the_turning_print(scene):
@@ -112,6 +123,24 @@ def test_the_tracker_follows_the_turning_print(scene):
         assert still > 0.015
         assert err < 0.3 * still, (f, err, still)
     assert (tracks.seen[[0, 2]] >= 2).mean() > 0.5
+
+
+def test_the_twist_presolve_turns_each_ring_with_a_swinging_print():
+    """Step 2's pre-solve (`_Tracker.twist`) from the still start: each ring turned by its own angle lands near the
+    swung tube (0.3 rad at the lower rim, none at the top), and a surface that is no tube is refused its rings."""
+    inp, verts, faces, truth = _scene(0.3, swing=True)
+    mesh = gt.GarmentMesh(truth[1], faces, frame=1, segments=60)
+    tracker = gt._Tracker(inp, mesh, 1, gt.TrackSettings())
+    svis = tracker._sample_vis(torch.as_tensor(gt.visibility(inp, 1, truth[1], faces)).float())
+    start = tracker.twist(truth[1], torch.as_tensor(truth[1], dtype=torch.float32), svis, 1, 2)
+    still = np.linalg.norm(truth[2] - truth[1], axis=-1)
+    err = np.linalg.norm(start - truth[2], axis=-1)
+    assert err.mean() < 0.1 * still.mean(), (err.mean(), still.mean())
+    low = verts[:, 2] < verts[:, 2].min() + 0.1  # the lower rings, which swing the most
+    assert err[low].mean() < 0.1 * still[low].mean()
+    assert np.allclose(np.linalg.norm(start[:, :2], axis=-1), np.linalg.norm(truth[1][:, :2], axis=-1), atol=1e-5)
+    with pytest.raises(AssertionError, match="rings"):
+        gt.GarmentMesh(truth[1], faces, frame=1, segments=7)
 
 
 def test_the_reference_surface_is_a_tube_around_the_garment_from_the_masks(scene):
@@ -322,6 +351,30 @@ def test_rescue_follows_the_frames_the_tracker_lost_and_keeps_the_rest(scene, mo
         still = np.linalg.norm(truth[1] - truth[f], axis=-1).mean()
         assert np.linalg.norm(rescued.vertices[f] - truth[f], axis=-1).mean() < 0.5 * still, f
         assert (rescued.seen[f] >= 2).mean() > 0.5
+
+
+@pytest.mark.parametrize("broken", [True, False])
+def test_rescue_keeps_the_side_tracked_with_or_without_the_twist_whichever_fits(scene, monkeypatch, broken):
+    """The rescue tracks each side's second tube with the twist pre-solve and without (each loses the cloth on some
+    captures) and keeps the one whose carried surfaces the reference colours fit best: with either made to throw
+    the surface up by 5 cm per frame of its target, the other one is kept and lands on the turned print."""
+    inp, verts, faces, truth = scene
+    mesh = gt.GarmentMesh(truth[1], faces, frame=1, segments=60)
+    with monkeypatch.context() as m:
+        m.setattr(gt._Tracker, "explains", lambda self, X, fi: 1.0)
+        lost = gt.track(inp, mesh, ref=1)
+    step = gt._Tracker.step
+
+    def thrown(self, Xp, Xpp, fa, fb, init=None):
+        X, seen, loss = step(self, Xp, Xpp, fa, fb, init)
+        return (X + [0.0, 0.0, 0.05 * fb], seen, loss) if bool(self.s.twist) == broken else (X, seen, loss)
+
+    monkeypatch.setattr(gt._Tracker, "step", thrown)
+    rescued = gt.rescue(inp, lost, 1, gt.TrackSettings(rescue_min_frames=1))
+    assert rescued.tracked.all()
+    for f in (0, 2):
+        still = np.linalg.norm(truth[1] - truth[f], axis=-1).mean()
+        assert np.linalg.norm(rescued.vertices[f] - truth[f], axis=-1).mean() < 0.5 * still, f
 
 
 @pytest.mark.gpu

@@ -17,7 +17,10 @@ first, the way the garment methods of the field do (sequential, warm-started, ap
    "Garment tracking"). No truth is needed.
 2. **Tracking** (`track`): from the reference frame forwards, then backwards, each frame's surface starts from the
    previous one moved by the skeleton (each vertex by the blended transform of its nearest body vertex, Eq. 1) plus
-   the previous step's motion beyond the skeleton (constant velocity), and is then solved by L-BFGS over an image
+   the previous step's motion beyond the skeleton (constant velocity), each ring of the tube then turned about the up
+   axis by its own angle (`twist`: one L-BFGS solve of the angles on the photometric term below at blur 1 px, with
+   neighbouring rings turning alike, `twist_smooth`: a swinging skirt turns its lower rings beyond that start), and
+   is then solved by L-BFGS over an image
    pyramid (Gaussian blur `sigmas`, pixels: 1 then 0.5; the start is within a few pixels, and a coarser level blurs
    the print away, whose minimum then pulls a twirling skirt off the cloth) for: the colour of each surface sample
    (vertices and 4 points per triangle) in every training view that saw it at the previous frame equal to its colour
@@ -30,9 +33,10 @@ first, the way the garment methods of the field do (sequential, warm-started, ap
 2b. **Rescue** (`rescue`, `track_rescue`): where a direction lost the surface (a twirl flares the hem beyond the tube
    built where the skirt hangs), a second, stiff tube is built at the lost frame where the garment is most spread
    (and at the frames before it: the one whose way back to the last frame tracked lands on the surface held there),
-   tracked back to the last frame tracked and forward over the lost ones; the first surface follows its motion there
-   (each vertex by the rigid motion of its nearest second-tube vertices), kept on the frames where it explains the
-   reference colours better than the skeleton does.
+   tracked back to the last frame tracked and forward over the lost ones, with the twist and without (the side keeps
+   the one whose carried surfaces the reference colours fit best: each loses the cloth on some captures); the first
+   surface follows its motion there (each vertex by the rigid motion of its nearest second-tube vertices), kept on
+   the frames where it explains the reference colours better than the skeleton does.
 3. **Node motions** (`node_motions`): each node given to track owns its `patch` nearest surface vertices within
    `reach` at the reference frame; per frame, the best rigid motion (Kabsch) of those vertices from the reference
    frame is the node's motion. The fit places the node by it on training frames (`SlrfAvatar.set_tracks`); on
@@ -63,6 +67,8 @@ class TrackSettings:
     sigmas: tuple[float, ...] = (1.0, 0.5)  # the tracker's image blur per pyramid level, pixels, coarse to fine
     stereo_sigmas: tuple[float, ...] = (4.0, 2.0, 1.0)  # the reference stereo's, pixels, coarse to fine
     iters: int = 30  # L-BFGS iterations per level
+    twist: float = 1.0  # the twist pre-solve's image blur, pixels (step 2: one turn about the up axis per ring); 0: off
+    twist_smooth: float = 10.0  # (angle_r - angle_r+1)^2 of neighbouring rings, degrees^2 x 0.01, in the pre-solve
     isometry: float = 10.0  # (edge length - reference length)^2, cm^2
     smooth: float = 10.0  # |displacement_i - displacement_j|^2 over edges, cm^2
     silhouette: float = 1.0  # squared pixels outside the frame's mask, per view
@@ -91,10 +97,13 @@ class GarmentMesh:
     vertices: np.ndarray  # [V, 3] world metres
     faces: np.ndarray  # [T, 3] int
     frame: int  # capture frame id of the reference frame
+    segments: int = 0  # a tube's vertices per ring (vertex r * segments + k, rings from the hem up); 0: not a tube
 
     def __post_init__(self) -> None:
         assert self.vertices.ndim == 2 and self.vertices.shape[1] == 3, f"vertices {self.vertices.shape}"
         assert self.faces.ndim == 2 and self.faces.shape[1] == 3, f"faces {self.faces.shape}"
+        assert self.segments >= 0 and (not self.segments or len(self.vertices) % self.segments == 0), \
+            f"{len(self.vertices)} vertices are no rings of {self.segments}"
 
     @property
     def edges(self) -> np.ndarray:
@@ -252,7 +261,7 @@ def reference_mesh(inp: TrackingInput, ref: int, settings: TrackSettings = Track
     outward = verts - np.repeat(centres, A, 0) - (verts @ up)[:, None] * up
     if (np.einsum("vi,vi->v", vertex_normals(verts, faces), outward) < 0).mean() > 0.5:
         faces = faces[:, [0, 2, 1]]
-    return GarmentMesh(vertices=verts, faces=faces, frame=frame)
+    return GarmentMesh(vertices=verts, faces=faces, frame=frame, segments=A)
 
 
 # ---- 2. tracking ------------------------------------------------------------------------------------------------
@@ -344,7 +353,7 @@ class _Tracker:
         self.edges = torch.as_tensor(mesh.edges, device=self.dev)
         X0 = torch.as_tensor(mesh.vertices, dtype=torch.float32, device=self.dev)
         self.rest = (X0[self.edges[:, 0]] - X0[self.edges[:, 1]]).norm(dim=-1)
-        self.faces_np = mesh.faces
+        self.faces_np, self.segments = mesh.faces, mesh.segments
         # the reference colours: per sample, the mean over the views that see it at the reference frame
         vis = torch.as_tensor(visibility(inp, ref, mesh.vertices, mesh.faces), device=self.dev).float()  # [C, V]
         self.tex = {}
@@ -358,6 +367,43 @@ class _Tracker:
         """[C, V] vertex visibility -> [C, S] sample visibility (a triangle's points: all three vertices seen)."""
         tri = (vis[:, self.faces].min(-1).values > 0).float()  # [C, T]
         return torch.cat([vis, tri.repeat_interleave(len(_BARY), 1)], 1)
+
+    def twist(self, init: np.ndarray, Xp: torch.Tensor, svis: torch.Tensor, fa: int, fb: int) -> np.ndarray:
+        """Step 2's pre-solve: the tube at `init` [V, 3] with each ring turned about the up axis (frame index fb's)
+        through its centre by one angle, the angles found by L-BFGS on the photometric term (blur `twist` px) and
+        `twist_smooth`; -> the turned vertices [V, 3], where the full solve starts. A swinging skirt turns its lower
+        rings beyond where the skeleton and the last step's velocity put them; one angle a ring follows the print
+        that far without the freedom that lets a blurred print pull single vertices off the cloth."""
+        s, inp = self.s, self.inp
+        X0 = torch.as_tensor(init, dtype=torch.float32, device=self.dev)
+        rings = X0.reshape(-1, self.segments, 3)
+        centre = rings.mean(1, keepdim=True)
+        up = torch.as_tensor(inp.up[fb] / np.linalg.norm(inp.up[fb]), dtype=torch.float32, device=self.dev)
+        q = rings - centre
+        along = (q @ up)[..., None] * up
+        p = q - along  # [R, A, 3] each vertex's offset from its ring's centre, normal to up
+        p90 = torch.cross(up.expand_as(p), p, dim=-1)  # p turned by 90 degrees about up
+        angle = torch.zeros(len(rings), device=self.dev, requires_grad=True)
+        before = _sample(self.frames.colour(inp.frames[fa], s.twist), _project(self.P, _samples(Xp, self.faces)))
+        after = self.frames.colour(inp.frames[fb], s.twist)
+        n = svis.sum().clamp(min=1)
+        opt = torch.optim.LBFGS([angle], lr=1, max_iter=s.iters, line_search_fn="strong_wolfe")
+
+        def turned() -> torch.Tensor:
+            a = angle[:, None, None]
+            return (centre + along + torch.cos(a) * p + torch.sin(a) * p90).reshape(-1, 3)
+
+        def closure():
+            opt.zero_grad()
+            c = _sample(after, _project(self.P, _samples(turned(), self.faces)))
+            degrees = torch.rad2deg(angle)
+            loss = ((svis * ((c - before) ** 2).sum(-1)).sum() / n * 1e3 +
+                    s.twist_smooth * ((degrees[1:] - degrees[:-1]) ** 2).mean() * 1e-2)
+            loss.backward()
+            return loss
+
+        opt.step(closure)
+        return turned().detach().cpu().numpy().astype(np.float64)
 
     def explains(self, X: np.ndarray, fi: int) -> float:
         """How far the reference frame's colours of the surface samples are from frame index `fi`'s images with the
@@ -384,6 +430,8 @@ class _Tracker:
             if Xpp is not None and s.residual_velocity:
                 init = init + s.residual_velocity * (Xp - skin_move(inp, Xpp, 2 * fa - fb, fa))
         Xp_t = torch.as_tensor(Xp, dtype=torch.float32, device=self.dev)
+        if s.twist and self.segments:
+            init = self.twist(init, Xp_t, svis, fa, fb)
         X = torch.as_tensor(init, dtype=torch.float32, device=self.dev).clone().requires_grad_(True)
         e0, e1 = self.edges[:, 0], self.edges[:, 1]
         dt = self.frames.outside(inp.frames[fb])
@@ -503,10 +551,12 @@ def rescue(inp: TrackingInput, tracks: GarmentTracks, ref: int, settings: TrackS
     the frame where the garment is most spread among the lost ones (`spread_frame`) and at each of the
     `rescue_candidates` - 1 frames before it, each tracked back to the last frame tracked; the one that arrives
     nearest the tracked surface there (`_chamfer`: the way back held the cloth) is tracked from there forward over
-    the lost frames (its first step starting where the way back found it); the tracked surface carried from that
-    last frame by the second tube's motion (`carry`) is kept on each lost frame where the reference colours fit the
-    frame better than with the surface moved by the skeleton from that frame (the placement the fit would hold
-    there). -> the tracks with those frames tracked."""
+    the lost frames (its first step starting where the way back found it). All of it twice where `twist` is on:
+    with the twist pre-solve and without; the side keeps the pass whose carried surfaces (below) the reference
+    colours fit best summed over its lost frames (synth small: the twist's pass lost the cloth on seed 1, the plain
+    one drifted on seed 0). The tracked surface carried from that last frame by the second tube's motion (`carry`)
+    is kept on each lost frame where the reference colours fit the frame better than with the surface moved by the
+    skeleton from that frame (the placement the fit would hold there). -> the tracks with those frames tracked."""
     import time
     from dataclasses import replace
 
@@ -516,46 +566,57 @@ def rescue(inp: TrackingInput, tracks: GarmentTracks, ref: int, settings: TrackS
     stiff = replace(settings, isometry=settings.rescue_isometry, smooth=settings.rescue_smooth)
     first = None
     sides = [[f for f in range(ref + d, F if d > 0 else -1, d) if not tracked[f]] for d in (1, -1)]
-    total = sum(len(lost) + settings.rescue_candidates for lost in sides if len(lost) >= settings.rescue_min_frames)
+    total = sum(len(lost) + settings.rescue_candidates for lost in sides if len(lost) >= settings.rescue_min_frames) * \
+        (2 if settings.twist else 1)
     count = 0
     for d, lost in zip((1, -1), sides):
         if len(lost) < settings.rescue_min_frames:
             continue
         s = lost[0] - d  # the last frame tracked on this side (a direction stops at its first lost frame)
         r = spread_frame(inp, sorted(lost), settings)
-        best = None
-        for c in [r - k * d for k in range(settings.rescue_candidates) if (r - k * d - s) * d > 0]:
-            second = refine_reference(inp, reference_mesh(inp, c, stiff), c, stiff, device)
-            if len(second.vertices) < 20:
+        # tracked with the twist pre-solve and without (each loses the cloth on some captures): the side keeps the one
+        # whose carried surfaces the reference colours fit best over its lost frames
+        options, built = [], {}
+        for variant in ([stiff, replace(stiff, twist=0.0)] if stiff.twist else [stiff]):
+            best = None
+            for c in [r - k * d for k in range(settings.rescue_candidates) if (r - k * d - s) * d > 0]:
+                if c not in built:  # the second tube does not depend on the twist
+                    built[c] = refine_reference(inp, reference_mesh(inp, c, stiff), c, stiff, device)
+                second = built[c]
+                if len(second.vertices) < 20:
+                    continue
+                tracker = _Tracker(inp, second, c, variant, device)
+                back = {c: second.vertices}
+                for f in range(c - d, s - d, -d):  # c -> s
+                    back[f] = tracker.step(back[f + d], back.get(f + 2 * d), f + d, f)[0]
+                    tracker.frames.forget({inp.frames[f], inp.frames[f + d], inp.frames[c]})
+                gap = _chamfer(back[s], out[s])
+                if best is None or gap < best[0]:
+                    best = (gap, tracker, back)
+                count += 1
+                if progress is not None:
+                    progress(ProgressReport(done=count, total=total, part="rescue"))
+            if best is None:
                 continue
-            tracker = _Tracker(inp, second, c, stiff, device)
-            back = {c: second.vertices}
-            for f in range(c - d, s - d, -d):  # c -> s
-                back[f] = tracker.step(back[f + d], back.get(f + 2 * d), f + d, f)[0]
-                tracker.frames.forget({inp.frames[f], inp.frames[f + d], inp.frames[c]})
-            gap = _chamfer(back[s], out[s])
-            if best is None or gap < best[0]:
-                best = (gap, tracker, back)
-            count += 1
-            if progress is not None:
-                progress(ProgressReport(done=count, total=total, part="rescue"))
-        if best is None:
-            continue
-        _, tracker, back = best
-        Y = {s: back[s]}
-        for f in lost:  # s -> the side's last frame
-            Y[f] = tracker.step(Y[f - d], Y.get(f - 2 * d), f - d, f, init=back.get(f) if f - d == s else None)[0]
-            tracker.frames.forget({inp.frames[f], inp.frames[f - d], inp.frames[tracker.ref]})
-            count += 1
-            if progress is not None:
-                progress(ProgressReport(done=count, total=total, part="rescue"))
+            _, tracker, back = best
+            Y = {s: back[s]}
+            for f in lost:  # s -> the side's last frame
+                Y[f] = tracker.step(Y[f - d], Y.get(f - 2 * d), f - d, f, init=back.get(f) if f - d == s else None)[0]
+                tracker.frames.forget({inp.frames[f], inp.frames[f - d], inp.frames[tracker.ref]})
+                count += 1
+                if progress is not None:
+                    progress(ProgressReport(done=count, total=total, part="rescue"))
+            options.append(Y)
         if first is None:
             first = _Tracker(inp, tracks.mesh, ref, settings, device)
+        if not options:
+            continue
+        carried = [{f: carry(out[s], Y[s], Y[f], settings.rescue_k) for f in lost} for Y in options]
+        moved = min(carried, key=lambda C: sum(first.explains(X, f) for f, X in C.items()))  # over the side
         for f in lost:
-            X = carry(out[s], Y[s], Y[f], settings.rescue_k)
-            if first.explains(X, f) < first.explains(skin_move(inp, out[s], s, f), f):
-                out[f], tracked[f] = X, True
-                seen[f] = visibility(inp, f, X, tracks.mesh.faces).sum(0)
+            if first.explains(moved[f], f) < first.explains(skin_move(inp, out[s], s, f), f):
+                out[f], tracked[f] = moved[f], True
+                seen[f] = visibility(inp, f, moved[f], tracks.mesh.faces).sum(0)
     return GarmentTracks(mesh=tracks.mesh, frames=tracks.frames, vertices=out, seen=seen, loss=tracks.loss,
                          tracked=tracked, seconds=tracks.seconds + time.perf_counter() - t0)
 
@@ -606,7 +667,7 @@ def refine_reference(inp: TrackingInput, mesh: GarmentMesh, ref: int, settings: 
         opt.step(closure)
     o = (reach * torch.tanh(offset / reach)).detach()
     return GarmentMesh(vertices=(X0 + o[:, None] * n).cpu().numpy().astype(np.float64), faces=mesh.faces,
-                       frame=mesh.frame)
+                       frame=mesh.frame, segments=mesh.segments)
 
 
 # ---- 3. node motions --------------------------------------------------------------------------------------------

@@ -515,7 +515,7 @@ def _track_garment(t: "_Trainer", template, hull_count: int) -> tuple[str, float
         with open(tmp, "wb") as fh:
             np.savez_compressed(fh, frames=np.asarray(tracks.frames), vertices=tracks.vertices.astype(np.float32),
                                 faces=mesh.faces, seen=tracks.seen, loss=tracks.loss, tracked=tracks.tracked,
-                                reference=ref, nodes=motion.nodes)
+                                reference=ref, nodes=motion.nodes, segments=mesh.segments)
     summary = {"reference_frame": int(t.train_frames[ref]), "surface_vertices": int(len(mesh.vertices)),
                "frames": len(tracks.frames), "tracked_nodes": int(len(motion.nodes)), "hull_nodes": hull_count,
                "patch_vertices_median": float(np.median(motion.vertices)) if len(motion.nodes) else 0.0,
