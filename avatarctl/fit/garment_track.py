@@ -20,16 +20,15 @@ first, the way the garment methods of the field do (sequential, warm-started, ap
    the previous step's motion beyond the skeleton (constant velocity), each ring of the tube then turned about the up
    axis by its own angle (`twist`: one L-BFGS solve of the angles on the photometric term below at blur 1 px, with
    neighbouring rings turning alike, `twist_smooth`: a swinging skirt turns its lower rings beyond that start), and
-   is then solved by L-BFGS over an image
-   pyramid (Gaussian blur `sigmas`, pixels: 1 then 0.5; the start is within a few pixels, and a coarser level blurs
-   the print away, whose minimum then pulls a twirling skirt off the cloth) for: the colour of each surface sample
-   (vertices and 4 points per triangle) in every training view that saw it at the previous frame equal to its colour
-   there (the appearance is the previous frame's images, frozen: only moving the surface lowers the loss), plus
-   `anchor` x the same against the reference frame's mean colour of the sample (no drift where the reference colour
-   is right); edge lengths kept (`isometry`, the cloth does not stretch), neighbouring vertices moving alike
-   (`smooth`), every vertex inside the frame's masks (`silhouette`, squared pixels outside). Visibility: a ray from
-   the camera to the vertex hits the body or the surface within 1 cm of it (Warp's BVH, `geometry.raycast`), the
-   surface not seen edge-on.
+   is then solved by L-BFGS over an image pyramid (Gaussian blur `sigmas`, pixels: 1 then 0.5; the start is within a
+   few pixels, and a coarser level blurs the print away, whose minimum then pulls a twirling skirt off the cloth)
+   for: the colour of each surface sample (vertices and 4 points per triangle) in every training view that saw it at
+   the previous frame equal to its colour there (the appearance is the previous frame's images, frozen: only moving
+   the surface lowers the loss), plus `anchor` x the same against the reference frame's mean colour of the sample (no
+   drift where the reference colour is right); edge lengths kept (`isometry`, the cloth does not stretch),
+   neighbouring vertices moving alike (`smooth`), every vertex inside the frame's masks (`silhouette`, squared pixels
+   outside). Visibility: a ray from the camera to the vertex hits the body or the surface within 1 cm of it (Warp's
+   BVH, `geometry.raycast`), the surface not seen edge-on.
 2b. **Rescue** (`rescue`, `track_rescue`): where a direction lost the surface (a twirl flares the hem beyond the tube
    built where the skirt hangs), a second, stiff tube is built at the lost frame where the garment is most spread
    (and at the frames before it: the one whose way back to the last frame tracked lands on the surface held there),
@@ -566,18 +565,19 @@ def rescue(inp: TrackingInput, tracks: GarmentTracks, ref: int, settings: TrackS
     stiff = replace(settings, isometry=settings.rescue_isometry, smooth=settings.rescue_smooth)
     first = None
     sides = [[f for f in range(ref + d, F if d > 0 else -1, d) if not tracked[f]] for d in (1, -1)]
-    total = sum(len(lost) + settings.rescue_candidates for lost in sides if len(lost) >= settings.rescue_min_frames) * \
-        (2 if settings.twist else 1)
+    # tracked with the twist pre-solve and without (each loses the cloth on some captures): a side keeps the one whose
+    # carried surfaces the reference colours fit best over its lost frames
+    variants = [stiff, replace(stiff, twist=0.0)] if stiff.twist else [stiff]
+    total = sum(len(lost) + settings.rescue_candidates for lost in sides
+                if len(lost) >= settings.rescue_min_frames) * len(variants)
     count = 0
     for d, lost in zip((1, -1), sides):
         if len(lost) < settings.rescue_min_frames:
             continue
         s = lost[0] - d  # the last frame tracked on this side (a direction stops at its first lost frame)
         r = spread_frame(inp, sorted(lost), settings)
-        # tracked with the twist pre-solve and without (each loses the cloth on some captures): the side keeps the one
-        # whose carried surfaces the reference colours fit best over its lost frames
         options, built = [], {}
-        for variant in ([stiff, replace(stiff, twist=0.0)] if stiff.twist else [stiff]):
+        for variant in variants:
             best = None
             for c in [r - k * d for k in range(settings.rescue_candidates) if (r - k * d - s) * d > 0]:
                 if c not in built:  # the second tube does not depend on the twist
@@ -607,16 +607,17 @@ def rescue(inp: TrackingInput, tracks: GarmentTracks, ref: int, settings: TrackS
                 if progress is not None:
                     progress(ProgressReport(done=count, total=total, part="rescue"))
             options.append(Y)
-        if first is None:
-            first = _Tracker(inp, tracks.mesh, ref, settings, device)
         if not options:
             continue
+        if first is None:
+            first = _Tracker(inp, tracks.mesh, ref, settings, device)
         carried = [{f: carry(out[s], Y[s], Y[f], settings.rescue_k) for f in lost} for Y in options]
-        moved = min(carried, key=lambda C: sum(first.explains(X, f) for f, X in C.items()))  # over the side
+        fits = [{f: first.explains(X, f) for f, X in C.items()} for C in carried]
+        pick = min(range(len(carried)), key=lambda i: sum(fits[i].values()))  # over the side
         for f in lost:
-            if first.explains(moved[f], f) < first.explains(skin_move(inp, out[s], s, f), f):
-                out[f], tracked[f] = moved[f], True
-                seen[f] = visibility(inp, f, moved[f], tracks.mesh.faces).sum(0)
+            if fits[pick][f] < first.explains(skin_move(inp, out[s], s, f), f):
+                out[f], tracked[f] = carried[pick][f], True
+                seen[f] = visibility(inp, f, carried[pick][f], tracks.mesh.faces).sum(0)
     return GarmentTracks(mesh=tracks.mesh, frames=tracks.frames, vertices=out, seen=seen, loss=tracks.loss,
                          tracked=tracked, seconds=tracks.seconds + time.perf_counter() - t0)
 
